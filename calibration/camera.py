@@ -1,0 +1,482 @@
+"""Pinhole camera model (OpenCV conventions) and the camera file read by perception and sim.
+
+Pixel convention: OpenCV's. Pixel (u, v) = (column, row); integer coordinates are pixel centres,
+so the image covers u in [-0.5, width - 0.5) and v in [-0.5, height - 0.5). Points are in the
+``cam_cv`` frame (x right, y down, z forward; see :mod:`calibration.frames`).
+
+Camera file (format version 1), written by :func:`save_camera` as two twins with one stem:
+
+* ``<stem>.yaml``: OpenCV FileStorage YAML, readable by ``cv2.FileStorage`` in any language.
+* ``<stem>.json``: the same values as plain JSON lists and numbers.
+
+Keys (required unless marked optional):
+    format_version (int, optional):  1. Files without it (e.g. from OpenCV's calibration
+        sample) are read as version 1.
+    camera_matrix (3x3):             K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (px).
+    distortion_coefficients (1xN):   OpenCV order k1, k2, p1, p2[, k3[, k4, k5, k6[, s1..s4
+        [, tx, ty]]]], N in {4, 5, 8, 12, 14}.
+    image_width, image_height (int): image size (px) the intrinsics belong to.
+    rms_px (float, optional):        RMS reprojection error of the calibration (px).
+    T_body_cam (4x4, optional):      camera extrinsics ``T_bodyfrd_camcv``: the OpenCV camera
+        frame expressed in the vehicle body frame (x forward, y starboard, z down), metres.
+    name (str, optional):            camera name (default "camera").
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import ArrayLike
+
+from calibration.frames import check_T
+from dockcore.errors import DockError
+from dockcore.io import atomic_path, atomic_write_json
+
+__all__ = [
+    "CAMERA_FILE_VERSION",
+    "REFERENCE_T_BODYFRD_CAMCV",
+    "CameraModel",
+    "load_camera",
+    "reference_camera",
+    "save_camera",
+]
+
+#: Version written into (and accepted from) camera files.
+CAMERA_FILE_VERSION = 1
+
+#: Accepted lengths of the OpenCV distortion vector.
+_DIST_LENGTHS = (4, 5, 8, 12, 14)
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    """Pinhole intrinsics with OpenCV distortion.
+
+    Attributes:
+        width_px: image width (px), > 0.
+        height_px: image height (px), > 0.
+        fx_px: focal length along u (px), > 0.
+        fy_px: focal length along v (px), > 0.
+        cx_px: principal point u (px; pixel centres at integers).
+        cy_px: principal point v (px).
+        dist: OpenCV distortion coefficients (k1, k2, p1, p2[, k3, ...]); length 4, 5, 8, 12 or
+            14; dimensionless. Zeros for an ideal pinhole.
+        rms_px: RMS reprojection error of the calibration that produced it (px), or None.
+        name: a label for files and reports.
+    """
+
+    width_px: int
+    height_px: int
+    fx_px: float
+    fy_px: float
+    cx_px: float
+    cy_px: float
+    dist: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    rms_px: float | None = None
+    name: str = "camera"
+
+    def __post_init__(self) -> None:
+        try:
+            object.__setattr__(self, "dist", tuple(float(d) for d in self.dist))
+        except (TypeError, ValueError):
+            raise ValueError(f"dist: expected a sequence of numbers, got {self.dist!r}") from None
+        self.validate()
+
+    def validate(self) -> None:
+        """Raise ValueError (one line naming the field) if a value is out of range."""
+        for key in ("width_px", "height_px"):
+            value = getattr(self, key)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value <= 0:
+                raise ValueError(f"{key}: must be a positive integer, got {value!r}")
+        for key in ("fx_px", "fy_px", "cx_px", "cy_px"):
+            value = getattr(self, key)
+            if not isinstance(value, (int, float, np.number)) or not math.isfinite(value):
+                raise ValueError(f"{key}: must be a finite number, got {value!r}")
+        for key in ("fx_px", "fy_px"):
+            if getattr(self, key) <= 0:
+                raise ValueError(f"{key}: must be > 0, got {getattr(self, key)!r}")
+        if len(self.dist) not in _DIST_LENGTHS:
+            raise ValueError(f"dist: length must be one of {_DIST_LENGTHS}, got {len(self.dist)}")
+        if not all(math.isfinite(d) for d in self.dist):
+            raise ValueError(f"dist: must be finite, got {self.dist}")
+        if self.rms_px is not None and not (
+            isinstance(self.rms_px, (int, float, np.number))
+            and math.isfinite(self.rms_px)
+            and self.rms_px >= 0
+        ):
+            raise ValueError(f"rms_px: must be None or a finite number >= 0, got {self.rms_px!r}")
+        if not isinstance(self.name, str) or not self.name:
+            raise ValueError(f"name: must be a non-empty string, got {self.name!r}")
+
+    # ------------------------------------------------------------------ derived quantities
+
+    @property
+    def K(self) -> np.ndarray:
+        """(3, 3) float64 camera matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (px)."""
+        return np.array(
+            [[self.fx_px, 0.0, self.cx_px], [0.0, self.fy_px, self.cy_px], [0.0, 0.0, 1.0]],
+            dtype=np.float64,
+        )
+
+    @property
+    def dist_coeffs(self) -> np.ndarray:
+        """(N,) float64 distortion coefficients in OpenCV order."""
+        return np.array(self.dist, dtype=np.float64)
+
+    @property
+    def hfov_deg(self) -> float:
+        """Horizontal field of view (deg) between the outer pixel edges, pinhole (no distortion)."""
+        left = math.atan((self.cx_px + 0.5) / self.fx_px)
+        right = math.atan((self.width_px - 0.5 - self.cx_px) / self.fx_px)
+        return math.degrees(left + right)
+
+    @property
+    def vfov_deg(self) -> float:
+        """Vertical field of view (deg) between the outer pixel edges, pinhole (no distortion)."""
+        top = math.atan((self.cy_px + 0.5) / self.fy_px)
+        bottom = math.atan((self.height_px - 0.5 - self.cy_px) / self.fy_px)
+        return math.degrees(top + bottom)
+
+    @classmethod
+    def from_hfov(
+        cls, width_px: int, height_px: int, hfov_deg: float, name: str = "camera"
+    ) -> CameraModel:
+        """Ideal pinhole with square pixels and the principal point at the image centre.
+
+        Args:
+            width_px: image width (px).
+            height_px: image height (px).
+            hfov_deg: horizontal field of view between the outer pixel edges (deg), in (0, 180).
+            name: camera name.
+
+        Returns:
+            A model with f = (width/2) / tan(hfov/2), c = ((w-1)/2, (h-1)/2), zero distortion.
+        """
+        if not 0.0 < hfov_deg < 180.0:
+            raise ValueError(f"hfov_deg: must be in (0, 180), got {hfov_deg!r}")
+        f_px = (width_px / 2.0) / math.tan(math.radians(hfov_deg) / 2.0)
+        return cls(
+            width_px=width_px,
+            height_px=height_px,
+            fx_px=f_px,
+            fy_px=f_px,
+            cx_px=(width_px - 1) / 2.0,
+            cy_px=(height_px - 1) / 2.0,
+            name=name,
+        )
+
+    def scaled(self, width_px: int, height_px: int) -> CameraModel:
+        """The same camera with the image resized to ``width_px`` x ``height_px``.
+
+        Focal lengths scale with the size ratio; the principal point scales about the image
+        corner (-0.5, -0.5) so that pixel centres stay consistent. Distortion is unchanged;
+        ``rms_px`` is scaled by the mean of the two ratios (an approximation).
+        """
+        sx = width_px / self.width_px
+        sy = height_px / self.height_px
+        return dataclasses.replace(
+            self,
+            width_px=width_px,
+            height_px=height_px,
+            fx_px=self.fx_px * sx,
+            fy_px=self.fy_px * sy,
+            cx_px=(self.cx_px + 0.5) * sx - 0.5,
+            cy_px=(self.cy_px + 0.5) * sy - 0.5,
+            rms_px=None if self.rms_px is None else self.rms_px * (sx + sy) / 2.0,
+        )
+
+    def project(self, p_cam_cv: ArrayLike) -> np.ndarray:
+        """Project points in the OpenCV camera frame to pixels (with distortion).
+
+        Args:
+            p_cam_cv: (N, 3) points (m) in ``cam_cv``; a single (3,) point is also accepted.
+
+        Returns:
+            (N, 2) float64 pixels (u, v) ((2,) for a (3,) input). Points with z <= 0 (behind
+            the camera) give nan. Points far outside the field of view of a strongly distorted
+            model may fold back into the image: combine with a field-of-view test if needed.
+        """
+        p = np.asarray(p_cam_cv, dtype=np.float64)
+        single = p.shape == (3,)
+        p = p.reshape(1, 3) if single else p
+        if p.ndim != 2 or p.shape[1] != 3:
+            raise ValueError(f"p_cam_cv: expected shape (3,) or (N, 3), got {p.shape}")
+        out = np.full((p.shape[0], 2), np.nan)
+        ok = np.isfinite(p).all(axis=1) & (p[:, 2] > 0.0)
+        if np.any(ok):
+            px, _ = cv2.projectPoints(
+                p[ok].reshape(-1, 1, 3), np.zeros(3), np.zeros(3), self.K, self.dist_coeffs
+            )
+            out[ok] = px.reshape(-1, 2)
+        return out[0] if single else out
+
+    def in_image(self, px: ArrayLike, margin_px: float = 0.0) -> np.ndarray:
+        """Which pixels lie inside the image.
+
+        Args:
+            px: (N, 2) pixels (u, v), or a single (2,) pixel; nan counts as outside.
+            margin_px: required distance from the image border (px).
+
+        Returns:
+            (N,) bool mask (0-d bool array for a (2,) input):
+            ``-0.5 + m <= u < width - 0.5 - m`` and likewise for v.
+        """
+        uv = np.asarray(px, dtype=np.float64)
+        if uv.shape[-1:] != (2,):
+            raise ValueError(f"px: expected shape (2,) or (N, 2), got {uv.shape}")
+        u, v = uv[..., 0], uv[..., 1]
+        lo = -0.5 + margin_px
+        with np.errstate(invalid="ignore"):
+            return (
+                (u >= lo)
+                & (u < self.width_px - 0.5 - margin_px)
+                & (v >= lo)
+                & (v < self.height_px - 0.5 - margin_px)
+            )
+
+
+def reference_camera() -> CameraModel:
+    """The Girona AUV downward camera of the reference: 968 x 732 px, HFOV 55 deg, no distortion.
+
+    f is about 929.7 px and the VFOV about 43.0 deg (reference.md, section 3).
+    """
+    return CameraModel.from_hfov(968, 732, 55.0, name="girona_downward")
+
+
+def _reference_extrinsics() -> np.ndarray:
+    T = np.eye(4)
+    # Columns: the cam_cv axes in body FRD. x_cv -> starboard, y_cv -> aft, z_cv -> down,
+    # so the image top (-y_cv) points to the vehicle's forward.
+    T[:3, :3] = np.column_stack([(0.0, 1.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 0.0, 1.0)])
+    T[:3, 3] = (0.535, 0.0, 0.45)
+    T.setflags(write=False)
+    return T
+
+
+#: ``T_bodyfrd_camcv`` of the reference: camera at (0.535, 0, 0.45) m in body FRD, optical axis
+#: straight down (+z body), image top toward the vehicle's forward. Read-only.
+REFERENCE_T_BODYFRD_CAMCV = _reference_extrinsics()
+
+
+# ---------------------------------------------------------------------------- camera file
+
+
+def _twin_paths(path: str | os.PathLike[str]) -> tuple[Path, Path]:
+    """(yaml_path, json_path) for a camera file path ending in .yaml, .yml or .json."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix in (".yaml", ".yml"):
+        return path, path.with_suffix(".json")
+    if suffix == ".json":
+        return path.with_suffix(".yaml"), path
+    raise DockError(f"camera file must end in .yaml, .yml or .json: {path}")
+
+
+def save_camera(
+    path: str | os.PathLike[str], cam: CameraModel, T_body_cam: ArrayLike | None = None
+) -> tuple[Path, Path]:
+    """Write a camera file as OpenCV YAML plus a JSON twin with the same stem, atomically.
+
+    Args:
+        path: ``<stem>.yaml`` (or ``.yml`` / ``.json``: the other twin gets the other suffix).
+        cam: intrinsics (validated).
+        T_body_cam: optional (4, 4) extrinsics ``T_bodyfrd_camcv`` (validated with check_T).
+
+    Returns:
+        (yaml_path, json_path) as written.
+
+    Raises:
+        ValueError: ``cam`` or ``T_body_cam`` is invalid.
+        DockError: the path has an unsupported suffix.
+    """
+    cam.validate()
+    T = None if T_body_cam is None else check_T(T_body_cam, "T_body_cam")
+    yaml_path, json_path = _twin_paths(path)
+
+    with atomic_path(yaml_path) as tmp:
+        fs = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_FORMAT_YAML)
+        try:
+            fs.write("format_version", CAMERA_FILE_VERSION)
+            fs.write("name", cam.name)
+            fs.write("image_width", int(cam.width_px))
+            fs.write("image_height", int(cam.height_px))
+            fs.write("camera_matrix", cam.K)
+            fs.write("distortion_coefficients", cam.dist_coeffs.reshape(1, -1))
+            if cam.rms_px is not None:
+                fs.write("rms_px", float(cam.rms_px))
+            if T is not None:
+                fs.write("T_body_cam", T)
+        finally:
+            fs.release()
+
+    doc: dict[str, Any] = {
+        "format_version": CAMERA_FILE_VERSION,
+        "name": cam.name,
+        "image_width": int(cam.width_px),
+        "image_height": int(cam.height_px),
+        "camera_matrix": cam.K.tolist(),
+        "distortion_coefficients": list(cam.dist),
+    }
+    if cam.rms_px is not None:
+        doc["rms_px"] = float(cam.rms_px)
+    if T is not None:
+        doc["T_body_cam"] = T.tolist()
+    atomic_write_json(json_path, doc)
+    return yaml_path, json_path
+
+
+def _one_line(exc: BaseException) -> str:
+    """The exception text on one line, without OpenCV's "OpenCV(x) file.cpp:N: error: " prefix."""
+    text = " ".join(str(exc).split())
+    return text.split(" error: ", 1)[-1] if isinstance(exc, cv2.error) else text
+
+
+def _node_value(node: Any) -> Any:
+    """Python value of a FileStorage node: ndarray (opencv-matrix), str, float or list."""
+    if node.isMap():
+        return node.mat()
+    if node.isString():
+        return node.string()
+    if node.isInt() or node.isReal():
+        return node.real()
+    if node.isSeq():
+        return [_node_value(node.at(i)) for i in range(node.size())]
+    return node  # unsupported type: reported by the key checks in _model_from_raw
+
+
+def _read_yaml(path: Path) -> dict[str, Any]:
+    """Raw key -> value (ndarray, float or str) of an OpenCV FileStorage YAML file."""
+    try:
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    except (cv2.error, SystemError) as exc:
+        cause = exc.__cause__ or exc.__context__ or exc
+        raise DockError(f"malformed camera file {path}: {_one_line(cause)}") from None
+    if not fs.isOpened():
+        raise DockError(f"cannot read camera file {path}")
+    raw: dict[str, Any] = {}
+    try:
+        root = fs.root()
+        if not root.isMap():
+            raise DockError(f"malformed camera file {path}: top level is not a mapping")
+        for key in root.keys():
+            try:
+                raw[key] = _node_value(fs.getNode(key))
+            except cv2.error as exc:
+                raise DockError(f"{path}: key '{key}': {_one_line(exc)}") from None
+    finally:
+        fs.release()
+    return raw
+
+
+def _read_json(path: Path) -> dict[str, Any]:
+    try:
+        raw = json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise DockError(f"malformed camera file {path}: {_one_line(exc)}") from None
+    if not isinstance(raw, dict):
+        raise DockError(f"malformed camera file {path}: top level is not an object")
+    return raw
+
+
+def _matrix(raw: dict[str, Any], key: str, path: Path, shape: tuple[int, ...] | None) -> np.ndarray:
+    value = raw[key]
+    try:
+        arr = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise DockError(f"{path}: key '{key}' must be a numeric matrix") from None
+    if shape is not None and arr.shape != shape:
+        raise DockError(f"{path}: key '{key}' must have shape {shape}, got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise DockError(f"{path}: key '{key}' contains non-finite values")
+    return arr
+
+
+def _integer(raw: dict[str, Any], key: str, path: Path) -> int:
+    value = raw[key]
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise DockError(f"{path}: key '{key}' must be an integer, got {value!r}")
+    if not float(value).is_integer():
+        raise DockError(f"{path}: key '{key}' must be an integer, got {value!r}")
+    return int(value)
+
+
+def _model_from_raw(raw: dict[str, Any], path: Path) -> tuple[CameraModel, np.ndarray | None]:
+    for key in ("camera_matrix", "distortion_coefficients", "image_width", "image_height"):
+        if key not in raw:
+            raise DockError(f"{path}: missing key '{key}'")
+    if "format_version" in raw:
+        version = _integer(raw, "format_version", path)
+        if version != CAMERA_FILE_VERSION:
+            raise DockError(
+                f"{path}: key 'format_version' is {version}, this toolkit reads "
+                f"{CAMERA_FILE_VERSION}"
+            )
+    K = _matrix(raw, "camera_matrix", path, (3, 3))
+    if K[0, 1] != 0.0 or K[1, 0] != 0.0 or not np.array_equal(K[2], (0.0, 0.0, 1.0)):
+        raise DockError(f"{path}: key 'camera_matrix' must be [[fx,0,cx],[0,fy,cy],[0,0,1]]")
+    dist = _matrix(raw, "distortion_coefficients", path, None).reshape(-1)
+    rms = None
+    if "rms_px" in raw:
+        rms_value = raw["rms_px"]
+        if isinstance(rms_value, bool) or not isinstance(rms_value, (int, float, type(None))):
+            raise DockError(f"{path}: key 'rms_px' must be a number, got {rms_value!r}")
+        rms = None if rms_value is None else float(rms_value)
+    name = raw.get("name", "camera")
+    if not isinstance(name, str):
+        raise DockError(f"{path}: key 'name' must be a string, got {name!r}")
+    try:
+        cam = CameraModel(
+            width_px=_integer(raw, "image_width", path),
+            height_px=_integer(raw, "image_height", path),
+            fx_px=float(K[0, 0]),
+            fy_px=float(K[1, 1]),
+            cx_px=float(K[0, 2]),
+            cy_px=float(K[1, 2]),
+            dist=tuple(float(d) for d in dist),
+            rms_px=rms,
+            name=name,
+        )
+    except ValueError as exc:
+        raise DockError(f"{path}: {exc}") from None
+    T = None
+    if raw.get("T_body_cam") is not None:
+        try:
+            T = check_T(_matrix(raw, "T_body_cam", path, (4, 4)), "T_body_cam")
+        except ValueError as exc:
+            raise DockError(f"{path}: key {exc}") from None
+    return cam, T
+
+
+def load_camera(path: str | os.PathLike[str]) -> tuple[CameraModel, np.ndarray | None]:
+    """Read a camera file (``.yaml`` / ``.yml`` via cv2.FileStorage, or ``.json``).
+
+    Args:
+        path: the camera file.
+
+    Returns:
+        (camera model, ``T_bodyfrd_camcv`` (4, 4) or None when the file has no extrinsics).
+
+    Raises:
+        DockError: one line naming the file (and the key, where one is at fault) when the file
+            is missing, unreadable or malformed, a required key is missing, or a value is
+            invalid.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in (".yaml", ".yml", ".json"):
+        raise DockError(f"camera file must end in .yaml, .yml or .json: {path}")
+    if not path.is_file():
+        raise DockError(f"camera file not found: {path}")
+    try:
+        raw = _read_json(path) if suffix == ".json" else _read_yaml(path)
+    except OSError as exc:
+        raise DockError(f"cannot read camera file {path}: {exc.strerror or exc}") from None
+    return _model_from_raw(raw, path)

@@ -1,0 +1,16 @@
+"""``datasets``: command group. Commands appear here as they are implemented."""
+
+from __future__ import annotations
+
+import click
+
+from dockcore.cli import run_group
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+def cli() -> None:
+    """Datasets: labelled synthetic frames and loaders for real footage."""
+
+
+def main() -> None:
+    run_group(cli)

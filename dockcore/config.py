@@ -1,0 +1,217 @@
+"""Component configuration: one frozen dataclass per component, overridden from TOML.
+
+Conventions:
+    * Defaults live in code, in the dataclass. Every field is documented in the class docstring
+      with its unit, and the unit sits in the field name (``size_mm``, ``hfov_deg``).
+    * A TOML file overrides any subset of fields; nested dataclasses are TOML tables.
+    * An unknown key, a wrong type or an out-of-range value raises :class:`ConfigError`
+      naming the key (``marker.size_mm: must be > 0, got -3``).
+    * A dataclass may define ``validate(self) -> None`` that raises ``ValueError``; it is called
+      after every load and on :func:`replace`.
+
+Example:
+    >>> cfg = load_config(MarkerConfig, "marker.toml", overrides={"size_mm": 80})
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import sys
+import types
+import typing
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, TypeVar
+
+import tomli_w
+
+from dockcore.errors import ConfigError
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+C = TypeVar("C")
+
+
+def read_toml(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """Read a TOML file; a missing or malformed file raises a one-line :class:`ConfigError`."""
+    path = Path(path)
+    try:
+        with path.open("rb") as fh:
+            return tomllib.load(fh)
+    except FileNotFoundError:
+        raise ConfigError(f"config file not found: {path}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"malformed TOML in {path}: {exc}") from None
+
+
+def _coerce(value: Any, tp: Any, key: str) -> Any:
+    """Convert a TOML value to the annotated type ``tp`` or raise ConfigError naming ``key``."""
+    origin = typing.get_origin(tp)
+    args = typing.get_args(tp)
+    if tp is Any:
+        return value
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        errors = []
+        for arg in args:
+            if arg is type(None):
+                continue
+            try:
+                return _coerce(value, arg, key)
+            except ConfigError as exc:
+                errors.append(str(exc))
+        raise ConfigError(errors[0] if errors else f"{key}: invalid value {value!r}")
+    if origin is typing.Literal:
+        if value not in args:
+            raise ConfigError(f"{key}: must be one of {list(args)}, got {value!r}")
+        return value
+    if dataclasses.is_dataclass(tp):
+        if not isinstance(value, Mapping):
+            raise ConfigError(f"{key}: expected a table, got {type(value).__name__}")
+        return _build(tp, value, prefix=f"{key}.")
+    if origin in (tuple, list):
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{key}: expected a list, got {type(value).__name__}")
+        if origin is tuple and args and args[-1] is not Ellipsis:
+            if len(value) != len(args):
+                raise ConfigError(f"{key}: expected {len(args)} values, got {len(value)}")
+            pairs = enumerate(zip(value, args, strict=True))
+            items = [_coerce(v, a, f"{key}[{i}]") for i, (v, a) in pairs]
+        else:
+            inner = args[0] if args else Any
+            items = [_coerce(v, inner, f"{key}[{i}]") for i, v in enumerate(value)]
+        return tuple(items) if origin is tuple else items
+    if origin is dict:
+        if not isinstance(value, Mapping):
+            raise ConfigError(f"{key}: expected a table, got {type(value).__name__}")
+        inner = args[1] if len(args) == 2 else Any
+        return {str(k): _coerce(v, inner, f"{key}.{k}") for k, v in value.items()}
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{key}: expected true/false, got {value!r}")
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{key}: expected an integer, got {value!r}")
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{key}: expected a number, got {value!r}")
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{key}: expected a string, got {value!r}")
+        return value
+    return value
+
+
+def _build(cls: type[C], data: Mapping[str, Any], prefix: str = "") -> C:
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls) if f.init}
+    unknown = sorted(set(data) - names)
+    if unknown:
+        raise ConfigError(
+            f"unknown config key '{prefix}{unknown[0]}' for {cls.__name__} "
+            f"(valid keys: {', '.join(sorted(names))})"
+        )
+    kwargs = {k: _coerce(v, hints[k], f"{prefix}{k}") for k, v in data.items()}
+    try:
+        obj = cls(**kwargs)
+        _validate(obj, prefix)
+    except ConfigError:
+        raise
+    except (ValueError, TypeError) as exc:
+        raise ConfigError(f"{prefix.rstrip('.') or cls.__name__}: {exc}") from None
+    return obj
+
+
+def _validate(obj: Any, prefix: str = "") -> None:
+    for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name)
+        if dataclasses.is_dataclass(value):
+            _validate(value, f"{prefix}{f.name}.")
+    check = getattr(obj, "validate", None)
+    if callable(check):
+        try:
+            check()
+        except ConfigError:
+            raise
+        except ValueError as exc:
+            raise ConfigError(f"{prefix}{exc}") from None
+
+
+def from_dict(cls: type[C], data: Mapping[str, Any]) -> C:
+    """Build ``cls`` from a (possibly partial, possibly nested) mapping of overrides."""
+    return _build(cls, data)
+
+
+def merge(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
+    """Recursively merge ``over`` onto ``base`` (tables merge, other values replace)."""
+    out = dict(base)
+    for k, v in over.items():
+        if isinstance(v, Mapping) and isinstance(out.get(k), Mapping):
+            out[k] = merge(out[k], v)
+        else:
+            out[k] = v
+    return out
+
+
+def load_config(
+    cls: type[C],
+    path: str | os.PathLike[str] | None = None,
+    overrides: Mapping[str, Any] | None = None,
+    section: str | None = None,
+) -> C:
+    """Defaults of ``cls``, then the TOML file at ``path``, then ``overrides`` (e.g. CLI flags).
+
+    ``None`` values in ``overrides`` are skipped, so unset CLI options leave the file's values.
+    With ``section``, a file whose only top-level key is that table (as in the ``config.toml``
+    written next to every output) is read from inside it, so an output's config can be reused.
+    """
+    data: dict[str, Any] = read_toml(path) if path is not None else {}
+    if section is not None and set(data) == {section} and isinstance(data[section], Mapping):
+        data = dict(data[section])
+    if overrides:
+        data = merge(data, {k: v for k, v in overrides.items() if v is not None})
+    return _build(cls, data)
+
+
+def replace(cfg: C, **changes: Any) -> C:
+    """``dataclasses.replace`` that re-validates (raises ConfigError on a bad value)."""
+    return from_dict(type(cfg), merge(to_dict(cfg), changes))
+
+
+def to_dict(cfg: Any) -> dict[str, Any]:
+    """A plain, TOML-serialisable dict of a config dataclass (tuples become lists)."""
+
+    def conv(v: Any) -> Any:
+        if dataclasses.is_dataclass(v):
+            return {f.name: conv(getattr(v, f.name)) for f in dataclasses.fields(v)}
+        if isinstance(v, (tuple, list)):
+            return [conv(x) for x in v]
+        if isinstance(v, Mapping):
+            return {str(k): conv(x) for k, x in v.items()}
+        if isinstance(v, Path):
+            return str(v)
+        if hasattr(v, "item") and callable(v.item):  # numpy scalar
+            return v.item()
+        return v
+
+    return conv(cfg)
+
+
+def dumps_toml(cfg: Any) -> str:
+    """Serialise a config dataclass (or a dict of them) as TOML; ``None`` fields are omitted."""
+
+    def drop_none(v: Any) -> Any:
+        if isinstance(v, dict):
+            return {k: drop_none(x) for k, x in v.items() if x is not None}
+        return v
+
+    data = {k: to_dict(v) for k, v in cfg.items()} if isinstance(cfg, Mapping) else to_dict(cfg)
+    return tomli_w.dumps(drop_none(data))

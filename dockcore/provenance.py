@@ -1,0 +1,98 @@
+"""Provenance: what made an output folder (resolved config, git commit, package versions)."""
+
+from __future__ import annotations
+
+import datetime as _dt
+import importlib.metadata
+import os
+import platform
+import subprocess
+import sys
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from dockcore.config import dumps_toml, to_dict
+from dockcore.io import atomic_write_json, atomic_write_text
+
+#: Distributions whose versions are recorded next to every output.
+TRACKED_PACKAGES = (
+    "uwdock",
+    "numpy",
+    "scipy",
+    "opencv-python-headless",
+    "trimesh",
+    "manifold3d",
+    "sapien",
+    "gymnasium",
+    "stable-baselines3",
+    "torch",
+    "open3d",
+)
+
+_REPO_ROOT = Path(__file__).resolve().parent.parent
+
+
+def git_commit(repo: Path = _REPO_ROOT) -> dict[str, Any]:
+    """The source tree's commit and whether it has uncommitted changes (``None`` outside git)."""
+
+    def git(*args: str) -> str | None:
+        try:
+            out = subprocess.run(
+                ["git", "-C", str(repo), *args],
+                capture_output=True,
+                text=True,
+                timeout=10,
+                check=True,
+            )
+        except (OSError, subprocess.SubprocessError):
+            return None
+        return out.stdout.strip()
+
+    commit = git("rev-parse", "HEAD")
+    status = git("status", "--porcelain", "--untracked-files=no") if commit else None
+    return {"commit": commit, "dirty": bool(status) if status is not None else None}
+
+
+def package_versions(names: tuple[str, ...] = TRACKED_PACKAGES) -> dict[str, str | None]:
+    """Installed versions of ``names`` (``None`` where not installed)."""
+    out: dict[str, str | None] = {}
+    for name in names:
+        try:
+            out[name] = importlib.metadata.version(name)
+        except importlib.metadata.PackageNotFoundError:
+            out[name] = None
+    return out
+
+
+def provenance(
+    configs: Mapping[str, Any] | None = None, extra: Mapping[str, Any] | None = None
+) -> dict[str, Any]:
+    """A JSON-serialisable record of the configs, code version, packages and machine."""
+    return {
+        "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]),
+        "git": git_commit(),
+        "packages": package_versions(),
+        "python": platform.python_version(),
+        "machine": {
+            "platform": platform.platform(),
+            "processor": platform.machine(),
+            "cpus": os.cpu_count(),
+        },
+        "config": {k: to_dict(v) for k, v in (configs or {}).items()},
+        **(dict(extra) if extra else {}),
+    }
+
+
+def write_provenance(
+    out_dir: str | os.PathLike[str],
+    configs: Mapping[str, Any],
+    extra: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
+    """Write ``config.toml`` (the resolved config) and ``provenance.json`` into ``out_dir``."""
+    out_dir = Path(out_dir)
+    record = provenance(configs, extra)
+    atomic_write_text(out_dir / "config.toml", dumps_toml(dict(configs)))
+    atomic_write_json(out_dir / "provenance.json", record)
+    return record

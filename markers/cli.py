@@ -1,0 +1,114 @@
+"""``markers``: generate printable 3D Binary Markers and the marker set file."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from dockcore.cli import run_group
+from dockcore.config import load_config
+from dockcore.errors import DockError
+from markers.config import MarkerConfig
+from markers.dictionary import DICTIONARY_NAMES, bits_per_side, dictionary_size
+
+
+def _parse_ids(text: str | None) -> tuple[int, ...] | None:
+    if text is None:
+        return None
+    try:
+        return tuple(int(t) for t in text.replace(" ", "").split(",") if t)
+    except ValueError:
+        raise DockError(f"--ids must be comma-separated integers, got '{text}'") from None
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+def cli() -> None:
+    """3D Binary Markers: printable parts, flat sheets, the marker set file."""
+
+
+@cli.command()
+@click.option("--ids", help="Comma-separated marker IDs [default: the DS set 13,14,15,28,34].")
+@click.option("--dictionary", help="OpenCV dictionary, e.g. DICT_4X4_50, DICT_APRILTAG_36h11.")
+@click.option("--size-mm", type=float, help="Insert (tag) side in mm [default: 100].")
+@click.option("--relief-depth-mm", type=float, help="Depth of the openings seen from above [5].")
+@click.option("--insert-thickness-mm", type=float, help="White insert thickness [5].")
+@click.option("--clearance-mm", type=float, help="Fit clearance insert/enclosure [0.1].")
+@click.option(
+    "--enclosure-mm", "enclosure_side_mm", type=float, help="Black column side [1.26 x size]."
+)
+@click.option("--enclosure-height-mm", type=float, help="Black column height [98].")
+@click.option("--base-mm", "base_side_mm", type=float, help="Base plate side [1.62 x size].")
+@click.option("--base-height-mm", type=float, help="Base plate thickness [10].")
+@click.option("--paper", type=click.Choice(["A4", "A3", "letter"]), help="Sheet paper size [A4].")
+@click.option(
+    "--config",
+    "config_path",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="TOML file overriding MarkerConfig defaults (flags override the file).",
+)
+@click.option(
+    "--out",
+    "out_dir",
+    type=click.Path(file_okay=False, path_type=Path),
+    default=Path("markers_out"),
+    show_default=True,
+    help="Output folder.",
+)
+@click.option("--quiet", is_flag=True, help="Print only the marker set path.")
+def generate(
+    ids,
+    dictionary,
+    size_mm,
+    relief_depth_mm,
+    insert_thickness_mm,
+    clearance_mm,
+    enclosure_side_mm,
+    enclosure_height_mm,
+    base_side_mm,
+    base_height_mm,
+    paper,
+    config_path,
+    out_dir,
+    quiet,
+) -> None:
+    """Write STL parts (white insert, black enclosure), render meshes, previews, a true-scale
+    PDF/SVG sheet and the marker set file for the given IDs."""
+    from markers.generate import generate as run
+
+    cfg = load_config(
+        MarkerConfig,
+        config_path,
+        overrides={
+            "ids": _parse_ids(ids),
+            "dictionary": dictionary,
+            "size_mm": size_mm,
+            "relief_depth_mm": relief_depth_mm,
+            "insert_thickness_mm": insert_thickness_mm,
+            "clearance_mm": clearance_mm,
+            "enclosure_side_mm": enclosure_side_mm,
+            "enclosure_height_mm": enclosure_height_mm,
+            "base_side_mm": base_side_mm,
+            "base_height_mm": base_height_mm,
+            "paper": paper,
+        },
+        section="marker",
+    )
+    result = run(cfg, out_dir, progress=None if quiet else click.echo)
+    click.echo(
+        str(result.marker_set) if quiet else f"wrote {len(result.files)} files to {result.out_dir}"
+    )
+
+
+@cli.command()
+def dictionaries() -> None:
+    """List the marker dictionaries OpenCV offers, with bits and marker count."""
+    for name in DICTIONARY_NAMES:
+        click.echo(
+            f"{name:28s} {bits_per_side(name)}x{bits_per_side(name)} bits "
+            f"{dictionary_size(name):5d} markers"
+        )
+
+
+def main() -> None:
+    run_group(cli)

@@ -1,0 +1,149 @@
+"""``markers generate``: printable 3DBM parts, render meshes, a flat sheet, the marker set file."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from dockcore.io import atomic_path, atomic_write_bytes, ensure_writable_dir
+from dockcore.provenance import write_provenance
+from markers.config import MarkerConfig
+from markers.dictionary import check_ids, marker_cells, normalise_dictionary_name
+from markers.geometry import (
+    ENCLOSURE_RGBA,
+    INSERT_RGBA,
+    MarkerSolids,
+    build_solids,
+    rasterise_top_view,
+    render_scene,
+)
+from markers.markerset import marker_set_from_config, save_marker_set
+from markers.sheet import SheetEntry, write_sheet
+
+MARKER_SET_NAME = "markerset.toml"
+
+
+@dataclass(frozen=True)
+class GenerateResult:
+    """What ``generate`` wrote (absolute paths)."""
+
+    out_dir: Path
+    marker_set: Path
+    files: tuple[Path, ...]
+
+
+def file_stem(dictionary: str, marker_id: int) -> str:
+    """``3dbm_DICT_4X4_50_13``: the stem every per-marker file starts with."""
+    return f"3dbm_{dictionary}_{marker_id}"
+
+
+def write_preview(path: Path, solids: MarkerSolids, cfg: MarkerConfig) -> Path:
+    """PNG: top view of the assembled marker (from the meshes) beside an isometric view."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    half = cfg.base_side / 2 * 1.05
+    top = rasterise_top_view(
+        [(solids.enclosure, ENCLOSURE_RGBA[0]), (solids.insert, INSERT_RGBA[0])],
+        px_per_mm=4.0,
+        half_extent_mm=half,
+        background=110,
+    )
+    fig = plt.figure(figsize=(9, 4.6), dpi=100)
+    ax = fig.add_subplot(1, 2, 1)
+    ax.imshow(top, cmap="gray", vmin=0, vmax=255, extent=(-half, half, -half, half))
+    ax.set_title(f"top view (camera sees this): ID {solids.marker_id}")
+    ax.set_xlabel("x (mm)")
+    ax.set_ylabel("y (mm)")
+    ax3 = fig.add_subplot(1, 2, 2, projection="3d")
+    polys, colours = [], []
+    for mesh, rgba in ((solids.enclosure, ENCLOSURE_RGBA), (solids.insert, INSERT_RGBA)):
+        # small faces: matplotlib sorts whole faces by depth, large ones show through each other
+        v, f = trimesh.remesh.subdivide_to_size(
+            mesh.vertices, mesh.faces, max_edge=cfg.size_mm / 12
+        )
+        normals = trimesh.Trimesh(v, f, process=False).face_normals
+        light = np.clip(0.35 + 0.65 * np.abs(normals @ np.array([0.3, -0.4, 0.87])), 0, 1)
+        polys.extend(v[f])
+        colours.append(np.clip(np.asarray(rgba[:3], float) / 255.0 * light[:, None] + 0.08, 0, 1))
+    # one collection, so matplotlib depth-sorts the faces of both parts together
+    ax3.add_collection3d(
+        Poly3DCollection(
+            polys, facecolors=np.vstack(colours), edgecolors="none", linewidths=0, antialiased=False
+        )
+    )
+    lim = cfg.base_side / 2
+    z0 = -(cfg.enclosure_height_mm + cfg.base_height_mm)
+    ax3.set(xlim=(-lim, lim), ylim=(-lim, lim), zlim=(z0, 0))
+    ax3.set_box_aspect((1, 1, (-z0) / (2 * lim)))
+    ax3.view_init(elev=35, azim=-60)
+    ax3.set_title(f"{cfg.size_mm:g} mm insert on {cfg.enclosure_side:g} mm column")
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+    return path
+
+
+def generate(
+    cfg: MarkerConfig,
+    out_dir: str | os.PathLike[str],
+    progress: Callable[[str], None] | None = None,
+) -> GenerateResult:
+    """Write everything for the markers of ``cfg`` into ``out_dir``.
+
+    All inputs are validated and every solid is built before the first file is written; each file
+    is written atomically, the marker set file last. Per ID: ``<stem>_insert.stl`` (white part),
+    ``<stem>_enclosure.stl`` (black part), ``<stem>.glb`` (render mesh, metres, with materials),
+    ``<stem>_preview.png``; then ``sheet.pdf`` / ``sheet.svg``, ``markerset.toml``,
+    ``config.toml`` and ``provenance.json``.
+    """
+    say = progress or (lambda _msg: None)
+    dictionary = normalise_dictionary_name(cfg.dictionary)
+    ids = check_ids(dictionary, cfg.ids)
+    out = ensure_writable_dir(out_dir).resolve()
+    solids = {i: build_solids(cfg, i) for i in ids}
+    mesh_names = {i: f"{file_stem(dictionary, i)}.glb" for i in ids}
+    ms = marker_set_from_config(cfg, mesh_names)
+
+    written: list[Path] = []
+    for i in ids:
+        stem = file_stem(dictionary, i)
+        s = solids[i]
+        for part, mesh in (("insert", s.insert), ("enclosure", s.enclosure)):
+            written.append(
+                atomic_write_bytes(out / f"{stem}_{part}.stl", mesh.export(file_type="stl"))
+            )
+        written.append(
+            atomic_write_bytes(out / mesh_names[i], render_scene(s).export(file_type="glb"))
+        )
+        written.append(write_preview(out / f"{stem}_preview.png", s, cfg))
+        say(f"marker {i}: {stem}_insert.stl, {stem}_enclosure.stl, {stem}.glb, {stem}_preview.png")
+
+    entries = [
+        SheetEntry(i, marker_cells(dictionary, i), f"{dictionary} id {i}  {cfg.size_mm:g} mm")
+        for i in ids
+    ]
+    sheets = write_sheet(
+        entries,
+        cfg.size_mm,
+        out / "sheet.pdf",
+        out / "sheet.svg",
+        paper=cfg.paper,
+        title=f"3D Binary Marker flat test tags ({dictionary})",
+    )
+    written.extend(sheets)
+    say(f"flat sheet: {', '.join(p.name for p in sheets)}")
+    written.append(save_marker_set(out / MARKER_SET_NAME, ms))
+    write_provenance(out, {"marker": cfg})
+    written.extend([out / "config.toml", out / "provenance.json"])
+    say(f"marker set: {out / MARKER_SET_NAME}")
+    return GenerateResult(out, out / MARKER_SET_NAME, tuple(written))

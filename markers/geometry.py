@@ -1,0 +1,161 @@
+"""3D geometry of a 3D Binary Marker: the white insert, the black enclosure, their meshes.
+
+Frame of every mesh here: the **marker frame** (OpenCV ArUco convention): origin at the centre of
+the insert's top face (the face the camera sees), x right, y toward the top row of the tag, z up
+out of the face. Printable STL files are in millimetres (what slicers expect); render meshes for
+the simulator are in metres.
+
+Construction (manifold3d, so every solid is manifold by construction):
+
+* insert: the tag square extruded by ``insert_thickness_mm`` from z = -t to 0, minus openings at
+  the tag's white cells (each widened by ``clearance/2``, so cells that touch only diagonally
+  never leave a zero-width bridge);
+* enclosure: base plate + column, with a pocket (the seat) of depth t that holds the insert with
+  ``clearance_mm`` all round; where ``relief_depth_mm < t``, black bosses (white cells shrunk by
+  ``clearance/2``) rise from the pocket floor to depth ``relief_depth_mm``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import manifold3d as mf
+import numpy as np
+import trimesh
+
+from markers.config import MarkerConfig
+from markers.dictionary import marker_cells
+
+#: Colours of the two printed parts (RGBA, 0-255), also used by the render meshes.
+INSERT_RGBA = (235, 235, 230, 255)
+ENCLOSURE_RGBA = (20, 20, 22, 255)
+
+
+@dataclass(frozen=True)
+class MarkerSolids:
+    """The two printable parts of one marker, in the marker frame, millimetres."""
+
+    marker_id: int
+    insert: trimesh.Trimesh
+    enclosure: trimesh.Trimesh
+
+
+def _cell_squares(cells: np.ndarray, size_mm: float) -> list[np.ndarray]:
+    """One CCW square contour (4, 2) in mm for every ``True`` cell (row 0 = top of the tag)."""
+    n = cells.shape[0]
+    a = size_mm / n
+    half = size_mm / 2
+    out = []
+    for r, c in zip(*np.nonzero(cells), strict=True):
+        x0, y1 = -half + c * a, half - r * a
+        x1, y0 = x0 + a, y1 - a
+        out.append(np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]], dtype=np.float64))
+    return out
+
+
+def _square(side: float) -> mf.CrossSection:
+    return mf.CrossSection.square((side, side), center=True)
+
+
+def _slab(cs: mf.CrossSection, z0: float, z1: float) -> mf.Manifold:
+    """Extrude a cross-section between heights z0 < z1."""
+    return mf.Manifold.extrude(cs, z1 - z0).translate((0.0, 0.0, z0))
+
+
+def _to_trimesh(m: mf.Manifold) -> trimesh.Trimesh:
+    mesh = m.to_mesh()
+    tm = trimesh.Trimesh(
+        vertices=np.asarray(mesh.vert_properties)[:, :3].astype(np.float64),
+        faces=np.asarray(mesh.tri_verts).astype(np.int64),
+        process=True,
+    )
+    tm.fix_normals()
+    return tm
+
+
+def white_openings(cells: np.ndarray, size_mm: float, grow_mm: float) -> mf.CrossSection:
+    """Union of the tag's white cells, offset by ``grow_mm`` (negative shrinks), in mm."""
+    squares = _cell_squares(~cells, size_mm)
+    if not squares:
+        return mf.CrossSection()
+    cs = mf.CrossSection(squares)
+    return cs.offset(grow_mm, mf.JoinType.Miter) if grow_mm else cs
+
+
+def build_solids(cfg: MarkerConfig, marker_id: int) -> MarkerSolids:
+    """The insert and enclosure of marker ``marker_id`` as watertight meshes (mm, marker frame)."""
+    cells = marker_cells(cfg.dictionary, marker_id)
+    s, t, c = cfg.size_mm, cfg.insert_thickness_mm, cfg.clearance_mm
+
+    insert_cs = _square(s) - white_openings(cells, s, +c / 2)
+    insert = _slab(insert_cs, -t, 0.0)
+
+    h_col, h_base = cfg.enclosure_height_mm, cfg.base_height_mm
+    column = _slab(_square(cfg.enclosure_side), -h_col, 0.0)
+    base = _slab(_square(cfg.base_side), -h_col - h_base, -h_col)
+    pocket = _slab(_square(s + 2 * c), -t, 1.0)  # cut through the top face
+    enclosure = (column + base) - pocket
+    boss_height = t - cfg.relief_depth_mm
+    if boss_height > 1e-9:
+        bosses = _slab(white_openings(cells, s, -c / 2), -t, -cfg.relief_depth_mm)
+        enclosure = enclosure + bosses
+    return MarkerSolids(marker_id, _to_trimesh(insert), _to_trimesh(enclosure))
+
+
+def render_scene(solids: MarkerSolids) -> trimesh.Scene:
+    """Both parts with PBR materials (white insert, black enclosure), in **metres**, for SAPIEN."""
+    scene = trimesh.Scene()
+    for name, mesh, rgba in (
+        ("insert", solids.insert, INSERT_RGBA),
+        ("enclosure", solids.enclosure, ENCLOSURE_RGBA),
+    ):
+        m = mesh.copy()
+        m.apply_scale(1e-3)
+        m.visual = trimesh.visual.TextureVisuals(
+            material=trimesh.visual.material.PBRMaterial(
+                name=f"3dbm_{name}", baseColorFactor=rgba, metallicFactor=0.0, roughnessFactor=0.9
+            )
+        )
+        scene.add_geometry(m, node_name=name, geom_name=name)
+    return scene
+
+
+def rasterise_top_view(
+    parts: list[tuple[trimesh.Trimesh, int]],
+    px_per_mm: float,
+    half_extent_mm: float,
+    background: int = 128,
+) -> np.ndarray:
+    """Orthographic top view (looking down -z) of meshes, rasterised from their triangles.
+
+    Upward-facing triangles are painted from the lowest to the highest (a painter's algorithm
+    that is exact for the horizontal faces these parts are made of).
+
+    Args:
+        parts: (mesh in mm, grey level 0-255) pairs.
+        px_per_mm: image resolution.
+        half_extent_mm: the image spans [-h, h] mm in x and y, centred on the marker frame origin.
+        background: grey level where no part is seen.
+
+    Returns:
+        (N, N) uint8 image, row 0 at +y (top of the tag), column 0 at -x.
+    """
+    import cv2
+
+    n = round(2 * half_extent_mm * px_per_mm)
+    img = np.full((n, n), background, np.uint8)
+    faces = []
+    for mesh, grey in parts:
+        up = mesh.face_normals[:, 2] > 1e-6
+        tris = mesh.vertices[mesh.faces[up]]
+        for tri in tris:
+            faces.append((float(tri[:, 2].mean()), tri, grey))
+    faces.sort(key=lambda f: f[0])
+    shift = 4  # sub-pixel precision bits for cv2.fillPoly
+    scale = px_per_mm * (1 << shift)
+    for _, tri, grey in faces:
+        u = (tri[:, 0] + half_extent_mm) * scale
+        v = (half_extent_mm - tri[:, 1]) * scale
+        pts = np.round(np.stack([u, v], axis=1) - 0.5 * (1 << shift)).astype(np.int32)
+        cv2.fillPoly(img, [pts], int(grey), lineType=cv2.LINE_8, shift=shift)
+    return img

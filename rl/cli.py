@@ -1,0 +1,16 @@
+"""``rl``: command group. Commands appear here as they are implemented."""
+
+from __future__ import annotations
+
+import click
+
+from dockcore.cli import run_group
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+def cli() -> None:
+    """Reinforcement learning: docking env, PPO training, evaluation, export."""
+
+
+def main() -> None:
+    run_group(cli)

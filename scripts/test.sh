@@ -1,0 +1,17 @@
+#!/usr/bin/env bash
+# README command 2: lint (ruff) and run the test suite. Extra arguments go to pytest:
+#   scripts/test.sh                 default suite (slow and GPU tests excluded)
+#   scripts/test.sh -m slow         the slow target only
+#   scripts/test.sh tests/test_markers.py -k decode
+set -euo pipefail
+cd "$(dirname "$0")/.."
+VENV=${VENV:-.venv}
+if [ ! -x "$VENV/bin/python" ]; then
+  echo "error: no virtual environment at $VENV: run scripts/setup.sh first" >&2
+  exit 1
+fi
+echo "[test] ruff"
+"$VENV/bin/ruff" check .
+"$VENV/bin/ruff" format --check . >/dev/null || { "$VENV/bin/ruff" format --diff . | head -50; exit 1; }
+echo "[test] pytest"
+exec "$VENV/bin/python" -m pytest "$@"

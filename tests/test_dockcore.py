@@ -1,0 +1,109 @@
+"""dockcore: config loading from TOML, atomic writes, provenance."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from typing import Literal
+
+import pytest
+
+from dockcore.config import dumps_toml, from_dict, load_config, read_toml, replace, to_dict
+from dockcore.errors import ConfigError, DockError
+from dockcore.io import atomic_path, atomic_write_text, ensure_writable_dir
+from dockcore.provenance import write_provenance
+
+
+@dataclass(frozen=True)
+class Inner:
+    """Test component. Attributes: gain (-), limits_n (N)."""
+
+    gain: float = 1.0
+    limits_n: tuple[float, float] = (-1.0, 1.0)
+
+    def validate(self) -> None:
+        if self.gain < 0:
+            raise ValueError(f"gain: must be >= 0, got {self.gain}")
+
+
+@dataclass(frozen=True)
+class Outer:
+    name: str = "x"
+    steps: int = 3
+    mode: Literal["a", "b"] = "a"
+    scale: float | None = None
+    inner: Inner = field(default_factory=Inner)
+    table: dict[str, tuple[float, ...]] = field(default_factory=dict)
+
+
+def write(tmp_path, text):
+    p = tmp_path / "c.toml"
+    p.write_text(text)
+    return p
+
+
+def test_defaults_file_and_overrides_layer(tmp_path):
+    p = write(tmp_path, "steps = 5\n[inner]\ngain = 2\nlimits_n = [-3, 3]\n[table]\na = [1, 2]\n")
+    cfg = load_config(Outer, p, overrides={"name": "y", "steps": None})
+    assert cfg == Outer(name="y", steps=5, inner=Inner(2.0, (-3.0, 3.0)), table={"a": (1.0, 2.0)})
+    assert isinstance(cfg.inner.gain, float)
+
+
+@pytest.mark.parametrize(
+    "text,message",
+    [
+        ("stepz = 1\n", "unknown config key 'stepz' for Outer"),
+        ("[inner]\ngian = 1\n", "unknown config key 'inner.gian' for Inner"),
+        ("steps = 1.5\n", "steps: expected an integer"),
+        ("steps = true\n", "steps: expected an integer"),
+        ("mode = 'c'\n", "mode: must be one of ['a', 'b']"),
+        ("[inner]\nlimits_n = [1]\n", "inner.limits_n: expected 2 values"),
+        ("[inner]\ngain = -1\n", "inner.gain: must be >= 0"),
+        ("inner = 3\n", "inner: expected a table"),
+        ("steps = \n", "malformed TOML"),
+    ],
+)
+def test_bad_config_names_the_key(tmp_path, text, message):
+    with pytest.raises(ConfigError, match=message.replace("[", r"\[").replace("]", r"\]")):
+        load_config(Outer, write(tmp_path, text))
+
+
+def test_missing_file_is_a_config_error(tmp_path):
+    with pytest.raises(ConfigError, match="config file not found"):
+        read_toml(tmp_path / "nope.toml")
+
+
+def test_round_trip_through_toml_and_replace(tmp_path):
+    cfg = Outer(scale=2.5, inner=Inner(3.0), table={"k": (1.0,)})
+    p = write(tmp_path, dumps_toml(cfg))
+    assert load_config(Outer, p) == cfg
+    assert from_dict(Outer, to_dict(cfg)) == cfg
+    assert replace(cfg, steps=9).steps == 9
+    with pytest.raises(ConfigError, match="gain"):
+        replace(cfg, inner={"gain": -2.0})
+
+
+def test_atomic_write_leaves_old_file_on_failure(tmp_path):
+    target = tmp_path / "a.txt"
+    atomic_write_text(target, "old")
+    with pytest.raises(RuntimeError), atomic_path(target) as tmp:
+        tmp.write_text("half")
+        raise RuntimeError("crash")
+    assert target.read_text() == "old"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.txt"]
+
+
+def test_ensure_writable_dir_fails_with_one_line(tmp_path):
+    f = tmp_path / "f"
+    f.write_text("")
+    with pytest.raises(DockError, match="cannot write to output folder"):
+        ensure_writable_dir(f / "sub")
+
+
+def test_provenance_records_config_commit_versions(tmp_path):
+    rec = write_provenance(tmp_path, {"outer": Outer(steps=7)})
+    on_disk = json.loads((tmp_path / "provenance.json").read_text())
+    assert on_disk["config"]["outer"]["steps"] == 7 == rec["config"]["outer"]["steps"]
+    assert set(on_disk["git"]) == {"commit", "dirty"}
+    assert on_disk["packages"]["numpy"]
+    assert load_config(Outer, tmp_path / "config.toml", section="outer").steps == 7

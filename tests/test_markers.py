@@ -1,0 +1,354 @@
+"""markers: dictionaries, 3DBM solids, marker set file, `markers generate` end to end."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import manifold3d as mf
+import numpy as np
+import pytest
+import trimesh
+
+from dockcore.config import load_config
+from dockcore.errors import ConfigError, DockError
+from markers import cli
+from markers.config import DS_MARKER_IDS, MarkerConfig
+from markers.dictionary import (
+    check_ids,
+    dictionary_size,
+    marker_cells,
+    normalise_dictionary_name,
+)
+from markers.generate import file_stem, generate
+from markers.geometry import build_solids, rasterise_top_view
+from markers.markerset import (
+    T_ds_marker_face_up,
+    load_marker_set,
+    marker_set_from_config,
+    save_marker_set,
+)
+
+PX_PER_MM = 4.0
+
+
+def decode_top_view(insert: trimesh.Trimesh, dictionary: str, size_mm: float) -> tuple:
+    """Rasterise the insert from above (white material on black), invert, run ArUco."""
+    half = 0.7 * size_mm
+    top = rasterise_top_view([(insert, 255)], PX_PER_MM, half, background=0)
+    tag = 255 - top  # the photometric negative: openings become white cells, material black
+    det = cv2.aruco.ArucoDetector(
+        cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary)),
+        cv2.aruco.DetectorParameters(),
+    )
+    corners, ids, _ = det.detectMarkers(tag)
+    return corners, (ids.ravel().tolist() if ids is not None else []), half
+
+
+def to_manifold(mesh: trimesh.Trimesh) -> mf.Manifold:
+    return mf.Manifold(
+        mf.Mesh(
+            vert_properties=np.asarray(mesh.vertices, np.float32),
+            tri_verts=np.asarray(mesh.faces, np.uint32),
+        )
+    )
+
+
+# ------------------------------------------------------------------ dictionaries
+def test_dictionary_names_are_normalised():
+    assert normalise_dictionary_name("4x4_50") == "DICT_4X4_50"
+    assert normalise_dictionary_name("dict_apriltag_36h11") == "DICT_APRILTAG_36h11"
+    assert dictionary_size("DICT_4X4_50") == 50
+    with pytest.raises(DockError, match="unknown marker dictionary 'DICT_9X9_1'"):
+        normalise_dictionary_name("DICT_9X9_1")
+
+
+def test_check_ids_rejects_out_of_range_and_duplicates():
+    assert check_ids("DICT_4X4_50", [0, 49]) == (0, 49)
+    with pytest.raises(DockError, match="marker ID 50 is outside dictionary DICT_4X4_50"):
+        check_ids("DICT_4X4_50", [13, 50])
+    with pytest.raises(DockError, match="ID 13 is listed more than once"):
+        check_ids("DICT_4X4_50", [13, 13])
+    with pytest.raises(DockError, match="outside"):
+        check_ids("DICT_4X4_50", [-1])
+
+
+def test_marker_cells_match_opencv_bitmap():
+    cells = marker_cells("DICT_4X4_50", 13)
+    assert cells.shape == (6, 6) and cells.dtype == bool
+    assert cells[0].all() and cells[-1].all() and cells[:, 0].all() and cells[:, -1].all()
+    big = cv2.aruco.generateImageMarker(
+        cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50), 13, 60
+    )
+    np.testing.assert_array_equal(cells, big[5::10, 5::10] == 0)
+
+
+# ------------------------------------------------------------------ solids
+@pytest.mark.parametrize(
+    "dictionary,marker_id",
+    [
+        *[("DICT_4X4_50", i) for i in DS_MARKER_IDS],
+        ("DICT_4X4_50", 0),
+        ("DICT_5X5_100", 77),
+        ("DICT_APRILTAG_36h11", 5),
+    ],
+)
+def test_insert_top_view_decodes_as_its_id(dictionary, marker_id):
+    cfg = MarkerConfig(dictionary=dictionary, ids=(marker_id,))
+    solids = build_solids(cfg, marker_id)
+    corners, ids, half = decode_top_view(solids.insert, dictionary, cfg.size_mm)
+    assert ids == [marker_id]
+    # corners land on the insert's outline: (+-50 mm) -> pixels, within a pixel
+    px = np.array([[-50, 50], [50, 50], [50, -50], [-50, -50]], float)
+    expected = np.stack([(px[:, 0] + half) * PX_PER_MM, (half - px[:, 1]) * PX_PER_MM], 1)
+    assert np.abs(corners[0][0] - expected).max() <= 1.0
+
+
+@pytest.mark.parametrize("relief_depth_mm", [5.0, 2.0])
+def test_solids_are_watertight_and_fit(relief_depth_mm):
+    cfg = MarkerConfig(relief_depth_mm=relief_depth_mm)
+    for marker_id in DS_MARKER_IDS:
+        s = build_solids(cfg, marker_id)
+        for mesh in (s.insert, s.enclosure):
+            assert mesh.is_watertight and mesh.is_winding_consistent
+            assert mesh.volume > 0
+        # insert volume: tag square minus the (slightly widened) white cells, times thickness
+        cells = marker_cells(cfg.dictionary, marker_id)
+        a = cfg.size_mm / cells.shape[0]
+        nominal = (cells.sum() * a * a) * cfg.insert_thickness_mm
+        assert s.insert.volume == pytest.approx(nominal, rel=0.02)
+        # the parts touch only on the designed seat: zero overlap volume
+        overlap = (to_manifold(s.insert) ^ to_manifold(s.enclosure)).volume()
+        assert overlap < 1e-3
+        # the insert rests on the pocket floor and its top is flush with the column top
+        assert s.insert.bounds[0, 2] == pytest.approx(-cfg.insert_thickness_mm)
+        assert s.insert.bounds[1, 2] == pytest.approx(0.0)
+        assert s.enclosure.bounds[1, 2] == pytest.approx(0.0)
+        # inside the insert's footprint the enclosure rises exactly to the relief depth
+        column = mf.Manifold.cube((cfg.size_mm, cfg.size_mm, 50.0), center=True)
+        under = to_manifold(s.enclosure) ^ column
+        expected_top = -min(cfg.relief_depth_mm, cfg.insert_thickness_mm)
+        assert under.bounding_box()[5] == pytest.approx(expected_top, abs=1e-4)
+        total_height = cfg.enclosure_height_mm + cfg.base_height_mm
+        assert s.enclosure.bounds[0, 2] == pytest.approx(-total_height)
+
+
+def test_geometry_config_is_validated():
+    with pytest.raises(ConfigError, match="size_mm: must be > 0"):
+        load_config(MarkerConfig, overrides={"size_mm": 0})
+    with pytest.raises(ConfigError, match="relief_depth_mm"):
+        load_config(MarkerConfig, overrides={"relief_depth_mm": 9.0})
+    with pytest.raises(ConfigError, match="enclosure_side_mm"):
+        load_config(MarkerConfig, overrides={"enclosure_side_mm": 100.0})
+
+
+# ------------------------------------------------------------------ marker set
+def test_face_up_pose_points_marker_normal_up():
+    T = T_ds_marker_face_up(0.0, -0.30, -0.26, 0.0)
+    np.testing.assert_allclose(T[:3, 2], [0, 0, -1])  # marker z = -z_ds (up)
+    np.testing.assert_allclose(T[:3, 0], [1, 0, 0])
+    T90 = T_ds_marker_face_up(0, 0, 0, 90.0)
+    np.testing.assert_allclose(T90[:3, 0], [0, 1, 0], atol=1e-12)
+
+
+def test_marker_set_default_layout_and_round_trip(tmp_path):
+    ms = marker_set_from_config(MarkerConfig())
+    assert ms.ids == DS_MARKER_IDS
+    corners = ms.corners_ds()
+    # marker 14 at (0, -0.30, -0.26) face up: TL corner (-s/2, +s/2) in the marker frame
+    np.testing.assert_allclose(corners[14][0], [-0.05, -0.35, -0.26], atol=1e-12)
+    np.testing.assert_allclose(corners[13].mean(0), [0.87, -1.05, -1.756], atol=1e-12)
+    for suffix in (".toml", ".json"):
+        path = save_marker_set(tmp_path / f"set{suffix}", ms)
+        back = load_marker_set(path)
+        assert back.ids == ms.ids and back.dictionary == "DICT_4X4_50"
+        for i in ms.ids:
+            np.testing.assert_allclose(back[i].T_ds_marker, ms[i].T_ds_marker)
+            np.testing.assert_allclose(back.corners_ds()[i], corners[i])
+
+
+def test_unlisted_ids_get_distinct_floor_poses():
+    ms = marker_set_from_config(MarkerConfig(ids=(41, 42, 43, 13)))
+    centres = np.array([ms[i].T_ds_marker[:3, 3] for i in (41, 42, 43)])
+    assert len({tuple(np.round(c, 6)) for c in centres}) == 3
+    assert np.allclose(centres[:, 2], -0.26)
+    np.testing.assert_allclose(ms[13].T_ds_marker[:3, 3], [0.87, -1.05, -1.756])
+
+
+@pytest.mark.parametrize(
+    "mutate,message",
+    [
+        (lambda d: d["markers"][0].pop("side_m"), "missing key 'side_m'"),
+        (lambda d: d["markers"][1].update(id=d["markers"][0]["id"]), "appears twice"),
+        (lambda d: d["markers"][0].update(id=50), "outside dictionary"),
+        (lambda d: d["markers"][0]["T_ds_marker"][0].__setitem__(0, 2.0), "T_ds_marker"),
+        (lambda d: d.update(version=99), "unsupported version 99"),
+        (lambda d: d["markers"][0].update(side_m=0.2), "corners_marker_m disagree"),
+    ],
+)
+def test_marker_set_rejects_bad_files(tmp_path, mutate, message):
+    data = marker_set_from_config(MarkerConfig()).to_dict()
+    mutate(data)
+    path = tmp_path / "bad.json"
+    path.write_text(json.dumps(data))
+    with pytest.raises(ConfigError, match=message):
+        load_marker_set(path)
+
+
+def test_marker_set_malformed_toml(tmp_path):
+    path = tmp_path / "bad.toml"
+    path.write_text("format = [unclosed\n")
+    with pytest.raises(ConfigError, match="malformed TOML"):
+        load_marker_set(path)
+
+
+# ------------------------------------------------------------------ generate, end to end
+@pytest.fixture(scope="module")
+def generated(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("markers")
+    generate(MarkerConfig(), out)
+    return out
+
+
+def test_generate_writes_every_file(generated):
+    for i in DS_MARKER_IDS:
+        stem = file_stem("DICT_4X4_50", i)
+        for suffix in ("_insert.stl", "_enclosure.stl", ".glb", "_preview.png"):
+            assert (generated / f"{stem}{suffix}").stat().st_size > 0
+    for name in ("sheet.pdf", "sheet.svg", "markerset.toml", "config.toml", "provenance.json"):
+        assert (generated / name).is_file()
+    assert not list(generated.glob("*.tmp")) and not list(generated.glob(".*"))
+    prov = json.loads((generated / "provenance.json").read_text())
+    assert prov["config"]["marker"]["ids"] == list(DS_MARKER_IDS)
+    assert "numpy" in prov["packages"] and "commit" in prov["git"]
+    # the written config reproduces the run
+    again = load_config(MarkerConfig, generated / "config.toml", section="marker")
+    assert again == MarkerConfig()
+
+
+def test_generated_stl_files_decode_and_are_watertight(generated):
+    """The shipped files themselves (reloaded as a slicer would) decode as their IDs."""
+    for i in DS_MARKER_IDS:
+        stem = generated / file_stem("DICT_4X4_50", i)
+        insert = trimesh.load_mesh(f"{stem}_insert.stl")
+        enclosure = trimesh.load_mesh(f"{stem}_enclosure.stl")
+        assert insert.is_watertight and enclosure.is_watertight
+        assert insert.volume > 0 and enclosure.volume > 0
+        _, ids, _ = decode_top_view(insert, "DICT_4X4_50", 100.0)
+        assert ids == [i]
+
+
+def test_render_mesh_is_in_metres_with_two_materials(generated):
+    scene = trimesh.load(generated / f"{file_stem('DICT_4X4_50', 13)}.glb")
+    assert set(scene.geometry) == {"insert", "enclosure"}
+    ins = scene.geometry["insert"]
+    np.testing.assert_allclose(ins.bounds, [[-0.05, -0.05, -0.005], [0.05, 0.05, 0.0]], atol=1e-6)
+    colours = {n: tuple(g.visual.material.baseColorFactor[:3]) for n, g in scene.geometry.items()}
+    assert colours["insert"][0] > 200 and colours["enclosure"][0] < 50
+
+
+def test_generated_marker_set_points_at_render_meshes(generated):
+    ms = load_marker_set(generated / "markerset.toml")
+    assert ms.ids == DS_MARKER_IDS
+    for i in ms.ids:
+        assert ms.render_mesh_path(i).is_file()
+
+
+# ------------------------------------------------------------------ CLI
+def test_cli_generate_with_flags(run_cli, tmp_path):
+    out = tmp_path / "o"
+    res = run_cli(
+        cli.main,
+        "generate",
+        "--ids",
+        "3,7",
+        "--dictionary",
+        "DICT_5X5_100",
+        "--size-mm",
+        "60",
+        "--relief-depth-mm",
+        "3",
+        "--out",
+        out,
+        "--quiet",
+    )
+    assert res.code == 0, res.err
+    ms = load_marker_set(out / "markerset.toml")
+    assert ms.ids == (3, 7) and ms.dictionary == "DICT_5X5_100"
+    assert ms[3].side_m == pytest.approx(0.06)
+    insert = trimesh.load_mesh(out / "3dbm_DICT_5X5_100_7_insert.stl")
+    np.testing.assert_allclose(insert.extents, [60, 60, 5], atol=1e-6)
+
+
+def test_cli_help_lists_commands(run_cli):
+    res = run_cli(cli.main, "--help")
+    assert res.code == 0 and "generate" in res.out and "dictionaries" in res.out
+
+
+@pytest.mark.parametrize(
+    "args,message",
+    [
+        (["--ids", "13,50"], "marker ID 50 is outside dictionary DICT_4X4_50"),
+        (["--size-mm", "0"], "size_mm: must be > 0"),
+        (["--size-mm", "-3"], "size_mm: must be > 0"),
+        (["--ids", "13,x"], "--ids must be comma-separated integers"),
+        (["--dictionary", "DICT_NOPE"], "unknown marker dictionary"),
+    ],
+)
+def test_cli_bad_input_one_line_error_and_no_files(run_cli, tmp_path, args, message):
+    out = tmp_path / "o"
+    res = run_cli(cli.main, "generate", *args, "--out", out)
+    assert res.code != 0
+    assert message in res.err and res.err.count("\n") == 1, res.err
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_cli_unwritable_output(run_cli, tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    res = run_cli(cli.main, "generate", "--out", blocker / "sub")
+    assert res.code != 0 and "cannot write to output folder" in res.err
+    assert res.err.count("\n") == 1
+
+
+@pytest.mark.parametrize(
+    "text,message",
+    [
+        ("size_mm = 80\nbogus_key = 1\n", "unknown config key 'bogus_key'"),
+        ("size_mm = 'big'\n", "size_mm: expected a number"),
+        ("ids = [13, \n", "malformed TOML"),
+    ],
+)
+def test_cli_bad_config(run_cli, tmp_path, text, message):
+    cfg = tmp_path / "m.toml"
+    cfg.write_text(text)
+    out = tmp_path / "o"
+    res = run_cli(cli.main, "generate", "--config", cfg, "--out", out)
+    assert res.code != 0 and message in res.err and res.err.count("\n") == 1, res.err
+    assert not out.exists()
+
+
+def test_config_file_values_are_used_and_flags_win(run_cli, tmp_path):
+    cfg = tmp_path / "m.toml"
+    cfg.write_text("ids = [1, 2]\nsize_mm = 70\n")
+    out = tmp_path / "o"
+    res = run_cli(cli.main, "generate", "--config", cfg, "--size-mm", "50", "--out", out, "--quiet")
+    assert res.code == 0, res.err
+    ms = load_marker_set(out / "markerset.toml")
+    assert ms.ids == (1, 2) and ms[1].side_m == pytest.approx(0.05)
+
+
+def test_failure_midway_leaves_only_complete_files(tmp_path, monkeypatch):
+    import markers.generate as gen
+
+    def boom(*_a, **_k):
+        raise DockError("disk full (simulated)")
+
+    monkeypatch.setattr(gen, "write_sheet", boom)
+    with pytest.raises(DockError):
+        generate(MarkerConfig(ids=(13,)), tmp_path)
+    assert not (tmp_path / "markerset.toml").exists()
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+    # what was written is complete
+    assert trimesh.load_mesh(tmp_path / "3dbm_DICT_4X4_50_13_insert.stl").is_watertight
