@@ -1,0 +1,127 @@
+"""The DS pose filter shared by every observation source.
+
+The docking station is static, so the filter tracks its pose in the world frame (NED): the state
+is ``[x_m, y_m, z_m, yaw_rad]`` of ``T_world_ds`` with a 4x4 covariance. The vehicle's own pose
+comes from its navigation (odometry); between measurements the DS estimate is held while its
+uncertainty grows with time (odometry drift), which is the same as propagating the relative pose
+with the vehicle's velocities. Before the first detection the estimate is a USBL-like prior.
+
+Observation sources differ only in how they make a measurement (``T_world_ds`` + covariance):
+render -> detect -> PnP (camera), a fitted error model, or the paper's visibility proxy.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from calibration.frames import make_T, rpy_from_R, wrap_angle_rad
+
+
+def _Rz(yaw: float) -> np.ndarray:
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+@dataclass(frozen=True)
+class EstimatorConfig:
+    """DS pose filter.
+
+    Attributes:
+        prior_sigma_xy_m: USBL-like prior, horizontal standard deviation (m).
+        prior_sigma_z_m: prior, vertical standard deviation (m).
+        prior_sigma_yaw_deg: prior, DS heading standard deviation (deg).
+        drift_xyz_m_per_sqrt_s: growth of the position uncertainty between measurements
+            (random-walk density of the odometry drift, m / sqrt(s)).
+        drift_yaw_deg_per_sqrt_s: same for yaw (deg / sqrt(s)).
+        fuse: True: Kalman update; False: a measurement replaces the estimate (the paper's
+            proxy observation, which is memoryless).
+        gate_sigma: measurements further than this many standard deviations (Mahalanobis) from
+            the estimate are rejected as outliers (0 disables gating).
+    """
+
+    prior_sigma_xy_m: float = 1.0
+    prior_sigma_z_m: float = 0.3
+    prior_sigma_yaw_deg: float = 15.0
+    drift_xyz_m_per_sqrt_s: float = 0.02
+    drift_yaw_deg_per_sqrt_s: float = 0.2
+    fuse: bool = True
+    gate_sigma: float = 0.0
+
+    def validate(self) -> None:
+        for name in ("prior_sigma_xy_m", "prior_sigma_z_m", "prior_sigma_yaw_deg"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name}: must be >= 0")
+
+
+class DSPoseFilter:
+    """Kalman filter on the static DS pose ``[x, y, z, yaw]`` in the world frame."""
+
+    def __init__(self, cfg: EstimatorConfig | None = None) -> None:
+        self.cfg = cfg or EstimatorConfig()
+        self.x = np.zeros(4)
+        self.P = np.eye(4)
+        self.measured = False
+        self.time_since_measurement_s = math.inf
+
+    def reset(self, T_world_ds_true: np.ndarray, rng: np.random.Generator) -> None:
+        """Start from the USBL-like prior: the truth plus a draw of the prior's noise."""
+        c = self.cfg
+        sig = np.array(
+            [
+                c.prior_sigma_xy_m,
+                c.prior_sigma_xy_m,
+                c.prior_sigma_z_m,
+                math.radians(c.prior_sigma_yaw_deg),
+            ]
+        )
+        self.x = self._state(T_world_ds_true) + sig * rng.standard_normal(4)
+        self.x[3] = float(wrap_angle_rad(self.x[3]))
+        self.P = np.diag(np.maximum(sig, 1e-6) ** 2)
+        self.measured = False
+        self.time_since_measurement_s = math.inf
+
+    @staticmethod
+    def _state(T_world_ds: np.ndarray) -> np.ndarray:
+        return np.array([*T_world_ds[:3, 3], rpy_from_R(T_world_ds[:3, :3])[2]])
+
+    def predict(self, dt_s: float) -> None:
+        """Grow the uncertainty over ``dt_s`` seconds without a measurement."""
+        c = self.cfg
+        q = np.array([c.drift_xyz_m_per_sqrt_s] * 3 + [math.radians(c.drift_yaw_deg_per_sqrt_s)])
+        self.P = self.P + np.diag(q**2 * dt_s)
+        self.time_since_measurement_s += dt_s
+
+    def update(self, T_world_ds_meas: np.ndarray, cov_xyzyaw: np.ndarray) -> bool:
+        """Fuse one measurement (4x4 covariance of x, y, z, yaw). Returns False if gated out."""
+        z = self._state(T_world_ds_meas)
+        R = np.asarray(cov_xyzyaw, dtype=np.float64)
+        if not self.cfg.fuse:
+            self.x, self.P = z, R.copy()
+        else:
+            innov = z - self.x
+            innov[3] = float(wrap_angle_rad(innov[3]))
+            S = self.P + R
+            if self.cfg.gate_sigma > 0:
+                d2 = float(innov @ np.linalg.solve(S, innov))
+                if d2 > self.cfg.gate_sigma**2:
+                    return False
+            K = self.P @ np.linalg.inv(S)
+            self.x = self.x + K @ innov
+            self.x[3] = float(wrap_angle_rad(self.x[3]))
+            self.P = (np.eye(4) - K) @ self.P
+        self.measured = True
+        self.time_since_measurement_s = 0.0
+        return True
+
+    @property
+    def T_world_ds(self) -> np.ndarray:
+        """(4, 4) estimated DS pose (level: roll and pitch zero)."""
+        return make_T(_Rz(self.x[3]), self.x[:3])
+
+    @property
+    def sigma_xyz_m(self) -> np.ndarray:
+        """(3,) current standard deviations of the DS position estimate (m)."""
+        return np.sqrt(np.diag(self.P)[:3])

@@ -1,0 +1,91 @@
+"""The paper's reward, as named terms (Chaarani et al., eqs. r_dist ... r_mission).
+
+R = r_dist + r_angle + r_smooth + r_collision + r_mission, each term multiplied by a weight from
+:class:`RewardConfig` (all 1 by default, i.e. the paper) and reported separately in
+``info["reward_terms"]``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class RewardConfig:
+    """Reward constants (reference.md section 1; paper appendix table).
+
+    Attributes:
+        w_xyz: weights of |e_x|, |e_y|, |e_z| in r_dist (1/m).
+        angle_gain: k in r_angle = exp(-k |e_psi|) - 1 (1/rad).
+        smooth_scale: c in r_smooth = -(c / N) exp(sum |a_k - a_k-1|) (-).
+        collision_penalty: p_c, paid when the IMU acceleration jumps by more than Gamma (-).
+        gamma_set_mps2: nominal collision threshold Gamma_set (m/s^2).
+        success_reward: p_s on docking (-).
+        truncation_penalty: p_f when the episode is truncated (-).
+        weights: multiplier per term name (dist, angle, smooth, collision, mission).
+    """
+
+    w_xyz: tuple[float, float, float] = (1.0, 1.0, 0.5)
+    angle_gain: float = 2.0
+    smooth_scale: float = 0.1
+    collision_penalty: float = 10.0
+    gamma_set_mps2: float = 1.0
+    success_reward: float = 500.0
+    truncation_penalty: float = 10.0
+    weights: dict[str, float] | None = None
+
+    def validate(self) -> None:
+        if self.gamma_set_mps2 <= 0:
+            raise ValueError("gamma_set_mps2: must be > 0")
+        unknown = set(self.weights or {}) - set(TERMS)
+        if unknown:
+            raise ValueError(f"weights: unknown term {sorted(unknown)[0]!r} (terms: {TERMS})")
+
+
+TERMS = ("dist", "angle", "smooth", "collision", "mission")
+
+
+class DockingReward:
+    """Stateful reward (the collision threshold Gamma adapts); call :meth:`reset` per episode."""
+
+    def __init__(self, cfg: RewardConfig | None = None) -> None:
+        self.cfg = cfg or RewardConfig()
+        self._w = {t: 1.0 for t in TERMS} | dict(self.cfg.weights or {})
+        self.gamma_mps2 = self.cfg.gamma_set_mps2
+
+    def reset(self) -> None:
+        self.gamma_mps2 = self.cfg.gamma_set_mps2
+
+    def collision(self, acc_mps2: np.ndarray, prev_acc_mps2: np.ndarray) -> bool:
+        """Detect a collision from the IMU jump and adapt Gamma (doubles on a hit, halves back)."""
+        hit = float(np.linalg.norm(np.asarray(acc_mps2) - prev_acc_mps2)) > self.gamma_mps2
+        if hit:
+            self.gamma_mps2 *= 2.0
+        elif self.gamma_mps2 > self.cfg.gamma_set_mps2:
+            self.gamma_mps2 = max(self.cfg.gamma_set_mps2, self.gamma_mps2 / 2.0)
+        return hit
+
+    def __call__(
+        self,
+        e_xyz_m: np.ndarray,
+        e_psi_rad: float,
+        action: np.ndarray,
+        prev_action: np.ndarray,
+        collided: bool,
+        docked: bool,
+        truncated: bool,
+    ) -> dict[str, float]:
+        """The weighted terms of one step (their sum is the reward)."""
+        c = self.cfg
+        a = np.asarray(action, dtype=np.float64)
+        terms = {
+            "dist": -float(np.dot(c.w_xyz, np.abs(e_xyz_m))),
+            "angle": math.exp(-c.angle_gain * abs(e_psi_rad)) - 1.0,
+            "smooth": -(c.smooth_scale / a.size) * math.exp(float(np.abs(a - prev_action).sum())),
+            "collision": -c.collision_penalty if collided else 0.0,
+            "mission": c.success_reward if docked else -c.truncation_penalty if truncated else 0.0,
+        }
+        return {k: self._w[k] * v for k, v in terms.items()}
