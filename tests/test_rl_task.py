@@ -31,8 +31,9 @@ def test_errors_are_in_the_body_frame():
     T_target = CFG.T_ds_target
     T_world_body = make_T(T_target[:3, :3], T_target[:3, 3] + [0, 0, -2.0])
     e, psi = docking_errors(T_world_body, T_world_ds, CFG)
+    assert psi == pytest.approx(0, abs=1e-12)
     np.testing.assert_allclose(e, [0, 0, 2.0], atol=1e-12)
-    # displaced 1 m north in the world, the AUV (yawed +90: body x = east) sees it at body -y
+    # displaced 1 m north in the world, the AUV (yawed +90: body y = south) sees it at body +y
     T_world_body2 = make_T(T_target[:3, :3], T_target[:3, 3] + [1.0, 0, 0])
     e2, _ = docking_errors(T_world_body2, T_world_ds, CFG)
     np.testing.assert_allclose(e2, [0, 1.0, 0], atol=1e-12)

@@ -1,0 +1,381 @@
+"""The vehicle as one SAPIEN (PhysX) rigid body driven by our hydrodynamics and thrusters.
+
+Frames: the model (``sim.vehicle``, ``sim.thrusters``) is written in world NED / body FRD; SAPIEN
+uses a z-up world and FLU actors (``calibration.frames``: both conversions are 180 deg about x).
+This module is the only place where the two meet: poses go through ``ned_pose_to_zup`` /
+``zup_pose_to_ned``; inside the 300 Hz loop body vectors are converted by negating their y and z
+components (FLU <-> FRD) and the current by ``R_zup_ned`` once per control step.
+
+How added mass is made stable (and exact) at 300 Hz:
+    Applying ``-M_A nu_dot`` as a force with the previous substep's acceleration is an explicit
+    algebraic loop that oscillates or diverges once ``M_A`` nears the rigid mass. Folding ``M_A``
+    into PhysX's mass is the usual cure, but PhysX has one scalar mass and a diagonal inertia at
+    the CoM, while ``M_A`` is anisotropic, lives at the origin and gravity must act on ``m`` only.
+    So we solve the full 6x6 Fossen equation ourselves for ``nu_dot`` (``Hydrodynamics``: constant
+    mass matrix ``M_RB + M_A``, every other term from the current state, no acceleration
+    feedback) and hand PhysX the force and torque that make *its* body (mass ``m_e``, inertia
+    ``I_e`` at the CG) reach exactly that acceleration:
+    ``F = m_e a_cg``, ``T = I_e omega_dot + omega x I_e omega`` (PhysX integrates the gyroscopic
+    term itself). The integration is then plain semi-implicit Euler of a smooth ODE, stable for
+    any added mass. ``m_e = m + mean(M_A[:3])`` and ``I_e = I + M_A[3:]`` ("folded" added mass)
+    matter only for contacts, so a collision feels the water that moves with the hull.
+
+Speed: NumPy costs ~1 us per call on 3-vectors, so the per-substep work is scalar Python
+(``Hydrodynamics.make_accel_fn`` plus the loop in :meth:`VehicleBody.step_thrust`); thruster
+responses and the varying current are computed per control step with NumPy.
+
+Example:
+    >>> scene = make_physics_scene()
+    >>> auv = VehicleBody(scene, VehicleConfig(), Current(CurrentConfig(mode="constant")))
+    >>> auv.reset(make_T(t=[0, 0, 5.0]))          # 5 m deep, level, heading north
+    >>> auv.step([50.0, 0, 0, 0, 0, 0], 0.2)      # one 5 Hz control step (60 substeps)
+    >>> auv.nu                                      # body velocity, FRD
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import sapien
+from numpy.typing import ArrayLike
+
+from calibration.frames import (
+    T_BODYFLU_BODYFRD,
+    T_WORLDZUP_WORLDNED,
+    T_from_pos_quat,
+    check_T,
+    ned_pose_to_zup,
+    pos_quat_from_T,
+    zup_pose_to_ned,
+)
+from sim.thrusters import ThrusterArray
+from sim.vehicle import Current, CurrentConfig, Hydrodynamics, Imu, ImuReading, VehicleConfig
+
+__all__ = ["PHYSICS_RATE_HZ", "VehicleBody", "VehicleState", "make_physics_scene"]
+
+#: Default physics rate (Hz): the reference's 300 Hz.
+PHYSICS_RATE_HZ = 300.0
+
+# The scalar loop converts body vectors FLU <-> FRD by negating y and z: check that assumption.
+if not np.array_equal(T_BODYFLU_BODYFRD[:3, :3], np.diag([1.0, -1.0, -1.0])):  # pragma: no cover
+    raise ImportError("sim.physics assumes T_BODYFLU_BODYFRD = diag(1, -1, -1)")
+_R_ZUP_NED = np.array(T_WORLDZUP_WORLDNED[:3, :3])
+_S_BODY = np.array([1.0, -1.0, -1.0])  # FRD <-> FLU component signs
+
+
+def make_physics_scene(timestep_s: float = 1.0 / PHYSICS_RATE_HZ) -> sapien.Scene:
+    """A SAPIEN scene with a PhysX CPU system only (no render system, so no Vulkan needed).
+
+    Args:
+        timestep_s: physics substep (s).
+    """
+    scene = sapien.Scene([sapien.physx.PhysxCpuSystem()])
+    scene.set_timestep(timestep_s)
+    return scene
+
+
+@dataclass(frozen=True)
+class VehicleState:
+    """Snapshot of the vehicle (marine convention).
+
+    Attributes:
+        time_s: simulated time since the last reset (s).
+        T_world_ned_body_frd: (4, 4) pose of body FRD in world NED.
+        nu: (6,) body velocity [u, v, w (m/s), p, q, r (rad/s)] of the origin, FRD.
+        nu_dot: (6,) acceleration over the last substep: the origin's world-frame acceleration
+            and the angular acceleration, both expressed in body FRD (m/s^2, rad/s^2); contact
+            forces included.
+        thrust_n: (n,) thrust each thruster produces now (N).
+    """
+
+    time_s: float
+    T_world_ned_body_frd: np.ndarray
+    nu: np.ndarray
+    nu_dot: np.ndarray
+    thrust_n: np.ndarray
+
+    @property
+    def depth_m(self) -> float:
+        """NED z of the body origin (m; the world origin is at the surface)."""
+        return float(self.T_world_ned_body_frd[2, 3])
+
+
+def _shape_pose_flu(center_frd: ArrayLike, axis: str) -> sapien.Pose:
+    """Local pose (FLU) of a primitive whose natural axis (x for capsules) must lie on ``axis``."""
+    p = (np.asarray(center_frd, dtype=float) * _S_BODY).tolist()
+    h = math.sqrt(0.5)
+    q = {"x": [1.0, 0.0, 0.0, 0.0], "y": [h, 0.0, 0.0, h], "z": [h, 0.0, h, 0.0]}[axis]
+    return sapien.Pose(p, q)
+
+
+class VehicleBody:
+    """The AUV as a dynamic SAPIEN actor with hydrodynamics, thrusters, current and IMU.
+
+    ``step`` advances the whole scene (it calls ``scene.step()`` once per substep), so use one
+    ``VehicleBody`` per scene and do not step that scene elsewhere.
+
+    Args:
+        scene: the SAPIEN scene (physics-only from :func:`make_physics_scene`, or one with a
+            renderer); its timestep is the physics substep.
+        config: the true vehicle of this episode (e.g. a randomised draw).
+        current: ocean current; default none (still water).
+        nominal_config: what the controller believes (used by :meth:`step` for allocation);
+            default ``config``.
+        rng: generator for the IMU biases and noise.
+        name: actor name.
+    """
+
+    def __init__(
+        self,
+        scene: sapien.Scene,
+        config: VehicleConfig | None = None,
+        current: Current | None = None,
+        nominal_config: VehicleConfig | None = None,
+        rng: np.random.Generator | None = None,
+        name: str = "auv",
+    ) -> None:
+        config = config if config is not None else VehicleConfig()
+        self.scene = scene
+        self.dt_s = float(scene.get_timestep())
+        self.entity = self._build_actor(scene, config, name)
+        self.component = self.entity.find_component_by_type(sapien.physx.PhysxRigidDynamicComponent)
+        comp = self.component
+        comp.set_disable_gravity(True)  # gravity is our restoring force, acting on m only
+        comp.set_linear_damping(0.0)
+        comp.set_angular_damping(0.0)
+        comp.set_sleep_threshold(0.0)
+        self.current = current if current is not None else Current(CurrentConfig("constant"))
+        self._rng = rng if rng is not None else np.random.default_rng(0)
+        self.set_config(config, nominal_config)
+        self.reset(np.eye(4))
+
+    # ------------------------------------------------------------------ construction
+
+    @staticmethod
+    def _build_actor(scene: sapien.Scene, config: VehicleConfig, name: str) -> sapien.Entity:
+        builder = scene.create_actor_builder()
+        material = sapien.physx.PhysxMaterial(config.friction, config.friction, 0.0)
+        for shape in config.collision:
+            pose = _shape_pose_flu(shape.center_m, shape.axis if shape.kind == "capsule" else "x")
+            if shape.kind == "box":
+                builder.add_box_collision(pose, half_size=shape.size_m, material=material)
+            else:
+                builder.add_capsule_collision(
+                    pose, radius=shape.size_m[0], half_length=shape.size_m[1], material=material
+                )
+        return builder.build(name=name)
+
+    def set_config(
+        self, config: VehicleConfig, nominal_config: VehicleConfig | None = None
+    ) -> None:
+        """Switch to another vehicle draw (mass, inertia, CG, hydrodynamics, thrusters, IMU).
+
+        Call :meth:`reset` afterwards (PhysX keeps the CoM velocity, whose point just moved).
+        The collision shapes stay those the actor was built with.
+        """
+        self.config = config
+        self.nominal_config = nominal_config if nominal_config is not None else config
+        self.hydro = Hydrodynamics(config)
+        self._accel = self.hydro.make_accel_fn()
+        self.thrusters = ThrusterArray(config.thrusters)
+        self.allocator = ThrusterArray(self.nominal_config.thrusters)
+        if self.allocator.n != self.thrusters.n:
+            raise ValueError("nominal and true vehicles must have the same number of thrusters")
+        self._B_T = self.thrusters.B.T.copy()
+        self.imu = Imu(config.imu, config.gravity_mps2, self._rng)
+        am = config.added_mass
+        self.engine_mass_kg = config.mass_kg + (am[0] + am[1] + am[2]) / 3.0
+        self.engine_inertia_kgm2 = tuple(
+            i + a for i, a in zip(config.inertia_kgm2, am[3:], strict=True)
+        )
+        comp = self.component
+        comp.set_mass(self.engine_mass_kg)
+        comp.set_inertia(np.asarray(self.engine_inertia_kgm2, dtype=np.float32))
+        comp.set_cmass_local_pose(sapien.Pose((np.asarray(config.cg_m) * _S_BODY).tolist()))
+
+    # ------------------------------------------------------------------ state
+
+    def reset(
+        self,
+        T_world_ned_body_frd: ArrayLike,
+        nu: ArrayLike | None = None,
+        rng: np.random.Generator | None = None,
+    ) -> None:
+        """Place the vehicle, set its velocity, stop the thrusters and zero the clock.
+
+        Args:
+            T_world_ned_body_frd: (4, 4) pose of body FRD in world NED (z = depth, m).
+            nu: (6,) body velocity of the origin, FRD (m/s, rad/s); default at rest.
+            rng: if given, the IMU draws new biases from it and keeps it for its noise.
+        """
+        T_zup_flu = ned_pose_to_zup(check_T(T_world_ned_body_frd, "T_world_ned_body_frd"))
+        p, q = pos_quat_from_T(T_zup_flu)
+        self.entity.set_pose(sapien.Pose(p.tolist(), q.tolist()))
+        nu = np.zeros(6) if nu is None else np.asarray(nu, dtype=float)
+        if nu.shape != (6,) or not np.all(np.isfinite(nu)):
+            raise ValueError(f"nu: expected 6 finite values, got shape {nu.shape}")
+        c = np.asarray(self.config.cg_m, dtype=float)
+        v_cg_frd = nu[:3] + np.cross(nu[3:], c)
+        R = T_zup_flu[:3, :3]
+        self.component.set_linear_velocity((R @ (v_cg_frd * _S_BODY)).astype(np.float32))
+        self.component.set_angular_velocity((R @ (nu[3:] * _S_BODY)).astype(np.float32))
+        self.thrust_n = np.zeros(self.thrusters.n)
+        self.thrust_command_n = np.zeros(self.thrusters.n)
+        self.time_s = 0.0
+        self._acc_zup = (0.0,) * 6  # last substep's CoM and angular acceleration, world
+        if rng is not None:
+            self._rng = rng
+            self.imu.reset(rng)
+
+    @property
+    def T_world_ned_body_frd(self) -> np.ndarray:
+        """(4, 4) pose of body FRD in world NED."""
+        pose = self.component.get_entity_pose()
+        return zup_pose_to_ned(T_from_pos_quat(pose.p, pose.q))
+
+    @property
+    def nu(self) -> np.ndarray:
+        """(6,) body velocity [u, v, w, p, q, r] of the origin, FRD (m/s, rad/s)."""
+        pose = self.component.get_entity_pose()
+        R_t = T_from_pos_quat(pose.p, pose.q)[:3, :3].T
+        w = R_t @ self.component.get_angular_velocity().astype(float) * _S_BODY
+        v_cg = R_t @ self.component.get_linear_velocity().astype(float) * _S_BODY
+        return np.concatenate([v_cg - np.cross(w, np.asarray(self.config.cg_m)), w])
+
+    @property
+    def nu_dot(self) -> np.ndarray:
+        """(6,) last substep's acceleration of the origin and angular acceleration, body FRD."""
+        pose = self.component.get_entity_pose()
+        R_t = T_from_pos_quat(pose.p, pose.q)[:3, :3].T
+        a_cg = R_t @ np.asarray(self._acc_zup[:3]) * _S_BODY
+        alpha = R_t @ np.asarray(self._acc_zup[3:]) * _S_BODY
+        w = self.nu[3:]
+        c = np.asarray(self.config.cg_m, dtype=float)
+        a_o = a_cg - np.cross(alpha, c) - np.cross(w, np.cross(w, c))
+        return np.concatenate([a_o, alpha])
+
+    def state(self) -> VehicleState:
+        """A snapshot of pose, velocity, acceleration and thrust (marine convention)."""
+        return VehicleState(
+            self.time_s, self.T_world_ned_body_frd, self.nu, self.nu_dot, self.thrust_n.copy()
+        )
+
+    def read_imu(self) -> ImuReading:
+        """Sample the noisy navigation sensors at the current state."""
+        s = self.state()
+        return self.imu.measure(s.T_world_ned_body_frd[:3, :3], s.nu, s.nu_dot[:3], s.depth_m)
+
+    # ------------------------------------------------------------------ stepping
+
+    def _substeps(self, duration_s: float) -> int:
+        n = round(duration_s / self.dt_s)
+        if n < 1 or abs(n * self.dt_s - duration_s) > 1e-6 * max(1.0, duration_s):
+            raise ValueError(f"duration_s={duration_s} is not a multiple of dt={self.dt_s}")
+        return n
+
+    def step(self, wrench_frd: ArrayLike, duration_s: float = 0.2) -> None:
+        """One control step: allocate a body wrench and simulate for ``duration_s``.
+
+        The nominal thruster model turns the wrench (6,) [N, N m, FRD, about the origin] into
+        setpoints (saturating by a common factor); the true thrusters turn those setpoints into
+        thrust, so thruster randomisation shows up as a wrench error.
+        """
+        setpoint = self.allocator.setpoint_from_thrust(self.allocator.allocate(wrench_frd))
+        self.step_thrust(self.thrusters.thrust_from_setpoint(setpoint), duration_s)
+
+    def step_setpoints(self, setpoint: ArrayLike, duration_s: float = 0.2) -> None:
+        """Hold thruster setpoints (n,) in [-1, 1] for ``duration_s`` (s)."""
+        self.step_thrust(self.thrusters.thrust_from_setpoint(setpoint), duration_s)
+
+    def step_thrust(self, thrust_command_n: ArrayLike, duration_s: float = 0.2) -> None:
+        """Hold a thrust command (n,) (N) for ``duration_s`` (a multiple of the timestep).
+
+        Each substep: the thrusters' first-order response, then hydrodynamics for ``nu_dot``,
+        then the PhysX force/torque that realises it, then ``scene.step()``.
+        """
+        n = self._substeps(duration_s)
+        dt = self.dt_s
+        cmd = np.asarray(thrust_command_n, dtype=float)
+        thrust = self.thrusters.response(self.thrust_n, cmd, dt, n)  # (n, k)
+        wrenches = (thrust @ self._B_T).tolist()
+        times = self.time_s + dt * np.arange(n)
+        currents = (self.current.velocity_ned_at(times) @ _R_ZUP_NED.T).tolist()
+        self._run(wrenches, currents, n)
+        self.thrust_command_n = cmd
+        self.thrust_n = thrust[-1].copy()
+        self.time_s += n * dt
+
+    def _run(self, wrenches: list[list[float]], currents: list[list[float]], n: int) -> None:
+        """The hot loop: ``n`` substeps with the given per-substep wrench (FRD) and current
+        (z-up world). Scalar Python only; see the module docstring."""
+        comp = self.component
+        get_pose = comp.get_entity_pose
+        get_v = comp.get_linear_velocity
+        get_w = comp.get_angular_velocity
+        add = comp.add_force_torque
+        step = self.scene.step
+        accel = self._accel
+        me = self.engine_mass_kg
+        ie0, ie1, ie2 = self.engine_inertia_kgm2
+        cx, cy, cz = self.config.cg_m
+        vx = vy = vz = ox = oy = oz = 0.0
+        for k in range(n):
+            qw, qx, qy, qz = get_pose().q.tolist()
+            vx, vy, vz = get_v().tolist()  # CoM velocity, z-up world
+            ox, oy, oz = get_w().tolist()
+            # R_zup_flu from the unit quaternion
+            xx, yy, zz = qx * qx, qy * qy, qz * qz
+            xy, xz, yz = qx * qy, qx * qz, qy * qz
+            wx, wy, wz = qw * qx, qw * qy, qw * qz
+            r00 = 1.0 - 2.0 * (yy + zz)
+            r01 = 2.0 * (xy - wz)
+            r02 = 2.0 * (xz + wy)
+            r10 = 2.0 * (xy + wz)
+            r11 = 1.0 - 2.0 * (xx + zz)
+            r12 = 2.0 * (yz - wx)
+            r20 = 2.0 * (xz - wy)
+            r21 = 2.0 * (yz + wx)
+            r22 = 1.0 - 2.0 * (xx + yy)
+            # world -> body FLU (R^T) -> body FRD (negate y, z)
+            p = r00 * ox + r10 * oy + r20 * oz
+            q = -(r01 * ox + r11 * oy + r21 * oz)
+            r = -(r02 * ox + r12 * oy + r22 * oz)
+            ug = r00 * vx + r10 * vy + r20 * vz
+            vg = -(r01 * vx + r11 * vy + r21 * vz)
+            wg = -(r02 * vx + r12 * vy + r22 * vz)
+            ax_, ay_, az_ = currents[k]
+            cu = r00 * ax_ + r10 * ay_ + r20 * az_
+            cv = -(r01 * ax_ + r11 * ay_ + r21 * az_)
+            cw = -(r02 * ax_ + r12 * ay_ + r22 * az_)
+            X, Y, Z, K, M, N = wrenches[k]
+            # origin velocity v_O = v_cg - omega x c; NED down in FRD = (-r20, r21, r22)
+            ud, vd, wd, pd, qd, rd = accel(
+                -r20, r21, r22,
+                ug - (q * cz - r * cy), vg - (r * cx - p * cz), wg - (p * cy - q * cx),
+                p, q, r, cu, cv, cw, X, Y, Z, K, M, N,
+            )  # fmt: skip
+            # CoM acceleration in body FRD: v_O_dot + omega_dot x c + omega x v_cg
+            fx = me * (ud + qd * cz - rd * cy + q * wg - r * vg)
+            fy = -me * (vd + rd * cx - pd * cz + r * ug - p * wg)
+            fz = -me * (wd + pd * cy - qd * cx + p * vg - q * ug)
+            # torque about the CoM: I_e omega_dot + omega x I_e omega (FRD), then FLU signs
+            tx = ie0 * pd + (ie2 - ie1) * q * r
+            ty = -(ie1 * qd + (ie0 - ie2) * r * p)
+            tz = -(ie2 * rd + (ie1 - ie0) * p * q)
+            add(
+                (r00 * fx + r01 * fy + r02 * fz, r10 * fx + r11 * fy + r12 * fz,
+                 r20 * fx + r21 * fy + r22 * fz),
+                (r00 * tx + r01 * ty + r02 * tz, r10 * tx + r11 * ty + r12 * tz,
+                 r20 * tx + r21 * ty + r22 * tz),
+            )  # fmt: skip
+            step()
+        if n:
+            v1 = get_v().tolist()
+            w1 = get_w().tolist()
+            inv = 1.0 / self.dt_s
+            self._acc_zup = (
+                (v1[0] - vx) * inv, (v1[1] - vy) * inv, (v1[2] - vz) * inv,
+                (w1[0] - ox) * inv, (w1[1] - oy) * inv, (w1[2] - oz) * inv,
+            )  # fmt: skip
