@@ -1,15 +1,181 @@
-"""``calibration``: command group. Commands appear here as they are implemented."""
+"""``calibration``: camera intrinsics, the camera-to-vehicle extrinsics, the reference camera."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import click
 
 from dockcore.cli import run_group
+from dockcore.config import load_config
+
+_CTX = {"help_option_names": ["-h", "--help"]}
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.group(context_settings=_CTX)
 def cli() -> None:
     """Calibration: camera intrinsics and the camera-to-vehicle extrinsics."""
+
+
+@cli.command(context_settings=_CTX)
+@click.argument("source", type=click.Path(path_type=Path))
+@click.option("--pattern", help="Target: chessboard or charuco [chessboard].")
+@click.option("--cols", type=int, help="Chessboard: inner corners per row; charuco: squares [9].")
+@click.option("--rows", type=int, help="Chessboard: inner corners per column; charuco: squares [6]")
+@click.option("--square-mm", type=float, help="Square side in mm [25].")
+@click.option("--marker-mm", type=float, help="ChArUco marker side in mm [0.75 x square].")
+@click.option("--dictionary", help="ChArUco marker dictionary [DICT_4X4_50].")
+@click.option("--blur-threshold-px", type=float, help="Reject views with wider edges (px) [6].")
+@click.option("--max-views", type=int, help="Most views kept, spread over poses [40].")
+@click.option("--holdout-fraction", type=float, help="Fraction of views held out [0.2].")
+@click.option("--seed", type=int, help="Seed of the hold-out draw [0].")
+@click.option(
+    "--distortion-model",
+    type=click.Choice(["k1k2", "k1k2k3", "k1k2p1p2", "k1k2p1p2k3", "rational"]),
+    help="Distortion terms to fit [k1k2p1p2k3].",
+)
+@click.option(
+    "--config",
+    "config_path",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="TOML file overriding IntrinsicsConfig defaults (flags override the file).",
+)
+@click.option("--name", default="camera", show_default=True, help="Camera name in the file.")
+@click.option(
+    "--out",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=Path("camera.yaml"),
+    show_default=True,
+    help="Camera file (.yaml + .json twin); <stem>_report.json and <stem>_errors.png beside it.",
+)
+@click.option("--quiet", is_flag=True, help="Print only the camera file path; no progress bar.")
+def intrinsics(
+    source,
+    pattern,
+    cols,
+    rows,
+    square_mm,
+    marker_mm,
+    dictionary,
+    blur_threshold_px,
+    max_views,
+    holdout_fraction,
+    seed,
+    distortion_model,
+    config_path,
+    name,
+    out,
+    quiet,
+) -> None:
+    """Calibrate K and distortion from SOURCE: a folder of images or a video of the target.
+
+    Chessboard sizes count inner corners, ChArUco sizes count squares. Blurred views and
+    near-duplicates are rejected, a seeded fraction is held out and its reprojection error
+    reported. Calibrate an underwater camera in water, behind its own port.
+    """
+    from calibration.intrinsics import IntrinsicsConfig, calibrate_intrinsics, write_outputs
+
+    cfg = load_config(
+        IntrinsicsConfig,
+        config_path,
+        overrides={
+            "pattern": pattern,
+            "cols": cols,
+            "rows": rows,
+            "square_mm": square_mm,
+            "marker_mm": marker_mm,
+            "dictionary": dictionary,
+            "blur_threshold_px": blur_threshold_px,
+            "max_views": max_views,
+            "holdout_fraction": holdout_fraction,
+            "seed": seed,
+            "distortion_model": distortion_model,
+        },
+        section="intrinsics",
+    )
+    result = calibrate_intrinsics(source, cfg, name=name, progress=False if quiet else None)
+    paths, kept_T = write_outputs(result, out)
+    if quiet:
+        click.echo(str(paths[0]))
+        return
+    cam, n = result.camera, result.counts()
+    rejected = ", ".join(f"{k} {v}" for k, v in n["rejected_by_reason"].items()) or "none"
+    click.echo(
+        f"views: {n['read'] + n['unreadable']} in, {n['pattern_found']} with the pattern, "
+        f"{n['calibration']} calibration, {n['holdout']} held out; rejected: {rejected}"
+    )
+    click.echo(
+        f"fx {cam.fx_px:.3f} px  fy {cam.fy_px:.3f} px  cx {cam.cx_px:.3f} px  "
+        f"cy {cam.cy_px:.3f} px  dist [{', '.join(f'{d:.5f}' for d in cam.dist)}]"
+    )
+    hold = "n/a" if result.holdout_rms_px is None else f"{result.holdout_rms_px:.4f} px"
+    click.echo(f"rms {cam.rms_px:.4f} px (calibration views), hold-out {hold}")
+    if kept_T:
+        click.echo(f"kept T_body_cam from the existing {out}")
+    click.echo("wrote " + ", ".join(str(p) for p in paths))
+
+
+@cli.group(context_settings=_CTX)
+def extrinsics() -> None:
+    """Show or set T_body_cam (camera cv frame in body FRD) in a camera file.
+
+    Rotation as roll, pitch, yaw in degrees, ZYX: R_body_cam = Rz(yaw) Ry(pitch) Rx(roll).
+    rpy 0 0 0 looks down with the image x axis forward; the reference camera is 0 0 90.
+    """
+
+
+@extrinsics.command(context_settings=_CTX)
+@click.argument("camera_file", type=click.Path(path_type=Path))
+@click.option("--json", "as_json", is_flag=True, help="Print JSON.")
+def show(camera_file, as_json) -> None:
+    """Print T_body_cam of CAMERA_FILE (the reference default when it has none)."""
+    from calibration.extrinsics import format_extrinsics, read_extrinsics
+
+    T, from_file = read_extrinsics(camera_file)
+    source = f"from {camera_file}" if from_file else "reference default (none in the file)"
+    click.echo(format_extrinsics(T, source, as_json=as_json))
+
+
+@extrinsics.command(name="set", context_settings=_CTX)
+@click.argument("camera_file", type=click.Path(path_type=Path))
+@click.option(
+    "--xyz-m", nargs=3, type=float, required=True, help="Camera position X Y Z in body FRD (m)."
+)
+@click.option("--rpy-deg", nargs=3, type=float, required=True, help="Roll pitch yaw (deg), ZYX.")
+def set_(camera_file, xyz_m, rpy_deg) -> None:
+    """Write T_body_cam into CAMERA_FILE (both twins; intrinsics unchanged)."""
+    from calibration.extrinsics import (
+        T_body_cam_from_xyz_rpy,
+        format_extrinsics,
+        write_extrinsics,
+    )
+
+    T = T_body_cam_from_xyz_rpy(xyz_m, rpy_deg)
+    yaml_path, json_path = write_extrinsics(camera_file, T)
+    click.echo(format_extrinsics(T, f"written to {yaml_path} and {json_path}"))
+
+
+@cli.command(name="reference-camera", context_settings=_CTX)
+@click.option(
+    "--out",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=Path("camera.yaml"),
+    show_default=True,
+    help="Camera file (.yaml + .json twin).",
+)
+@click.option("--width", type=int, help="Image width (px) [968]; alone keeps the aspect ratio.")
+@click.option("--height", type=int, help="Image height (px) [732]; alone keeps the aspect ratio.")
+def reference_camera(out, width, height) -> None:
+    """Write the reference Girona downward camera (968x732, 55 deg HFOV) with its T_body_cam."""
+    from calibration.camera import load_camera
+    from calibration.extrinsics import write_reference_camera
+
+    yaml_path, json_path = write_reference_camera(out, width, height)
+    cam, _ = load_camera(yaml_path)
+    click.echo(
+        f"wrote {yaml_path} and {json_path}: {cam.width_px}x{cam.height_px} px, "
+        f"f {cam.fx_px:.3f} px, HFOV {cam.hfov_deg:.2f} deg"
+    )
 
 
 def main() -> None:

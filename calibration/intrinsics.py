@@ -1,0 +1,600 @@
+"""Camera intrinsics from views of a chessboard or ChArUco board (``calibration intrinsics``).
+
+Pipeline: read views (an image folder or a sampled video) -> find the pattern with sub-pixel
+corners -> reject blurred views and near-duplicates -> keep at most ``max_views`` spread over
+pose space -> hold out a seeded fraction -> ``cv2.calibrateCamera`` on the rest -> reprojection
+error of the held-out views with the calibrated intrinsics (their pose from PnP) -> camera file,
+JSON report and a per-view error plot.
+
+Pattern sizes: ``cols`` x ``rows`` are **inner corners** for a chessboard and **squares** for a
+ChArUco board (OpenCV's conventions; see :mod:`calibration.patterns`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import sys
+from collections import Counter
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import cv2
+import numpy as np
+
+from calibration.camera import CameraModel, load_camera, save_camera
+from calibration.patterns import (
+    PATTERNS,
+    Detection,
+    PatternDetector,
+    blur_px,
+    normalise_dictionary_name,
+    quad_distance_px,
+    spread_subset,
+    view_quad_px,
+)
+from dockcore.config import to_dict
+from dockcore.errors import DockError
+from dockcore.io import atomic_path, atomic_write_json
+from dockcore.provenance import provenance
+
+__all__ = [
+    "IMAGE_SUFFIXES",
+    "MIN_VIEWS",
+    "IntrinsicsConfig",
+    "IntrinsicsResult",
+    "ViewRecord",
+    "calibrate_intrinsics",
+    "iter_views",
+    "write_outputs",
+]
+
+#: Image files read from an input folder (case-insensitive).
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+
+#: Fewest calibration views (held-out views excluded) a calibration accepts.
+MIN_VIEWS = 4
+
+#: OpenCV calibration flags of each distortion model.
+_DIST_FLAGS = {
+    "k1k2": cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K3,
+    "k1k2k3": cv2.CALIB_ZERO_TANGENT_DIST,
+    "k1k2p1p2": cv2.CALIB_FIX_K3,
+    "k1k2p1p2k3": 0,
+    "rational": cv2.CALIB_RATIONAL_MODEL,
+}
+
+
+@dataclass(frozen=True)
+class IntrinsicsConfig:
+    """Intrinsic calibration from views of a planar target.
+
+    Attributes:
+        pattern: ``"chessboard"`` or ``"charuco"``.
+        cols: chessboard: inner corners per row; charuco: squares per row.
+        rows: chessboard: inner corners per column; charuco: squares per column.
+        square_mm: side of one square (mm). Scales the board poses only; K does not depend on it.
+        marker_mm: ChArUco marker side (mm), < ``square_mm``; ``None``: 0.75 x ``square_mm``.
+        dictionary: ChArUco marker dictionary (``cv2.aruco`` name, e.g. ``DICT_4X4_50``).
+        legacy_charuco: the board was printed by OpenCV < 4.6 (matters for an even row count).
+        blur_threshold_px: views whose pattern edge width exceeds this are rejected as blurred
+            (px; a sharp image gives ~2, a Gaussian blur of sigma s gives ~2.5 s).
+        duplicate_threshold_frac: a view whose board outline lies closer than this to a kept
+            view's (mean corner distance, as a fraction of the image diagonal) is a duplicate.
+        max_views: most views used (calibration + hold-out); extra views are dropped so that
+            the kept ones spread over board positions and tilts.
+        holdout_fraction: fraction of the kept views held out of the fit to validate it, in
+            [0, 0.5]; at least one when there are more than ``MIN_VIEWS`` views, none otherwise.
+        seed: seed of the hold-out draw and the spread selection.
+        distortion_model: ``k1k2``, ``k1k2k3``, ``k1k2p1p2``, ``k1k2p1p2k3`` (OpenCV's default)
+            or ``rational`` (8 coefficients).
+        min_corners: fewest ChArUco corners for a view to count (a chessboard is all or nothing).
+        subpix_win_px: largest half window of the sub-pixel corner search (px).
+        video_max_frames: most frames sampled (evenly) from a video input.
+    """
+
+    pattern: str = "chessboard"
+    cols: int = 9
+    rows: int = 6
+    square_mm: float = 25.0
+    marker_mm: float | None = None
+    dictionary: str = "DICT_4X4_50"
+    legacy_charuco: bool = False
+    blur_threshold_px: float = 6.0
+    duplicate_threshold_frac: float = 0.01
+    max_views: int = 40
+    holdout_fraction: float = 0.2
+    seed: int = 0
+    distortion_model: Literal["k1k2", "k1k2k3", "k1k2p1p2", "k1k2p1p2k3", "rational"] = "k1k2p1p2k3"
+    min_corners: int = 8
+    subpix_win_px: int = 11
+    video_max_frames: int = 300
+
+    def validate(self) -> None:
+        """Raise ValueError (one line naming the field) for an out-of-range value."""
+        if self.pattern not in PATTERNS:
+            raise ValueError(f"pattern: must be one of {list(PATTERNS)}, got {self.pattern!r}")
+        low = 2 if self.pattern == "chessboard" else 3
+        for key in ("cols", "rows"):
+            if getattr(self, key) < low:
+                raise ValueError(f"{key}: must be >= {low} for a {self.pattern}")
+        if not self.square_mm > 0:
+            raise ValueError(f"square_mm: must be > 0, got {self.square_mm}")
+        if self.marker_mm is not None and not 0 < self.marker_mm < self.square_mm:
+            raise ValueError(f"marker_mm: must be in (0, square_mm), got {self.marker_mm}")
+        normalise_dictionary_name(self.dictionary)
+        if not self.blur_threshold_px > 0:
+            raise ValueError(f"blur_threshold_px: must be > 0, got {self.blur_threshold_px}")
+        if not 0 <= self.duplicate_threshold_frac < 1:
+            raise ValueError("duplicate_threshold_frac: must be in [0, 1)")
+        if self.max_views < MIN_VIEWS:
+            raise ValueError(f"max_views: must be >= {MIN_VIEWS}, got {self.max_views}")
+        if not 0 <= self.holdout_fraction <= 0.5:
+            raise ValueError(f"holdout_fraction: must be in [0, 0.5], got {self.holdout_fraction}")
+        if self.distortion_model not in _DIST_FLAGS:
+            raise ValueError(f"distortion_model: must be one of {list(_DIST_FLAGS)}")
+        if self.min_corners < 4:
+            raise ValueError(f"min_corners: must be >= 4, got {self.min_corners}")
+        if self.subpix_win_px < 2:
+            raise ValueError(f"subpix_win_px: must be >= 2, got {self.subpix_win_px}")
+        if self.video_max_frames < 1:
+            raise ValueError(f"video_max_frames: must be >= 1, got {self.video_max_frames}")
+
+    def detector(self) -> PatternDetector:
+        """The pattern detector this configuration describes."""
+        return PatternDetector(
+            self.pattern,
+            self.cols,
+            self.rows,
+            self.square_mm / 1000.0,
+            None if self.marker_mm is None else self.marker_mm / 1000.0,
+            self.dictionary,
+            legacy_charuco=self.legacy_charuco,
+            subpix_win_px=self.subpix_win_px,
+            min_corners=self.min_corners,
+        )
+
+
+@dataclass
+class ViewRecord:
+    """What happened to one input view.
+
+    Attributes:
+        name: file name (folder input) or ``frame_<index>`` (video input).
+        status: ``calibration``, ``holdout`` or ``rejected``.
+        reason: why a view was rejected (``unreadable``, ``size_mismatch``, ``no_pattern``,
+            ``blurred``, ``duplicate``, ``over_cap``), else None.
+        n_corners: corners found (0 without a detection).
+        blur_px: pattern edge width (px), None without a detection.
+        error_px: RMS reprojection error of the view (px) for calibration and hold-out views.
+    """
+
+    name: str
+    status: str = "rejected"
+    reason: str | None = None
+    n_corners: int = 0
+    blur_px: float | None = None
+    error_px: float | None = None
+    detection: Detection | None = field(default=None, repr=False)
+    quad_px: np.ndarray | None = field(default=None, repr=False)
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready summary (no arrays)."""
+        return {
+            "name": self.name,
+            "status": self.status,
+            "reason": self.reason,
+            "n_corners": self.n_corners,
+            "blur_px": _round(self.blur_px),
+            "error_px": _round(self.error_px),
+        }
+
+
+@dataclass
+class IntrinsicsResult:
+    """Outcome of :func:`calibrate_intrinsics`.
+
+    Attributes:
+        camera: the calibrated camera (``rms_px`` = RMS over the calibration views).
+        holdout_rms_px: RMS reprojection error (px) over the held-out views, None without any.
+        views: one record per input view, in input order.
+        std_intrinsics: one-sigma uncertainty of fx, fy, cx, cy (px) and each distortion term.
+        config: the configuration used.
+        source: the input path.
+    """
+
+    camera: CameraModel
+    holdout_rms_px: float | None
+    views: list[ViewRecord]
+    std_intrinsics: dict[str, float]
+    config: IntrinsicsConfig
+    source: str
+
+    def counts(self) -> dict[str, Any]:
+        """Views read / with the pattern / used / held out / rejected (by reason)."""
+        reasons = Counter(v.reason for v in self.views if v.status == "rejected")
+        return {
+            "read": sum(v.reason != "unreadable" for v in self.views),
+            "unreadable": reasons.get("unreadable", 0),
+            "pattern_found": sum(v.detection is not None for v in self.views),
+            "calibration": sum(v.status == "calibration" for v in self.views),
+            "holdout": sum(v.status == "holdout" for v in self.views),
+            "rejected": sum(reasons.values()),
+            "rejected_by_reason": dict(sorted(reasons.items())),
+        }
+
+    def report(self) -> dict[str, Any]:
+        """The JSON report written beside the camera file."""
+        cam = self.camera
+        return {
+            "source": self.source,
+            "image_size_px": [cam.width_px, cam.height_px],
+            "pattern_size_meaning": (
+                "inner corners" if self.config.pattern == "chessboard" else "squares"
+            ),
+            "views": self.counts(),
+            "rms_px": _round(cam.rms_px),
+            "holdout_rms_px": _round(self.holdout_rms_px),
+            "camera_matrix": cam.K.tolist(),
+            "distortion_coefficients": list(cam.dist),
+            "std_intrinsics": {k: _round(v) for k, v in self.std_intrinsics.items()},
+            "per_view": [v.as_dict() for v in self.views],
+            "config": to_dict(self.config),
+        }
+
+
+def _round(x: float | None, digits: int = 6) -> float | None:
+    return None if x is None or not math.isfinite(x) else round(float(x), digits)
+
+
+# --------------------------------------------------------------------------- input views
+
+
+@contextlib.contextmanager
+def _quiet_native_stderr() -> Iterator[None]:
+    """Silence OpenCV/FFmpeg messages written straight to file descriptor 2 (decoder noise)."""
+    level = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+    saved = None
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, 2)
+        os.close(devnull)
+    except OSError:  # no usable fd 2: nothing to silence
+        saved = None
+    try:
+        yield
+    finally:
+        if saved is not None:
+            os.dup2(saved, 2)
+            os.close(saved)
+        cv2.utils.logging.setLogLevel(level)
+
+
+def _read_image(path: Path) -> np.ndarray | None:
+    """Greyscale uint8 image, or None when the file cannot be decoded."""
+    try:
+        data = np.fromfile(path, dtype=np.uint8)
+    except OSError:
+        return None
+    if data.size == 0:
+        return None
+    with _quiet_native_stderr():
+        return cv2.imdecode(data, cv2.IMREAD_GRAYSCALE)
+
+
+def _video_frames(path: Path, max_frames: int) -> tuple[int, Iterator[tuple[str, np.ndarray]]]:
+    with _quiet_native_stderr():
+        cap = cv2.VideoCapture(str(path))
+        opened = cap.isOpened()
+        ok, first = cap.read() if opened else (False, None)
+    if not ok or first is None:
+        cap.release()
+        raise DockError(f"cannot read video {path} (not a video, or no decodable frame)")
+    count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
+    stride = max(1, math.ceil(count / max_frames)) if count > 0 else 1
+    total = min(max_frames, math.ceil(count / stride)) if count > 0 else max_frames
+
+    def frames() -> Iterator[tuple[str, np.ndarray]]:
+        try:
+            index, frame, n = 0, first, 0
+            while frame is not None and n < max_frames:
+                gray = frame if frame.ndim == 2 else cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
+                yield f"frame_{index:06d}", gray
+                n += 1
+                for _ in range(stride - 1):
+                    if not cap.grab():
+                        return
+                index += stride
+                ok, frame = cap.read()
+                if not ok:
+                    frame = None
+        finally:
+            cap.release()
+
+    return total, frames()
+
+
+def iter_views(
+    source: str | os.PathLike[str], video_max_frames: int = 300
+) -> tuple[int, Iterator[tuple[str, np.ndarray | None]]]:
+    """The views of an input: an image folder (sorted by name) or a video file (sampled).
+
+    Args:
+        source: folder of images (``IMAGE_SUFFIXES``) or a video file ``cv2.VideoCapture`` reads.
+        video_max_frames: most frames taken from a video, evenly spaced over its length.
+
+    Returns:
+        (expected number of views, iterator of (name, greyscale uint8 image or None for a file
+        that cannot be decoded)).
+
+    Raises:
+        DockError: missing input, a folder without images, an unreadable video.
+    """
+    path = Path(source)
+    if path.is_dir():
+        files = sorted(
+            p for p in path.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
+        )
+        if not files:
+            raise DockError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in folder {path}")
+        return len(files), ((p.name, _read_image(p)) for p in files)
+    if path.is_file():
+        return _video_frames(path, video_max_frames)
+    raise DockError(f"input not found: {path}")
+
+
+# --------------------------------------------------------------------------- view selection
+
+
+def _image_blur_px(gray: np.ndarray) -> float:
+    """Whole-image edge width (px), used only to label a view without a detection."""
+    img = gray.astype(np.float32)
+    lo, hi = np.percentile(img, [1.0, 99.0])
+    gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3) / 8.0
+    gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3) / 8.0
+    peak = float(np.percentile(np.hypot(gx, gy), 99.5))
+    return float(hi - lo) / max(peak, 1e-6)
+
+
+def _inspect(
+    views: Iterator[tuple[str, np.ndarray | None]],
+    total: int,
+    cfg: IntrinsicsConfig,
+    detector: PatternDetector,
+    progress: bool | None,
+) -> tuple[list[ViewRecord], tuple[int, int] | None]:
+    """Detect, measure blur and reject duplicates view by view (input order)."""
+    from tqdm import tqdm
+
+    records: list[ViewRecord] = []
+    kept_quads: list[np.ndarray] = []
+    size: tuple[int, int] | None = None
+    dup_px = 0.0
+    show = sys.stderr.isatty() if progress is None else bool(progress)
+    bar = tqdm(views, total=total, desc="views", unit="view", disable=not show)
+    for name, gray in bar:
+        rec = ViewRecord(name)
+        records.append(rec)
+        if gray is None:
+            rec.reason = "unreadable"
+            continue
+        if size is None:
+            size = (gray.shape[1], gray.shape[0])
+            dup_px = cfg.duplicate_threshold_frac * math.hypot(*size)
+        if (gray.shape[1], gray.shape[0]) != size:
+            rec.reason = "size_mismatch"
+            continue
+        det = detector.detect(gray)
+        if det is None:
+            blurred = _image_blur_px(gray) > cfg.blur_threshold_px
+            rec.reason = "blurred" if blurred else "no_pattern"
+            continue
+        rec.detection, rec.n_corners = det, det.n_corners
+        rec.blur_px = blur_px(gray, det)
+        rec.quad_px = view_quad_px(det, detector.outline_m)
+        if rec.blur_px > cfg.blur_threshold_px:
+            rec.reason = "blurred"
+        elif rec.quad_px is None:
+            rec.reason = "no_pattern"
+        elif any(quad_distance_px(rec.quad_px, q) < dup_px for q in kept_quads):
+            rec.reason = "duplicate"
+        else:
+            rec.status = "candidate"
+            kept_quads.append(rec.quad_px)
+    bar.close()
+    return records, size
+
+
+def _select(records: list[ViewRecord], cfg: IntrinsicsConfig) -> list[ViewRecord]:
+    """Cap the candidates at ``max_views`` (spread) and split them into calibration / hold-out."""
+    cands = [r for r in records if r.status == "candidate"]
+    keep = set(spread_subset([r.quad_px for r in cands], cfg.max_views, cfg.seed))
+    for i, rec in enumerate(cands):
+        if i not in keep:
+            rec.status, rec.reason = "rejected", "over_cap"
+    kept = [r for i, r in enumerate(cands) if i in keep]
+    n_hold = 0
+    if cfg.holdout_fraction > 0 and len(kept) > MIN_VIEWS:
+        n_hold = min(max(1, round(cfg.holdout_fraction * len(kept))), len(kept) - MIN_VIEWS)
+    hold = set(np.random.default_rng(cfg.seed).choice(len(kept), n_hold, replace=False).tolist())
+    for i, rec in enumerate(kept):
+        rec.status = "holdout" if i in hold else "calibration"
+    return kept
+
+
+# --------------------------------------------------------------------------- calibration
+
+
+def _view_rms_px(det: Detection, rvec: np.ndarray, tvec: np.ndarray, K, dist) -> float:
+    proj, _ = cv2.projectPoints(det.object_m.astype(np.float64), rvec, tvec, K, dist)
+    err = proj.reshape(-1, 2) - det.image_px.astype(np.float64)
+    return float(np.sqrt(np.mean(np.sum(err**2, axis=1))))
+
+
+def _holdout_error(det: Detection, K: np.ndarray, dist: np.ndarray) -> tuple[float, float]:
+    """(RMS px, sum of squared px errors) of a held-out view posed by PnP with fixed intrinsics."""
+    obj = det.object_m.astype(np.float64)
+    img = det.image_px.astype(np.float64)
+    ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, flags=cv2.SOLVEPNP_IPPE)
+    if not ok:
+        ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, flags=cv2.SOLVEPNP_ITERATIVE)
+    rvec, tvec = cv2.solvePnPRefineLM(obj, img, K, dist, rvec, tvec)
+    rms = _view_rms_px(det, rvec, tvec, K, dist)
+    return rms, rms**2 * det.n_corners
+
+
+_STD_NAMES = ("fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
+
+
+def calibrate_intrinsics(
+    source: str | os.PathLike[str],
+    cfg: IntrinsicsConfig | None = None,
+    name: str = "camera",
+    progress: bool | None = False,
+) -> IntrinsicsResult:
+    """Calibrate a camera from an image folder or a video of a chessboard / ChArUco board.
+
+    Args:
+        source: image folder or video file (see :func:`iter_views`).
+        cfg: configuration (defaults: 9 x 6 inner-corner chessboard, 25 mm squares).
+        name: camera name written into the camera file.
+        progress: tqdm progress bar on stderr: True, False, or None (only on a terminal).
+
+    Returns:
+        The calibrated camera, the hold-out error and one record per view.
+
+    Raises:
+        DockError: bad input (see :func:`iter_views`), no pattern in any view, fewer than
+            ``MIN_VIEWS`` usable views, or a calibration OpenCV rejects.
+    """
+    cfg = cfg or IntrinsicsConfig()
+    cfg.validate()
+    detector = cfg.detector()
+    total, views = iter_views(source, cfg.video_max_frames)
+    records, size = _inspect(views, total, cfg, detector, progress)
+    if size is None:
+        raise DockError(f"none of the {len(records)} images in {source} could be decoded")
+    n_found = sum(r.detection is not None for r in records)
+    if n_found == 0:
+        blurred = sum(r.reason == "blurred" for r in records)
+        raise DockError(
+            f"no {cfg.pattern} of {cfg.cols}x{cfg.rows} "
+            f"{'inner corners' if cfg.pattern == 'chessboard' else 'squares'} found in any of "
+            f"{len(records)} views ({blurred} too blurred); check --pattern, --cols and --rows"
+        )
+    kept = _select(records, cfg)
+    cal = [r for r in kept if r.status == "calibration"]
+    if len(cal) < MIN_VIEWS:
+        reasons = Counter(r.reason for r in records if r.status == "rejected")
+        detail = ", ".join(f"{k} {v}" for k, v in sorted(reasons.items()))
+        raise DockError(
+            f"only {len(cal)} usable views, need at least {MIN_VIEWS} (rejected: {detail})"
+        )
+    obj = [r.detection.object_m.reshape(-1, 1, 3) for r in cal]
+    img = [r.detection.image_px.reshape(-1, 1, 2) for r in cal]
+    try:
+        rms, K, dist, _, _, std_in, _, per_view = cv2.calibrateCameraExtended(
+            obj, img, size, None, None, flags=_DIST_FLAGS[cfg.distortion_model]
+        )
+    except cv2.error as exc:
+        text = " ".join(str(exc).split()).split(" error: ", 1)[-1]
+        raise DockError(f"calibration failed: {text}") from None
+    dist = dist.reshape(-1)
+    for rec, err in zip(cal, per_view.reshape(-1), strict=True):
+        rec.error_px = float(err)
+    sq_sum, n_pts = 0.0, 0
+    for rec in (r for r in kept if r.status == "holdout"):
+        rec.error_px, sq = _holdout_error(rec.detection, K, dist)
+        sq_sum, n_pts = sq_sum + sq, n_pts + rec.n_corners
+    holdout = math.sqrt(sq_sum / n_pts) if n_pts else None
+    n_dist = 8 if cfg.distortion_model == "rational" else 5
+    camera = CameraModel(
+        width_px=int(size[0]),
+        height_px=int(size[1]),
+        fx_px=float(K[0, 0]),
+        fy_px=float(K[1, 1]),
+        cx_px=float(K[0, 2]),
+        cy_px=float(K[1, 2]),
+        dist=tuple(float(d) for d in dist[:n_dist]),
+        rms_px=float(rms),
+        name=name,
+    )
+    std = std_in.reshape(-1)
+    std_named = {k: float(std[i]) for i, k in enumerate(_STD_NAMES[: 4 + n_dist])}
+    return IntrinsicsResult(camera, holdout, records, std_named, cfg, str(source))
+
+
+# --------------------------------------------------------------------------- outputs
+
+
+def _plot_errors(result: IntrinsicsResult, path: Path) -> None:
+    """Bar chart of per-view RMS reprojection error (px), calibration vs hold-out views."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    used = [v for v in result.views if v.status in ("calibration", "holdout")]
+    fig, ax = plt.subplots(figsize=(max(6.0, 0.22 * len(used) + 2.0), 3.6), dpi=100)
+    colours = ["tab:blue" if v.status == "calibration" else "tab:orange" for v in used]
+    ax.bar(range(len(used)), [v.error_px or 0.0 for v in used], color=colours)
+    ax.axhline(
+        result.camera.rms_px or 0.0,
+        color="tab:blue",
+        ls="--",
+        lw=1,
+        label=f"calibration RMS {result.camera.rms_px:.3f} px",
+    )
+    if result.holdout_rms_px is not None:
+        ax.axhline(
+            result.holdout_rms_px,
+            color="tab:orange",
+            ls="--",
+            lw=1,
+            label=f"hold-out RMS {result.holdout_rms_px:.3f} px",
+        )
+    ax.set_xticks(range(len(used)))
+    ax.set_xticklabels([v.name for v in used], rotation=90, fontsize=6)
+    ax.set_ylabel("RMS reprojection error (px)")
+    ax.set_title("Per-view error (blue: calibration, orange: hold-out)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+
+
+def write_outputs(
+    result: IntrinsicsResult, out: str | os.PathLike[str], keep_extrinsics: bool = True
+) -> tuple[list[Path], bool]:
+    """Write the camera file twins, ``<stem>_report.json`` and ``<stem>_errors.png``.
+
+    Args:
+        result: a calibration.
+        out: camera file path (``.yaml``, ``.yml`` or ``.json``).
+        keep_extrinsics: when ``out`` already holds a readable camera file with ``T_body_cam``,
+            carry it over (intrinsics do not change where the camera is mounted).
+
+    Returns:
+        (the paths written, whether ``T_body_cam`` was carried over).
+    """
+    out = Path(out)
+    T = None
+    if keep_extrinsics and out.is_file():
+        with contextlib.suppress(DockError):
+            T = load_camera(out)[1]
+    yaml_path, json_path = save_camera(out, result.camera, T)
+    report = result.report()
+    report["T_body_cam_kept"] = T is not None
+    report["provenance"] = provenance()  # code version, packages, machine, command line
+    report_path = out.with_name(f"{out.stem}_report.json")
+    plot_path = out.with_name(f"{out.stem}_errors.png")
+    atomic_write_json(report_path, report)
+    _plot_errors(result, plot_path)
+    return [yaml_path, json_path, report_path, plot_path], T is not None
