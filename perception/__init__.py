@@ -1,0 +1,11 @@
+"""Perception: camera image -> marker detections -> docking-station pose.
+
+* :mod:`perception.preprocess`: named preprocessing pipelines (``default``, the published
+  ``reference_3dbm``, ``threshold_sweep``, ``normalise_invert``, and ``plain``).
+* :mod:`perception.detector`: :class:`~perception.detector.Detector` (OpenCV ArUco / AprilTag).
+* :mod:`perception.pose`: single-marker IPPE with both solutions, and the joint board PnP
+  with outlier rejection and a covariance.
+
+Imports only numpy, OpenCV, ``calibration``, ``markers`` and ``dockcore``: never SAPIEN, torch,
+``sim`` or ``rl``, so footage can be evaluated without the simulator.
+"""

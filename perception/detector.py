@@ -1,0 +1,202 @@
+"""ArUco / AprilTag marker detection behind a named preprocessing pipeline.
+
+Example:
+    >>> det = Detector(DetectorConfig(ids=(13, 14, 15, 28, 34)))
+    >>> for d in det.detect(image_bgr):
+    ...     print(d.marker_id, d.corners_px)      # (4, 2) TL, TR, BR, BL in pixels
+
+Corner order is OpenCV's (TL, TR, BR, BL of the marker as printed, i.e. the marker-frame
+corners (-s/2, s/2), (s/2, s/2), (s/2, -s/2), (-s/2, -s/2)); pixel coordinates follow OpenCV
+(integer = pixel centre). The detector does not change OpenCV's thread count: time it under
+``cv2.setNumThreads(1)`` for one-core figures.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+
+from dockcore.errors import ConfigError, DockError
+from markers.dictionary import dictionary_size, get_dictionary, normalise_dictionary_name
+from perception.preprocess import PIPELINES, Pipeline, as_uint8, get_pipeline
+
+__all__ = ["CORNER_REFINEMENTS", "Detection", "Detector", "DetectorConfig", "list_pipelines"]
+
+#: Corner refinement names -> OpenCV constants.
+CORNER_REFINEMENTS: dict[str, int] = {
+    "none": int(cv2.aruco.CORNER_REFINE_NONE),
+    "subpix": int(cv2.aruco.CORNER_REFINE_SUBPIX),
+    "contour": int(cv2.aruco.CORNER_REFINE_CONTOUR),
+    "apriltag": int(cv2.aruco.CORNER_REFINE_APRILTAG),
+}
+
+
+@dataclass(frozen=True)
+class DetectorConfig:
+    """Marker detector settings. ``None`` fields take the pipeline's preset
+    (:data:`perception.preprocess.PIPELINES`; ``default`` presets: 7.0, (23, 23, 10), "subpix",
+    True; the published pipelines and ``plain`` use OpenCV's defaults: 7.0, (3, 23, 10), "none",
+    False).
+
+    Attributes:
+        dictionary: OpenCV dictionary name, any ``cv2.aruco.DICT_*`` incl. AprilTag families
+            (case-insensitive, ``DICT_`` optional).
+        ids: allow-list of marker IDs; detections of other IDs are dropped. None keeps all.
+        pipeline: preprocessing pipeline name (see :func:`perception.preprocess.get_pipeline`).
+        adaptive_thresh_constant: ArUco ``adaptiveThreshConstant`` (grey levels of the candidate
+            image subtracted from the local mean). Lower finds lower-contrast markers and more
+            noise (slower). None: pipeline preset.
+        adaptive_thresh_win_sizes_px: (min, max, step) of ArUco's adaptive threshold windows
+            (px, odd, min >= 3). None: pipeline preset.
+        corner_refinement: "none", "subpix" (~0.2 px corners), "contour" or "apriltag".
+            None: pipeline preset.
+        detect_inverted: also decode photometric negatives of the candidate image (OpenCV's
+            ``detectInvertedMarker``). None: pipeline preset (True only for ``default``, whose
+            candidate is not inverted).
+    """
+
+    dictionary: str = "DICT_4X4_50"
+    ids: tuple[int, ...] | None = None
+    pipeline: str = "default"
+    adaptive_thresh_constant: float | None = None
+    adaptive_thresh_win_sizes_px: tuple[int, int, int] | None = None
+    corner_refinement: str | None = None
+    detect_inverted: bool | None = None
+
+    def validate(self) -> None:
+        """Raise ValueError (a :class:`ConfigError`) naming the first bad field."""
+        try:
+            name = normalise_dictionary_name(self.dictionary)
+            get_pipeline(self.pipeline)
+        except DockError as exc:
+            raise ConfigError(str(exc)) from None
+        if self.ids is not None:
+            n = dictionary_size(name)
+            bad = [i for i in self.ids if not 0 <= int(i) < n]
+            if bad:
+                raise ConfigError(f"ids: {bad[0]} is outside {name} (valid IDs: 0..{n - 1})")
+        c = self.adaptive_thresh_constant
+        if c is not None and not math.isfinite(c):
+            raise ConfigError(f"adaptive_thresh_constant: must be finite, got {c}")
+        w = self.adaptive_thresh_win_sizes_px
+        if w is not None:
+            if len(w) != 3:
+                raise ConfigError(
+                    f"adaptive_thresh_win_sizes_px: expected (min, max, step), got {w}"
+                )
+            lo, hi, step = (int(v) for v in w)
+            if lo < 3 or hi < lo or step < 1:
+                raise ConfigError(
+                    f"adaptive_thresh_win_sizes_px: need min >= 3, max >= min, step >= 1, got {w}"
+                )
+        r = self.corner_refinement
+        if r is not None and r not in CORNER_REFINEMENTS:
+            raise ConfigError(
+                f"corner_refinement: '{r}' is not one of {', '.join(CORNER_REFINEMENTS)}"
+            )
+
+
+@dataclass
+class Detection:
+    """One decoded marker.
+
+    Attributes:
+        marker_id: dictionary ID.
+        corners_px: (4, 2) float64 pixel coordinates (u, v) of the TL, TR, BR, BL corners.
+    """
+
+    marker_id: int
+    corners_px: np.ndarray
+
+
+def _aruco_parameters(cfg: DetectorConfig, pipeline: Pipeline) -> cv2.aruco.DetectorParameters:
+    """OpenCV parameters: OpenCV defaults, then the pipeline preset, then explicit config."""
+    params = cv2.aruco.DetectorParameters()
+    overrides: dict[str, Any] = dict(pipeline.aruco_preset)
+    if cfg.adaptive_thresh_constant is not None:
+        overrides["adaptiveThreshConstant"] = float(cfg.adaptive_thresh_constant)
+    if cfg.adaptive_thresh_win_sizes_px is not None:
+        lo, hi, step = (int(v) for v in cfg.adaptive_thresh_win_sizes_px)
+        overrides["adaptiveThreshWinSizeMin"] = lo
+        overrides["adaptiveThreshWinSizeMax"] = hi
+        overrides["adaptiveThreshWinSizeStep"] = step
+    if cfg.corner_refinement is not None:
+        overrides["cornerRefinementMethod"] = CORNER_REFINEMENTS[cfg.corner_refinement]
+    if cfg.detect_inverted is not None:
+        overrides["detectInvertedMarker"] = bool(cfg.detect_inverted)
+    for key, value in overrides.items():
+        setattr(params, key, value)
+    return params
+
+
+class Detector:
+    """Runs a preprocessing pipeline and OpenCV's ArUco detector on camera images.
+
+    Args:
+        cfg: detector settings (validated here).
+
+    Raises:
+        ConfigError: an invalid config (unknown dictionary or pipeline names it).
+    """
+
+    def __init__(self, cfg: DetectorConfig | None = None) -> None:
+        cfg = DetectorConfig() if cfg is None else cfg
+        cfg.validate()
+        self.cfg = cfg
+        self.pipeline = get_pipeline(cfg.pipeline)
+        self.dictionary_name = normalise_dictionary_name(cfg.dictionary)
+        self.parameters = _aruco_parameters(cfg, self.pipeline)
+        self._aruco = cv2.aruco.ArucoDetector(get_dictionary(self.dictionary_name), self.parameters)
+        self._allowed = None if cfg.ids is None else frozenset(int(i) for i in cfg.ids)
+
+    def detect_candidate(self, grey: np.ndarray) -> list[Detection]:
+        """ArUco on one preprocessed uint8 grey image; allow-listed IDs only, in OpenCV's order."""
+        corners, ids, _ = self._aruco.detectMarkers(grey)
+        if ids is None:
+            return []
+        out = []
+        for marker_id, c in zip(ids.ravel().tolist(), corners, strict=True):
+            if self._allowed is None or marker_id in self._allowed:
+                out.append(Detection(int(marker_id), np.asarray(c, np.float64).reshape(4, 2)))
+        return out
+
+    def detect(self, image: Any) -> list[Detection]:
+        """Detect markers in a camera image.
+
+        Args:
+            image: (H, W) grey or (H, W, 3) BGR (or BGRA) array, uint8, uint16 or float [0, 1].
+
+        Returns:
+            Detections sorted by marker ID. An ID decoded in several candidate images is
+            reported once, from the candidate with the most detections (ties: the earlier one).
+            An ID seen twice in the same candidate (two physical markers) is kept twice.
+
+        Raises:
+            DockError: None, empty, or not an image.
+        """
+        image = as_uint8(image)
+        per_candidate = [self.detect_candidate(c) for c in self.pipeline(image)]
+        if not per_candidate:
+            return []
+        order = sorted(range(len(per_candidate)), key=lambda i: -len(per_candidate[i]))
+        if self.pipeline.merge == "best":
+            order = order[:1]
+        seen: set[int] = set()
+        merged: list[Detection] = []
+        for i in order:
+            new = [d for d in per_candidate[i] if d.marker_id not in seen]
+            merged.extend(new)
+            seen.update(d.marker_id for d in new)
+        return sorted(merged, key=lambda d: d.marker_id)
+
+    def __repr__(self) -> str:
+        return f"Detector({self.cfg!r})"
+
+
+def list_pipelines() -> dict[str, str]:
+    """Pipeline name -> one-line description."""
+    return {name: p.description for name, p in PIPELINES.items()}

@@ -1,0 +1,319 @@
+"""Named preprocessing pipelines: camera image -> grey candidate images for the ArUco detector.
+
+A pipeline is a callable ``pipeline(image) -> list[np.ndarray]``: it takes a BGR, BGRA or grey
+image (uint8, uint16, or float in [0, 1]) and returns one or more uint8 grey images of the same
+size. The detector runs ArUco on each candidate and merges the results (see
+:mod:`perception.detector`). Several candidates stand for several polarities or thresholds.
+
+Each pipeline also carries the ArUco ``DetectorParameters`` it was designed or tuned with
+(``aruco_preset``) and how results from several candidates are merged (``merge``):
+
+* ``default`` (3-5 ms): noise-aware contrast stretch + 3x3 Gaussian, one candidate; ArUco
+  decodes both polarities itself (``detectInvertedMarker``), one 23 px threshold window,
+  sub-pixel corners.
+* ``reference_3dbm`` (5-8 ms): the published 3DBM pipeline: min-max normalise, grey, CLAHE
+  (clip 2.0, 32x32 tiles), invert, 3x3 Gaussian; OpenCV's default ArUco parameters.
+* ``threshold_sweep`` (35-120 ms): published alternative: inverse binary thresholds 90..185
+  step 5, keep the threshold with the most detections.
+* ``normalise_invert`` (2-6 ms): published alternative: min-max normalise, grey, invert.
+* ``plain`` (2-5 ms): grey only (flat printed tags).
+
+(ms: median per 968x732 frame on one core, ``cv2.setNumThreads(1)``, synthetic 3DBM views with
+6 markers, contrast 8-255 grey levels, noise 1-2.5 levels.)
+
+Polarity: ``default`` decodes the 3DBM (a photometric negative) and flat printed tags alike.
+The published pipelines keep OpenCV's default parameters, as published: they decode the polarity
+they were designed for (the three 3DBM pipelines invert the image; ``plain`` expects flat tags).
+``DetectorConfig(detect_inverted=True)`` makes any of them decode the other polarity too, at a
+price: with ``detectInvertedMarker`` OpenCV keeps the *smallest* of nested contours, which biases
+the corners of normal-polarity markers by ~3 px (measured, 25-110 px markers; sub-pixel
+refinement removes most of it, not all). ``default`` never sees that case for the 3DBM (its image is
+not inverted, so the smallest contour is the tag's outer edge).
+
+Why ``default`` looks like this (measured on synthetic 968x732 3DBM views, 22-110 px markers,
+green cast, blur, sensor noise 1-2.5 grey levels, contrast 8-255 grey levels):
+
+* ArUco's cost is dominated by contour tracing of the thresholded image; in turbid, noisy
+  frames most contours are noise speckles, and their number depends only on the adaptive
+  threshold constant relative to the noise. Min-max normalisation (the reference) amplifies
+  noise together with the signal, so a fixed constant either loses low-contrast markers or
+  drowns in speckles (25-40 ms per frame). ``default`` therefore limits its contrast gain so
+  that the noise (estimated robustly from second differences, ~0.1 ms) is at most
+  ``noise_target`` grey levels: the ArUco constant 7 then sits at a fixed multiple of the noise.
+* A single 23 px adaptive-threshold window finds about as many markers as OpenCV's three
+  windows (3, 13, 23) at a third of the cost; the 3 px window finds only noise at low contrast.
+* ``perspectiveRemovePixelPerCell`` 8 and ``perspectiveRemoveIgnoredMarginPerCell`` 0.3 decode
+  blurred markers near the 20-26 px size limit that the defaults (4, 0.13) miss.
+* No inversion: ``detectInvertedMarker`` decodes the negative from the same contours, so the
+  3DBM and flat tags share one candidate image.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Any
+
+import cv2
+import numpy as np
+
+from dockcore.errors import DockError
+
+__all__ = [
+    "PIPELINES",
+    "NoiseAwareStretch",
+    "Pipeline",
+    "as_uint8",
+    "estimate_noise_sigma",
+    "get_pipeline",
+    "to_grey",
+]
+
+
+# --------------------------------------------------------------------------- input handling
+
+
+def as_uint8(image: Any) -> np.ndarray:
+    """Validate a camera image and return it as uint8 (grey or BGR, contiguous).
+
+    Args:
+        image: (H, W), (H, W, 1), (H, W, 3) BGR or (H, W, 4) BGRA array; uint8, uint16
+            (scaled by 1/257) or float in [0, 1] (scaled by 255, clipped).
+
+    Returns:
+        (H, W) or (H, W, 3) uint8 array (alpha dropped; a single channel squeezed).
+
+    Raises:
+        DockError: None, not an array, empty, wrong shape, or an unsupported dtype.
+    """
+    if image is None:
+        raise DockError("no image given (got None)")
+    if not isinstance(image, np.ndarray):
+        raise DockError(f"image must be a numpy array, got {type(image).__name__}")
+    if image.size == 0:
+        raise DockError(f"image is empty (shape {image.shape})")
+    if image.ndim == 3 and image.shape[2] in (1, 3, 4):
+        if image.shape[2] == 1:
+            image = image[:, :, 0]
+        elif image.shape[2] == 4:
+            image = image[:, :, :3]
+    elif image.ndim != 2:
+        raise DockError(f"image must be (H, W), (H, W, 3) or (H, W, 4), got shape {image.shape}")
+    if image.shape[0] < 8 or image.shape[1] < 8:
+        raise DockError(f"image is too small to hold a marker (shape {image.shape})")
+    if image.dtype == np.uint8:
+        out = image
+    elif image.dtype == np.uint16:
+        out = (image.astype(np.float32) * (1.0 / 257.0) + 0.5).astype(np.uint8)
+    elif np.issubdtype(image.dtype, np.floating):
+        out = np.clip(image.astype(np.float32) * 255.0 + 0.5, 0.0, 255.0).astype(np.uint8)
+    else:
+        raise DockError(f"unsupported image dtype {image.dtype} (use uint8, uint16 or float)")
+    return np.ascontiguousarray(out)
+
+
+def to_grey(image: np.ndarray) -> np.ndarray:
+    """Grey (H, W) uint8 from a grey or BGR uint8 image (OpenCV's BT.601 luma weights)."""
+    if image.ndim == 2:
+        return image
+    return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+
+
+def _minmax(image: np.ndarray) -> np.ndarray:
+    """Min-max normalise to 0..255 (all channels together, as ``cv2.normalize`` does)."""
+    return cv2.normalize(image, None, 0, 255, cv2.NORM_MINMAX)
+
+
+# --------------------------------------------------------------------------- statistics
+
+
+def estimate_noise_sigma(grey: np.ndarray, row_step: int = 8) -> float:
+    """Robust estimate of the white-noise standard deviation of a grey image (grey levels).
+
+    Median of the absolute horizontal second difference ``I[x-1] - 2 I[x] + I[x+1]`` on every
+    ``row_step``-th row, divided by 0.6745 * sqrt(6). Smooth shading cancels, edges are outliers
+    the median ignores. Costs ~0.1 ms on a 968x732 frame.
+
+    Args:
+        grey: (H, W) uint8 image.
+        row_step: use every ``row_step``-th row.
+
+    Returns:
+        Estimated sigma in grey levels (0 for a noise-free synthetic image).
+    """
+    rows = np.ascontiguousarray(grey[::row_step])
+    d2 = cv2.convertScaleAbs(cv2.Sobel(rows, cv2.CV_16S, 2, 0, ksize=1))
+    hist = cv2.calcHist([d2[:, 1:-1]], [0], None, [256], [0, 256]).ravel()
+    cum = np.cumsum(hist)
+    half = 0.5 * cum[-1]
+    k = int(np.searchsorted(cum, half))
+    if k == 0:  # most second differences vanish: no measurable noise
+        return 0.0
+    # linear interpolation inside the bin: integer |d2| = k stands for [k - 0.5, k + 0.5)
+    median = k - 0.5 + (half - float(cum[k - 1])) / max(float(hist[k]), 1.0)
+    return float(median / (0.6745 * np.sqrt(6.0)))
+
+
+def _percentiles(grey: np.ndarray, clip_fraction: float) -> tuple[int, int]:
+    """Grey levels below which ``clip_fraction`` and above which ``clip_fraction`` of a 1/16
+    pixel sample lie (a robust min and max)."""
+    sample = np.ascontiguousarray(grey[::4, ::4])
+    cum = np.cumsum(cv2.calcHist([sample], [0], None, [256], [0, 256]).ravel())
+    lo = int(np.searchsorted(cum, clip_fraction * cum[-1]))
+    hi = int(np.searchsorted(cum, (1.0 - clip_fraction) * cum[-1]))
+    return lo, max(hi, lo + 1)
+
+
+# --------------------------------------------------------------------------- pipelines
+
+
+@dataclass(frozen=True)
+class NoiseAwareStretch:
+    """The ``default`` pipeline: grey, noise-limited contrast stretch, 3x3 Gaussian.
+
+    gain = min(255 / (p_hi - p_lo), noise_target / sigma), with p_lo, p_hi the robust min and max
+    and sigma from :func:`estimate_noise_sigma`; the stretched image is centred on 128.
+
+    Attributes:
+        noise_target: largest noise standard deviation allowed after the stretch (grey levels);
+            with ArUco's threshold constant 7 this fixes the speckle rate (cost) and the lowest
+            decodable contrast. 12 measured best: 8 loses low-contrast markers, 16+ costs
+            > 5 ms per noisy 968x732 frame.
+        clip_fraction: fraction of pixels clipped at each end when measuring the range (-).
+        blur_ksize: Gaussian kernel side (px, odd; 0 or 1 disables).
+        min_sigma: floor on the noise estimate (grey levels), caps the gain on noise-free input.
+    """
+
+    noise_target: float = 12.0
+    clip_fraction: float = 0.005
+    blur_ksize: int = 3
+    min_sigma: float = 0.25
+
+    def __call__(self, image: np.ndarray) -> list[np.ndarray]:
+        grey = to_grey(as_uint8(image))
+        lo, hi = _percentiles(grey, self.clip_fraction)
+        gain = 255.0 / (hi - lo)
+        if self.noise_target > 0:
+            sigma = max(estimate_noise_sigma(grey), self.min_sigma)
+            gain = min(gain, self.noise_target / sigma)
+        out = cv2.convertScaleAbs(grey, alpha=gain, beta=128.0 - gain * 0.5 * (lo + hi))
+        if self.blur_ksize > 1:
+            out = cv2.GaussianBlur(out, (self.blur_ksize, self.blur_ksize), 0)
+        return [out]
+
+
+def reference_3dbm(image: np.ndarray) -> list[np.ndarray]:
+    """Published 3DBM pipeline: min-max normalise, grey, CLAHE(2.0, 32x32), invert, 3x3 Gaussian."""
+    grey = to_grey(_minmax(as_uint8(image)))
+    grey = cv2.createCLAHE(clipLimit=2.0, tileGridSize=(32, 32)).apply(grey)
+    return [cv2.GaussianBlur(cv2.bitwise_not(grey), (3, 3), 0)]
+
+
+#: Thresholds of the published inverse-threshold sweep (grey levels).
+SWEEP_THRESHOLDS: tuple[int, ...] = tuple(range(90, 186, 5))
+
+
+def threshold_sweep(image: np.ndarray) -> list[np.ndarray]:
+    """Published alternative: one inverse binary image per threshold in :data:`SWEEP_THRESHOLDS`."""
+    grey = to_grey(as_uint8(image))
+    return [cv2.threshold(grey, t, 255, cv2.THRESH_BINARY_INV)[1] for t in SWEEP_THRESHOLDS]
+
+
+def normalise_invert(image: np.ndarray) -> list[np.ndarray]:
+    """Published alternative: min-max normalise, grey, invert."""
+    return [cv2.bitwise_not(to_grey(_minmax(as_uint8(image))))]
+
+
+def plain(image: np.ndarray) -> list[np.ndarray]:
+    """Grey only: flat printed tags in good light."""
+    return [to_grey(as_uint8(image))]
+
+
+@dataclass(frozen=True)
+class Pipeline:
+    """A named preprocessing pipeline and the ArUco settings it goes with.
+
+    Attributes:
+        name: registry key.
+        fn: ``fn(image) -> list[np.ndarray]`` of uint8 grey candidates (same size as the input).
+        aruco_preset: ``cv2.aruco.DetectorParameters`` attribute -> value, applied before the
+            explicit fields of ``DetectorConfig``.
+        merge: "union": every ID from every candidate, each ID taken from the candidate with
+            the most detections; "best": only the candidate with the most detections (the
+            published threshold sweep).
+        description: one line for listings.
+    """
+
+    name: str
+    fn: Callable[[np.ndarray], list[np.ndarray]]
+    aruco_preset: Mapping[str, Any] = field(default_factory=dict)
+    merge: str = "union"
+    description: str = ""
+
+    def __call__(self, image: np.ndarray) -> list[np.ndarray]:
+        return self.fn(image)
+
+
+#: OpenCV's DetectorParameters defaults (the published pipelines use them unchanged).
+_OPENCV_DEFAULTS: Mapping[str, Any] = MappingProxyType({})
+
+#: Tuned with the ``default`` pipeline (see the module docstring).
+_DEFAULT_PRESET: Mapping[str, Any] = MappingProxyType(
+    {
+        "detectInvertedMarker": True,
+        "adaptiveThreshConstant": 7.0,
+        "adaptiveThreshWinSizeMin": 23,
+        "adaptiveThreshWinSizeMax": 23,
+        "adaptiveThreshWinSizeStep": 10,
+        "cornerRefinementMethod": int(cv2.aruco.CORNER_REFINE_SUBPIX),
+        "perspectiveRemovePixelPerCell": 8,
+        "perspectiveRemoveIgnoredMarginPerCell": 0.3,
+    }
+)
+
+PIPELINES: dict[str, Pipeline] = {
+    p.name: p
+    for p in (
+        Pipeline(
+            "default",
+            NoiseAwareStretch(),
+            _DEFAULT_PRESET,
+            description="noise-aware stretch + blur, both polarities, sub-pixel corners",
+        ),
+        Pipeline(
+            "reference_3dbm",
+            reference_3dbm,
+            _OPENCV_DEFAULTS,
+            description="published 3DBM: min-max, grey, CLAHE 2.0/32x32, invert, 3x3 Gaussian",
+        ),
+        Pipeline(
+            "threshold_sweep",
+            threshold_sweep,
+            _OPENCV_DEFAULTS,
+            merge="best",
+            description="published: inverse thresholds 90..185 step 5, keep the best",
+        ),
+        Pipeline(
+            "normalise_invert",
+            normalise_invert,
+            _OPENCV_DEFAULTS,
+            description="published: min-max normalise, grey, invert",
+        ),
+        Pipeline("plain", plain, _OPENCV_DEFAULTS, description="grey only (flat printed tags)"),
+    )
+}
+
+
+def get_pipeline(name: str) -> Pipeline:
+    """The pipeline registered as ``name``.
+
+    Raises:
+        DockError: unknown name; the message lists the valid names.
+    """
+    try:
+        return PIPELINES[name]
+    except KeyError:
+        raise DockError(
+            f"unknown preprocessing pipeline '{name}' (valid: {', '.join(sorted(PIPELINES))})"
+        ) from None
