@@ -1,0 +1,434 @@
+"""Camera rendering with SAPIEN: RGB, range and depth images from a vehicle pose, and ground truth.
+
+The camera is SAPIEN's rasteriser posed from a :class:`calibration.camera.CameraModel` and the
+extrinsics ``T_bodyfrd_camcv``; the lamp (a point or spot light beside the camera) moves with it,
+so its light falls off physically (SAPIEN: diffuse radiance = albedo * I * cos / (pi d**2)).
+
+Intrinsics: SAPIEN's ``cx, cy`` are measured from the image corner (pixel centres at +0.5), while
+OpenCV's (and CameraModel's) put pixel centres on integers. Measured on this renderer: a SAPIEN
+camera given ``(cx + 0.5, cy + 0.5)`` renders exactly what ``cv2.projectPoints`` with ``K``
+predicts (tests/test_render.py checks the principal point and the corners to sub-pixel level).
+Lens distortion, when the model has any, is applied after rendering with a precomputed remap.
+
+Scene creation (tank, DS, lights, camera) happens once in :func:`make_render_scene`; each frame
+only sets one entity pose, renders and reads two pictures back.
+
+Example:
+    >>> rs = make_render_scene()
+    >>> res = rs.render(T_worldned_bodyfrd)
+    >>> img = apply_water(res.rgb, res.range_m, PRESETS["coastal"], rng)
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import sapien
+from numpy.typing import ArrayLike
+
+from calibration.camera import REFERENCE_T_BODYFRD_CAMCV, CameraModel, reference_camera
+from calibration.frames import T_CAMCV_CAMSAPIEN, check_T, inv_T, transform_points
+from markers.markerset import MarkerSet
+from sim.docking_station import (
+    DockingStation,
+    DockingStationConfig,
+    build_docking_station,
+    build_tank,
+    sapien_pose,
+)
+
+__all__ = [
+    "CameraRig",
+    "DownwardCamera",
+    "MarkerProjection",
+    "RenderConfig",
+    "RenderResult",
+    "RenderScene",
+    "make_render_scene",
+    "project_markers",
+]
+
+
+@dataclass(frozen=True)
+class RenderConfig:
+    """Renderer and lighting settings.
+
+    Attributes:
+        shader: SAPIEN camera shader: ``minimal`` (fast forward shading, ~2.5x faster on the CPU,
+            range quantised to 1 mm), ``default`` (SAPIEN's deferred PBR) or a shader folder path.
+        near_m: near clipping distance (m).
+        far_m: far clipping distance (m); farther surfaces count as "no hit".
+        ambient_rgb: ambient light (SAPIEN units: adds ``ambient * albedo`` to the radiance).
+        lamp: add the vehicle lamp that moves with the camera.
+        lamp_intensity: lamp emission (SAPIEN units: a white diffuse surface facing the lamp at
+            d metres has radiance ``albedo * intensity / (pi d**2)``).
+        lamp_rgb: lamp colour (multiplies the intensity).
+        lamp_offset_camcv_m: lamp position in the OpenCV camera frame (m).
+        lamp_fov_deg: None for a point lamp; else a spot lamp along the optical axis with this
+            full outer cone angle (deg; the inner, fully lit cone is 70 % of it).
+    """
+
+    shader: str = "minimal"
+    near_m: float = 0.05
+    far_m: float = 60.0
+    ambient_rgb: tuple[float, float, float] = (0.18, 0.18, 0.18)
+    lamp: bool = True
+    lamp_intensity: float = 14.0
+    lamp_rgb: tuple[float, float, float] = (1.0, 0.97, 0.92)
+    lamp_offset_camcv_m: tuple[float, float, float] = (0.0, -0.10, 0.0)
+    lamp_fov_deg: float | None = None
+
+    def validate(self) -> None:
+        """Raise ValueError naming the first invalid field."""
+        if not 0.0 < self.near_m < self.far_m:
+            raise ValueError(f"near_m, far_m: need 0 < near < far, got {self.near_m}, {self.far_m}")
+        if self.lamp_intensity < 0.0 or min(self.ambient_rgb) < 0.0 or min(self.lamp_rgb) < 0.0:
+            raise ValueError("lamp_intensity, ambient_rgb, lamp_rgb: must be >= 0")
+        if self.lamp_fov_deg is not None and not 0.0 < self.lamp_fov_deg < 180.0:
+            raise ValueError(f"lamp_fov_deg: must be in (0, 180), got {self.lamp_fov_deg}")
+
+
+@dataclass(frozen=True)
+class RenderResult:
+    """One rendered frame.
+
+    Attributes:
+        rgb: (H, W, 3) uint8 RGB, SAPIEN's display encoding (linear ** (1 / 2.2)), in air
+            (feed it to :func:`sim.water.apply_water` with ``gamma = 2.2``).
+        range_m: (H, W) float32 distance from the camera centre to the surface seen (m);
+            ``inf`` where nothing was hit.
+        depth_m: (H, W) float32 z of that point in ``cam_cv`` (m); ``inf`` where nothing was hit.
+        T_worldned_camcv: (4, 4) camera pose used.
+        camera: the camera model the images follow.
+    """
+
+    rgb: np.ndarray
+    range_m: np.ndarray
+    depth_m: np.ndarray
+    T_worldned_camcv: np.ndarray
+    camera: CameraModel
+
+
+def _shader_dir(shader: str) -> str:
+    path = Path(shader)
+    if not path.is_dir():
+        path = Path(sapien.__file__).parent / "vulkan_shader" / shader
+    if not (path / "gbuffer.vert").is_file():
+        raise ValueError(f"shader: no rasterisation shader folder {shader!r}")
+    return str(path)
+
+
+class CameraRig:
+    """A SAPIEN camera (plus lamp) that follows a vehicle pose.
+
+    Args:
+        scene: the SAPIEN scene to render.
+        camera_model: intrinsics and image size; default :func:`reference_camera`.
+        T_bodyfrd_camcv: (4, 4) camera extrinsics; default ``REFERENCE_T_BODYFRD_CAMCV``.
+        cfg: renderer and lamp settings.
+        name: entity name.
+    """
+
+    def __init__(
+        self,
+        scene: sapien.Scene,
+        camera_model: CameraModel | None = None,
+        T_bodyfrd_camcv: ArrayLike | None = None,
+        cfg: RenderConfig | None = None,
+        name: str = "downward_camera",
+    ) -> None:
+        self.cfg = cfg or RenderConfig()
+        self.cfg.validate()
+        self.camera = camera_model or reference_camera()
+        self.camera.validate()
+        T_bc = REFERENCE_T_BODYFRD_CAMCV if T_bodyfrd_camcv is None else T_bodyfrd_camcv
+        self.T_bodyfrd_camcv = check_T(T_bc, "T_bodyfrd_camcv")
+        self.scene = scene
+        cam = self.camera
+        self._component = sapien.render.RenderCameraComponent(
+            cam.width_px, cam.height_px, _shader_dir(self.cfg.shader)
+        )
+        self._component.set_perspective_parameters(
+            self.cfg.near_m,
+            self.cfg.far_m,
+            cam.fx_px,
+            cam.fy_px,
+            cam.cx_px + 0.5,  # SAPIEN: pixel centres at +0.5 (see the module docstring)
+            cam.cy_px + 0.5,
+            0.0,
+        )
+        self.entity = sapien.Entity()
+        self.entity.name = name
+        self.entity.add_component(self._component)
+        self.lamp: sapien.render.RenderLightComponent | None = None
+        if self.cfg.lamp:
+            self.lamp = self._make_lamp()
+            self.entity.add_component(self.lamp)
+        scene.add_entity(self.entity)
+        self._maps = _distortion_maps(cam) if np.any(cam.dist_coeffs != 0.0) else None
+        self._minimal: bool | None = None  # known after the first picture (names segfault before)
+        v, u = np.mgrid[0 : cam.height_px, 0 : cam.width_px].astype(np.float64)
+        self._ray_norm = np.sqrt(
+            1.0 + ((u - cam.cx_px) / cam.fx_px) ** 2 + ((v - cam.cy_px) / cam.fy_px) ** 2
+        ).astype(np.float32)
+
+    def _make_lamp(self) -> sapien.render.RenderLightComponent:
+        c = self.cfg
+        if c.lamp_fov_deg is None:
+            lamp: sapien.render.RenderLightComponent = sapien.render.RenderPointLightComponent()
+        else:
+            lamp = sapien.render.RenderSpotLightComponent()
+            lamp.outer_fov = np.deg2rad(c.lamp_fov_deg)
+            lamp.inner_fov = 0.7 * np.deg2rad(c.lamp_fov_deg)
+        lamp.color = [c.lamp_intensity * v for v in c.lamp_rgb]
+        lamp.shadow = False
+        # the entity frame is cam_sapien (x = optical axis, the spot light's direction)
+        p = transform_points(inv_T(T_CAMCV_CAMSAPIEN), np.asarray(c.lamp_offset_camcv_m))
+        lamp.local_pose = sapien.Pose(p.astype(np.float32))
+        return lamp
+
+    def set_lamp(self, on: bool) -> None:
+        """Switch this rig's lamp on or off (several rigs in a scene: light the active one)."""
+        if self.lamp is not None:
+            scale = self.cfg.lamp_intensity if on else 0.0
+            self.lamp.color = [scale * v for v in self.cfg.lamp_rgb]
+
+    def set_pose(
+        self,
+        T_worldned_bodyfrd: ArrayLike | None = None,
+        *,
+        T_worldned_camcv: ArrayLike | None = None,
+    ) -> np.ndarray:
+        """Place camera and lamp from a vehicle pose or directly from a camera pose.
+
+        Args:
+            T_worldned_bodyfrd: (4, 4) vehicle pose (body FRD in world NED).
+            T_worldned_camcv: (4, 4) OpenCV camera pose in world NED (instead of the above).
+
+        Returns:
+            (4, 4) ``T_worldned_camcv`` used.
+        """
+        if (T_worldned_bodyfrd is None) == (T_worldned_camcv is None):
+            raise ValueError("give exactly one of T_worldned_bodyfrd and T_worldned_camcv")
+        if T_worldned_camcv is None:
+            T = check_T(T_worldned_bodyfrd, "T_worldned_bodyfrd") @ self.T_bodyfrd_camcv
+        else:
+            T = check_T(T_worldned_camcv, "T_worldned_camcv")
+        self.entity.set_pose(sapien_pose(T @ T_CAMCV_CAMSAPIEN))
+        return T
+
+    def render(
+        self,
+        T_worldned_bodyfrd: ArrayLike | None = None,
+        *,
+        T_worldned_camcv: ArrayLike | None = None,
+    ) -> RenderResult:
+        """Render one frame from a vehicle pose or a camera pose (see :meth:`set_pose`)."""
+        T = self.set_pose(T_worldned_bodyfrd, T_worldned_camcv=T_worldned_camcv)
+        self.scene.update_render()
+        self._component.take_picture()
+        rgba = self._component.get_picture("Color")  # float32 (H, W, 4) in [0, 1]
+        rgb = cv2.cvtColor(cv2.convertScaleAbs(rgba, alpha=255.0), cv2.COLOR_RGBA2RGB)
+        depth_m, hit = self._depth()
+        depth_m[~hit] = np.inf
+        range_m = depth_m * self._ray_norm  # pinhole: range = depth * |K^-1 (u, v, 1)|
+        if self._maps is not None:
+            mx, my = self._maps
+            rgb = cv2.remap(rgb, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+            inf = (np.inf,) * 4
+            range_m = cv2.remap(range_m, mx, my, cv2.INTER_NEAREST, borderValue=inf)
+            depth_m = cv2.remap(depth_m, mx, my, cv2.INTER_NEAREST, borderValue=inf)
+        return RenderResult(rgb, range_m, depth_m, T, self.camera)
+
+    def _depth(self) -> tuple[np.ndarray, np.ndarray]:
+        """Depth (z in cam_cv, m) as (H, W) float32 and the hit mask (H, W) bool."""
+        comp = self._component
+        if self._minimal is None:
+            self._minimal = "PositionSegmentation" in comp.get_picture_names()
+        if self._minimal:  # int32 camera-space (OpenGL) position in mm, truncated toward zero
+            z_mm = comp.get_picture("PositionSegmentation")[:, :, 2]
+            hit = z_mm != 0  # a hit is at least near_m in front; the clear value is 0
+            depth = z_mm.astype(np.float32)
+            depth *= np.float32(-1e-3)
+            depth += np.float32(0.5e-3)  # undo the truncation bias: |z| lies in [n, n + 1) mm
+            return depth, hit
+        pos = comp.get_picture("Position")  # float32 (x, y, z, depth buffer value in [0, 1])
+        return -pos[:, :, 2], pos[:, :, 3] < 1.0
+
+
+#: The Girona AUV's downward camera is a CameraRig with the reference defaults.
+DownwardCamera = CameraRig
+
+
+def _distortion_maps(cam: CameraModel) -> tuple[np.ndarray, np.ndarray]:
+    """cv2.remap maps taking a pinhole render (same K) to the distorted image of ``cam``."""
+    v, u = np.mgrid[0 : cam.height_px, 0 : cam.width_px].astype(np.float32)
+    pts = np.stack([u.ravel(), v.ravel()], axis=1).reshape(-1, 1, 2)
+    ideal = cv2.undistortPoints(
+        pts,
+        cam.K,
+        cam.dist_coeffs,
+        R=None,
+        P=cam.K,
+        criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-6),
+    )
+    ideal = ideal.reshape(cam.height_px, cam.width_px, 2).astype(np.float32)
+    return np.ascontiguousarray(ideal[:, :, 0]), np.ascontiguousarray(ideal[:, :, 1])
+
+
+# ----------------------------------------------------------------------------- ground truth
+
+
+@dataclass(frozen=True)
+class MarkerProjection:
+    """Ground truth of one marker in one frame.
+
+    Attributes:
+        marker_id: the marker's ID.
+        corners_px: (4, 2) float64 pixels of the corners TL, TR, BR, BL (nan behind the camera).
+        centre_px: (2,) float64 pixel of the marker centre.
+        corners_range_m: (4,) distances from the camera centre to the corners (m).
+        in_front: all corners in front of the camera (z_camcv > 0).
+        in_image: all corners inside the image.
+        occluded: some corner or the centre lies behind a nearer surface in ``range_m``
+            (False when no range image was given).
+        visible: ``in_front and in_image and not occluded``.
+    """
+
+    marker_id: int
+    corners_px: np.ndarray
+    centre_px: np.ndarray
+    corners_range_m: np.ndarray
+    in_front: bool
+    in_image: bool
+    occluded: bool
+    visible: bool
+
+
+def project_markers(
+    camera_model: CameraModel,
+    T_camcv_ds: ArrayLike,
+    marker_set: MarkerSet,
+    range_m: np.ndarray | None = None,
+    occlusion_tol_m: float = 0.03,
+) -> dict[int, MarkerProjection]:
+    """Project every marker's corners into the image (``cv2.projectPoints`` via the model).
+
+    Args:
+        camera_model: intrinsics and distortion.
+        T_camcv_ds: (4, 4) DS pose in the OpenCV camera frame.
+        marker_set: the markers (their ``T_ds_marker`` and side).
+        range_m: optional (H, W) rendered range image of the same frame, for the occlusion test:
+            a corner (or the centre) is occluded when the rendered range at its pixel is shorter
+            than its own range by more than ``occlusion_tol_m``.
+        occlusion_tol_m: occlusion tolerance (m).
+
+    Returns:
+        marker ID -> :class:`MarkerProjection`.
+    """
+    T = check_T(T_camcv_ds, "T_camcv_ds")
+    out: dict[int, MarkerProjection] = {}
+    for spec in marker_set.markers:
+        pts_ds = np.vstack([spec.corners_ds_m, spec.T_ds_marker[:3, 3]])
+        pts_cam = transform_points(T, pts_ds)  # (5, 3): 4 corners + centre
+        px = camera_model.project(pts_cam)
+        in_front = bool(np.all(pts_cam[:, 2] > 0.0))
+        in_image = in_front and bool(np.all(camera_model.in_image(px)))
+        dist = np.linalg.norm(pts_cam, axis=1)
+        occluded = False
+        if range_m is not None and in_image:
+            uv = np.rint(px).astype(int)
+            seen = range_m[uv[:, 1], uv[:, 0]]
+            occluded = bool(np.any(seen < dist - occlusion_tol_m))
+        out[spec.marker_id] = MarkerProjection(
+            marker_id=spec.marker_id,
+            corners_px=px[:4],
+            centre_px=px[4],
+            corners_range_m=dist[:4],
+            in_front=in_front,
+            in_image=in_image,
+            occluded=occluded,
+            visible=in_image and not occluded,
+        )
+    return out
+
+
+# ----------------------------------------------------------------------------- scene
+
+
+@dataclass
+class RenderScene:
+    """A scene with the tank, the DS (with markers), a lamp-lit camera: built once, reused.
+
+    Attributes:
+        scene: the SAPIEN scene (add the vehicle or more actors to it as needed).
+        ds: the docking station (its ``T_worldned_ds`` and marker set).
+        tank: the tank entity.
+        rig: the camera.
+    """
+
+    scene: sapien.Scene
+    ds: DockingStation
+    tank: sapien.Entity
+    rig: CameraRig
+
+    def render(
+        self,
+        T_worldned_bodyfrd: ArrayLike | None = None,
+        *,
+        T_worldned_camcv: ArrayLike | None = None,
+    ) -> RenderResult:
+        """Render a frame (see :meth:`CameraRig.render`)."""
+        return self.rig.render(T_worldned_bodyfrd, T_worldned_camcv=T_worldned_camcv)
+
+    def T_camcv_ds(self, T_worldned_camcv: ArrayLike) -> np.ndarray:
+        """(4, 4) DS pose in the camera frame for a camera pose in world NED."""
+        return inv_T(check_T(T_worldned_camcv, "T_worldned_camcv")) @ self.ds.T_worldned_ds
+
+    def ground_truth(self, result: RenderResult) -> dict[int, MarkerProjection]:
+        """Marker corners and visibility for a frame rendered by this scene."""
+        return project_markers(
+            result.camera,
+            self.T_camcv_ds(result.T_worldned_camcv),
+            self.ds.marker_set,
+            result.range_m,
+        )
+
+
+def make_render_scene(
+    ds_cfg: DockingStationConfig | None = None,
+    marker_set: MarkerSet | str | os.PathLike[str] | None = None,
+    T_worldned_ds: ArrayLike | None = None,
+    camera_model: CameraModel | None = None,
+    T_bodyfrd_camcv: ArrayLike | None = None,
+    render_cfg: RenderConfig | None = None,
+    cache_dir: str | os.PathLike[str] | None = None,
+    scene: sapien.Scene | None = None,
+) -> RenderScene:
+    """Build (once) a scene with the tank, the DS, ambient light and the camera with its lamp.
+
+    Args:
+        ds_cfg: DS and tank geometry.
+        marker_set: markers (object or file); None: ``ds_cfg.marker_set_path`` or the default.
+        T_worldned_ds: DS pose in world NED; None: on the tank floor at the centre.
+        camera_model: camera intrinsics; None: the reference camera.
+        T_bodyfrd_camcv: camera extrinsics; None: the reference extrinsics.
+        render_cfg: renderer and lighting.
+        cache_dir: where the default marker set is generated.
+        scene: an existing scene to add everything to; None: a new ``sapien.Scene()``.
+
+    Returns:
+        The :class:`RenderScene`.
+    """
+    render_cfg = render_cfg or RenderConfig()
+    render_cfg.validate()
+    scene = scene if scene is not None else sapien.Scene()
+    scene.ambient_light = list(render_cfg.ambient_rgb)
+    tank = build_tank(scene, ds_cfg)
+    ds = build_docking_station(scene, ds_cfg, marker_set, T_worldned_ds, cache_dir)
+    rig = CameraRig(scene, camera_model, T_bodyfrd_camcv, render_cfg)
+    return RenderScene(scene, ds, tank, rig)
