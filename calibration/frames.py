@@ -229,6 +229,8 @@ def R_from_quat_wxyz(q: ArrayLike) -> np.ndarray:
         ValueError: on a wrong shape, a non-finite entry or a (near) zero norm.
     """
     arr = _as_float_array(q, "q")
+    if arr.shape == (4,):
+        return _R_from_unit_quat(arr)
     if arr.shape[-1:] != (4,) or arr.ndim not in (1, 2):
         raise ValueError(f"q: expected shape (4,) or (N, 4), got {arr.shape}")
     if not np.all(np.isfinite(arr)):
@@ -238,6 +240,25 @@ def R_from_quat_wxyz(q: ArrayLike) -> np.ndarray:
         raise ValueError("q: quaternion has zero norm")
     xyzw = arr[..., [1, 2, 3, 0]] / norm[..., None]  # scipy order is (x, y, z, w)
     return Rotation.from_quat(xyzw).as_matrix()
+
+
+def _R_from_unit_quat(q: np.ndarray) -> np.ndarray:
+    """The closed-form rotation of one (w, x, y, z) quaternion (the hot path: no scipy)."""
+    n = float(np.sqrt(q @ q))
+    if not np.isfinite(n):
+        raise ValueError("q: contains non-finite values")
+    if n < 1e-12:
+        raise ValueError("q: quaternion has zero norm")
+    w, x, y, z = (q / n).tolist()
+    xx, yy, zz, xy, xz, yz = x * x, y * y, z * z, x * y, x * z, y * z
+    wx, wy, wz = w * x, w * y, w * z
+    return np.array(
+        [
+            [1.0 - 2.0 * (yy + zz), 2.0 * (xy - wz), 2.0 * (xz + wy)],
+            [2.0 * (xy + wz), 1.0 - 2.0 * (xx + zz), 2.0 * (yz - wx)],
+            [2.0 * (xz - wy), 2.0 * (yz + wx), 1.0 - 2.0 * (xx + yy)],
+        ]
+    )
 
 
 def quat_wxyz_from_R(R: ArrayLike) -> np.ndarray:

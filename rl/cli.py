@@ -1,15 +1,156 @@
-"""``rl``: command group. Commands appear here as they are implemented."""
+"""``rl``: train, evaluate and export docking policies."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import click
 
 from dockcore.cli import run_group
+from dockcore.config import load_config, replace
+from dockcore.errors import DockError
+
+OBS_CHOICES = click.Choice(["proxy", "error-model", "camera"])
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
 def cli() -> None:
     """Reinforcement learning: docking env, PPO training, evaluation, export."""
+
+
+@cli.command()
+@click.option(
+    "--config",
+    "config_path",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="TOML overriding TrainConfig (env, ppo, sac tables).",
+)
+@click.option("--obs", type=OBS_CHOICES, help="Observation source [proxy].")
+@click.option(
+    "--error-model",
+    "error_model",
+    type=click.Path(path_type=Path),
+    help="Fitted error model file (for --obs error-model).",
+)
+@click.option("--algo", type=click.Choice(["ppo", "sac"]), help="Algorithm [ppo].")
+@click.option("--steps", type=int, help="Total environment steps.")
+@click.option("--envs", type=int, help="Parallel environments (subprocesses).")
+@click.option("--seed", type=int, help="Base seed.")
+@click.option(
+    "--init-policy", type=click.Path(path_type=Path), help="Start from this policy (fine-tuning)."
+)
+@click.option("--resume", is_flag=True, help="Continue the run in --out from its last checkpoint.")
+@click.option(
+    "--out",
+    "out_dir",
+    type=click.Path(file_okay=False, path_type=Path),
+    required=True,
+    help="Run folder.",
+)
+def train(
+    config_path, obs, error_model, algo, steps, envs, seed, init_policy, resume, out_dir
+) -> None:
+    """Train a docking policy (PPO with the paper's hyperparameters by default)."""
+    from rl.train import TrainConfig
+    from rl.train import train as run
+
+    if resume and config_path is None and (out_dir / "config.toml").exists():
+        config_path = out_dir / "config.toml"
+    env_over = {"obs_source": obs, "error_model_path": str(error_model) if error_model else None}
+    cfg = load_config(
+        TrainConfig,
+        config_path,
+        section="train",
+        overrides={
+            "algo": algo,
+            "total_steps": steps,
+            "n_envs": envs,
+            "seed": seed,
+            "env": {k: v for k, v in env_over.items() if v is not None},
+        },
+    )
+    final = run(cfg, out_dir, resume=resume, init_policy=str(init_policy) if init_policy else None)
+    click.echo(f"policy: {final}")
+
+
+@cli.command("eval")
+@click.option(
+    "--policy",
+    required=True,
+    type=click.Path(path_type=Path),
+    help="policy.zip / run folder / .onnx, or 'pid' for the classical baseline.",
+)
+@click.option("--episodes", type=int, default=100, show_default=True)
+@click.option("--obs", type=OBS_CHOICES, default="camera", show_default=True)
+@click.option("--error-model", "error_model", type=click.Path(path_type=Path))
+@click.option(
+    "--config",
+    "config_path",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="TOML overriding EnvConfig.",
+)
+@click.option("--seed", type=int, default=1000, show_default=True)
+@click.option(
+    "--videos",
+    default="0",
+    show_default=True,
+    help="Comma-separated episode indices to film ('' for none).",
+)
+@click.option("--stress", is_flag=True, help="Also run the graded stress tables.")
+@click.option("--stress-episodes", type=int, default=20, show_default=True)
+@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), required=True)
+def eval_cmd(
+    policy, episodes, obs, error_model, config_path, seed, videos, stress, stress_episodes, out_dir
+) -> None:
+    """Evaluate a policy (or the PID baseline) over seeded episodes."""
+    from rl.config import EnvConfig
+    from rl.report import evaluate_to_folder
+
+    env_cfg = load_config(
+        EnvConfig,
+        config_path,
+        section="env",
+        overrides={
+            "obs_source": obs,
+            "error_model_path": str(error_model) if error_model else None,
+        },
+    )
+    env_cfg = replace(env_cfg, terminate_on="strict")
+    try:
+        vids = tuple(int(v) for v in videos.split(",") if v.strip())
+    except ValueError:
+        raise DockError(f"--videos must be comma-separated integers, got '{videos}'") from None
+    summary = evaluate_to_folder(
+        str(policy),
+        env_cfg,
+        episodes,
+        seed,
+        out_dir,
+        vids,
+        stress=stress,
+        stress_episodes=stress_episodes,
+    )
+    click.echo(
+        f"success {summary['success_rate']:.1%} (strict "
+        f"{summary['success_rate_strict']:.1%}) over {summary['episodes']} episodes; "
+        f"report in {out_dir}"
+    )
+
+
+@cli.command()
+@click.option("--policy", required=True, type=click.Path(path_type=Path))
+@click.option(
+    "--out",
+    "out_path",
+    type=click.Path(dir_okay=False, path_type=Path),
+    required=True,
+    help="ONNX file to write.",
+)
+def export(policy, out_path) -> None:
+    """Export a policy to ONNX (observation normalisation included)."""
+    from rl.export import export_onnx
+
+    click.echo(f"wrote {export_onnx(policy, out_path)}")
 
 
 def main() -> None:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -71,9 +72,9 @@ class DockingTaskConfig:
             if getattr(self, name) <= 0:
                 raise ValueError(f"{name}: must be > 0")
 
-    @property
+    @cached_property
     def T_ds_target(self) -> np.ndarray:
-        """(4, 4) body pose of a docked AUV in the DS frame."""
+        """(4, 4) body pose of a docked AUV in the DS frame (do not modify in place)."""
         return make_T(_Rz(math.radians(self.dock_yaw_deg)), [0.0, 0.0, -self.dock_height_m])
 
 

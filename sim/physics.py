@@ -44,11 +44,11 @@ from numpy.typing import ArrayLike
 from calibration.frames import (
     T_BODYFLU_BODYFRD,
     T_WORLDZUP_WORLDNED,
+    R_from_quat_wxyz,
     T_from_pos_quat,
     check_T,
     ned_pose_to_zup,
     pos_quat_from_T,
-    zup_pose_to_ned,
 )
 from sim.thrusters import ThrusterArray
 from sim.vehicle import Current, CurrentConfig, Hydrodynamics, Imu, ImuReading, VehicleConfig
@@ -63,6 +63,13 @@ if not np.array_equal(T_BODYFLU_BODYFRD[:3, :3], np.diag([1.0, -1.0, -1.0])):  #
     raise ImportError("sim.physics assumes T_BODYFLU_BODYFRD = diag(1, -1, -1)")
 _R_ZUP_NED = np.array(T_WORLDZUP_WORLDNED[:3, :3])
 _S_BODY = np.array([1.0, -1.0, -1.0])  # FRD <-> FLU component signs
+
+
+def _cross(a: ArrayLike, b: ArrayLike) -> np.ndarray:
+    """3-vector cross product (``np.cross`` is slow for single small vectors)."""
+    a0, a1, a2 = a[0], a[1], a[2]
+    b0, b1, b2 = b[0], b[1], b[2]
+    return np.array([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])
 
 
 def make_physics_scene(timestep_s: float = 1.0 / PHYSICS_RATE_HZ) -> sapien.Scene:
@@ -225,35 +232,44 @@ class VehicleBody:
         self.thrust_command_n = np.zeros(self.thrusters.n)
         self.time_s = 0.0
         self._acc_zup = (0.0,) * 6  # last substep's CoM and angular acceleration, world
+        self._T_cache = None
         if rng is not None:
             self._rng = rng
             self.imu.reset(rng)
 
     @property
     def T_world_ned_body_frd(self) -> np.ndarray:
-        """(4, 4) pose of body FRD in world NED."""
+        """(4, 4) pose of body FRD in world NED (cached until the next step or reset)."""
+        if self._T_cache is None:
+            pose = self.component.get_entity_pose()
+            T = T_from_pos_quat(pose.p, pose.q)
+            # T_ned_frd = F @ T_zup_flu @ F with F = diag(1, -1, -1, 1) (both 180 deg about x)
+            T[1:3, :] *= -1.0
+            T[:, 1:3] *= -1.0
+            self._T_cache = T
+        return self._T_cache.copy()
+
+    def _R_t_zup_flu(self) -> np.ndarray:
         pose = self.component.get_entity_pose()
-        return zup_pose_to_ned(T_from_pos_quat(pose.p, pose.q))
+        return R_from_quat_wxyz(pose.q).T
 
     @property
     def nu(self) -> np.ndarray:
         """(6,) body velocity [u, v, w, p, q, r] of the origin, FRD (m/s, rad/s)."""
-        pose = self.component.get_entity_pose()
-        R_t = T_from_pos_quat(pose.p, pose.q)[:3, :3].T
+        R_t = self._R_t_zup_flu()
         w = R_t @ self.component.get_angular_velocity().astype(float) * _S_BODY
         v_cg = R_t @ self.component.get_linear_velocity().astype(float) * _S_BODY
-        return np.concatenate([v_cg - np.cross(w, np.asarray(self.config.cg_m)), w])
+        return np.concatenate([v_cg - _cross(w, self.config.cg_m), w])
 
     @property
     def nu_dot(self) -> np.ndarray:
         """(6,) last substep's acceleration of the origin and angular acceleration, body FRD."""
-        pose = self.component.get_entity_pose()
-        R_t = T_from_pos_quat(pose.p, pose.q)[:3, :3].T
+        R_t = self._R_t_zup_flu()
         a_cg = R_t @ np.asarray(self._acc_zup[:3]) * _S_BODY
         alpha = R_t @ np.asarray(self._acc_zup[3:]) * _S_BODY
-        w = self.nu[3:]
-        c = np.asarray(self.config.cg_m, dtype=float)
-        a_o = a_cg - np.cross(alpha, c) - np.cross(w, np.cross(w, c))
+        w = R_t @ self.component.get_angular_velocity().astype(float) * _S_BODY
+        c = self.config.cg_m
+        a_o = a_cg - _cross(alpha, c) - _cross(w, _cross(w, c))
         return np.concatenate([a_o, alpha])
 
     def state(self) -> VehicleState:
@@ -306,6 +322,7 @@ class VehicleBody:
         self.thrust_command_n = cmd
         self.thrust_n = thrust[-1].copy()
         self.time_s += n * dt
+        self._T_cache = None
 
     def _run(self, wrenches: list[list[float]], currents: list[list[float]], n: int) -> None:
         """The hot loop: ``n`` substeps with the given per-substep wrench (FRD) and current

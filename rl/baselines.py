@@ -1,0 +1,88 @@
+"""A classical baseline: cascaded PD/PI control of the wrench on the same DS estimate.
+
+It reads the same observation vector as the policy (so it sees the same filtered estimate,
+whatever the observation source) and returns an action in [-1, 1]^6. Strategy: hold a safe
+altitude above the docking point while aligning yaw and closing the horizontal error, then
+descend once aligned (the funnels do the last centimetres).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from rl.env import POS_SCALE_M
+
+
+@dataclass(frozen=True)
+class PIDConfig:
+    """Gains of the baseline (wrench in N and N m per m, m/s, rad, rad/s).
+
+    Attributes:
+        kp_xy: horizontal position gain (N/m).
+        kd_xy: horizontal velocity damping (N s/m).
+        ki_xy: horizontal integral gain (N/(m s)), for currents.
+        kp_z: vertical gain (N/m).
+        kd_z: vertical damping (N s/m).
+        kp_yaw: yaw gain (N m/rad).
+        kd_yaw: yaw damping (N m s/rad).
+        approach_altitude_m: altitude above the docking point held until aligned (m).
+        descend_xy_m: horizontal error below which the descent starts (m).
+        descend_yaw_deg: yaw error below which the descent starts (deg).
+        integral_limit: anti-windup bound of each horizontal integral (m s).
+    """
+
+    kp_xy: float = 120.0
+    kd_xy: float = 260.0
+    ki_xy: float = 8.0
+    kp_z: float = 150.0
+    kd_z: float = 250.0
+    kp_yaw: float = 60.0
+    kd_yaw: float = 80.0
+    approach_altitude_m: float = 1.0
+    descend_xy_m: float = 0.10
+    descend_yaw_deg: float = 8.0
+    integral_limit: float = 5.0
+
+
+class PIDController:
+    """Cascaded PD(I) docking controller (module docstring)."""
+
+    def __init__(
+        self,
+        limits: np.ndarray,
+        cfg: PIDConfig | None = None,
+        dt_s: float = 0.2,
+        obs_last_action: bool = True,
+    ) -> None:
+        self.cfg = cfg or PIDConfig()
+        self.limits = np.asarray(limits, dtype=np.float64)
+        self.dt_s = dt_s
+        self.reset()
+
+    def reset(self) -> None:
+        self.integral = np.zeros(2)
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        c = self.cfg
+        o = np.asarray(obs, dtype=np.float64)
+        e = o[0:3] * POS_SCALE_M
+        e_psi = o[3] * math.pi
+        v = o[4:7]
+        r = o[7]
+        aligned = np.hypot(e[0], e[1]) < c.descend_xy_m and abs(e_psi) < math.radians(
+            c.descend_yaw_deg
+        )
+        e_z = e[2] if aligned else e[2] - c.approach_altitude_m
+        self.integral = np.clip(
+            self.integral + e[:2] * self.dt_s, -c.integral_limit, c.integral_limit
+        )
+        fx, fy = c.kp_xy * e[:2] - c.kd_xy * v[:2] + c.ki_xy * self.integral
+        fz = c.kp_z * e_z - c.kd_z * v[2]
+        mz = c.kp_yaw * e_psi - c.kd_yaw * r
+        wrench = np.array([fx, fy, fz, 0.0, 0.0, mz])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            a = np.where(self.limits > 0, wrench / self.limits, 0.0)
+        return np.clip(a, -1.0, 1.0)

@@ -1,0 +1,230 @@
+"""The docking environment: Girona AUV, docking station, 5 Hz control of a body wrench.
+
+Registered with Gymnasium as ``uwdock/Docking-v0``. One step:
+
+    action [-1, 1]^6 -> body wrench -> thruster allocation -> 60 substeps of hydrodynamics +
+    thrusters + PhysX contacts -> IMU/DVL -> observation source measures the DS pose ->
+    shared filter -> observation [e_x, e_y, e_z, e_psi, v_x, v_y, v_z, w_psi, acc_x, acc_y,
+    acc_z] (+ last action, + history) -> named reward terms -> paper / strict success.
+
+The reward and the success tests use the true state (as the reference code does); the policy
+sees only the estimate. ``info`` carries ``reward_terms``, ``success_paper``,
+``success_strict``, ``collided``, ``detected``, ``e_true`` and the poses for plotting.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, ClassVar
+
+import gymnasium as gym
+import numpy as np
+
+from calibration.frames import R_from_rpy, inv_T, make_T
+from dockcore.errors import DockError
+from rl.config import EnvConfig
+from rl.estimator import DSPoseFilter
+from rl.obs_sources import ObservationSource, ProxySource, StepContext
+from rl.rewards import DockingReward
+from rl.task import docking_errors, ds_visible, paper_success, pegs_seated
+from rl.world import DockingWorld
+
+#: Observation normalisation: positions clipped to +-5 m then /5, yaw /pi, accelerations /5.
+POS_SCALE_M = 5.0
+ACC_SCALE_MPS2 = 5.0
+BASE_OBS_DIM = 11
+
+
+class SimulationError(DockError):
+    """The physics produced a non-finite or impossible state."""
+
+
+class DockingEnv(gym.Env):
+    """Gymnasium environment of vision-in-the-loop docking (module docstring).
+
+    Args:
+        config: the environment; defaults to :class:`EnvConfig` ().
+        render_mode: None, or "rgb_array" (the downward camera's view, when a camera exists).
+    """
+
+    metadata: ClassVar[dict[str, Any]] = {"render_modes": ["rgb_array"], "render_fps": 5}
+
+    def __init__(self, config: EnvConfig | None = None, render_mode: str | None = None) -> None:
+        self.cfg = config or EnvConfig()
+        self.cfg.validate()
+        self.render_mode = render_mode
+        c = self.cfg
+        self.dt_s = 1.0 / c.control_hz
+        self.max_steps = round(c.episode_s * c.control_hz)
+        self.world = DockingWorld(
+            c, with_camera=c.obs_source == "camera" or render_mode is not None
+        )
+        self.source = self._make_source()
+        est_cfg = c.estimator
+        if c.obs_source == "proxy" and est_cfg.fuse:
+            # the paper's proxy observation is memoryless: every step replaces the estimate
+            from dockcore.config import replace
+
+            est_cfg = replace(est_cfg, fuse=False)
+        self.filter = DSPoseFilter(est_cfg)
+        self.reward_fn = DockingReward(c.reward)
+        self._limits = np.asarray(c.wrench_limits, dtype=np.float64) * c.wrench_scale
+        frame_dim = BASE_OBS_DIM + (6 if c.obs_last_action else 0)
+        self.observation_space = gym.spaces.Box(
+            -np.inf, np.inf, shape=(frame_dim * c.obs_frames,), dtype=np.float32
+        )
+        self.action_space = gym.spaces.Box(-1.0, 1.0, shape=(6,), dtype=np.float32)
+        self._frames: list[np.ndarray] = []
+        self._hold_steps = max(1, round(c.task.strict_hold_s * c.control_hz))
+
+    # ------------------------------------------------------------------ setup
+    def _make_source(self) -> ObservationSource:
+        c = self.cfg
+        if c.obs_source == "proxy":
+            return ProxySource(c.task)
+        if c.obs_source == "error-model":
+            from rl.error_model import ErrorModelSource, load_error_model
+
+            return ErrorModelSource(load_error_model(c.error_model_path), c.task)
+        from rl.camera_source import CameraSource
+
+        return CameraSource(self.world, c)
+
+    def _spawn(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """Draw T_world_ds and T_world_body (NED) over the spawn ranges."""
+        c = self.cfg
+        depth = self.world.floor_z_m
+        dx, dy, _ = c.spawn_ds_range_m
+        ds_yaw = math.radians(c.spawn_ds_yaw_deg) * rng.uniform(-1, 1)
+        T_world_ds = make_T(
+            R_from_rpy(0.0, 0.0, ds_yaw), [rng.uniform(-dx, dx), rng.uniform(-dy, dy), depth]
+        )
+        ax, ay, az = c.spawn_auv_range_m
+        for _ in range(100):
+            p = np.array(
+                [
+                    rng.uniform(-ax, ax),
+                    rng.uniform(-ay, ay),
+                    depth - c.spawn_auv_height_m + rng.uniform(-az, az),
+                ]
+            )
+            horizontal = np.linalg.norm(p[:2] - T_world_ds[:2, 3])
+            if depth - p[2] > 2.4 or horizontal > 2.0:  # clear of the DS structure
+                break
+        yaw = math.radians(c.spawn_auv_yaw_deg) * rng.uniform(-1, 1)
+        return T_world_ds, make_T(R_from_rpy(0.0, 0.0, yaw), p)
+
+    # ------------------------------------------------------------------ gym API
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        rng = self.np_random
+        T_world_ds, T_world_body = self._spawn(rng)
+        self.world.reset(T_world_ds, T_world_body, rng)
+        self.source.reset(rng)
+        self.filter.reset(T_world_ds, rng)
+        self.reward_fn.reset()
+        self.steps = 0
+        self.prev_action = np.zeros(6)
+        self._seated_steps = 0
+        self.success_paper = False
+        self.success_strict = False
+        imu = self.world.vehicle.read_imu()
+        self.prev_specific_force = imu.specific_force_frd_mps2
+        T_world_body = self.world.T_world_body
+        self._measure_and_filter(T_world_body, predict=False)
+        self._frames = [self._frame(imu, T_world_body)] * self.cfg.obs_frames
+        e_true, psi_true = docking_errors(T_world_body, T_world_ds, self.cfg.task)
+        return self._obs(), self._info(T_world_body, e_true, psi_true, {}, collided=False)
+
+    def step(self, action):
+        a = np.asarray(action, dtype=np.float64).reshape(-1)
+        if a.shape != (6,) or not np.all(np.isfinite(a)):
+            raise ValueError(f"action must be 6 finite numbers, got {np.asarray(action).tolist()}")
+        a = np.clip(a, -1.0, 1.0)
+        world = self.world
+        world.step(a * self._limits, self.dt_s)
+        self.steps += 1
+        T_world_body = world.T_world_body
+        if not np.all(np.isfinite(T_world_body)) or np.abs(T_world_body[:3, 3]).max() > 1e3:
+            raise SimulationError(
+                f"simulator blew up at t={world.time_s:.2f} s (vehicle pose not finite/bounded)"
+            )
+        imu = world.vehicle.read_imu()
+        collided = self.reward_fn.collision(imu.specific_force_frd_mps2, self.prev_specific_force)
+        self.prev_specific_force = imu.specific_force_frd_mps2
+        self._measure_and_filter(T_world_body, predict=True)
+
+        e_true, psi_true = docking_errors(T_world_body, world.T_world_ds, self.cfg.task)
+        visible = ds_visible(inv_T(T_world_body) @ world.T_world_ds, self.cfg.task)
+        paper = paper_success(e_true, psi_true, visible, self.cfg.task)
+        seated = pegs_seated(T_world_body, world.T_world_ds, self.cfg.task)
+        self._seated_steps = self._seated_steps + 1 if seated else 0
+        strict = self._seated_steps >= self._hold_steps
+        self.success_paper |= paper
+        self.success_strict |= strict
+        docked = paper if self.cfg.terminate_on == "paper" else strict
+        truncated = not docked and self.steps >= self.max_steps
+        terms = self.reward_fn(e_true, psi_true, a, self.prev_action, collided, docked, truncated)
+        self.prev_action = a
+        self._frames = [*self._frames[1:], self._frame(imu, T_world_body)]
+        info = self._info(T_world_body, e_true, psi_true, terms, collided)
+        return self._obs(), float(sum(terms.values())), bool(docked), bool(truncated), info
+
+    def render(self):
+        if self.render_mode == "rgb_array":
+            return self.world.render_camera()
+        return None
+
+    def close(self) -> None:
+        self.world.close()
+
+    # ------------------------------------------------------------------ internals
+    def _measure_and_filter(self, T_world_body: np.ndarray, predict: bool) -> None:
+        world = self.world
+        if predict:
+            self.filter.predict(self.dt_s)
+        ctx = StepContext(T_world_body, world.T_world_ds, world.time_s)
+        m = self.source.measure(ctx)
+        self.last_measurement = m
+        if m is not None:
+            self.filter.update(m.T_world_ds, m.cov_xyzyaw)
+
+    def _frame(self, imu, T_world_body: np.ndarray) -> np.ndarray:
+        e_hat, psi_hat = docking_errors(T_world_body, self.filter.T_world_ds, self.cfg.task)
+        parts = [
+            np.clip(e_hat, -POS_SCALE_M, POS_SCALE_M) / POS_SCALE_M,
+            [psi_hat / math.pi],
+            imu.velocity_frd_mps,
+            [imu.angular_velocity_frd_radps[2]],
+            np.clip(imu.acceleration_frd_mps2 / ACC_SCALE_MPS2, -5.0, 5.0),
+        ]
+        if self.cfg.obs_last_action:
+            parts.append(self.prev_action)
+        return np.concatenate(parts).astype(np.float32)
+
+    def _obs(self) -> np.ndarray:
+        return np.concatenate(self._frames).astype(np.float32)
+
+    def _info(
+        self,
+        T_world_body: np.ndarray,
+        e_true: np.ndarray,
+        psi_true: float,
+        terms: dict[str, float],
+        collided: bool,
+    ) -> dict[str, Any]:
+        world = self.world
+        m = self.last_measurement
+        return {
+            "reward_terms": dict(terms),
+            "success_paper": self.success_paper,
+            "success_strict": self.success_strict,
+            "collided": collided,
+            "detected": bool(m is not None and m.detected),
+            "e_true": e_true,
+            "e_psi_true": psi_true,
+            "time_s": world.time_s,
+            "T_world_body": T_world_body,
+            "T_world_ds": world.T_world_ds.copy(),
+            "estimate_sigma_m": self.filter.sigma_xyz_m,
+        }

@@ -1,0 +1,144 @@
+"""``rl export``: the policy as ONNX, observation normalisation included.
+
+The exported graph maps the raw observation (as :class:`rl.env.DockingEnv` builds it) to the
+deterministic action in [-1, 1]^6: ``clip((obs - mean) / std, -clip, clip)`` -> actor network ->
+mean action (PPO) or tanh(mean) (SAC) -> clip to [-1, 1].
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from dockcore.errors import DockError
+from dockcore.io import atomic_write_bytes, atomic_write_json
+
+
+def load_policy(path: str | os.PathLike[str]):
+    """Load ``policy.zip`` (PPO or SAC) and, if beside it, ``vecnormalize.pkl``.
+
+    Raises:
+        DockError: missing or unreadable policy file.
+    """
+    import pickle
+    import zipfile
+
+    from stable_baselines3 import PPO, SAC
+
+    p = Path(path)
+    if p.is_dir():
+        p = p / "policy.zip"
+    if not p.is_file():
+        raise DockError(f"policy file not found: {p}")
+    model = None
+    for cls in (PPO, SAC):
+        try:
+            model = cls.load(str(p), device="cpu")
+            break
+        except (KeyError, ValueError, TypeError, AssertionError):
+            continue
+        except (zipfile.BadZipFile, EOFError, OSError) as exc:
+            raise DockError(f"cannot read policy {p}: {exc}") from None
+    if model is None:
+        raise DockError(f"cannot read policy {p}: not a PPO or SAC model")
+    vecnorm = None
+    vn = p.with_name("vecnormalize.pkl")
+    if vn.exists():
+        with vn.open("rb") as fh:
+            vecnorm = pickle.load(fh)
+        vecnorm.training = False
+    return model, vecnorm
+
+
+def _actor_module(model, vecnorm):
+    import torch
+    from stable_baselines3 import SAC
+
+    if vecnorm is not None and vecnorm.norm_obs:
+        mean = torch.as_tensor(vecnorm.obs_rms.mean, dtype=torch.float32)
+        std = torch.as_tensor(np.sqrt(vecnorm.obs_rms.var + vecnorm.epsilon), dtype=torch.float32)
+        clip = float(vecnorm.clip_obs)
+    else:
+        dim = model.observation_space.shape[0]
+        mean, std, clip = torch.zeros(dim), torch.ones(dim), float("inf")
+
+    class Actor(torch.nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.register_buffer("mean", mean)
+            self.register_buffer("std", std)
+            self.clip = clip
+            if isinstance(model, SAC):
+                self.net = torch.nn.Sequential(model.actor.latent_pi, model.actor.mu)
+                self.squash = True
+            else:
+                pol = model.policy
+                self.net = torch.nn.Sequential(pol.mlp_extractor.policy_net, pol.action_net)
+                self.squash = False
+
+        def forward(self, obs):
+            x = torch.clamp((obs - self.mean) / self.std, -self.clip, self.clip)
+            a = self.net(x)
+            if self.squash:
+                a = torch.tanh(a)
+            return torch.clamp(a, -1.0, 1.0)
+
+    return Actor().eval()
+
+
+def export_onnx(policy_path: str | os.PathLike[str], out: str | os.PathLike[str]) -> Path:
+    """Write ``out`` (.onnx) and ``<out>.json`` (observation layout, limits, provenance)."""
+    import torch
+
+    model, vecnorm = load_policy(policy_path)
+    actor = _actor_module(model, vecnorm)
+    dim = model.observation_space.shape[0]
+    buf = io.BytesIO()
+    torch.onnx.export(
+        actor,
+        torch.zeros(1, dim),
+        buf,
+        input_names=["obs"],
+        output_names=["action"],
+        dynamic_axes={"obs": {0: "batch"}, "action": {0: "batch"}},
+        opset_version=17,
+        dynamo=False,
+    )
+    out = atomic_write_bytes(Path(out), buf.getvalue())
+    atomic_write_json(
+        out.with_suffix(".json"),
+        {
+            "obs_dim": int(dim),
+            "action_dim": 6,
+            "source_policy": str(policy_path),
+            "action_meaning": "body wrench / wrench_limits, [Fx, Fy, Fz, Mx, My, Mz]",
+        },
+    )
+    return out
+
+
+class OnnxPolicy:
+    """Run an exported policy with onnxruntime: ``act(obs) -> action`` (a Controller)."""
+
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        import onnxruntime as ort
+
+        p = Path(path)
+        if not p.is_file():
+            raise DockError(f"ONNX policy not found: {p}")
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = 1
+        self.session = ort.InferenceSession(str(p), opts, providers=["CPUExecutionProvider"])
+        meta = p.with_suffix(".json")
+        self.meta = json.loads(meta.read_text()) if meta.exists() else {}
+
+    def reset(self) -> None:
+        pass
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        x = np.asarray(obs, dtype=np.float32).reshape(1, -1)
+        return self.session.run(["action"], {"obs": x})[0][0].astype(np.float64)

@@ -1,0 +1,82 @@
+"""Observation sources: how the DS pose is *measured* each control step.
+
+Every source returns a :class:`Measurement` of ``T_world_ds`` with a covariance of
+``[x, y, z, yaw]`` (or ``None`` when nothing is detected); the shared
+:class:`rl.estimator.DSPoseFilter` turns measurements into the estimate the policy sees.
+
+* ``proxy``: the paper's baseline: the reference visibility cone plus Gaussian noise with
+  sigma_k = ||e|| / 6: N(0, (sigma/2)^2) always, plus N(0, sigma^2) when the DS is not visible
+  (memoryless: used with a non-fusing filter, exactly as in the paper).
+* ``error-model`` and ``camera``: see :mod:`rl.error_model` and :mod:`rl.camera_source`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from calibration.frames import inv_T
+from rl.task import DockingTaskConfig, docking_errors, ds_visible
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """One DS pose measurement.
+
+    Attributes:
+        T_world_ds: (4, 4) measured DS pose in the world (NED).
+        cov_xyzyaw: (4, 4) covariance of x, y, z (m^2) and yaw (rad^2).
+        detected: True when the camera (or its model) actually saw the DS; the paper's proxy
+            always measures, with ``detected`` = its visibility test.
+    """
+
+    T_world_ds: np.ndarray
+    cov_xyzyaw: np.ndarray
+    detected: bool
+
+
+@dataclass(frozen=True)
+class StepContext:
+    """What a source may look at: the true poses (for models) and the step time."""
+
+    T_world_body: np.ndarray
+    T_world_ds: np.ndarray
+    time_s: float
+
+
+class ObservationSource(Protocol):
+    name: str
+
+    def reset(self, rng: np.random.Generator) -> None: ...
+
+    def measure(self, ctx: StepContext) -> Measurement | None: ...
+
+
+class ProxySource:
+    """The paper's visibility proxy (module docstring)."""
+
+    name = "proxy"
+
+    def __init__(self, task: DockingTaskConfig) -> None:
+        self.task = task
+        self.rng = np.random.default_rng(0)
+
+    def reset(self, rng: np.random.Generator) -> None:
+        self.rng = rng
+
+    def measure(self, ctx: StepContext) -> Measurement:
+        e_xyz, _ = docking_errors(ctx.T_world_body, ctx.T_world_ds, self.task)
+        visible = ds_visible(inv_T(ctx.T_world_body) @ ctx.T_world_ds, self.task)
+        sigma = float(np.linalg.norm(e_xyz)) / 6.0
+        noise_body = self.rng.normal(0.0, sigma / 2.0, 3)
+        var = (sigma / 2.0) ** 2
+        if not visible:
+            noise_body += self.rng.normal(0.0, sigma, 3)
+            var += sigma**2
+        T = ctx.T_world_ds.copy()
+        # the error vector is in the body frame: its noise moves the DS along body axes
+        T[:3, 3] += ctx.T_world_body[:3, :3] @ noise_body
+        cov = np.diag([var, var, var, 1e-6])
+        return Measurement(T, cov, visible)

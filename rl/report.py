@@ -1,0 +1,236 @@
+"""``rl eval`` output folder: summary.json, episodes.csv, the paper's figures, videos, stress."""
+
+from __future__ import annotations
+
+import csv
+import io
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dockcore.config import replace, to_dict
+from dockcore.errors import DockError
+from dockcore.io import atomic_path, atomic_write_json, atomic_write_text, ensure_writable_dir
+from dockcore.provenance import provenance
+from rl.config import EnvConfig
+from rl.evaluate import EpisodeTrace, run_episodes
+
+
+def load_controller(policy: str, env_cfg: EnvConfig):
+    """'pid', an .onnx file, or a policy.zip / run folder -> (controller, vecnorm, label)."""
+    if policy == "pid":
+        from rl.baselines import PIDController
+
+        limits = np.asarray(env_cfg.wrench_limits) * env_cfg.wrench_scale
+        return PIDController(limits, dt_s=1.0 / env_cfg.control_hz), None, "pid"
+    path = Path(policy)
+    if path.suffix == ".onnx":
+        from rl.export import OnnxPolicy
+
+        return OnnxPolicy(path), None, path.name
+    from rl.export import load_policy
+
+    model, vecnorm = load_policy(path)
+    return model, vecnorm, str(path)
+
+
+def _csv(rows: list[dict[str, Any]]) -> str:
+    buf = io.StringIO()
+    if rows:
+        w = csv.DictWriter(buf, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    return buf.getvalue()
+
+
+def plot_trajectories(traces: list[EpisodeTrace], rows: list[dict], path: Path) -> None:
+    """Top view of every episode relative to its DS (green: docked, red: not)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 6))
+    for tr, row in zip(traces, rows, strict=True):
+        if not tr.pos_body_m:
+            continue
+        p = np.asarray(tr.pos_body_m) - np.asarray(tr.pos_ds_m)
+        ax.plot(
+            p[:, 1], p[:, 0], color="tab:green" if row["success"] else "tab:red", lw=0.8, alpha=0.7
+        )
+        ax.plot(p[0, 1], p[0, 0], "o", color="grey", ms=3)
+    ax.add_patch(plt.Rectangle((-1.14, -0.97), 2.28, 1.94, fill=False, color="k", lw=1.5))
+    ax.plot(0, 0, "k+", ms=12)
+    ax.set(
+        xlabel="east of DS (m)",
+        ylabel="north of DS (m)",
+        aspect="equal",
+        title="top-view trajectories (green: docked)",
+    )
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=110)
+    plt.close(fig)
+
+
+def plot_traces(tr: EpisodeTrace, path: Path, title: str) -> None:
+    """Requested wrench and error per axis over one episode (true and observed error)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t = np.asarray(tr.time_s)
+    w = np.asarray(tr.wrench)
+    et, eo = np.asarray(tr.e_true), np.asarray(tr.e_obs)
+    fig, axes = plt.subplots(4, 2, figsize=(11, 8), sharex=True)
+    names = ["x (m)", "y (m)", "z (m)", "yaw (rad)"]
+    wnames = ["Fx (N)", "Fy (N)", "Fz (N)", "Mz (N m)"]
+    widx = [0, 1, 2, 5]
+    for i in range(4):
+        axes[i, 0].plot(t, et[:, i], label="true")
+        axes[i, 0].plot(t, eo[:, i], label="observed", alpha=0.7)
+        axes[i, 0].set_ylabel(f"e_{names[i]}")
+        axes[i, 1].plot(t, w[:, widx[i]], color="tab:purple")
+        axes[i, 1].set_ylabel(wnames[i])
+    det = np.asarray(tr.detected, dtype=float)
+    axes[0, 0].fill_between(
+        t,
+        axes[0, 0].get_ylim()[0],
+        axes[0, 0].get_ylim()[1],
+        where=det > 0,
+        color="tab:green",
+        alpha=0.1,
+        label="DS detected",
+    )
+    axes[0, 0].legend(fontsize=7)
+    axes[-1, 0].set_xlabel("time (s)")
+    axes[-1, 1].set_xlabel("time (s)")
+    fig.suptitle(title)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=100)
+    plt.close(fig)
+
+
+def write_video(frames: list[np.ndarray], path: Path, fps: float = 5.0) -> Path | None:
+    """RGB frames -> MP4 (mp4v) written atomically."""
+    import cv2
+
+    if not frames:
+        return None
+    h, w = frames[0].shape[:2]
+    with atomic_path(path) as tmp:
+        vw = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
+        if not vw.isOpened():
+            raise DockError(f"cannot open a video writer for {path}")
+        for f in frames:
+            vw.write(cv2.cvtColor(f, cv2.COLOR_RGB2BGR))
+        vw.release()
+    return path
+
+
+STRESS_CURRENTS_MPS = (0.0, 0.1, 0.2, 0.3)
+STRESS_THRUSTER_ERRORS_M = (0.0, 0.02, 0.05)
+
+
+def stress_tables(
+    controller, vecnorm, env_cfg: EnvConfig, episodes: int, seed: int, progress=None
+) -> dict[str, list[dict[str, Any]]]:
+    """Graded stress: current speed (random direction), water preset, thruster placement."""
+    from sim.thrusters import ThrusterRandomisation
+    from sim.vehicle import VehicleRandomisation
+
+    out: dict[str, list[dict[str, Any]]] = {"current": [], "water": [], "thruster": []}
+    for speed in STRESS_CURRENTS_MPS:
+        cur = replace(
+            env_cfg.current, mode="random", range_x_mps=(-speed, speed), range_y_mps=(-speed, speed)
+        )
+        s = run_episodes(
+            controller, replace(env_cfg, current=cur), episodes, seed, vecnorm=vecnorm, record=False
+        ).summary
+        out["current"].append({"current_max_mps": speed, **_short(s)})
+    if env_cfg.obs_source == "camera":
+        for preset in ("clear_tank", "coastal", "turbid"):
+            s = run_episodes(
+                controller,
+                replace(env_cfg, water_preset=preset),
+                episodes,
+                seed,
+                vecnorm=vecnorm,
+                record=False,
+            ).summary
+            out["water"].append({"water": preset, **_short(s)})
+    for err in STRESS_THRUSTER_ERRORS_M:
+        rnd = VehicleRandomisation(thrusters=ThrusterRandomisation(position_m=err))
+        s = run_episodes(
+            controller,
+            replace(env_cfg, randomise_vehicle=True, vehicle_randomisation=rnd),
+            episodes,
+            seed,
+            vecnorm=vecnorm,
+            record=False,
+        ).summary
+        out["thruster"].append({"thruster_position_error_m": err, **_short(s)})
+    return out
+
+
+def _short(s: dict[str, Any]) -> dict[str, Any]:
+    return {
+        k: s[k]
+        for k in (
+            "episodes",
+            "success_rate",
+            "success_rate_strict",
+            "mean_time_to_dock_s",
+            "mean_collisions",
+        )
+    }
+
+
+def evaluate_to_folder(
+    policy: str,
+    env_cfg: EnvConfig,
+    episodes: int,
+    seed: int,
+    out_dir: Path,
+    video_episodes: tuple[int, ...] = (),
+    stress: bool = False,
+    stress_episodes: int = 20,
+) -> dict[str, Any]:
+    """Run the evaluation and write the report folder; returns the summary."""
+    from tqdm import tqdm
+
+    out = ensure_writable_dir(out_dir)
+    controller, vecnorm, label = load_controller(policy, env_cfg)
+    bar = tqdm(total=episodes, desc=f"eval {env_cfg.obs_source}", unit="ep")
+    res = run_episodes(
+        controller,
+        env_cfg,
+        episodes,
+        seed,
+        vecnorm=vecnorm,
+        record=True,
+        video_episodes=video_episodes,
+        progress=lambda k, n: bar.update(1),
+    )
+    bar.close()
+    summary = {"policy": label, "obs_source": env_cfg.obs_source, **res.summary}
+    atomic_write_text(out / "episodes.csv", _csv(res.episodes))
+    plot_trajectories(res.traces, res.episodes, out / "trajectories_top.png")
+    for k in sorted(set(video_episodes) | {0}):
+        if k < len(res.traces):
+            ok = "docked" if res.episodes[k]["success"] else "not docked"
+            plot_traces(res.traces[k], out / f"traces_ep{k}.png", f"episode {k} ({ok})")
+    for k in video_episodes:
+        if k < len(res.traces):
+            write_video(res.traces[k].frames, out / f"camera_ep{k}.mp4")
+    if stress:
+        tables = stress_tables(controller, vecnorm, env_cfg, stress_episodes, seed)
+        summary["stress"] = tables
+    record = provenance({"env": env_cfg}, extra={"summary": summary})
+    atomic_write_json(
+        out / "summary.json", {**summary, "config": to_dict(env_cfg), "provenance": record}
+    )
+    return summary
