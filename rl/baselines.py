@@ -26,6 +26,7 @@ class PIDConfig:
         ki_xy: horizontal integral gain (N/(m s)), for currents.
         kp_z: vertical gain (N/m).
         kd_z: vertical damping (N s/m).
+        ki_z: vertical integral gain (N/(m s)), for the net buoyancy.
         kp_yaw: yaw gain (N m/rad).
         kd_yaw: yaw damping (N m s/rad).
         approach_altitude_m: altitude above the docking point held until aligned (m).
@@ -39,9 +40,10 @@ class PIDConfig:
     ki_xy: float = 8.0
     kp_z: float = 150.0
     kd_z: float = 250.0
+    ki_z: float = 20.0
     kp_yaw: float = 60.0
     kd_yaw: float = 80.0
-    approach_altitude_m: float = 1.0
+    approach_altitude_m: float = 1.6
     descend_xy_m: float = 0.10
     descend_yaw_deg: float = 8.0
     integral_limit: float = 5.0
@@ -63,7 +65,7 @@ class PIDController:
         self.reset()
 
     def reset(self) -> None:
-        self.integral = np.zeros(2)
+        self.integral = np.zeros(3)
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         c = self.cfg
@@ -76,11 +78,12 @@ class PIDController:
             c.descend_yaw_deg
         )
         e_z = e[2] if aligned else e[2] - c.approach_altitude_m
+        err = np.array([e[0], e[1], e_z])
         self.integral = np.clip(
-            self.integral + e[:2] * self.dt_s, -c.integral_limit, c.integral_limit
+            self.integral + err * self.dt_s, -c.integral_limit, c.integral_limit
         )
-        fx, fy = c.kp_xy * e[:2] - c.kd_xy * v[:2] + c.ki_xy * self.integral
-        fz = c.kp_z * e_z - c.kd_z * v[2]
+        fx, fy = c.kp_xy * e[:2] - c.kd_xy * v[:2] + c.ki_xy * self.integral[:2]
+        fz = c.kp_z * e_z - c.kd_z * v[2] + c.ki_z * self.integral[2]
         mz = c.kp_yaw * e_psi - c.kd_yaw * r
         wrench = np.array([fx, fy, fz, 0.0, 0.0, mz])
         with np.errstate(divide="ignore", invalid="ignore"):

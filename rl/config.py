@@ -40,6 +40,9 @@ class EnvConfig:
         terminate_on: "paper" (the paper's docking condition ends the episode, +p_s) or
             "strict" (pegs seated in the notches, held ``task.strict_hold_s``).
         obs_last_action: append the previous action to the observation.
+        obs_uncertainty: append the filter's horizontal standard deviation (m, clipped to 2)
+            and whether the DS was detected this step (0/1), so a policy can tell a fresh
+            camera fix from a stale or acoustic estimate (not in the paper's observation).
         obs_frames: stack this many observation frames (1 = no history).
         randomise_vehicle: draw the vehicle's parameters (and thruster placement) per episode.
         error_model_path: fitted error model file, for ``obs_source = "error-model"``.
@@ -77,6 +80,7 @@ class EnvConfig:
     spawn_ds_yaw_deg: float = 180.0
     terminate_on: Literal["paper", "strict"] = "paper"
     obs_last_action: bool = True
+    obs_uncertainty: bool = True
     obs_frames: int = 1
     randomise_vehicle: bool = True
     error_model_path: str | None = None

@@ -33,6 +33,8 @@ from rl.world import DockingWorld
 POS_SCALE_M = 5.0
 ACC_SCALE_MPS2 = 5.0
 BASE_OBS_DIM = 11
+#: Every observation entry is clipped to +-this (velocities in m/s and rad/s included).
+OBS_BOUND = 5.0
 
 
 class SimulationError(DockError):
@@ -69,9 +71,9 @@ class DockingEnv(gym.Env):
         self.filter = DSPoseFilter(est_cfg)
         self.reward_fn = DockingReward(c.reward)
         self._limits = np.asarray(c.wrench_limits, dtype=np.float64) * c.wrench_scale
-        frame_dim = BASE_OBS_DIM + (6 if c.obs_last_action else 0)
+        frame_dim = BASE_OBS_DIM + (6 if c.obs_last_action else 0) + (2 if c.obs_uncertainty else 0)
         self.observation_space = gym.spaces.Box(
-            -np.inf, np.inf, shape=(frame_dim * c.obs_frames,), dtype=np.float32
+            -OBS_BOUND, OBS_BOUND, shape=(frame_dim * c.obs_frames,), dtype=np.float32
         )
         self.action_space = gym.spaces.Box(-1.0, 1.0, shape=(6,), dtype=np.float32)
         self._frames: list[np.ndarray] = []
@@ -183,11 +185,25 @@ class DockingEnv(gym.Env):
         world = self.world
         if predict:
             self.filter.predict(self.dt_s)
-        ctx = StepContext(T_world_body, world.T_world_ds, world.time_s)
+        self._usbl_fix(T_world_body)
+        ctx = StepContext(T_world_body, world.T_world_ds, world.time_s, self.filter.T_world_ds)
         m = self.source.measure(ctx)
         self.last_measurement = m
         if m is not None:
             self.filter.update(m.T_world_ds, m.cov_xyzyaw)
+
+    def _usbl_fix(self, T_world_body: np.ndarray) -> None:
+        """A position-only acoustic fix every ``estimator.usbl_period_s`` (not for the proxy)."""
+        period = self.filter.cfg.usbl_period_s
+        if self.cfg.obs_source == "proxy" or period <= 0:
+            return
+        if self.steps % max(1, round(period * self.cfg.control_hz)) != 0:
+            return
+        true_p = self.world.T_world_ds[:3, 3]
+        sigma = self.filter.usbl_sigma_m(float(np.linalg.norm(true_p - T_world_body[:3, 3])))
+        T = self.filter.T_world_ds.copy()  # keep the yaw estimate: USBL gives no heading
+        T[:3, 3] = true_p + self.np_random.normal(0.0, sigma, 3)
+        self.filter.update(T, np.diag([sigma**2] * 3 + [1e6]))
 
     def _frame(self, imu, T_world_body: np.ndarray) -> np.ndarray:
         e_hat, psi_hat = docking_errors(T_world_body, self.filter.T_world_ds, self.cfg.task)
@@ -200,7 +216,11 @@ class DockingEnv(gym.Env):
         ]
         if self.cfg.obs_last_action:
             parts.append(self.prev_action)
-        return np.concatenate(parts).astype(np.float32)
+        if self.cfg.obs_uncertainty:
+            m = self.last_measurement
+            sigma_xy = float(np.sqrt(0.5 * (self.filter.P[0, 0] + self.filter.P[1, 1])))
+            parts.append([min(sigma_xy, 2.0), float(m is not None and m.detected)])
+        return np.clip(np.concatenate(parts), -OBS_BOUND, OBS_BOUND).astype(np.float32)
 
     def _obs(self) -> np.ndarray:
         return np.concatenate(self._frames).astype(np.float32)

@@ -40,6 +40,11 @@ class EstimatorConfig:
             proxy observation, which is memoryless).
         gate_sigma: measurements further than this many standard deviations (Mahalanobis) from
             the estimate are rejected as outliers (0 disables gating).
+        usbl_period_s: a USBL-like acoustic fix of the DS position arrives this often (s);
+            0 disables it. Used with the camera and error-model sources (the approach is
+            acoustic, the final servoing visual), not with the paper's proxy.
+        usbl_sigma_floor_m: USBL horizontal/vertical standard deviation at short range (m).
+        usbl_sigma_per_m: USBL standard deviation growth with slant range (m per m).
     """
 
     prior_sigma_xy_m: float = 1.0
@@ -49,6 +54,9 @@ class EstimatorConfig:
     drift_yaw_deg_per_sqrt_s: float = 0.2
     fuse: bool = True
     gate_sigma: float = 0.0
+    usbl_period_s: float = 1.0
+    usbl_sigma_floor_m: float = 0.15
+    usbl_sigma_per_m: float = 0.03
 
     def validate(self) -> None:
         for name in ("prior_sigma_xy_m", "prior_sigma_z_m", "prior_sigma_yaw_deg"):
@@ -115,6 +123,10 @@ class DSPoseFilter:
         self.measured = True
         self.time_since_measurement_s = 0.0
         return True
+
+    def usbl_sigma_m(self, slant_range_m: float) -> float:
+        """USBL fix standard deviation at a slant range (m)."""
+        return self.cfg.usbl_sigma_floor_m + self.cfg.usbl_sigma_per_m * slant_range_m
 
     @property
     def T_world_ds(self) -> np.ndarray:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -98,16 +99,18 @@ def export_onnx(policy_path: str | os.PathLike[str], out: str | os.PathLike[str]
     actor = _actor_module(model, vecnorm)
     dim = model.observation_space.shape[0]
     buf = io.BytesIO()
-    torch.onnx.export(
-        actor,
-        torch.zeros(1, dim),
-        buf,
-        input_names=["obs"],
-        output_names=["action"],
-        dynamic_axes={"obs": {0: "batch"}, "action": {0: "batch"}},
-        opset_version=17,
-        dynamo=False,
-    )
+    with warnings.catch_warnings():  # the TorchScript exporter needs no onnxscript
+        warnings.simplefilter("ignore", DeprecationWarning)
+        torch.onnx.export(
+            actor,
+            torch.zeros(1, dim),
+            buf,
+            input_names=["obs"],
+            output_names=["action"],
+            dynamic_axes={"obs": {0: "batch"}, "action": {0: "batch"}},
+            opset_version=17,
+            dynamo=False,
+        )
     out = atomic_write_bytes(Path(out), buf.getvalue())
     atomic_write_json(
         out.with_suffix(".json"),

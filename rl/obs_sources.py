@@ -39,11 +39,13 @@ class Measurement:
 
 @dataclass(frozen=True)
 class StepContext:
-    """What a source may look at: the true poses (for models) and the step time."""
+    """What a source may look at: the true poses (for models), the step time and the filter's
+    current DS estimate (a prior for disambiguating the camera's PnP)."""
 
     T_world_body: np.ndarray
     T_world_ds: np.ndarray
     time_s: float
+    T_world_ds_estimate: np.ndarray | None = None
 
 
 class ObservationSource(Protocol):

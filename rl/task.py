@@ -104,7 +104,7 @@ def ds_visible(T_body_ds: np.ndarray, cfg: DockingTaskConfig) -> bool:
     if p[2] <= 0 or np.linalg.norm(p) > cfg.visibility_range_m:
         return False
     ax, ay = (math.tan(math.radians(a)) for a in cfg.visibility_half_angles_deg)
-    return (p[0] / (p[2] * ax)) ** 2 + (p[1] / (p[2] * ay)) ** 2 <= 1.0
+    return bool((p[0] / (p[2] * ax)) ** 2 + (p[1] / (p[2] * ay)) ** 2 <= 1.0)
 
 
 def paper_success(e_xyz: np.ndarray, e_psi: float, visible: bool, cfg: DockingTaskConfig) -> bool:

@@ -1,0 +1,238 @@
+"""The docking env against Gymnasium/SB3 checkers, determinism, bad input; training CLI smoke."""
+
+from __future__ import annotations
+
+import json
+import warnings
+
+import numpy as np
+import pytest
+
+from dockcore.config import replace
+from rl import cli
+from rl.baselines import PIDController
+from rl.config import EnvConfig
+from rl.env import DockingEnv
+from rl.evaluate import run_episodes
+
+SHORT = replace(EnvConfig(), episode_s=3.0)
+
+
+@pytest.fixture(scope="module")
+def env():
+    e = DockingEnv(SHORT)
+    yield e
+    e.close()
+
+
+def test_gymnasium_and_sb3_checkers_pass_without_warnings(env):
+    from gymnasium.utils.env_checker import check_env as gym_check
+    from stable_baselines3.common.env_checker import check_env as sb3_check
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        gym_check(env, skip_render_check=True)
+        sb3_check(env, warn=True)
+
+
+def test_same_seed_same_rollout(env):
+    def rollout(seed):
+        obs, _ = env.reset(seed=seed)
+        rng = np.random.default_rng(5)
+        out = [obs]
+        for _ in range(8):
+            obs, r, *_ = env.step(rng.uniform(-1, 1, 6))
+            out.append(np.append(obs, r))
+        return np.concatenate(out)
+
+    a, b, c = rollout(3), rollout(3), rollout(4)
+    np.testing.assert_array_equal(a, b)
+    assert not np.array_equal(a, c)
+
+
+def test_reward_terms_sum_to_the_reward(env):
+    env.reset(seed=0)
+    _, r, _, _, info = env.step(np.zeros(6))
+    assert set(info["reward_terms"]) == {"dist", "angle", "smooth", "collision", "mission"}
+    assert r == pytest.approx(sum(info["reward_terms"].values()))
+
+
+def test_truncation_at_episode_end(env):
+    env.reset(seed=1)
+    steps, trunc = 0, False
+    while not trunc:
+        _, _, term, trunc, info = env.step(np.zeros(6))
+        steps += 1
+        assert not term
+    assert steps == round(SHORT.episode_s * SHORT.control_hz)
+    assert info["reward_terms"]["mission"] == -10.0
+
+
+@pytest.mark.parametrize("bad", [[np.nan, 0, 0, 0, 0, 0], [0, 0, np.inf, 0, 0, 0], [0, 0]])
+def test_bad_actions_raise_a_clear_error(env, bad):
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="action must be 6 finite numbers"):
+        env.step(np.array(bad, dtype=float))
+
+
+@pytest.mark.parametrize("offset_m,visible", [((0.3, 0.2, 2.5), True), ((4.0, 0.0, 2.0), False)])
+def test_proxy_noise_follows_the_paper(offset_m, visible):
+    """sigma = |e|/6; N(0, (sigma/2)^2) always, plus N(0, sigma^2) when not visible."""
+    from calibration.frames import make_T
+    from rl.obs_sources import ProxySource, StepContext
+    from rl.task import DockingTaskConfig, docking_errors
+
+    task = DockingTaskConfig()
+    T_world_ds = np.eye(4)
+    T_target = task.T_ds_target
+    T_world_body = make_T(T_target[:3, :3], T_target[:3, 3] - np.asarray(offset_m))
+    src = ProxySource(task)
+    src.reset(np.random.default_rng(0))
+    ctx = StepContext(T_world_body, T_world_ds, 0.0)
+    e_true, _ = docking_errors(T_world_body, T_world_ds, task)
+    errs = []
+    for _ in range(4000):
+        m = src.measure(ctx)
+        assert m.detected is visible
+        errs.append(docking_errors(T_world_body, m.T_world_ds, task)[0] - e_true)
+    sigma = np.linalg.norm(e_true) / 6
+    expected = sigma / 2 if visible else np.sqrt((sigma / 2) ** 2 + sigma**2)
+    np.testing.assert_allclose(np.std(errs, axis=0), expected, rtol=0.05)
+    np.testing.assert_allclose(np.mean(errs, axis=0), 0, atol=4 * expected / np.sqrt(4000))
+
+
+def test_pid_baseline_docks_with_the_proxy():
+    cfg = replace(EnvConfig(), terminate_on="strict")
+    res = run_episodes(PIDController(np.asarray(cfg.wrench_limits)), cfg, 3, seed=0, record=False)
+    assert res.summary["success_rate"] >= 2 / 3
+    assert res.summary["success_rate_strict"] >= 2 / 3
+
+
+def test_train_resume_eval_export_through_the_cli(run_cli, tmp_path):
+    cfg = tmp_path / "train.toml"
+    cfg.write_text(
+        "n_envs = 1\ncheckpoint_every = 64\neval_every = 0\n"
+        "[env]\nepisode_s = 4.0\n[ppo]\nn_steps = 64\nbatch_size = 64\nn_epochs = 1\n"
+    )
+    run = tmp_path / "run"
+    res = run_cli(cli.main, "train", "--config", cfg, "--steps", "128", "--out", run)
+    assert res.code == 0, res.err
+    assert (run / "policy.zip").is_file() and (run / "checkpoints" / "step_128.zip").is_file()
+    res = run_cli(cli.main, "train", "--steps", "256", "--out", run, "--resume")
+    assert res.code == 0, res.err
+    assert json.loads((run / "DONE").read_text())["steps"] == 256
+    # a second fresh run into the same folder is refused
+    res = run_cli(cli.main, "train", "--config", cfg, "--steps", "64", "--out", run)
+    assert res.code != 0 and "already holds a run" in res.err
+
+    env_cfg = tmp_path / "env.toml"
+    env_cfg.write_text("episode_s = 2.0\n")
+    out = tmp_path / "eval"
+    res = run_cli(
+        cli.main,
+        "eval",
+        "--policy",
+        run,
+        "--episodes",
+        "2",
+        "--obs",
+        "proxy",
+        "--config",
+        env_cfg,
+        "--videos",
+        "",
+        "--out",
+        out,
+    )
+    assert res.code == 0, res.err
+    summary = json.loads((out / "summary.json").read_text())
+    for key in (
+        "episodes",
+        "success_rate",
+        "success_rate_strict",
+        "mean_time_to_dock_s",
+        "mean_collisions",
+        "final_e_xy_m_median",
+    ):
+        assert key in summary
+    assert summary["episodes"] == 2
+    assert (out / "episodes.csv").read_text().count("\n") == 3
+    assert (out / "trajectories_top.png").is_file() and (out / "traces_ep0.png").is_file()
+
+    onnx_path = tmp_path / "policy.onnx"
+    res = run_cli(cli.main, "export", "--policy", run / "policy.zip", "--out", onnx_path)
+    assert res.code == 0, res.err
+    from rl.evaluate import SB3Controller
+    from rl.export import OnnxPolicy, load_policy
+
+    model, vecnorm = load_policy(run / "policy.zip")
+    sb3, onnx = SB3Controller(model, vecnorm), OnnxPolicy(onnx_path)
+    obs = np.random.default_rng(0).normal(size=(5, model.observation_space.shape[0]))
+    for o in obs.astype(np.float32):
+        np.testing.assert_allclose(onnx.act(o), sb3.act(o), atol=1e-5)
+
+
+def test_eval_pid_and_bad_policy_file(run_cli, tmp_path):
+    env_cfg = tmp_path / "env.toml"
+    env_cfg.write_text("episode_s = 2.0\n")
+    res = run_cli(
+        cli.main,
+        "eval",
+        "--policy",
+        "pid",
+        "--episodes",
+        "1",
+        "--obs",
+        "proxy",
+        "--config",
+        env_cfg,
+        "--videos",
+        "",
+        "--out",
+        tmp_path / "e",
+    )
+    assert res.code == 0, res.err
+    res = run_cli(
+        cli.main,
+        "eval",
+        "--policy",
+        tmp_path / "missing.zip",
+        "--episodes",
+        "1",
+        "--obs",
+        "proxy",
+        "--out",
+        tmp_path / "e2",
+    )
+    assert res.code != 0 and "policy file not found" in res.err
+    bad = tmp_path / "bad.zip"
+    bad.write_bytes(b"not a zip")
+    res = run_cli(
+        cli.main,
+        "eval",
+        "--policy",
+        bad,
+        "--episodes",
+        "1",
+        "--obs",
+        "proxy",
+        "--out",
+        tmp_path / "e3",
+    )
+    assert res.code != 0 and "cannot read policy" in res.err and res.err.count("\n") == 1
+
+
+def test_error_model_source_requires_a_model(run_cli, tmp_path):
+    res = run_cli(
+        cli.main,
+        "eval",
+        "--policy",
+        "pid",
+        "--episodes",
+        "1",
+        "--obs",
+        "error-model",
+        "--out",
+        tmp_path / "e",
+    )
+    assert res.code != 0 and "error_model_path" in res.err
