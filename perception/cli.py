@@ -1,15 +1,259 @@
-"""``perception``: command group. Commands appear here as they are implemented."""
+"""``perception``: detect 3DBM markers and the docking-station pose in images or video, and
+evaluate pipelines against ground truth."""
 
 from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
 
 import click
 
 from dockcore.cli import run_group
+from dockcore.config import load_config
+from dockcore.errors import DockError
+
+_CTX = {"help_option_names": ["-h", "--help"]}
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.group(context_settings=_CTX)
 def cli() -> None:
     """Perception: 3DBM detection and docking-station pose from the marker board."""
+
+
+def _note(msg: str) -> None:
+    click.echo(f"note: {msg}", err=True)
+
+
+def _config(config_path: Path | None, pipeline: str | None):
+    from perception.evaluate import PerceptionConfig
+
+    overrides: dict[str, Any] = {"detector": {"pipeline": pipeline}} if pipeline else {}
+    return load_config(PerceptionConfig, config_path, overrides=overrides, section="perception")
+
+
+def _camera(path: Path | None):
+    if path is None:
+        return None
+    from calibration.camera import load_camera
+
+    return load_camera(path)[0]
+
+
+def _marker_options(fn):
+    opts = [
+        click.option(
+            "--markers",
+            "markers_path",
+            type=click.Path(dir_okay=False, path_type=Path),
+            help="Marker set file (TOML/JSON from `markers generate`) [default: the DS set].",
+        ),
+        click.option(
+            "--dictionary", help="Detect single markers of this dictionary (no board pose)."
+        ),
+        click.option(
+            "--marker-size-m", type=float, help="Single-marker side (m): enables their poses."
+        ),
+        click.option("--pipeline", help="Preprocessing pipeline [default]; see `pipelines`."),
+        click.option(
+            "--config",
+            "config_path",
+            type=click.Path(dir_okay=False, path_type=Path),
+            help="TOML with [detector], [board] and [report] tables (flags override it).",
+        ),
+        click.option("--quiet", is_flag=True, help="No progress bar; print only the output."),
+    ]
+    for opt in reversed(opts):
+        fn = opt(fn)
+    return fn
+
+
+@cli.command(context_settings=_CTX)
+@click.argument("input_path", metavar="INPUT", type=click.Path(path_type=Path))
+@_marker_options
+@click.option(
+    "--camera",
+    "camera_path",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="Camera file [default: the reference camera scaled to the frames].",
+)
+@click.option(
+    "--out",
+    "out_dir",
+    type=click.Path(file_okay=False, path_type=Path),
+    default=Path("perception_detect"),
+    show_default=True,
+    help="Output folder.",
+)
+@click.option("--no-annotate", is_flag=True, help="Write only detections.jsonl/.csv.")
+def detect(
+    input_path,
+    markers_path,
+    dictionary,
+    marker_size_m,
+    pipeline,
+    config_path,
+    quiet,
+    camera_path,
+    out_dir,
+    no_annotate,
+) -> None:
+    """Detect markers in INPUT (an image, a folder of images or a video) and solve the DS pose.
+
+    Writes detections.jsonl and detections.csv (one row per frame) and annotated images, or
+    annotated.mp4 for a video, into --out.
+    """
+    from perception.evaluate import resolve_markers, run_detect
+
+    cfg = _config(config_path, pipeline)
+    setup = resolve_markers(markers_path, dictionary, marker_size_m)
+    if dictionary is not None and marker_size_m is None:
+        _note("no --marker-size-m: markers are detected but no pose is solved")
+    result = run_detect(
+        input_path,
+        out_dir,
+        setup,
+        _camera(camera_path),
+        cfg,
+        annotate_frames=not no_annotate,
+        progress=False if quiet else None,
+        note=_note,
+    )
+    if quiet:
+        click.echo(str(Path(out_dir) / "detections.jsonl"))
+        return
+    click.echo(
+        f"frames: {result['frames']} decoded, {result['corrupt_frames']} corrupt; "
+        f"{result['frames_with_detection']} with markers, {result['frames_with_pose']} with a "
+        f"DS pose; {result['markers_detected_total']} markers in all"
+    )
+    click.echo(f"wrote {len(result['outputs'])} files to {out_dir}")
+
+
+def _fmt(v: Any, unit: str = "", digits: int = 3) -> str:
+    return "n/a" if v is None else f"{v:.{digits}f}{unit}"
+
+
+def _print_summary(report: dict[str, Any], out_dir: Path) -> None:
+    click.echo(
+        f"[{report['pipeline']}] frames {report['frames']} ({report['corrupt_frames']} corrupt), "
+        f"detection rate {_fmt(report['detection_rate'])}, pose rate {_fmt(report['pose_rate'])}, "
+        f"{report['markers_detected_total']} markers, "
+        f"{_fmt(report['ms_per_frame_median'], ' ms', 1)}/frame (median)"
+    )
+    if report["ground_truth"] is not None:
+        click.echo(
+            f"pose error: translation median {_fmt(report['translation_error_m_median'], ' m', 4)}"
+            f" p90 {_fmt(report['translation_error_m_p90'], ' m', 4)}; rotation median "
+            f"{_fmt(report['rotation_error_deg_median'], ' deg', 2)} p90 "
+            f"{_fmt(report['rotation_error_deg_p90'], ' deg', 2)}; marker recall "
+            f"{_fmt(report['marker_recall'])}"
+        )
+    if report["compare"]:
+        from dockcore.bench import format_table
+        from perception.report_plots import COMPARE_COLUMNS
+
+        click.echo(format_table(report["compare"], COMPARE_COLUMNS))
+    click.echo(f"wrote {out_dir / 'report.json'} and {len(report['plots'])} plots")
+
+
+@cli.command(name="eval", context_settings=_CTX)
+@click.argument("input_path", metavar="INPUT", type=click.Path(path_type=Path))
+@_marker_options
+@click.option(
+    "--camera",
+    "camera_path",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="Camera file (required unless INPUT is a labelled dataset folder).",
+)
+@click.option(
+    "--ground-truth",
+    "gt_path",
+    type=click.Path(path_type=Path),
+    help="Labelled dataset folder, labels.jsonl or pose CSV (frame,x_m,y_m,z_m,qw,qx,qy,qz).",
+)
+@click.option("--compare", help="Comma-separated pipelines to run side by side.")
+@click.option(
+    "--out",
+    "out_dir",
+    type=click.Path(file_okay=False, path_type=Path),
+    required=True,
+    help="Output folder.",
+)
+@click.option("--json", "as_json", is_flag=True, help="Print report.json to stdout.")
+def eval_cmd(
+    input_path,
+    markers_path,
+    dictionary,
+    marker_size_m,
+    pipeline,
+    config_path,
+    quiet,
+    camera_path,
+    gt_path,
+    compare,
+    out_dir,
+    as_json,
+) -> None:
+    """Evaluate detection and DS pose on INPUT (images, a video, or a labelled dataset folder).
+
+    Writes report.json (rates, time, reprojection error; with ground truth: pose error
+    percentiles, binned by range and viewing angle, jitter on static stretches), frames.jsonl,
+    plots and a contact sheet. --compare runs several pipelines on the same frames and adds
+    compare.json / compare.md.
+    """
+    from perception.evaluate import resolve_markers, run_eval
+    from perception.groundtruth import is_dataset, load_dataset, load_ground_truth
+
+    cfg = _config(config_path, pipeline)
+    names = [p.strip() for p in (compare or "").split(",") if p.strip()]
+    if compare is not None and not names:
+        raise DockError("--compare needs at least one pipeline name")
+    if pipeline is not None and pipeline not in names:
+        names.insert(0, pipeline)
+    names = names or [cfg.detector.pipeline]
+    frames_path, truth, truth_source = input_path, None, None
+    if is_dataset(input_path):
+        ds = load_dataset(input_path)
+        frames_path = ds.images_dir
+        camera_path = camera_path or ds.camera_path
+        if markers_path is None and dictionary is None and marker_size_m is None:
+            markers_path = ds.marker_set_path
+        if gt_path is None:
+            truth, truth_source = ds.frames, str(input_path)
+    if camera_path is None:
+        raise DockError("--camera is required (the camera file of INPUT's frames)")
+    camera = _camera(camera_path)
+    setup = resolve_markers(markers_path, dictionary, marker_size_m)
+    if gt_path is not None:
+        truth, truth_source = load_ground_truth(gt_path), str(gt_path)
+    report = run_eval(
+        frames_path,
+        out_dir,
+        setup,
+        camera,
+        cfg,
+        names,
+        truth,
+        truth_source,
+        progress=False if (quiet or as_json) else None,
+        note=_note,
+    )
+    if as_json:
+        click.echo(json.dumps(report, indent=2))
+    elif quiet:
+        click.echo(str(Path(out_dir) / "report.json"))
+    else:
+        _print_summary(report, Path(out_dir))
+
+
+@cli.command(context_settings=_CTX)
+def pipelines() -> None:
+    """List the preprocessing pipelines."""
+    from perception.detector import list_pipelines
+
+    for name, text in list_pipelines().items():
+        click.echo(f"{name:18s} {text}")
 
 
 def main() -> None:

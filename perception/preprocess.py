@@ -197,7 +197,10 @@ class NoiseAwareStretch:
         if self.noise_target > 0:
             sigma = max(estimate_noise_sigma(grey), self.min_sigma)
             gain = min(gain, self.noise_target / sigma)
-        out = cv2.convertScaleAbs(grey, alpha=gain, beta=128.0 - gain * 0.5 * (lo + hi))
+        # a saturating lookup table: convertScaleAbs would fold values below 0 back up
+        beta = 128.0 - gain * 0.5 * (lo + hi)
+        lut = np.clip(np.arange(256) * gain + beta + 0.5, 0, 255).astype(np.uint8)
+        out = cv2.LUT(grey, lut)
         if self.blur_ksize > 1:
             out = cv2.GaussianBlur(out, (self.blur_ksize, self.blur_ksize), 0)
         return [out]

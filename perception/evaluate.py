@@ -1,0 +1,631 @@
+"""``perception detect`` and ``perception eval``: run the detector and pose solver over frames.
+
+* :func:`run_detect`: annotated images (or an annotated video) plus ``detections.jsonl`` and
+  ``detections.csv``, one row per frame.
+* :func:`run_eval`: ``report.json`` (detection rate, per-ID counts, time per frame,
+  reprojection error; with ground truth: pose error percentiles, rates and errors binned by
+  range and viewing angle, pose jitter on static stretches), ``frames.jsonl``, plots, a contact
+  sheet, and with several pipelines a side-by-side comparison (``compare.json``/``.md``).
+
+Every pipeline runs on the same decoded frames in one pass. Pose error is measured on
+``T_cam_ds``: translation error = distance between the estimated and true DS origin in the
+camera frame (m); rotation error = geodesic angle between the two rotations (deg). Frames are
+timed on detection + pose (``ms``), not decoding or drawing. Files are written atomically: a
+failure part-way leaves earlier complete files (and older versions of the others) intact.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import math
+import os
+import time
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from calibration.camera import CameraModel, reference_camera
+from calibration.frames import pos_quat_from_T
+from dockcore.config import to_dict
+from dockcore.errors import DockError
+from dockcore.io import (
+    atomic_path,
+    atomic_write_bytes,
+    atomic_write_json,
+    atomic_write_text,
+    ensure_writable_dir,
+)
+from dockcore.provenance import provenance, write_provenance
+from markers.config import MarkerConfig
+from markers.dictionary import normalise_dictionary_name
+from markers.markerset import load_marker_set, marker_set_from_config
+from perception.detector import Detection, Detector, DetectorConfig
+from perception.groundtruth import FrameTruth
+from perception.pose import BoardPose, BoardPoseConfig, MarkerPose, solve_board, solve_marker
+from perception.report_plots import (
+    COMPARE_COLUMNS,
+    EvalRecord,
+    ReportConfig,
+    compare_rows,
+    markdown_table,
+    plot_error_vs_range,
+    plot_rate_vs_range,
+    plot_timeline,
+    summarise,
+)
+from perception.video import (
+    AnnotatedVideoWriter,
+    FrameSource,
+    ThumbnailBuffer,
+    annotate,
+    encode_image,
+    open_frames,
+    write_contact_sheet,
+)
+
+__all__ = [
+    "CameraResolver",
+    "FrameProcessor",
+    "FrameResult",
+    "MarkerSetup",
+    "PerceptionConfig",
+    "ReportConfig",
+    "resolve_markers",
+    "run_detect",
+    "run_eval",
+]
+
+Note = Callable[[str], None]
+
+
+@dataclass(frozen=True)
+class PerceptionConfig:
+    """Everything ``perception detect`` / ``eval`` resolve (the ``--config`` TOML's tables).
+
+    Attributes:
+        detector: marker detector (``[detector]``); dictionary and IDs come from the marker set.
+        board: DS board pose solver (``[board]``).
+        report: evaluation report (``[report]``).
+    """
+
+    detector: DetectorConfig = field(default_factory=DetectorConfig)
+    board: BoardPoseConfig = field(default_factory=BoardPoseConfig)
+    report: ReportConfig = field(default_factory=ReportConfig)
+
+
+# --------------------------------------------------------------------------- inputs
+
+
+@dataclass(frozen=True)
+class MarkerSetup:
+    """Which markers to detect and how to turn them into poses.
+
+    Attributes:
+        dictionary: canonical dictionary name.
+        ids: allow-listed IDs (None: every ID of the dictionary).
+        corners_ds: board geometry, ID -> (4, 3) corners in the DS frame (m); None for
+            single-marker poses.
+        marker_size_m: side for single-marker poses (m), or None (no pose at all).
+        description: one line for reports.
+    """
+
+    dictionary: str
+    ids: tuple[int, ...] | None
+    corners_ds: dict[int, np.ndarray] | None
+    marker_size_m: float | None
+    description: str
+
+
+def resolve_markers(
+    markers_path: str | os.PathLike[str] | None = None,
+    dictionary: str | None = None,
+    marker_size_m: float | None = None,
+) -> MarkerSetup:
+    """A marker set file, or a dictionary and a side (single markers), or the default DS set.
+
+    Raises:
+        DockError: both a marker set and ``dictionary``/``marker_size_m``, an unknown
+            dictionary, a non-positive size, or an invalid marker set file.
+    """
+    if markers_path is not None and (dictionary is not None or marker_size_m is not None):
+        raise DockError("--markers cannot be combined with --dictionary / --marker-size-m")
+    if marker_size_m is not None and not (math.isfinite(marker_size_m) and marker_size_m > 0):
+        raise DockError(f"--marker-size-m must be > 0, got {marker_size_m}")
+    if dictionary is not None or marker_size_m is not None:
+        name = normalise_dictionary_name(dictionary or "DICT_4X4_50")
+        what = f"single markers of {name}" + (
+            f", side {marker_size_m:g} m" if marker_size_m else " (no side given: no poses)"
+        )
+        return MarkerSetup(name, None, None, marker_size_m, what)
+    if markers_path is not None:
+        ms = load_marker_set(markers_path)
+        what = f"marker set {markers_path}"
+    else:
+        ms = marker_set_from_config(MarkerConfig())
+        what = "default DS marker set"
+    ids = ", ".join(str(i) for i in ms.ids)
+    return MarkerSetup(
+        ms.dictionary, ms.ids, ms.corners_ds(), None, f"{what} ({ms.dictionary}: {ids})"
+    )
+
+
+class CameraResolver:
+    """The camera model for a frame size: the given camera (scaled if the size differs, same
+    aspect ratio only) or, without one, the reference camera scaled to the frame size.
+
+    Args:
+        camera: intrinsics from a camera file, or None.
+        note: called once per new situation with a one-line message for stderr.
+    """
+
+    def __init__(self, camera: CameraModel | None, note: Note) -> None:
+        self.camera = camera
+        self.note = note
+        self._cache: dict[tuple[int, int], CameraModel] = {}
+
+    def __call__(self, width_px: int, height_px: int) -> CameraModel:
+        key = (int(width_px), int(height_px))
+        if key in self._cache:
+            return self._cache[key]
+        base = self.camera
+        if base is None:
+            cam = reference_camera().scaled(*key)
+            self.note(
+                f"no camera file: using the reference camera (968x732, HFOV 55 deg) scaled to "
+                f"{key[0]}x{key[1]}; poses are approximate"
+            )
+        elif (base.width_px, base.height_px) == key:
+            cam = base
+        else:
+            aspect = (key[0] / key[1]) / (base.width_px / base.height_px)
+            if abs(aspect - 1.0) > 0.01:
+                raise DockError(
+                    f"camera file is {base.width_px}x{base.height_px} but the frames are "
+                    f"{key[0]}x{key[1]} (another aspect ratio: calibrate this resolution)"
+                )
+            cam = base.scaled(*key)
+            self.note(
+                f"camera file is {base.width_px}x{base.height_px}: scaled to the "
+                f"{key[0]}x{key[1]} frames"
+            )
+        self._cache[key] = cam
+        return cam
+
+    @property
+    def sizes(self) -> list[tuple[int, int]]:
+        """Frame sizes (width, height) seen so far."""
+        return list(self._cache)
+
+
+# --------------------------------------------------------------------------- processing
+
+
+@dataclass
+class FrameResult:
+    """Detector and pose output for one frame.
+
+    Attributes:
+        detections: markers found, sorted by ID.
+        board: the DS pose from the board, or None.
+        marker_poses: single-marker mode: ID -> both IPPE solutions.
+        ms: detection + pose time (ms).
+    """
+
+    detections: list[Detection]
+    board: BoardPose | None
+    marker_poses: dict[int, MarkerPose]
+    ms: float
+
+    @property
+    def T_cam_ds(self) -> np.ndarray | None:
+        return None if self.board is None else self.board.T_cam_ds
+
+
+class FrameProcessor:
+    """Detector + pose for one pipeline.
+
+    Args:
+        setup: markers to detect and their geometry.
+        detector_cfg: detector settings; dictionary and IDs are taken from ``setup``.
+        board_cfg: board solver settings.
+    """
+
+    def __init__(
+        self, setup: MarkerSetup, detector_cfg: DetectorConfig, board_cfg: BoardPoseConfig
+    ) -> None:
+        cfg = dataclasses.replace(detector_cfg, dictionary=setup.dictionary, ids=setup.ids)
+        self.detector = Detector(cfg)
+        board_cfg.validate()
+        self.board_cfg = board_cfg
+        self.setup = setup
+
+    def process(self, image: np.ndarray, camera: CameraModel) -> FrameResult:
+        """Detect markers and solve the pose(s) of one image."""
+        t0 = time.perf_counter()
+        dets = self.detector.detect(image)
+        board, singles = None, {}
+        if self.setup.corners_ds is not None:
+            board = solve_board(
+                dets, self.setup.corners_ds, camera.K, camera.dist_coeffs, self.board_cfg
+            )
+        elif self.setup.marker_size_m:
+            for d in dets:
+                try:
+                    singles[d.marker_id] = solve_marker(
+                        d.corners_px,
+                        self.setup.marker_size_m,
+                        camera.K,
+                        camera.dist_coeffs,
+                        d.marker_id,
+                    )
+                except DockError:
+                    pass
+        return FrameResult(dets, board, singles, (time.perf_counter() - t0) * 1e3)
+
+
+def _T(T: np.ndarray | None) -> list | None:
+    return None if T is None else np.asarray(T, np.float64).tolist()
+
+
+def detection_row(index: int, name: str, res: FrameResult | None) -> dict[str, Any]:
+    """The ``detections.jsonl`` object of a frame (``corrupt`` when it could not be decoded)."""
+    if res is None:
+        return {"frame": index, "name": name, "corrupt": True}
+    markers = []
+    for d in res.detections:
+        m: dict[str, Any] = {"id": d.marker_id, "corners_px": d.corners_px.tolist()}
+        mp = res.marker_poses.get(d.marker_id)
+        if mp is not None:
+            m["T_cam_marker"] = _T(mp.T_cam_marker)
+            m["reprojection_rms_px"] = mp.best.reprojection_rms_px
+            m["ambiguity_ratio"] = mp.ambiguity_ratio
+        markers.append(m)
+    b = res.board
+    return {
+        "frame": index,
+        "name": name,
+        "corrupt": False,
+        "ids": [d.marker_id for d in res.detections],
+        "markers": markers,
+        "T_cam_ds": _T(res.T_cam_ds),
+        "reprojection_rms_px": None if b is None else b.reprojection_rms_px,
+        "used_ids": None if b is None else list(b.used_ids),
+        "rejected_ids": None if b is None else list(b.rejected_ids),
+        "ms": res.ms,
+    }
+
+
+#: Columns of ``detections.csv`` (the pose columns as in a ground-truth CSV).
+CSV_HEADER: tuple[str, ...] = tuple(
+    "frame name corrupt n_markers ids pose x_m y_m z_m qw qx qy qz reprojection_rms_px ms "
+    "corners_px".split()
+)
+
+
+def detection_csv_row(row: dict[str, Any]) -> list[Any]:
+    """``detections.csv`` cells of a :func:`detection_row` (pose as in a ground-truth CSV)."""
+    if row["corrupt"]:
+        return [row["frame"], row["name"], 1, *[""] * (len(CSV_HEADER) - 3)]
+    pose = [""] * 7
+    if row["T_cam_ds"] is not None:
+        pos, quat = pos_quat_from_T(np.array(row["T_cam_ds"]))
+        pose = [f"{v:.6f}" for v in (*pos, *quat)]
+    corners = {str(m["id"]): np.round(m["corners_px"], 3).tolist() for m in row["markers"]}
+    rms = row["reprojection_rms_px"]
+    return [
+        row["frame"],
+        row["name"],
+        0,
+        len(row["ids"]),
+        " ".join(map(str, row["ids"])),
+        int(row["T_cam_ds"] is not None),
+        *pose,
+        "" if rms is None else f"{rms:.4f}",
+        f"{row['ms']:.3f}",
+        json.dumps(corners, separators=(",", ":")),
+    ]
+
+
+def _label(name: str, res: FrameResult) -> str:
+    text = f"{name}  {len(res.detections)} markers  {res.ms:.1f} ms"
+    if res.T_cam_ds is not None:
+        text += f"  range {np.linalg.norm(res.T_cam_ds[:3, 3]):.2f} m"
+    return text
+
+
+def _draw(image, res: FrameResult, camera: CameraModel, setup: MarkerSetup, cfg, name: str):
+    return annotate(
+        image,
+        res.detections,
+        camera,
+        res.T_cam_ds,
+        {k: v.T_cam_marker for k, v in res.marker_poses.items()},
+        cfg.axis_length_m,
+        setup.marker_size_m or 0.1,
+        _label(name, res),
+    )
+
+
+def _progress(source: FrameSource, show: bool | None, desc: str) -> Iterable:
+    from tqdm import tqdm
+
+    disable = None if show is None else not show  # None: only on a terminal
+    return tqdm(source, total=source.total, desc=desc, unit="frame", disable=disable, leave=False)
+
+
+def _silent(_: str) -> None:
+    pass
+
+
+# --------------------------------------------------------------------------- detect
+
+
+def run_detect(
+    input_path: str | os.PathLike[str],
+    out_dir: str | os.PathLike[str],
+    setup: MarkerSetup,
+    camera: CameraModel | None = None,
+    cfg: PerceptionConfig | None = None,
+    annotate_frames: bool = True,
+    progress: bool | None = None,
+    note: Note = _silent,
+) -> dict[str, Any]:
+    """Detect markers (and poses) in every frame of an input; write the per-frame results.
+
+    Writes into ``out_dir``: ``detections.jsonl`` and ``detections.csv`` (one row per frame,
+    corrupt frames flagged), annotated frames (``annotated/<name>`` for images,
+    ``annotated.mp4`` (or ``.avi`` where no MP4 encoder exists) for a video), ``config.toml``
+    and ``provenance.json``.
+
+    Args:
+        input_path: image, image folder or video (see :func:`perception.video.open_frames`).
+        out_dir: output folder (created).
+        setup: markers and geometry (:func:`resolve_markers`).
+        camera: intrinsics; None: the reference camera scaled to the frames (noted).
+        cfg: detector, board and report settings.
+        annotate_frames: write annotated frames.
+        progress: tqdm bar on stderr: True, False, or None (only on a terminal).
+        note: receives one-line remarks for stderr.
+
+    Returns:
+        Counts (``frames``, ``corrupt_frames``, ``frames_with_detection``, ``frames_with_pose``,
+        ``markers_detected_total``) and ``outputs`` (paths written).
+
+    Raises:
+        DockError: bad input, config or camera, or no decodable frame at all.
+    """
+    cfg = cfg or PerceptionConfig()
+    cfg.report.validate()
+    out = ensure_writable_dir(out_dir)
+    proc = FrameProcessor(setup, cfg.detector, cfg.board)
+    source = open_frames(input_path)
+    resolver = CameraResolver(camera, note)
+    video = None
+    if annotate_frames and source.kind == "video":
+        video = AnnotatedVideoWriter(out / "annotated.mp4", source.fps or 10.0)
+    counts = dict.fromkeys(
+        ("frames", "frames_with_detection", "frames_with_pose", "markers_detected_total"), 0
+    )
+    outputs: list[Path] = []
+    jsonl, table = out / "detections.jsonl", out / "detections.csv"
+    try:
+        with atomic_path(jsonl) as tmp_j, atomic_path(table) as tmp_c:
+            with tmp_j.open("w", encoding="utf-8") as fj, tmp_c.open("w", newline="") as fc:
+                writer = csv.writer(fc)
+                writer.writerow(CSV_HEADER)
+                for index, name, image in _progress(source, progress, "detect"):
+                    res = None
+                    if image is not None:
+                        cam = resolver(image.shape[1], image.shape[0])
+                        res = proc.process(image, cam)
+                        counts["frames"] += 1
+                        counts["frames_with_detection"] += bool(res.detections)
+                        counts["frames_with_pose"] += res.T_cam_ds is not None
+                        counts["markers_detected_total"] += len(res.detections)
+                        if annotate_frames:
+                            drawn = _draw(image, res, cam, setup, cfg.report, name)
+                            video = _emit(video, out, name, drawn, outputs)
+                    row = detection_row(index, name, res)
+                    fj.write(json.dumps(row, separators=(",", ":")) + "\n")
+                    writer.writerow(detection_csv_row(row))
+            if counts["frames"] == 0:
+                raise DockError(f"no decodable frame in {input_path} ({source.corrupt} corrupt)")
+        if video is not None:
+            closed = video.close()
+            if closed is not None:
+                outputs.append(closed)
+    except BaseException:
+        if video is not None:
+            video.abort()
+        raise
+    outputs += [jsonl, table]
+    extra = {"input": str(input_path), "markers": setup.description, "counts": counts}
+    write_provenance(out, {"perception": cfg}, extra)
+    return {**counts, "corrupt_frames": source.corrupt, "outputs": [str(p) for p in outputs]}
+
+
+def _emit(video, out: Path, name: str, drawn: np.ndarray, outputs: list[Path]):
+    """Write one annotated frame to the video (switching to MJPG/AVI if MP4 cannot be opened)
+    or as an image file; returns the (possibly new) video writer."""
+    if video is None:
+        path = out / "annotated" / name
+        suffix = path.suffix.lower() if path.suffix else ".png"
+        outputs.append(atomic_write_bytes(path, encode_image(drawn, suffix)))
+        return None
+    try:
+        video.write(drawn)
+    except DockError:
+        if video.frames or video.path.suffix.lower() == ".avi":
+            raise
+        video = AnnotatedVideoWriter(video.path.with_suffix(".avi"), video.fps)
+        video.write(drawn)
+    return video
+
+
+# --------------------------------------------------------------------------- eval
+
+
+def _truth_lookup(
+    truth: dict[int, FrameTruth] | None, kind: str
+) -> Callable[[int, str], FrameTruth | None]:
+    """Match frames to ground truth: by image file name when the labels name images and the
+    input is an image folder, else by frame index."""
+    if truth is None:
+        return lambda index, name: None
+    by_name = {Path(ft.image).name: ft for ft in truth.values() if ft.image}
+    if by_name and kind != "video":
+        return lambda index, name: by_name.get(name)
+    return lambda index, name: truth.get(index)
+
+
+def _record(index: int, name: str, res: FrameResult, ft: FrameTruth | None) -> EvalRecord:
+    corner_errors = []
+    if ft is not None:
+        labels = {m.marker_id: m for m in ft.markers if m.visible}
+        for d in res.detections:
+            if d.marker_id in labels:
+                diff = d.corners_px - labels[d.marker_id].corners_px
+                corner_errors.append(float(np.linalg.norm(diff, axis=1).mean()))
+    return EvalRecord(
+        frame=index,
+        name=name,
+        ids=tuple(d.marker_id for d in res.detections),
+        ms=res.ms,
+        T_cam_ds=res.T_cam_ds,
+        rms_px=None if res.board is None else res.board.reprojection_rms_px,
+        truth=ft,
+        corner_errors_px=tuple(corner_errors),
+    )
+
+
+def _write_jsonl(path: Path, rows: Iterable[dict[str, Any]]) -> Path:
+    with atomic_path(path) as tmp, tmp.open("w", encoding="utf-8") as fh:
+        for row in rows:
+            fh.write(json.dumps(row, separators=(",", ":")) + "\n")
+    return path
+
+
+def run_eval(
+    input_path: str | os.PathLike[str],
+    out_dir: str | os.PathLike[str],
+    setup: MarkerSetup,
+    camera: CameraModel,
+    cfg: PerceptionConfig | None = None,
+    pipelines: Sequence[str] = ("default",),
+    truth: dict[int, FrameTruth] | None = None,
+    truth_source: str | None = None,
+    progress: bool | None = None,
+    note: Note = _silent,
+) -> dict[str, Any]:
+    """Evaluate one or more pipelines on the same frames; write the report.
+
+    Writes into ``out_dir`` (each file atomically, in this order): ``frames.jsonl`` (per frame,
+    first pipeline), ``report.json``, with several pipelines ``compare.json`` and
+    ``compare.md``, the plots ``timeline.png``, with ground truth ``rate_vs_range.png`` and
+    ``error_vs_range.png``, ``contact_sheet.png``, and ``config.toml`` + ``provenance.json``.
+
+    Args:
+        input_path: image, image folder or video.
+        out_dir: output folder (created).
+        setup: markers and geometry (:func:`resolve_markers`).
+        camera: intrinsics (scaled to the frames when only the resolution differs).
+        cfg: detector, board and report settings (``cfg.detector.pipeline`` is ignored).
+        pipelines: pipeline names; the first is the report's main pipeline.
+        truth: frame index -> ground truth (:func:`perception.groundtruth.load_ground_truth`).
+        truth_source: where the ground truth came from (for the report).
+        progress: tqdm bar on stderr: True, False, or None (only on a terminal).
+        note: receives one-line remarks for stderr.
+
+    Returns:
+        The report (also written as ``report.json``).
+
+    Raises:
+        DockError: bad input, config, camera or pipeline; no decodable frame; ground truth
+            that matches no frame.
+    """
+    cfg = cfg or PerceptionConfig()
+    cfg.report.validate()
+    names = list(dict.fromkeys(pipelines))
+    if not names:
+        raise DockError("no pipeline to evaluate")
+    procs = {
+        p: FrameProcessor(setup, dataclasses.replace(cfg.detector, pipeline=p), cfg.board)
+        for p in names
+    }
+    out = ensure_writable_dir(out_dir)
+    source = open_frames(input_path)
+    lookup = _truth_lookup(truth, source.kind)
+    resolver = CameraResolver(camera, note)
+    records: dict[str, list[EvalRecord]] = {p: [] for p in names}
+    thumbs = ThumbnailBuffer(cfg.report.contact_sheet_frames, cfg.report.thumbnail_width_px)
+    for index, name, image in _progress(source, progress, "eval"):
+        if image is None:
+            for p in names:
+                records[p].append(EvalRecord(index, name, corrupt=True))
+            continue
+        ft = lookup(index, name)
+        cam = resolver(image.shape[1], image.shape[0])
+        for p, proc in procs.items():
+            res = proc.process(image, cam)
+            records[p].append(_record(index, name, res, ft))
+            if p == names[0] and cfg.report.contact_sheet_frames:
+                drawn = _draw(image, res, cam, setup, cfg.report, name) if thumbs.wants() else None
+                thumbs.offer(index, name, drawn)
+    main = records[names[0]]
+    if not any(not r.corrupt for r in main):
+        raise DockError(f"no decodable frame in {input_path} ({source.corrupt} corrupt)")
+    with_truth = truth is not None
+    if with_truth and not any(r.truth is not None for r in main):
+        raise DockError(
+            f"ground truth {truth_source or ''} matches none of the frames of {input_path} "
+            f"(by image name for labelled folders, else by frame index)"
+        )
+    summaries = {p: summarise(records[p], cfg.report, with_truth) for p in names}
+    rows = compare_rows(summaries) if len(names) > 1 else None
+    extra = {"input": str(input_path), "markers": setup.description, "pipelines": names}
+    report: dict[str, Any] = {
+        "pipeline": names[0],
+        "input": {"path": str(input_path), "kind": source.kind, "frames_total": len(main)},
+        **summaries[names[0]],
+        "ground_truth": None
+        if not with_truth
+        else {
+            "source": truth_source,
+            "frames": len(truth),
+            "matched": sum(r.truth is not None for r in main),
+        },
+        "compare": rows,
+        "camera": {
+            "model": to_dict(camera),
+            "frame_sizes": [list(k) for k in resolver.sizes],
+        },
+        "markers": setup.description,
+        "config": to_dict(cfg),
+        "provenance": provenance({"perception": cfg}, extra),
+        "plots": [],
+    }
+    _write_jsonl(out / "frames.jsonl", (r.to_json() for r in main))
+    atomic_write_json(out / "report.json", report)
+    if rows is not None:
+        atomic_write_json(
+            out / "compare.json",
+            {"columns": list(COMPARE_COLUMNS), "rows": rows, "summaries": summaries},
+        )
+        atomic_write_text(out / "compare.md", markdown_table(rows, COMPARE_COLUMNS))
+    plots = [plot_timeline(out / "timeline.png", [r.to_json() for r in main])]
+    if with_truth:
+        by_range = {p: s["by_range"] for p, s in summaries.items()}
+        plots.append(plot_rate_vs_range(out / "rate_vs_range.png", by_range))
+        plots.append(plot_error_vs_range(out / "error_vs_range.png", by_range))
+    sheet = write_contact_sheet(out / "contact_sheet.png", thumbs.pick())
+    if sheet is not None:
+        plots.append(sheet)
+    report["plots"] = [p.name for p in plots]
+    atomic_write_json(out / "report.json", report)
+    write_provenance(out, {"perception": cfg}, extra)
+    return report

@@ -1,0 +1,586 @@
+"""Ground truth for ``perception eval``: the labelled dataset folder, or a per-frame pose CSV.
+
+(a) Labelled dataset folder, format ``uwdock.dataset`` version 1 (written by ``datasets synth``
+with :func:`write_dataset_json` and :func:`write_labels`; read by :func:`load_dataset`)::
+
+    DATASET/dataset.json     {"format": "uwdock.dataset", "version": 1, "frames": N,
+                              "camera": "camera.yaml", "marker_set": "markerset.toml",
+                              "images": "images", "config": {...}}
+                             (paths relative to DATASET; optional "labels", default
+                             "labels.jsonl"; "config" is the resolved generator config)
+    DATASET/camera.yaml      + camera.json twin (calibration.camera.save_camera)
+    DATASET/markerset.toml   (markers.markerset.save_marker_set)
+    DATASET/images/000000.png ...
+    DATASET/labels.jsonl     one JSON object per line, one line per frame:
+
+    frame           int >= 0, unique: the frame index (its image's position in sorted order).
+    image           str: the frame's image, relative to DATASET ("images/000000.png").
+    T_cam_ds        4x4 list: the docking-station frame in the OpenCV camera frame (cam_cv: x
+                    right, y down, z forward), metres.
+    T_world_body    4x4 list or null: the vehicle body (FRD) in the world (NED), metres.
+    range_m         float: distance from the camera's optical centre to the DS origin,
+                    ``|t|`` with ``t = T_cam_ds[:3, 3]`` (m).
+    view_angle_deg  float in [0, 180]: angle between the camera's optical axis (+z of cam_cv)
+                    and the ray from the optical centre to the DS origin,
+                    ``atan2(hypot(t_x, t_y), t_z)``: 0 when the DS origin is at the principal
+                    point, 90 at the image plane's horizon, more when it is behind the camera.
+    water           {"preset": str, ...parameters} or null (clear water / unknown).
+    markers         list of {"id": int, "corners_px": [[u, v] x 4] (TL, TR, BR, BL; OpenCV
+                    pixels, lens distortion applied), "in_image": bool (all four corners in
+                    front of the camera and inside the image), "visible": bool (in_image and
+                    not occluded)}; may be empty.
+
+    ``range_m`` and ``view_angle_deg`` are derived from ``T_cam_ds``: readers recompute them when
+    they are missing.
+
+(b) Pose CSV, e.g. from motion capture (read by :func:`load_pose_csv`)::
+
+    frame,x_m,y_m,z_m,qw,qx,qy,qz[,any other columns, e.g. timestamp_s]
+    0,0.12,-0.05,2.31,0.0,0.7071,0.7071,0.0
+
+    One row per frame: ``T_cam_ds`` as the DS origin in the camera frame (m) and its
+    orientation as a (w, x, y, z) quaternion (normalised on load). ``frame`` is the video frame
+    index, or the position of the image in the sorted folder.
+
+:func:`load_ground_truth` reads either (a folder, ``labels.jsonl`` or ``.csv``) into
+``{frame index: FrameTruth}``; every problem is a one-line :class:`DockError` naming the file
+and the line.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+from collections.abc import Collection, Iterable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from calibration.camera import CameraModel
+from calibration.frames import R_from_quat_wxyz, pos_quat_from_T, transform_points
+from dockcore.errors import DockError
+from dockcore.io import atomic_path, atomic_write_json
+
+__all__ = [
+    "CSV_COLUMNS",
+    "DATASET_FORMAT",
+    "DATASET_VERSION",
+    "FrameTruth",
+    "LabelledDataset",
+    "MarkerTruth",
+    "frame_truth_to_json",
+    "is_dataset",
+    "label_frame",
+    "load_dataset",
+    "load_ground_truth",
+    "load_labels",
+    "load_pose_csv",
+    "range_m",
+    "view_angle_deg",
+    "write_dataset_json",
+    "write_labels",
+    "write_pose_csv",
+]
+
+DATASET_FORMAT = "uwdock.dataset"
+DATASET_VERSION = 1
+#: Required columns of the pose CSV, in this order of meaning (extra columns are ignored).
+CSV_COLUMNS: tuple[str, ...] = ("frame", "x_m", "y_m", "z_m", "qw", "qx", "qy", "qz")
+
+
+# --------------------------------------------------------------------------- records
+
+
+def range_m(T_cam_ds: ArrayLike) -> float:
+    """Distance from the camera's optical centre to the DS origin (m)."""
+    return float(np.linalg.norm(np.asarray(T_cam_ds, np.float64)[:3, 3]))
+
+
+def view_angle_deg(T_cam_ds: ArrayLike) -> float:
+    """Angle between the optical axis and the ray to the DS origin (deg, in [0, 180])."""
+    t = np.asarray(T_cam_ds, np.float64)[:3, 3]
+    return float(math.degrees(math.atan2(math.hypot(t[0], t[1]), t[2])))
+
+
+@dataclass(frozen=True)
+class MarkerTruth:
+    """One marker's ground truth in one frame.
+
+    Attributes:
+        marker_id: dictionary ID.
+        corners_px: (4, 2) float64 pixel corners TL, TR, BR, BL (OpenCV pixels).
+        in_image: all corners in front of the camera and inside the image.
+        visible: in the image and not occluded.
+    """
+
+    marker_id: int
+    corners_px: np.ndarray
+    in_image: bool
+    visible: bool
+
+
+@dataclass(frozen=True)
+class FrameTruth:
+    """Ground truth of one frame.
+
+    Attributes:
+        frame: frame index.
+        T_cam_ds: (4, 4) DS frame in the OpenCV camera frame (m).
+        image: image path relative to the dataset folder, or None (CSV ground truth).
+        T_world_body: (4, 4) vehicle body (FRD) in the world (NED), or None.
+        range_m: camera to DS origin distance (m), see :func:`range_m`.
+        view_angle_deg: off-axis angle of the DS origin (deg), see :func:`view_angle_deg`.
+        water: water preset and parameters, or None.
+        markers: per-marker truth (empty for CSV ground truth).
+    """
+
+    frame: int
+    T_cam_ds: np.ndarray
+    image: str | None = None
+    T_world_body: np.ndarray | None = None
+    range_m: float = float("nan")
+    view_angle_deg: float = float("nan")
+    water: dict[str, Any] | None = None
+    markers: tuple[MarkerTruth, ...] = field(default_factory=tuple)
+
+    @property
+    def visible_ids(self) -> frozenset[int]:
+        """IDs of the markers labelled visible."""
+        return frozenset(m.marker_id for m in self.markers if m.visible)
+
+
+def label_frame(
+    frame: int,
+    T_cam_ds: ArrayLike,
+    camera: CameraModel,
+    corners_ds: Mapping[int, ArrayLike],
+    image: str | None = None,
+    T_world_body: ArrayLike | None = None,
+    water: Mapping[str, Any] | None = None,
+    occluded_ids: Collection[int] = (),
+) -> FrameTruth:
+    """Ground truth of a frame from its pose: project the board markers through ``camera``.
+
+    Args:
+        frame: frame index.
+        T_cam_ds: (4, 4) DS frame in the OpenCV camera frame (m).
+        camera: intrinsics (with distortion) of the image.
+        corners_ds: ID -> (4, 3) corners TL, TR, BR, BL in the DS frame (m), e.g.
+            ``MarkerSet.corners_ds()``.
+        image: image path relative to the dataset folder.
+        T_world_body: optional (4, 4) vehicle pose.
+        water: optional water preset and parameters.
+        occluded_ids: markers hidden by something (e.g. found by the renderer's segmentation):
+            labelled ``visible = False`` even when inside the image.
+
+    Returns:
+        A :class:`FrameTruth` with ``range_m``, ``view_angle_deg`` and one
+        :class:`MarkerTruth` per board marker (corners are nan behind the camera).
+    """
+    T = np.asarray(T_cam_ds, np.float64)
+    markers = []
+    for marker_id in sorted(corners_ds):
+        p_cam = transform_points(T, np.asarray(corners_ds[marker_id], np.float64))
+        px = camera.project(p_cam)
+        inside = bool(np.all(p_cam[:, 2] > 0) and np.all(camera.in_image(px)))
+        markers.append(
+            MarkerTruth(int(marker_id), px, inside, inside and marker_id not in occluded_ids)
+        )
+    return FrameTruth(
+        frame=int(frame),
+        T_cam_ds=T,
+        image=image,
+        T_world_body=None if T_world_body is None else np.asarray(T_world_body, np.float64),
+        range_m=range_m(T),
+        view_angle_deg=view_angle_deg(T),
+        water=None if water is None else dict(water),
+        markers=tuple(markers),
+    )
+
+
+def _finite_or_none(a: np.ndarray) -> list:
+    return [[None if not math.isfinite(v) else float(v) for v in row] for row in a.tolist()]
+
+
+def frame_truth_to_json(ft: FrameTruth) -> dict[str, Any]:
+    """The ``labels.jsonl`` object of a frame (non-finite corners become null)."""
+    return {
+        "frame": int(ft.frame),
+        "image": ft.image,
+        "T_cam_ds": np.asarray(ft.T_cam_ds, np.float64).tolist(),
+        "T_world_body": None if ft.T_world_body is None else np.asarray(ft.T_world_body).tolist(),
+        "range_m": float(ft.range_m) if math.isfinite(ft.range_m) else range_m(ft.T_cam_ds),
+        "view_angle_deg": float(ft.view_angle_deg)
+        if math.isfinite(ft.view_angle_deg)
+        else view_angle_deg(ft.T_cam_ds),
+        "water": ft.water,
+        "markers": [
+            {
+                "id": int(m.marker_id),
+                "corners_px": _finite_or_none(np.asarray(m.corners_px, np.float64)),
+                "in_image": bool(m.in_image),
+                "visible": bool(m.visible),
+            }
+            for m in ft.markers
+        ],
+    }
+
+
+# --------------------------------------------------------------------------- writers
+
+
+def write_labels(path: str | os.PathLike[str], frames: Iterable[FrameTruth]) -> Path:
+    """Write ``labels.jsonl`` atomically, one line per frame, streaming ``frames``.
+
+    Args:
+        path: the labels file (normally ``DATASET/labels.jsonl``).
+        frames: frame truths, e.g. from :func:`label_frame` (a generator is fine).
+
+    Returns:
+        The path written.
+    """
+    path = Path(path)
+    with atomic_path(path) as tmp, tmp.open("w", encoding="utf-8") as fh:
+        for ft in frames:
+            fh.write(json.dumps(frame_truth_to_json(ft), separators=(",", ":")) + "\n")
+    return path
+
+
+def write_dataset_json(
+    root: str | os.PathLike[str],
+    frames: int,
+    config: Mapping[str, Any] | None = None,
+    camera: str = "camera.yaml",
+    marker_set: str = "markerset.toml",
+    images: str = "images",
+    **extra: Any,
+) -> Path:
+    """Write ``DATASET/dataset.json`` atomically (call it last: it marks the folder complete).
+
+    Args:
+        root: the dataset folder.
+        frames: number of frames (lines of ``labels.jsonl``).
+        config: the resolved generator config (JSON-serialisable).
+        camera, marker_set, images: paths relative to ``root``.
+        **extra: further JSON-serialisable keys (e.g. ``provenance``).
+    """
+    doc = {
+        "format": DATASET_FORMAT,
+        "version": DATASET_VERSION,
+        "frames": int(frames),
+        "camera": camera,
+        "marker_set": marker_set,
+        "images": images,
+        "labels": "labels.jsonl",
+        "config": dict(config or {}),
+        **extra,
+    }
+    return atomic_write_json(Path(root) / "dataset.json", doc)
+
+
+def write_pose_csv(path: str | os.PathLike[str], poses: Mapping[int, ArrayLike]) -> Path:
+    """Write a pose CSV (``CSV_COLUMNS``) of frame index -> (4, 4) ``T_cam_ds``, atomically."""
+    path = Path(path)
+    with atomic_path(path) as tmp, tmp.open("w", newline="", encoding="utf-8") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(CSV_COLUMNS)
+        for frame in sorted(poses):
+            pos, quat = pos_quat_from_T(poses[frame])
+            writer.writerow([int(frame), *(f"{v:.9g}" for v in (*pos, *quat))])
+    return path
+
+
+# --------------------------------------------------------------------------- readers
+
+
+def _pose(value: Any, where: str) -> np.ndarray:
+    """A (4, 4) rigid transform; a rotation within 1e-3 of orthonormal is re-orthonormalised."""
+    try:
+        T = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise DockError(f"{where}: must be a 4x4 list of numbers") from None
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise DockError(f"{where}: must be a finite 4x4 matrix, got shape {T.shape}")
+    if not np.allclose(T[3], (0, 0, 0, 1), atol=1e-9):
+        raise DockError(f"{where}: bottom row must be [0, 0, 0, 1]")
+    R = T[:3, :3]
+    if np.abs(R.T @ R - np.eye(3)).max() > 1e-3 or np.linalg.det(R) < 0:
+        raise DockError(f"{where}: the rotation block is not a rotation")
+    U, _, Vt = np.linalg.svd(R)
+    T[:3, :3] = U @ Vt
+    return T
+
+
+def _number(value: Any, where: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise DockError(f"{where}: must be a finite number, got {value!r}")
+    return float(value)
+
+
+def _marker(entry: Any, where: str) -> MarkerTruth:
+    if not isinstance(entry, dict):
+        raise DockError(f"{where}: must be an object")
+    try:
+        marker_id = entry["id"]
+        corners = entry["corners_px"]
+        in_image = entry["in_image"]
+        visible = entry["visible"]
+    except KeyError as exc:
+        raise DockError(f"{where}: missing key {exc}") from None
+    if isinstance(marker_id, bool) or not isinstance(marker_id, int) or marker_id < 0:
+        raise DockError(f"{where}.id: must be an integer >= 0, got {marker_id!r}")
+    try:
+        px = np.array([[np.nan if v is None else v for v in row] for row in corners], np.float64)
+    except (TypeError, ValueError):
+        raise DockError(f"{where}.corners_px: must be 4 [u, v] pairs") from None
+    if px.shape != (4, 2):
+        raise DockError(f"{where}.corners_px: must be 4 [u, v] pairs, got shape {px.shape}")
+    if not isinstance(in_image, bool) or not isinstance(visible, bool):
+        raise DockError(f"{where}: in_image and visible must be true or false")
+    if in_image and not np.all(np.isfinite(px)):
+        raise DockError(f"{where}.corners_px: a marker in the image needs finite corners")
+    return MarkerTruth(marker_id, px, in_image, visible and in_image)
+
+
+def _frame_from_json(obj: Any, where: str) -> FrameTruth:
+    if not isinstance(obj, dict):
+        raise DockError(f"{where}: each line must be a JSON object")
+    for key in ("frame", "T_cam_ds"):
+        if key not in obj:
+            raise DockError(f"{where}: missing key '{key}'")
+    frame = obj["frame"]
+    if isinstance(frame, bool) or not isinstance(frame, int) or frame < 0:
+        raise DockError(f"{where}: 'frame' must be an integer >= 0, got {frame!r}")
+    T = _pose(obj["T_cam_ds"], f"{where}: T_cam_ds")
+    twb = obj.get("T_world_body")
+    image = obj.get("image")
+    if image is not None and not isinstance(image, str):
+        raise DockError(f"{where}: 'image' must be a string or null")
+    water = obj.get("water")
+    if water is not None and not isinstance(water, dict):
+        raise DockError(f"{where}: 'water' must be an object or null")
+    markers = obj.get("markers", [])
+    if not isinstance(markers, list):
+        raise DockError(f"{where}: 'markers' must be a list")
+    rng = obj.get("range_m")
+    angle = obj.get("view_angle_deg")
+    return FrameTruth(
+        frame=frame,
+        T_cam_ds=T,
+        image=image,
+        T_world_body=None if twb is None else _pose(twb, f"{where}: T_world_body"),
+        range_m=range_m(T) if rng is None else _number(rng, f"{where}: range_m"),
+        view_angle_deg=view_angle_deg(T)
+        if angle is None
+        else _number(angle, f"{where}: view_angle_deg"),
+        water=water,
+        markers=tuple(_marker(m, f"{where}: markers[{k}]") for k, m in enumerate(markers)),
+    )
+
+
+def _add(out: dict[int, FrameTruth], ft: FrameTruth, where: str) -> None:
+    if ft.frame in out:
+        raise DockError(f"{where}: frame {ft.frame} appears twice")
+    out[ft.frame] = ft
+
+
+def load_labels(path: str | os.PathLike[str]) -> dict[int, FrameTruth]:
+    """Read a ``labels.jsonl`` file (blank lines are skipped).
+
+    Raises:
+        DockError: missing/unreadable file, malformed JSON or a bad value (names the line),
+            a duplicated frame index, or no frame at all.
+    """
+    path = Path(path)
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except FileNotFoundError:
+        raise DockError(f"ground-truth labels not found: {path}") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DockError(f"cannot read ground-truth labels {path}: {exc}") from None
+    out: dict[int, FrameTruth] = {}
+    for lineno, line in enumerate(lines, start=1):
+        if not line.strip():
+            continue
+        where = f"{path} line {lineno}"
+        try:
+            obj = json.loads(line)
+        except json.JSONDecodeError as exc:
+            raise DockError(f"{where}: malformed JSON ({exc.msg})") from None
+        _add(out, _frame_from_json(obj, where), where)
+    if not out:
+        raise DockError(f"{path}: no frames")
+    return out
+
+
+def load_pose_csv(path: str | os.PathLike[str]) -> dict[int, FrameTruth]:
+    """Read a pose CSV (see the module docstring) into frame truths without marker labels.
+
+    Raises:
+        DockError: missing file, a missing required column, a row with a non-numeric, negative
+            or fractional frame, a non-finite or zero-norm value, a duplicated frame, or no rows;
+            the message names the file and line.
+    """
+    path = Path(path)
+    try:
+        fh = path.open(newline="", encoding="utf-8")
+    except FileNotFoundError:
+        raise DockError(f"ground-truth CSV not found: {path}") from None
+    except OSError as exc:
+        raise DockError(f"cannot read ground-truth CSV {path}: {exc.strerror or exc}") from None
+    out: dict[int, FrameTruth] = {}
+    with fh:
+        try:
+            reader = csv.DictReader(fh)
+            header = [h.strip() for h in (reader.fieldnames or [])]
+            missing = [c for c in CSV_COLUMNS if c not in header]
+            if missing:
+                raise DockError(
+                    f"{path} line 1: header lacks column(s) {', '.join(missing)} "
+                    f"(need {','.join(CSV_COLUMNS)})"
+                )
+            reader.fieldnames = header
+            for row in reader:
+                where = f"{path} line {reader.line_num}"
+                if not any((v or "").strip() for v in row.values() if isinstance(v, str)):
+                    continue
+                _add(out, _csv_row(row, where), where)
+        except UnicodeDecodeError as exc:
+            raise DockError(f"{path}: not a text CSV ({exc.reason})") from None
+        except csv.Error as exc:
+            raise DockError(f"{path}: malformed CSV ({exc})") from None
+    if not out:
+        raise DockError(f"{path}: no pose rows")
+    return out
+
+
+def _csv_row(row: Mapping[str, Any], where: str) -> FrameTruth:
+    values = []
+    for col in CSV_COLUMNS:
+        text = row.get(col)
+        try:
+            v = float(str(text).strip())
+        except (TypeError, ValueError):
+            raise DockError(f"{where}: column '{col}' is not a number ({text!r})") from None
+        if not math.isfinite(v):
+            raise DockError(f"{where}: column '{col}' is not finite ({text!r})")
+        values.append(v)
+    frame = values[0]
+    if frame < 0 or frame != int(frame):
+        raise DockError(f"{where}: frame must be an integer >= 0, got {row.get('frame')!r}")
+    q = np.array(values[4:8])
+    if np.linalg.norm(q) < 1e-6:
+        raise DockError(f"{where}: quaternion (qw, qx, qy, qz) has zero norm")
+    T = np.eye(4)
+    T[:3, :3] = R_from_quat_wxyz(q)
+    T[:3, 3] = values[1:4]
+    return FrameTruth(
+        frame=int(frame), T_cam_ds=T, range_m=range_m(T), view_angle_deg=view_angle_deg(T)
+    )
+
+
+# --------------------------------------------------------------------------- dataset folder
+
+
+@dataclass(frozen=True)
+class LabelledDataset:
+    """A labelled dataset folder, read and validated.
+
+    Attributes:
+        root: the dataset folder.
+        manifest: the parsed ``dataset.json``.
+        camera_path: the camera file.
+        marker_set_path: the marker set file.
+        images_dir: the image folder.
+        frames: frame index -> ground truth.
+    """
+
+    root: Path
+    manifest: dict[str, Any]
+    camera_path: Path
+    marker_set_path: Path
+    images_dir: Path
+    frames: dict[int, FrameTruth]
+
+
+def is_dataset(path: str | os.PathLike[str]) -> bool:
+    """True when ``path`` is a folder holding ``dataset.json``."""
+    return (Path(path) / "dataset.json").is_file()
+
+
+def load_dataset(root: str | os.PathLike[str]) -> LabelledDataset:
+    """Read ``dataset.json`` and ``labels.jsonl`` of a labelled dataset folder.
+
+    The camera and marker set files are located, not parsed (use ``load_camera`` and
+    ``load_marker_set``).
+
+    Raises:
+        DockError: missing or malformed manifest, wrong format or version, missing files,
+            bad labels, or a frame count that disagrees with the manifest.
+    """
+    root = Path(root)
+    manifest_path = root / "dataset.json"
+    if not manifest_path.is_file():
+        raise DockError(f"not a labelled dataset folder (no dataset.json): {root}")
+    try:
+        manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise DockError(f"{manifest_path}: malformed JSON ({exc})") from None
+    if not isinstance(manifest, dict) or manifest.get("format") != DATASET_FORMAT:
+        raise DockError(f"{manifest_path}: 'format' must be '{DATASET_FORMAT}'")
+    if manifest.get("version") != DATASET_VERSION:
+        raise DockError(
+            f"{manifest_path}: unsupported version {manifest.get('version')!r} "
+            f"(this toolkit reads {DATASET_VERSION})"
+        )
+    paths = {}
+    for key, default in (
+        ("camera", "camera.yaml"),
+        ("marker_set", "markerset.toml"),
+        ("images", "images"),
+        ("labels", "labels.jsonl"),
+    ):
+        value = manifest.get(key, default)
+        if not isinstance(value, str) or not value:
+            raise DockError(f"{manifest_path}: '{key}' must be a relative path")
+        paths[key] = root / value
+        if not paths[key].exists():
+            raise DockError(f"{manifest_path}: '{key}' names a missing path {paths[key]}")
+    frames = load_labels(paths["labels"])
+    n = manifest.get("frames")
+    if isinstance(n, int) and not isinstance(n, bool) and n != len(frames):
+        raise DockError(
+            f"{manifest_path}: 'frames' is {n} but {paths['labels'].name} holds {len(frames)}"
+        )
+    return LabelledDataset(
+        root, manifest, paths["camera"], paths["marker_set"], paths["images"], frames
+    )
+
+
+def load_ground_truth(path: str | os.PathLike[str]) -> dict[int, FrameTruth]:
+    """Frame index -> ground truth from a dataset folder, a ``labels.jsonl`` or a pose ``.csv``.
+
+    Raises:
+        DockError: one line naming the file (and line) on any problem, or an unknown kind of
+            path.
+    """
+    path = Path(path)
+    if path.is_dir():
+        return load_dataset(path).frames
+    suffix = path.suffix.lower()
+    if path.name == "dataset.json":
+        return load_dataset(path.parent).frames
+    if suffix == ".csv":
+        return load_pose_csv(path)
+    if suffix in (".jsonl", ".json"):
+        return load_labels(path)
+    if not path.exists():
+        raise DockError(f"ground truth not found: {path}")
+    raise DockError(
+        f"ground truth must be a dataset folder, a labels .jsonl or a pose .csv: {path}"
+    )

@@ -1,0 +1,455 @@
+"""Frames in and out: sources (an image, a folder of images, a video file), annotated frames,
+the contact sheet, and the annotated-video writer.
+
+Example:
+    >>> source = open_frames("dive_03.mp4")       # raises DockError if it cannot be read at all
+    >>> for index, name, image in source:          # image is None for a corrupt frame
+    ...     if image is None:
+    ...         continue
+    >>> source.corrupt                              # frames that could not be decoded
+
+Inputs:
+    * an image file (``IMAGE_SUFFIXES``): one frame, index 0, named after the file;
+    * a folder: its image files sorted by name, frame index = position in that order (this is
+      the index a ground-truth CSV refers to); other files are ignored;
+    * anything else is opened with ``cv2.VideoCapture``: frame index = decode order, names
+      ``frame_000000`` ...
+
+Annotations (:func:`annotate`): marker outlines, IDs, a dot on the TL corner, the DS board axes
+when a pose was solved (x red, y green, z blue), small axes on single-marker poses; line widths
+and text scale with the image, so any resolution works.
+
+Images are returned as OpenCV reads them (``IMREAD_ANYDEPTH | IMREAD_ANYCOLOR``): (H, W) grey or
+(H, W, 3) BGR, uint8 or uint16; :func:`perception.preprocess.as_uint8` accepts all of them.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import sys
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, ClassVar
+
+import cv2
+import numpy as np
+
+from calibration.camera import CameraModel
+from dockcore.errors import DockError
+from dockcore.io import atomic_write_bytes
+from perception.preprocess import as_uint8
+
+__all__ = [
+    "IMAGE_SUFFIXES",
+    "AnnotatedVideoWriter",
+    "FrameSource",
+    "ThumbnailBuffer",
+    "annotate",
+    "encode_image",
+    "iter_frames",
+    "open_frames",
+    "read_image",
+    "write_contact_sheet",
+]
+
+#: File suffixes read as images (case-insensitive).
+IMAGE_SUFFIXES: tuple[str, ...] = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+
+#: A video read gives up after this many consecutive undecodable frames.
+MAX_CONSECUTIVE_VIDEO_FAILURES = 25
+
+Frame = tuple[int, str, "np.ndarray | None"]
+
+
+@contextlib.contextmanager
+def quiet_native_stderr() -> Iterator[None]:
+    """Silence OpenCV's log and native decoder warnings (libjpeg, FFmpeg) on file descriptor 2."""
+    level = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+    saved = None
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, 2)
+        os.close(devnull)
+    except OSError:  # no real fd 2 (embedded interpreters): only the log level is changed
+        saved = None
+    try:
+        yield
+    finally:
+        if saved is not None:
+            os.dup2(saved, 2)
+            os.close(saved)
+        cv2.utils.logging.setLogLevel(level)
+
+
+def read_image(path: str | os.PathLike[str]) -> np.ndarray | None:
+    """Decode an image file; None when it is missing, empty or not decodable.
+
+    Returns:
+        (H, W) grey or (H, W, 3) BGR array, uint8 or uint16 (alpha dropped).
+    """
+    try:
+        data = np.fromfile(Path(path), dtype=np.uint8)
+    except OSError:
+        return None
+    if data.size == 0:
+        return None
+    with quiet_native_stderr():
+        img = cv2.imdecode(data, cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
+    if img is None or img.size == 0:
+        return None
+    if img.ndim == 3 and img.shape[2] == 4:
+        img = np.ascontiguousarray(img[:, :, :3])
+    return img
+
+
+@dataclass
+class FrameSource:
+    """An opened input. Iterate it once for ``(index, name, image | None)``.
+
+    Attributes:
+        path: the input as given.
+        kind: "image", "folder" or "video".
+        total: number of frames expected (a video's container count may be wrong or 0), or None.
+        fps: a video's frame rate (Hz) when the container states one, else None.
+        corrupt: frames that could not be decoded so far (yielded as None).
+    """
+
+    path: Path
+    kind: str
+    total: int | None
+    fps: float | None = None
+    corrupt: int = 0
+    _files: list[Path] = field(default_factory=list, repr=False)
+    _cap: cv2.VideoCapture | None = field(default=None, repr=False)
+    _first: np.ndarray | None = field(default=None, repr=False)
+
+    def __iter__(self) -> Iterator[Frame]:
+        if self.kind == "video":
+            yield from self._video()
+            return
+        for index, file in enumerate(self._files):
+            image = read_image(file)
+            if image is None:
+                self.corrupt += 1
+            yield index, file.name, image
+
+    def _video(self) -> Iterator[Frame]:
+        """Decode order. A failed read is a corrupt frame only if a later read succeeds (then
+        the failed ones are yielded as None); failures up to the end of the stream, the
+        container's frame count or ``MAX_CONSECUTIVE_VIDEO_FAILURES`` in a row end it."""
+        cap, frame = self._cap, self._first
+        self._cap, self._first = None, None
+        if cap is None:
+            raise DockError(f"video {self.path} can only be iterated once")
+        index, pending = 0, 0
+        try:
+            while True:
+                if frame is not None:
+                    for _ in range(pending):
+                        self.corrupt += 1
+                        yield index, f"frame_{index:06d}", None
+                        index += 1
+                    pending = 0
+                    yield index, f"frame_{index:06d}", frame
+                    index += 1
+                else:
+                    pending += 1
+                    if pending >= MAX_CONSECUTIVE_VIDEO_FAILURES or (
+                        self.total is not None and index + pending >= self.total
+                    ):
+                        return
+                with quiet_native_stderr():
+                    ok, frame = cap.read()
+                if not ok:
+                    frame = None
+        finally:
+            cap.release()
+
+
+def _open_video(path: Path) -> FrameSource:
+    with quiet_native_stderr():
+        cap = cv2.VideoCapture(str(path))
+        opened = cap.isOpened()
+        ok, first = cap.read() if opened else (False, None)
+    if not ok or first is None:
+        cap.release()
+        raise DockError(f"cannot read video {path} (not a video, or no decodable frame)")
+    count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
+    fps = float(cap.get(cv2.CAP_PROP_FPS))
+    return FrameSource(
+        path,
+        "video",
+        count if count > 0 else None,
+        fps if np.isfinite(fps) and fps > 0 else None,
+        _cap=cap,
+        _first=first,
+    )
+
+
+def open_frames(path: str | os.PathLike[str]) -> FrameSource:
+    """Open an image, a folder of images or a video (see the module docstring).
+
+    Raises:
+        DockError: one line when the path is missing, a folder holds no image files, a single
+            image cannot be decoded, or a video cannot be opened or has no decodable frame.
+            Corrupt images in a folder and corrupt frames in a video are not errors: they are
+            yielded as None and counted in :attr:`FrameSource.corrupt`.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise DockError(f"input not found: {path}")
+    if path.is_dir():
+        files = sorted(
+            p for p in path.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
+        )
+        if not files:
+            raise DockError(f"no images in folder {path} (looked for {', '.join(IMAGE_SUFFIXES)})")
+        return FrameSource(path, "folder", len(files), _files=files)
+    if path.suffix.lower() in IMAGE_SUFFIXES:
+        if read_image(path) is None:
+            raise DockError(f"cannot read image {path} (corrupt or not an image)")
+        return FrameSource(path, "image", 1, _files=[path])
+    return _open_video(path)
+
+
+def iter_frames(path: str | os.PathLike[str]) -> Iterator[Frame]:
+    """``(index, name, image or None)`` for every frame of an input; see :func:`open_frames`.
+
+    Errors about the input as a whole are raised here, before the first frame.
+    """
+    return iter(open_frames(path))
+
+
+class AnnotatedVideoWriter:
+    """Writes BGR frames to a video that appears at ``path`` only when :meth:`close` succeeds.
+
+    The container follows the suffix: ``.mp4`` (codec ``mp4v``) or ``.avi`` (``MJPG``). The size
+    is fixed by the first frame; later frames of another size are resized to it. Frames go to a
+    hidden temporary file beside ``path`` (same suffix, so the backend picks the same container)
+    which is renamed onto ``path`` on close; :meth:`abort` (or an exception inside a ``with``
+    block) removes it and leaves any earlier file at ``path`` untouched.
+
+    Args:
+        path: output video file (.mp4 or .avi).
+        fps: frame rate written into the container (Hz), > 0.
+    """
+
+    _FOURCC: ClassVar[dict[str, str]] = {".mp4": "mp4v", ".avi": "MJPG"}
+
+    def __init__(self, path: str | os.PathLike[str], fps: float) -> None:
+        self.path = Path(path)
+        suffix = self.path.suffix.lower()
+        if suffix not in self._FOURCC:
+            raise DockError(f"annotated video must end in .mp4 or .avi: {self.path}")
+        self.fps = float(fps) if fps and fps > 0 else 10.0
+        self._tmp = self.path.with_name(f".{self.path.stem}.partial{suffix}")
+        self._writer: cv2.VideoWriter | None = None
+        self._size: tuple[int, int] | None = None
+        self.frames = 0
+
+    def write(self, frame_bgr: np.ndarray) -> None:
+        """Append one (H, W, 3) uint8 BGR frame."""
+        if self._writer is None:
+            h, w = frame_bgr.shape[:2]
+            self._size = (w, h)
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            fourcc = cv2.VideoWriter_fourcc(*self._FOURCC[self.path.suffix.lower()])
+            with quiet_native_stderr():
+                self._writer = cv2.VideoWriter(str(self._tmp), fourcc, self.fps, (w, h))
+            if not self._writer.isOpened():
+                self._writer = None
+                raise DockError(f"cannot open a video writer for {self.path}")
+        if frame_bgr.shape[1::-1] != self._size:
+            frame_bgr = cv2.resize(frame_bgr, self._size, interpolation=cv2.INTER_AREA)
+        self._writer.write(np.ascontiguousarray(frame_bgr))
+        self.frames += 1
+
+    def close(self) -> Path | None:
+        """Finish the file and move it onto ``path``; None when no frame was written."""
+        if self._writer is None:
+            return None
+        self._writer.release()
+        self._writer = None
+        os.replace(self._tmp, self.path)
+        return self.path
+
+    def abort(self) -> None:
+        """Drop the partial file."""
+        if self._writer is not None:
+            self._writer.release()
+            self._writer = None
+        self._tmp.unlink(missing_ok=True)
+
+    def __enter__(self) -> AnnotatedVideoWriter:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+
+# --------------------------------------------------------------------------- drawing
+
+
+_GREEN, _RED, _YELLOW, _WHITE, _BLACK = (
+    (60, 220, 60),
+    (40, 40, 230),
+    (0, 215, 255),
+    (255,) * 3,
+    (0,) * 3,
+)
+
+
+def _bgr(image: np.ndarray) -> np.ndarray:
+    img = as_uint8(image)
+    return cv2.cvtColor(img, cv2.COLOR_GRAY2BGR) if img.ndim == 2 else img.copy()
+
+
+def _text(img: np.ndarray, text: str, org: tuple[int, int], scale: float, colour) -> None:
+    thick = max(1, round(2 * scale))
+    cv2.putText(
+        img, text, org, cv2.FONT_HERSHEY_SIMPLEX, 0.6 * scale, _BLACK, thick + 2, cv2.LINE_AA
+    )
+    cv2.putText(img, text, org, cv2.FONT_HERSHEY_SIMPLEX, 0.6 * scale, colour, thick, cv2.LINE_AA)
+
+
+def _axes(img, camera: CameraModel, T: np.ndarray, length_m: float, thickness: int) -> None:
+    rvec = cv2.Rodrigues(np.ascontiguousarray(T[:3, :3]))[0]
+    try:
+        cv2.drawFrameAxes(
+            img, camera.K, camera.dist_coeffs, rvec, T[:3, 3].copy(), length_m, thickness
+        )
+    except cv2.error:  # axes projecting far outside the image: nothing useful to draw
+        pass
+
+
+def annotate(
+    image: np.ndarray,
+    detections: Sequence[Any],
+    camera: CameraModel | None = None,
+    T_cam_ds: np.ndarray | None = None,
+    T_cam_markers: Mapping[int, np.ndarray] | None = None,
+    axis_length_m: float = 0.3,
+    marker_size_m: float = 0.1,
+    label: str | None = None,
+) -> np.ndarray:
+    """An annotated BGR copy of a camera image.
+
+    Args:
+        image: the camera image (any layout :func:`as_uint8` accepts).
+        detections: objects with ``marker_id`` and (4, 2) ``corners_px`` (TL, TR, BR, BL).
+        camera: intrinsics for drawing axes (None: no axes).
+        T_cam_ds: (4, 4) solved DS pose: its axes are drawn at the DS origin (x red, y green,
+            z blue), ``axis_length_m`` long.
+        T_cam_markers: ID -> (4, 4) single-marker poses: small axes on each marker.
+        axis_length_m: DS axis length (m).
+        marker_size_m: single-marker axis length is half of it (m).
+        label: text for the top-left corner.
+
+    Returns:
+        (H, W, 3) uint8 BGR image.
+    """
+    img = _bgr(image)
+    h, w = img.shape[:2]
+    scale = max(min(w, h) / 720.0, 0.5)
+    thick = max(1, round(2 * scale))
+    for d in detections:
+        c = np.asarray(d.corners_px, np.float64)
+        pts = np.round(c * 16).astype(np.int32).reshape(-1, 1, 2)
+        cv2.polylines(img, [pts], True, _GREEN, thick, cv2.LINE_AA, shift=4)
+        tl = tuple(int(v) for v in np.round(c[0]))
+        cv2.circle(img, tl, thick + 2, _RED, -1, cv2.LINE_AA)
+        cx, cy = (int(v) for v in np.round(c.mean(axis=0)))
+        _text(img, str(d.marker_id), (cx - int(10 * scale), cy + int(8 * scale)), scale, _YELLOW)
+    if camera is not None:
+        for T in (T_cam_markers or {}).values():
+            _axes(img, camera, T, 0.5 * marker_size_m, thick)
+        if T_cam_ds is not None:
+            _axes(img, camera, T_cam_ds, axis_length_m, thick + 1)
+    if label:
+        _text(img, label, (int(8 * scale), int(26 * scale)), scale, _WHITE)
+    return img
+
+
+def encode_image(image: np.ndarray, suffix: str = ".png") -> bytes:
+    """Encode an image in the format of ``suffix`` (".png", ".jpg", ...)."""
+    ok, buf = cv2.imencode(suffix, image)
+    if not ok:
+        raise DockError(f"cannot encode an image as {suffix}")
+    return buf.tobytes()
+
+
+class ThumbnailBuffer:
+    """Keeps about ``n`` evenly spaced thumbnails of a stream of unknown length.
+
+    Every ``stride``-th frame is kept; when twice ``n`` are held, every other one is dropped and
+    the stride doubles. :meth:`pick` returns ``n`` evenly spaced among those kept.
+
+    Args:
+        n: thumbnails wanted (>= 1).
+        width_px: thumbnail width (px); the height keeps the aspect ratio.
+    """
+
+    def __init__(self, n: int = 12, width_px: int = 400) -> None:
+        self.n = max(1, int(n))
+        self.width_px = int(width_px)
+        self.stride = 1
+        self.count = 0
+        self.items: list[tuple[int, str, np.ndarray]] = []
+
+    def wants(self) -> bool:
+        """True when the next offered frame will be kept (annotate it only then)."""
+        return self.count % self.stride == 0
+
+    def offer(self, index: int, name: str, image_bgr: np.ndarray | None) -> None:
+        """Offer the next frame (None: not rendered because :meth:`wants` was False)."""
+        if self.wants() and image_bgr is not None:
+            h, w = image_bgr.shape[:2]
+            tw = min(self.width_px, w)
+            th = max(1, round(h * tw / w))
+            thumb = cv2.resize(image_bgr, (tw, th), interpolation=cv2.INTER_AREA)
+            self.items.append((index, name, thumb))
+            if len(self.items) >= 2 * self.n:
+                self.items = self.items[::2]
+                self.stride *= 2
+        self.count += 1
+
+    def pick(self) -> list[tuple[int, str, np.ndarray]]:
+        """About ``n`` thumbnails, evenly spaced over the stream."""
+        if len(self.items) <= self.n:
+            return list(self.items)
+        keep = np.unique(np.round(np.linspace(0, len(self.items) - 1, self.n)).astype(int))
+        return [self.items[k] for k in keep]
+
+
+def write_contact_sheet(
+    path: str | os.PathLike[str], thumbs: Sequence[tuple[int, str, np.ndarray]], cols: int = 4
+) -> Path | None:
+    """A grid of (already annotated) thumbnails as one PNG, written atomically.
+
+    Returns:
+        The path, or None when there is no thumbnail.
+    """
+    if not thumbs:
+        return None
+    tw = max(t[2].shape[1] for t in thumbs)
+    th = max(round(t[2].shape[0] * tw / t[2].shape[1]) for t in thumbs)
+    cols = min(cols, len(thumbs))
+    rows = math.ceil(len(thumbs) / cols)
+    pad = 4
+    sheet = np.full((rows * (th + pad) + pad, cols * (tw + pad) + pad, 3), 32, np.uint8)
+    for k, (_, name, img) in enumerate(thumbs):
+        tile = cv2.resize(img, (tw, th), interpolation=cv2.INTER_AREA)
+        r, c = divmod(k, cols)
+        y, x = pad + r * (th + pad), pad + c * (tw + pad)
+        sheet[y : y + th, x : x + tw] = tile
+        _text(sheet, name, (x + 6, y + th - 8), max(tw / 600.0, 0.45), _WHITE)
+    return atomic_write_bytes(path, encode_image(sheet, ".png"))
