@@ -153,5 +153,27 @@ def export(policy, out_path) -> None:
     click.echo(f"wrote {export_onnx(policy, out_path)}")
 
 
+@cli.command("fit-error-model")
+@click.argument("dataset", type=click.Path(path_type=Path))
+@click.option(
+    "--out",
+    "out_path",
+    type=click.Path(dir_okay=False, path_type=Path),
+    required=True,
+    help="Error model file (JSON) to write.",
+)
+@click.option("--range-bin-m", type=float, help="Range bin width [0.5].")
+def fit_error_model_cmd(dataset, out_path, range_bin_m) -> None:
+    """Fit the image-derived error model from a labelled dataset (`datasets synth`)."""
+    from rl.error_model import ErrorModelConfig, fit_error_model, save_error_model
+
+    cfg = load_config(ErrorModelConfig, overrides={"range_bin_m": range_bin_m})
+    model = fit_error_model(dataset, cfg)
+    save_error_model(model, out_path)
+    t = model["tables"]["all"]
+    n = sum(sum(row) for row in t["frames"])
+    click.echo(f"fitted on {int(n)} frames ({model['dataset']['sha256'][:12]}): {out_path}")
+
+
 def main() -> None:
     run_group(cli)

@@ -87,7 +87,7 @@ class DockingEnv(gym.Env):
         if c.obs_source == "error-model":
             from rl.error_model import ErrorModelSource, load_error_model
 
-            return ErrorModelSource(load_error_model(c.error_model_path), c.task)
+            return ErrorModelSource(load_error_model(c.error_model_path), c.task, c.water_preset)
         from rl.camera_source import CameraSource
 
         return CameraSource(self.world, c)
