@@ -236,3 +236,14 @@ def test_error_model_source_requires_a_model(run_cli, tmp_path):
         tmp_path / "e",
     )
     assert res.code != 0 and "error_model_path" in res.err
+
+
+def test_registered_with_gymnasium():
+    import gymnasium as gym
+
+    import rl
+
+    env = gym.make(rl.ENV_ID, config=SHORT)
+    obs, _ = env.reset(seed=0)
+    assert env.observation_space.contains(obs)
+    env.close()
