@@ -1,9 +1,16 @@
-"""SAPIEN simulation of the Girona AUV and its docking station.
+"""SAPIEN simulation of the Girona AUV, its docking station and the underwater camera.
 
 Modules:
-    vehicle:   vehicle parameters, randomisation, Fossen hydrodynamics, ocean current, IMU
-               (world NED / body FRD, NumPy only).
-    thrusters: thruster geometry, allocation with uniform saturation, thrust curve, lag.
-    physics:   the vehicle as a SAPIEN/PhysX rigid body at 300 Hz (the only place where the
-               marine frames meet SAPIEN's z-up world and FLU actors).
+    vehicle:         vehicle parameters, randomisation, Fossen hydrodynamics, ocean current,
+                     IMU (world NED / body FRD; the acceleration kernel is numba-compiled).
+    thrusters:       thruster geometry, allocation with uniform saturation, thrust curve, lag.
+    fastpath:        numba kernels: the hydrodynamic acceleration, PhysX's integration step for
+                     free flight, static obstacle boxes.
+    physics:         the vehicle as a SAPIEN/PhysX rigid body at 300 Hz (the only place where
+                     the marine frames meet SAPIEN's z-up world and FLU actors); free flight
+                     skips PhysX when no contact is possible.
+    docking_station: DS (guides, notches, 3D markers) and tank geometry.
+    render:          the headless downward camera and ground-truth marker projection.
+    water:           underwater image formation (attenuation, backscatter, blur, noise, JPEG).
+    episode:         a video of a docking episode (``sim episode``).
 """

@@ -3,7 +3,8 @@
 Marine convention throughout (Fossen): world ``world_ned`` (x north, y east, z down), body
 ``body_frd`` (x forward, y starboard, z down), body velocity ``nu = [u, v, w, p, q, r]`` of the
 body origin in FRD (m/s, rad/s), generalised forces ``tau = [X, Y, Z, K, M, N]`` about the
-origin (N, N m). SAPIEN's z-up world and FLU actor appear only in ``sim.physics``. Pure NumPy.
+origin (N, N m). SAPIEN's z-up world and FLU actor appear only in ``sim.physics``. NumPy; the
+compiled scalar twin of the model used by the 300 Hz loop lives in ``sim.fastpath``.
 
 Equations of motion (Fossen 2011, irrotational current ``v_c`` constant in NED)::
 
@@ -253,8 +254,9 @@ class Hydrodynamics:
     """Fossen rigid-body + hydrodynamic model of one vehicle (body FRD, moments about O).
 
     The component methods (NumPy, readable) document the model and serve as the reference;
-    :meth:`make_accel_fn` returns the same ``nu_dot`` as scalar Python for the 300 Hz loop,
-    where NumPy's per-call overhead on 3-vectors would dominate (tested equal).
+    :meth:`make_accel_fn` returns the same ``nu_dot`` from the compiled scalar kernel that the
+    300 Hz loop runs (``sim.fastpath``, numba), where NumPy's per-call overhead on 3-vectors
+    would dominate (tested equal).
 
     Attributes:
         config: the vehicle parameters.
@@ -348,7 +350,8 @@ class Hydrodynamics:
     # ----------------------------------------------------------------- hot path (scalars)
 
     def make_accel_fn(self) -> AccelFn:
-        """Scalar version of :meth:`acceleration` with every constant bound in a closure.
+        """Scalar version of :meth:`acceleration`: the compiled kernel the 300 Hz loop runs
+        (:func:`sim.fastpath.hydro_accel`) with this vehicle's constants bound.
 
         Returns:
             ``f(dx, dy, dz, u, v, w, p, q, r, cu, cv, cw, X, Y, Z, K, M, N) -> nu_dot`` (6-tuple)
@@ -356,72 +359,12 @@ class Hydrodynamics:
             (u..r) the body velocity, (cu, cv, cw) the current in body FRD and (X..N) the
             applied wrench; all floats.
         """
-        c = self.config
-        m = c.mass_kg
-        wb = c.weight_n - c.buoyancy_n
-        hx, hy, hz = (c.weight_n * self._rg - c.buoyancy_n * self._rb).tolist()
-        gx, gy, gz = self._rg.tolist()
-        a0, a1, a2, a3, a4, a5 = c.added_mass
-        l0, l1, l2, l3, l4, l5 = self._dl.tolist()
-        q0, q1, q2, q3, q4, q5 = self._dq.tolist()
-        (i00, i01, i02), (i10, i11, i12), (i20, i21, i22) = self.I_O.tolist()
-        (
-            (m00, m01, m02, m03, m04, m05),
-            (m10, m11, m12, m13, m14, m15),
-            (m20, m21, m22, m23, m24, m25),
-            (m30, m31, m32, m33, m34, m35),
-            (m40, m41, m42, m43, m44, m45),
-            (m50, m51, m52, m53, m54, m55),
-        ) = self.M_inv.tolist()
+        from sim.fastpath import hydro_accel, hydro_params  # numba; imports this module
 
-        def accel(dx, dy, dz, u, v, w, p, q, r, cu, cv, cw, X, Y, Z, K, M, N):
-            ur = u - cu
-            vr = v - cv
-            wr = w - cw
-            # restoring (weight at CG, buoyancy at CB) and damping on the relative velocity
-            X += wb * dx - (l0 + q0 * abs(ur)) * ur
-            Y += wb * dy - (l1 + q1 * abs(vr)) * vr
-            Z += wb * dz - (l2 + q2 * abs(wr)) * wr
-            K += hy * dz - hz * dy - (l3 + q3 * abs(p)) * p
-            M += hz * dx - hx * dz - (l4 + q4 * abs(q)) * q
-            N += hx * dy - hy * dx - (l5 + q5 * abs(r)) * r
-            # added mass: -C_A(nu_r) nu_r + M_A nu_c_dot with nu_c_dot = -omega x v_c
-            p1x = a0 * ur
-            p1y = a1 * vr
-            p1z = a2 * wr
-            p2x = a3 * p
-            p2y = a4 * q
-            p2z = a5 * r
-            X -= q * p1z - r * p1y + a0 * (q * cw - r * cv)
-            Y -= r * p1x - p * p1z + a1 * (r * cu - p * cw)
-            Z -= p * p1y - q * p1x + a2 * (p * cv - q * cu)
-            K -= vr * p1z - wr * p1y + q * p2z - r * p2y
-            M -= wr * p1x - ur * p1z + r * p2x - p * p2z
-            N -= ur * p1y - vr * p1x + p * p2y - q * p2x
-            # rigid body: -C_RB(nu) nu = -[m(w x v + w x (w x rg)), m rg x (w x v) + w x I_O w]
-            tx = q * w - r * v  # omega x v
-            ty = r * u - p * w
-            tz = p * v - q * u
-            sx = q * gz - r * gy  # omega x rg
-            sy = r * gx - p * gz
-            sz = p * gy - q * gx
-            X -= m * (tx + q * sz - r * sy)
-            Y -= m * (ty + r * sx - p * sz)
-            Z -= m * (tz + p * sy - q * sx)
-            jx = i00 * p + i01 * q + i02 * r
-            jy = i10 * p + i11 * q + i12 * r
-            jz = i20 * p + i21 * q + i22 * r
-            K -= m * (gy * tz - gz * ty) + q * jz - r * jy
-            M -= m * (gz * tx - gx * tz) + r * jx - p * jz
-            N -= m * (gx * ty - gy * tx) + p * jy - q * jx
-            return (
-                m00 * X + m01 * Y + m02 * Z + m03 * K + m04 * M + m05 * N,
-                m10 * X + m11 * Y + m12 * Z + m13 * K + m14 * M + m15 * N,
-                m20 * X + m21 * Y + m22 * Z + m23 * K + m24 * M + m25 * N,
-                m30 * X + m31 * Y + m32 * Z + m33 * K + m34 * M + m35 * N,
-                m40 * X + m41 * Y + m42 * Z + m43 * K + m44 * M + m45 * N,
-                m50 * X + m51 * Y + m52 * Z + m53 * K + m54 * M + m55 * N,
-            )
+        params = hydro_params(self)
+
+        def accel(*args: float) -> tuple[float, float, float, float, float, float]:
+            return hydro_accel(params, *args)
 
         return accel
 

@@ -1,0 +1,583 @@
+"""Numba kernels of the vehicle's 300 Hz loop, and the free-flight fast path that skips PhysX.
+
+One implementation of the model serves both ways of stepping :class:`sim.physics.VehicleBody`:
+
+* :func:`hydro_accel` is the scalar Fossen model (``Hydrodynamics.acceleration``, NumPy, is the
+  readable reference it is tested against); ``Hydrodynamics.make_accel_fn`` wraps it.
+* :func:`physx_wrench` turns the PhysX state of one substep into the world force and torque that
+  make PhysX's body reach that acceleration (the PhysX path calls it before every
+  ``scene.step()``).
+* :func:`free_flight` runs a whole control step without PhysX: the same :func:`physx_wrench`
+  maths, then what PhysX (TGS solver, no constraints) does with it, checked against SAPIEN
+  3.0.3 / PhysX 5 (``tests/test_fastpath.py``)::
+
+      v     <- v + dt F / m_e                                  (external force)
+      w'    <- w + dt R I_e^-1 R^T T                           (external torque)
+      w'    <- w' clamped to the body's max angular velocity
+      L     =  I_e R^T w'; L' = L - dt (R^T w') x L, rescaled to |L|   (gyroscopic, momentum-norm
+      w     <- R I_e^-1 L'                                      preserving; SAPIEN enables it)
+      p_cg  <- p_cg + dt v;  q <- normalise(exp(dt w / 2) q)   (closed-form rotation)
+
+  in float64 where PhysX uses float32, so the two paths agree to float32 round-off (~1e-5 m
+  over seconds), not bit for bit.
+
+The fast path is only valid while PhysX would generate no contact. :func:`free_flight` bounds
+the swept volume of every hull shape over the step (the box of the origin's positions at the
+substeps, the shape's box at the start attitude, grown by ``rho * theta`` for the rotation,
+``theta`` = integral of ``|w|``, ``rho`` = the shape's farthest point from the origin) and
+reports whether any grown box (plus a margin above PhysX's contact offsets) overlaps a static
+obstacle's box; the caller then discards the result and steps PhysX instead.
+:class:`StaticObstacles` collects those boxes, one per collision shape of the scene's static
+actors, and refreshes them when a static actor moves (e.g. the docking station per episode).
+
+Frames: SAPIEN z-up world, body FLU, CoM at ``cg`` (see ``sim.physics``); the hydrodynamics
+works in body FRD, so FLU <-> FRD negates y and z.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
+
+import numpy as np
+import sapien
+from numba import njit
+
+from calibration.frames import T_from_pos_quat
+
+if TYPE_CHECKING:  # pragma: no cover
+    from sim.vehicle import Hydrodynamics
+
+__all__ = [
+    "BODY_PARAMS",
+    "HYDRO_PARAMS",
+    "StaticObstacles",
+    "body_params",
+    "free_flight",
+    "hull_boxes",
+    "hydro_accel",
+    "hydro_params",
+    "physx_wrench",
+]
+
+#: Length of :func:`hydro_params`'s vector: m, W-B, W r_g - B r_b (3), r_g (3), added mass (6),
+#: linear (6) and quadratic (6) damping, I_O (9, row-major), (M_RB + M_A)^-1 (36, row-major).
+HYDRO_PARAMS = 71
+#: Length of :func:`body_params`'s vector: m_e, I_e (3), max angular speed (rad/s), and m_e,
+#: I_e (3) as PhysX holds them (float32).
+BODY_PARAMS = 9
+#: Unbounded side of an obstacle box (a half-space, or a shape we cannot bound).
+_FAR = 1e30
+
+
+# --------------------------------------------------------------------------- parameters
+
+
+def hydro_params(hydro: Hydrodynamics) -> np.ndarray:
+    """Pack a vehicle's hydrodynamic constants for :func:`hydro_accel` ((71,) float64)."""
+    c = hydro.config
+    rg = np.asarray(c.cg_m, dtype=float)
+    rb = np.asarray(c.cb_m, dtype=float)
+    h = c.weight_n * rg - c.buoyancy_n * rb
+    P = np.concatenate(
+        [
+            [c.mass_kg, c.weight_n - c.buoyancy_n],
+            h,
+            rg,
+            np.asarray(c.added_mass, dtype=float),
+            np.asarray(c.linear_damping, dtype=float),
+            np.asarray(c.quadratic_damping, dtype=float),
+            np.asarray(hydro.I_O, dtype=float).ravel(),
+            np.asarray(hydro.M_inv, dtype=float).ravel(),
+        ]
+    )
+    assert P.shape == (HYDRO_PARAMS,)
+    return np.ascontiguousarray(P)
+
+
+def body_params(
+    mass_kg: float,
+    inertia_kgm2: Sequence[float],
+    component: sapien.physx.PhysxRigidDynamicComponent,
+) -> np.ndarray:
+    """Pack the PhysX body's parameters ((9,) float64).
+
+    Args:
+        mass_kg: the folded mass ``m_e`` the bridge uses (kg; ``VehicleBody.engine_mass_kg``).
+        inertia_kgm2: (3,) the folded principal inertia ``I_e`` at the CG (kg m^2).
+        component: the body, already given that mass and inertia: its angular speed limit and
+            its own (float32) copies of them are what PhysX integrates with.
+    """
+    return np.array(
+        [
+            mass_kg,
+            *inertia_kgm2,
+            component.get_max_angular_velocity(),
+            component.get_mass(),
+            *np.asarray(component.get_inertia(), dtype=float),
+        ],
+        dtype=float,
+    )
+
+
+# --------------------------------------------------------------------------- model (scalar)
+
+
+@njit(cache=True)
+def hydro_accel(P, dx, dy, dz, u, v, w, p, q, r, cu, cv, cw, X, Y, Z, K, M, N):
+    """Body acceleration ``nu_dot`` of the Fossen model (``Hydrodynamics.acceleration``).
+
+    Args:
+        P: (71,) :func:`hydro_params`.
+        dx, dy, dz: NED down direction in body FRD (row 2 of ``R_ned_frd``).
+        u, v, w, p, q, r: body velocity of the origin, FRD (m/s, rad/s).
+        cu, cv, cw: water velocity in body FRD (m/s).
+        X, Y, Z, K, M, N: applied wrench about the origin, FRD (N, N m).
+
+    Returns:
+        6-tuple ``nu_dot`` (m/s^2, rad/s^2), FRD.
+    """
+    m = P[0]
+    wb = P[1]
+    hx, hy, hz = P[2], P[3], P[4]
+    gx, gy, gz = P[5], P[6], P[7]
+    a0, a1, a2, a3, a4, a5 = P[8], P[9], P[10], P[11], P[12], P[13]
+    ur = u - cu
+    vr = v - cv
+    wr = w - cw
+    # restoring (weight at CG, buoyancy at CB) and damping on the relative velocity
+    X += wb * dx - (P[14] + P[20] * abs(ur)) * ur
+    Y += wb * dy - (P[15] + P[21] * abs(vr)) * vr
+    Z += wb * dz - (P[16] + P[22] * abs(wr)) * wr
+    K += hy * dz - hz * dy - (P[17] + P[23] * abs(p)) * p
+    M += hz * dx - hx * dz - (P[18] + P[24] * abs(q)) * q
+    N += hx * dy - hy * dx - (P[19] + P[25] * abs(r)) * r
+    # added mass: -C_A(nu_r) nu_r + M_A nu_c_dot with nu_c_dot = -omega x v_c
+    p1x = a0 * ur
+    p1y = a1 * vr
+    p1z = a2 * wr
+    p2x = a3 * p
+    p2y = a4 * q
+    p2z = a5 * r
+    X -= q * p1z - r * p1y + a0 * (q * cw - r * cv)
+    Y -= r * p1x - p * p1z + a1 * (r * cu - p * cw)
+    Z -= p * p1y - q * p1x + a2 * (p * cv - q * cu)
+    K -= vr * p1z - wr * p1y + q * p2z - r * p2y
+    M -= wr * p1x - ur * p1z + r * p2x - p * p2z
+    N -= ur * p1y - vr * p1x + p * p2y - q * p2x
+    # rigid body: -C_RB(nu) nu = -[m(w x v + w x (w x rg)), m rg x (w x v) + w x I_O w]
+    tx = q * w - r * v  # omega x v
+    ty = r * u - p * w
+    tz = p * v - q * u
+    sx = q * gz - r * gy  # omega x rg
+    sy = r * gx - p * gz
+    sz = p * gy - q * gx
+    X -= m * (tx + q * sz - r * sy)
+    Y -= m * (ty + r * sx - p * sz)
+    Z -= m * (tz + p * sy - q * sx)
+    jx = P[26] * p + P[27] * q + P[28] * r
+    jy = P[29] * p + P[30] * q + P[31] * r
+    jz = P[32] * p + P[33] * q + P[34] * r
+    K -= m * (gy * tz - gz * ty) + q * jz - r * jy
+    M -= m * (gz * tx - gx * tz) + r * jx - p * jz
+    N -= m * (gx * ty - gy * tx) + p * jy - q * jx
+    return (  # (M_RB + M_A)^-1 @ tau
+        P[35] * X + P[36] * Y + P[37] * Z + P[38] * K + P[39] * M + P[40] * N,
+        P[41] * X + P[42] * Y + P[43] * Z + P[44] * K + P[45] * M + P[46] * N,
+        P[47] * X + P[48] * Y + P[49] * Z + P[50] * K + P[51] * M + P[52] * N,
+        P[53] * X + P[54] * Y + P[55] * Z + P[56] * K + P[57] * M + P[58] * N,
+        P[59] * X + P[60] * Y + P[61] * Z + P[62] * K + P[63] * M + P[64] * N,
+        P[65] * X + P[66] * Y + P[67] * Z + P[68] * K + P[69] * M + P[70] * N,
+    )
+
+
+@njit(cache=True)
+def _bridge(P, B, qw, qx, qy, qz, vx, vy, vz, ox, oy, oz, ax_, ay_, az_, X, Y, Z, K, M, N):
+    """World force and torque (6-tuple, z-up) PhysX needs to realise the model's acceleration.
+
+    ``q``: body FLU attitude (w, x, y, z); ``v``: CoM velocity and ``o``: angular velocity
+    (z-up world); ``a_``: water velocity (z-up world); ``X..N``: thruster wrench (FRD).
+    ``F = m_e a_cg`` and ``T = I_e omega_dot + omega x I_e omega`` (see ``sim.physics``).
+    """
+    me = B[0]
+    ie0, ie1, ie2 = B[1], B[2], B[3]
+    cx, cy, cz = P[5], P[6], P[7]
+    # R_zup_flu from the unit quaternion
+    xx, yy, zz = qx * qx, qy * qy, qz * qz
+    xy, xz, yz = qx * qy, qx * qz, qy * qz
+    wx, wy, wz = qw * qx, qw * qy, qw * qz
+    r00 = 1.0 - 2.0 * (yy + zz)
+    r01 = 2.0 * (xy - wz)
+    r02 = 2.0 * (xz + wy)
+    r10 = 2.0 * (xy + wz)
+    r11 = 1.0 - 2.0 * (xx + zz)
+    r12 = 2.0 * (yz - wx)
+    r20 = 2.0 * (xz - wy)
+    r21 = 2.0 * (yz + wx)
+    r22 = 1.0 - 2.0 * (xx + yy)
+    # world -> body FLU (R^T) -> body FRD (negate y, z)
+    p = r00 * ox + r10 * oy + r20 * oz
+    q = -(r01 * ox + r11 * oy + r21 * oz)
+    r = -(r02 * ox + r12 * oy + r22 * oz)
+    ug = r00 * vx + r10 * vy + r20 * vz
+    vg = -(r01 * vx + r11 * vy + r21 * vz)
+    wg = -(r02 * vx + r12 * vy + r22 * vz)
+    cu = r00 * ax_ + r10 * ay_ + r20 * az_
+    cv = -(r01 * ax_ + r11 * ay_ + r21 * az_)
+    cw = -(r02 * ax_ + r12 * ay_ + r22 * az_)
+    # origin velocity v_O = v_cg - omega x c; NED down in FRD = (-r20, r21, r22)
+    ud, vd, wd, pd, qd, rd = hydro_accel(
+        P, -r20, r21, r22,
+        ug - (q * cz - r * cy), vg - (r * cx - p * cz), wg - (p * cy - q * cx),
+        p, q, r, cu, cv, cw, X, Y, Z, K, M, N,
+    )  # fmt: skip
+    # CoM acceleration in body FRD: v_O_dot + omega_dot x c + omega x v_cg
+    fx = me * (ud + qd * cz - rd * cy + q * wg - r * vg)
+    fy = -me * (vd + rd * cx - pd * cz + r * ug - p * wg)
+    fz = -me * (wd + pd * cy - qd * cx + p * vg - q * ug)
+    # torque about the CoM: I_e omega_dot + omega x I_e omega (FRD), then FLU signs
+    tx = ie0 * pd + (ie2 - ie1) * q * r
+    ty = -(ie1 * qd + (ie0 - ie2) * r * p)
+    tz = -(ie2 * rd + (ie1 - ie0) * p * q)
+    return (
+        r00 * fx + r01 * fy + r02 * fz, r10 * fx + r11 * fy + r12 * fz,
+        r20 * fx + r21 * fy + r22 * fz,
+        r00 * tx + r01 * ty + r02 * tz, r10 * tx + r11 * ty + r12 * tz,
+        r20 * tx + r21 * ty + r22 * tz,
+    )  # fmt: skip
+
+
+@njit(cache=True)
+def physx_wrench(P, B, quat, vel, omega, currents, wrenches, k):
+    """The PhysX path's per-substep call: world force and torque for substep ``k``.
+
+    Args:
+        P: (71,) :func:`hydro_params`; B: (9,) :func:`body_params`.
+        quat: (4,) entity attitude (w, x, y, z) as PhysX returns it (float32 is fine).
+        vel: (3,) CoM velocity, z-up world (m/s); omega: (3,) angular velocity (rad/s).
+        currents: (n, 3) water velocity per substep, z-up world (m/s).
+        wrenches: (n, 6) thruster wrench per substep, FRD about the origin (N, N m).
+        k: substep index.
+
+    Returns:
+        ``((Fx, Fy, Fz), (Tx, Ty, Tz))`` for ``add_force_torque`` (N, N m, z-up world).
+    """
+    f = _bridge(
+        P, B, np.float64(quat[0]), np.float64(quat[1]), np.float64(quat[2]), np.float64(quat[3]),
+        np.float64(vel[0]), np.float64(vel[1]), np.float64(vel[2]),
+        np.float64(omega[0]), np.float64(omega[1]), np.float64(omega[2]),
+        currents[k, 0], currents[k, 1], currents[k, 2],
+        wrenches[k, 0], wrenches[k, 1], wrenches[k, 2],
+        wrenches[k, 3], wrenches[k, 4], wrenches[k, 5],
+    )  # fmt: skip
+    return (f[0], f[1], f[2]), (f[3], f[4], f[5])
+
+
+# --------------------------------------------------------------------------- free flight
+
+
+@njit(cache=True)
+def _rot(R, qw, qx, qy, qz):
+    """Write the (3, 3) rotation matrix of a unit quaternion (w, x, y, z) into ``R``."""
+    R[0, 0] = 1.0 - 2.0 * (qy * qy + qz * qz)
+    R[0, 1] = 2.0 * (qx * qy - qw * qz)
+    R[0, 2] = 2.0 * (qx * qz + qw * qy)
+    R[1, 0] = 2.0 * (qx * qy + qw * qz)
+    R[1, 1] = 1.0 - 2.0 * (qx * qx + qz * qz)
+    R[1, 2] = 2.0 * (qy * qz - qw * qx)
+    R[2, 0] = 2.0 * (qx * qz - qw * qy)
+    R[2, 1] = 2.0 * (qy * qz + qw * qx)
+    R[2, 2] = 1.0 - 2.0 * (qx * qx + qy * qy)
+
+
+@njit(cache=True)
+def _overlaps(boxes, obstacles, lo, hi, R0, theta, margin):
+    """Whether a hull box may touch an obstacle box during the step.
+
+    Hull box i (``boxes[i]``: centre, half size in the body frame, ``rho``) at attitude ``R0``,
+    swept over the origin positions [lo, hi] and grown by ``margin + rho * theta`` for the
+    rotation, against obstacle boxes [min xyz, max xyz] (all z-up world).
+    """
+    bmin = np.empty(3)
+    bmax = np.empty(3)
+    for i in range(boxes.shape[0]):
+        grow = margin + boxes[i, 6] * theta
+        for a in range(3):
+            c = R0[a, 0] * boxes[i, 0] + R0[a, 1] * boxes[i, 1] + R0[a, 2] * boxes[i, 2]
+            h = (
+                abs(R0[a, 0]) * boxes[i, 3]
+                + abs(R0[a, 1]) * boxes[i, 4]
+                + abs(R0[a, 2]) * boxes[i, 5]
+                + grow
+            )
+            bmin[a] = lo[a] + c - h
+            bmax[a] = hi[a] + c + h
+        for j in range(obstacles.shape[0]):
+            if (
+                bmin[0] <= obstacles[j, 3] and bmax[0] >= obstacles[j, 0]
+                and bmin[1] <= obstacles[j, 4] and bmax[1] >= obstacles[j, 1]
+                and bmin[2] <= obstacles[j, 5] and bmax[2] >= obstacles[j, 2]
+            ):  # fmt: skip
+                return True
+    return False
+
+
+@njit(cache=True)
+def free_flight(P, B, state, wrenches, currents, dt, boxes, obstacles, margin, acc):
+    """Integrate ``n`` substeps without PhysX, exactly as PhysX would without contacts.
+
+    Args:
+        P: (71,) :func:`hydro_params`; B: (9,) :func:`body_params`.
+        state: (13,) in/out: entity position (3, z-up, m), attitude (w, x, y, z), CoM velocity
+            (3, m/s) and angular velocity (3, rad/s), z-up world. Overwritten with the state
+            after the step (meaningful only when the function returns True).
+        wrenches: (n, 6) thruster wrench per substep (FRD, N, N m); currents: (n, 3) water
+            velocity per substep (z-up world, m/s).
+        dt: substep (s).
+        boxes: (s, 7) hull shapes in the body FLU frame: centre (3), half size (3), and
+            ``rho``, the largest distance of the shape from the body origin (m).
+        obstacles: (k, 6) static boxes [min xyz, max xyz], z-up world (m).
+        margin: clearance below which a contact counts as possible (m).
+        acc: (6,) out: last substep's CoM and angular acceleration, z-up world.
+
+    Returns:
+        True if no hull shape came within ``margin`` of an obstacle box during the step (the
+        result is then what PhysX would have produced); False if a contact was possible.
+    """
+    w_max, me, ie0, ie1, ie2 = B[4], B[5], B[6], B[7], B[8]  # PhysX's copies
+    cx, cy, cz = P[5], -P[6], -P[7]  # CoM in body FLU
+    px, py, pz = state[0], state[1], state[2]
+    qw, qx, qy, qz = state[3], state[4], state[5], state[6]
+    vx, vy, vz = state[7], state[8], state[9]
+    ox, oy, oz = state[10], state[11], state[12]
+    R = np.empty((3, 3))
+    _rot(R, qw, qx, qy, qz)
+    R0 = R.copy()
+    lo = np.array([px, py, pz])
+    hi = lo.copy()
+    theta = 0.0
+    # the CoM (PhysX's body frame) from the entity pose
+    gx = px + R[0, 0] * cx + R[0, 1] * cy + R[0, 2] * cz
+    gy = py + R[1, 0] * cx + R[1, 1] * cy + R[1, 2] * cz
+    gz = pz + R[2, 0] * cx + R[2, 1] * cy + R[2, 2] * cz
+    inv_me = 1.0 / me
+    v0x = v0y = v0z = o0x = o0y = o0z = 0.0
+    n = wrenches.shape[0]
+    for k in range(n):
+        v0x, v0y, v0z, o0x, o0y, o0z = vx, vy, vz, ox, oy, oz
+        f = _bridge(
+            P, B, qw, qx, qy, qz, vx, vy, vz, ox, oy, oz,
+            currents[k, 0], currents[k, 1], currents[k, 2],
+            wrenches[k, 0], wrenches[k, 1], wrenches[k, 2],
+            wrenches[k, 3], wrenches[k, 4], wrenches[k, 5],
+        )  # fmt: skip
+        # external force and torque: v += dt F / m_e, w += dt R I_e^-1 R^T T
+        vx += dt * f[0] * inv_me
+        vy += dt * f[1] * inv_me
+        vz += dt * f[2] * inv_me
+        tlx = R[0, 0] * f[3] + R[1, 0] * f[4] + R[2, 0] * f[5]
+        tly = R[0, 1] * f[3] + R[1, 1] * f[4] + R[2, 1] * f[5]
+        tlz = R[0, 2] * f[3] + R[1, 2] * f[4] + R[2, 2] * f[5]
+        ax_, ay_, az_ = dt * tlx / ie0, dt * tly / ie1, dt * tlz / ie2
+        ox += R[0, 0] * ax_ + R[0, 1] * ay_ + R[0, 2] * az_
+        oy += R[1, 0] * ax_ + R[1, 1] * ay_ + R[1, 2] * az_
+        oz += R[2, 0] * ax_ + R[2, 1] * ay_ + R[2, 2] * az_
+        w2 = ox * ox + oy * oy + oz * oz
+        if w2 > w_max * w_max:
+            s = math.sqrt(w_max * w_max / w2)
+            ox, oy, oz = ox * s, oy * s, oz * s
+        # gyroscopic term, momentum-norm preserving, in the body frame at the start attitude
+        wlx = R[0, 0] * ox + R[1, 0] * oy + R[2, 0] * oz
+        wly = R[0, 1] * ox + R[1, 1] * oy + R[2, 1] * oz
+        wlz = R[0, 2] * ox + R[1, 2] * oy + R[2, 2] * oz
+        lx, ly, lz = ie0 * wlx, ie1 * wly, ie2 * wlz
+        nx = lx - dt * (wly * lz - wlz * ly)
+        ny = ly - dt * (wlz * lx - wlx * lz)
+        nz = lz - dt * (wlx * ly - wly * lx)
+        den = math.sqrt(nx * nx + ny * ny + nz * nz)
+        ratio = math.sqrt(lx * lx + ly * ly + lz * lz) / den if den > 0.0 else 0.0
+        dwx = nx * ratio / ie0 - wlx
+        dwy = ny * ratio / ie1 - wly
+        dwz = nz * ratio / ie2 - wlz
+        ox += R[0, 0] * dwx + R[0, 1] * dwy + R[0, 2] * dwz
+        oy += R[1, 0] * dwx + R[1, 1] * dwy + R[1, 2] * dwz
+        oz += R[2, 0] * dwx + R[2, 1] * dwy + R[2, 2] * dwz
+        # pose: CoM position, then the closed-form rotation q <- normalise(dq * q)
+        gx += vx * dt
+        gy += vy * dt
+        gz += vz * dt
+        w = math.sqrt(ox * ox + oy * oy + oz * oz)
+        if w != 0.0:
+            half = 0.5 * dt * w
+            s = math.sin(half) / w
+            c = math.cos(half)
+            ex, ey, ez = ox * s, oy * s, oz * s
+            nw = c * qw - ex * qx - ey * qy - ez * qz
+            nqx = c * qx + ex * qw + ey * qz - ez * qy
+            nqy = c * qy + ey * qw + ez * qx - ex * qz
+            nqz = c * qz + ez * qw + ex * qy - ey * qx
+            inv = 1.0 / math.sqrt(nw * nw + nqx * nqx + nqy * nqy + nqz * nqz)
+            qw, qx, qy, qz = nw * inv, nqx * inv, nqy * inv, nqz * inv
+            _rot(R, qw, qx, qy, qz)
+            theta += w * dt
+        # the entity origin, for the swept volume
+        px = gx - (R[0, 0] * cx + R[0, 1] * cy + R[0, 2] * cz)
+        py = gy - (R[1, 0] * cx + R[1, 1] * cy + R[1, 2] * cz)
+        pz = gz - (R[2, 0] * cx + R[2, 1] * cy + R[2, 2] * cz)
+        lo[0], hi[0] = min(lo[0], px), max(hi[0], px)
+        lo[1], hi[1] = min(lo[1], py), max(hi[1], py)
+        lo[2], hi[2] = min(lo[2], pz), max(hi[2], pz)
+    if _overlaps(boxes, obstacles, lo, hi, R0, theta, margin):
+        return False
+    state[0], state[1], state[2] = px, py, pz
+    state[3], state[4], state[5], state[6] = qw, qx, qy, qz
+    state[7], state[8], state[9] = vx, vy, vz
+    state[10], state[11], state[12] = ox, oy, oz
+    if n > 0:
+        inv_dt = 1.0 / dt
+        acc[0], acc[1], acc[2] = (vx - v0x) * inv_dt, (vy - v0y) * inv_dt, (vz - v0z) * inv_dt
+        acc[3], acc[4], acc[5] = (ox - o0x) * inv_dt, (oy - o0y) * inv_dt, (oz - o0z) * inv_dt
+    return True
+
+
+# --------------------------------------------------------------------------- geometry
+
+
+def _pose_T(pose: sapien.Pose) -> np.ndarray:
+    return T_from_pos_quat(np.asarray(pose.p, dtype=float), np.asarray(pose.q, dtype=float))
+
+
+def _shape_box(shape: sapien.physx.PhysxCollisionShape) -> tuple[np.ndarray, np.ndarray] | None:
+    """Centre and half size (m) of a shape's box in its own frame; None if unbounded."""
+    px = sapien.physx
+    zero = np.zeros(3)
+    if isinstance(shape, px.PhysxCollisionShapeBox):
+        return zero, np.asarray(shape.get_half_size(), dtype=float)
+    if isinstance(shape, px.PhysxCollisionShapeSphere):
+        return zero, np.full(3, float(shape.get_radius()))
+    if isinstance(shape, px.PhysxCollisionShapeCapsule):  # axis x
+        r, h = float(shape.get_radius()), float(shape.get_half_length())
+        return zero, np.array([h + r, r, r])
+    if isinstance(shape, px.PhysxCollisionShapeCylinder):  # axis x
+        r, h = float(shape.get_radius()), float(shape.get_half_length())
+        return zero, np.array([h, r, r])
+    if isinstance(shape, (px.PhysxCollisionShapeConvexMesh, px.PhysxCollisionShapeTriangleMesh)):
+        v = np.asarray(shape.get_vertices(), dtype=float) * np.asarray(shape.get_scale(), float)
+        lo, hi = v.min(axis=0), v.max(axis=0)
+        return (lo + hi) / 2.0, (hi - lo) / 2.0
+    return None
+
+
+def hull_boxes(component: sapien.physx.PhysxRigidBaseComponent) -> np.ndarray:
+    """(s, 7) boxes of a body's collision shapes in its entity frame (FLU for the vehicle):
+    centre (3), half size (3) and ``rho`` (the shape's farthest possible point from the
+    entity origin, m), each grown by the shape's contact offset."""
+    rows = []
+    for shape in component.get_collision_shapes():
+        box = _shape_box(shape)
+        if box is None:
+            raise ValueError(f"cannot bound a {type(shape).__name__} hull shape")
+        T = _pose_T(shape.get_local_pose())
+        c = T[:3, :3] @ box[0] + T[:3, 3]
+        h = np.abs(T[:3, :3]) @ box[1] + float(shape.get_contact_offset())
+        rows.append([*c, *h, float(np.linalg.norm(c) + np.linalg.norm(h))])
+    return np.ascontiguousarray(np.array(rows, dtype=float).reshape(-1, 7))
+
+
+def _plane_box(T_world_shape: np.ndarray) -> np.ndarray:
+    """World box of a PhysX plane (solid where local x <= 0): a half-space when the normal is
+    along a world axis, else everything."""
+    n, o = T_world_shape[:3, 0], T_world_shape[:3, 3]
+    box = np.array([-_FAR, -_FAR, -_FAR, _FAR, _FAR, _FAR])
+    j = int(np.argmax(np.abs(n)))
+    if abs(n[j]) > 1.0 - 1e-9:
+        if n[j] > 0:
+            box[3 + j] = o[j]
+        else:
+            box[j] = o[j]
+    return box
+
+
+class StaticObstacles:
+    """World boxes of the collision shapes of a scene's static actors (z-up, m).
+
+    Shapes are read once per set of static actors; their world boxes are recomputed when an
+    actor's pose changes (checked on every :meth:`boxes` call, ~1 us per actor).
+
+    Args:
+        scene: the SAPIEN scene.
+        own: the vehicle's component: the fast path needs it to be the only dynamic body.
+    """
+
+    def __init__(self, scene: sapien.Scene, own: sapien.physx.PhysxRigidDynamicComponent):
+        self.system = scene.physx_system
+        self.own = own
+        self._statics: list = []
+        self._local: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
+        self._poses: list[tuple[float, ...]] = []
+        self._boxes = np.zeros((0, 6))
+
+    def boxes(self) -> np.ndarray | None:
+        """(k, 6) [min xyz, max xyz] per static shape, each grown by its contact offset; None
+        when the fast path cannot stand in for ``scene.step()`` (another dynamic body or an
+        articulation, or a GPU PhysX system)."""
+        system = self.system
+        if not isinstance(system, sapien.physx.PhysxCpuSystem):
+            return None
+        dyn = system.get_rigid_dynamic_components()
+        if len(dyn) != 1 or dyn[0] is not self.own or system.get_articulation_link_components():
+            return None
+        statics = system.get_rigid_static_components()
+        if len(statics) != len(self._statics) or any(
+            a is not b for a, b in zip(statics, self._statics, strict=True)
+        ):
+            self._statics = statics
+            self._local = [self._read_shapes(s) for s in statics]
+            self._poses = [()] * len(statics)
+        changed = False
+        for i, comp in enumerate(statics):
+            pose = comp.get_entity_pose()
+            key = (*pose.p.tolist(), *pose.q.tolist())
+            if key != self._poses[i]:
+                self._poses[i] = key
+                changed = True
+        if changed:
+            self._boxes = self._world_boxes()
+        return self._boxes
+
+    @staticmethod
+    def _read_shapes(comp) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Per shape: local pose (4, 4), box centre, half size (grown), is-plane flag."""
+        Ts, cs, hs, planes = [], [], [], []
+        for shape in comp.get_collision_shapes():
+            T = _pose_T(shape.get_local_pose())
+            box = _shape_box(shape)
+            plane = isinstance(shape, sapien.physx.PhysxCollisionShapePlane)
+            if box is None:
+                box = (np.zeros(3), np.full(3, 0.0 if plane else _FAR))
+            Ts.append(T)
+            cs.append(box[0])
+            hs.append(box[1] + float(shape.get_contact_offset()))
+            planes.append(plane)
+        return (
+            np.array(Ts).reshape(-1, 4, 4),
+            np.array(cs).reshape(-1, 3),
+            np.array(hs).reshape(-1, 3),
+            np.array(planes, dtype=bool),
+        )
+
+    def _world_boxes(self) -> np.ndarray:
+        out = []
+        for comp, (Ts, cs, hs, planes) in zip(self._statics, self._local, strict=True):
+            T_we = _pose_T(comp.get_entity_pose())
+            T_ws = T_we[None] @ Ts  # (m, 4, 4)
+            c = np.einsum("mij,mj->mi", T_ws[:, :3, :3], cs) + T_ws[:, :3, 3]
+            h = np.einsum("mij,mj->mi", np.abs(T_ws[:, :3, :3]), hs)
+            boxes = np.concatenate([c - h, c + h], axis=1)
+            for i in np.flatnonzero(planes):
+                boxes[i] = _plane_box(T_ws[i])
+                boxes[i, :3] -= hs[i]  # the contact offset
+                boxes[i, 3:] += hs[i]
+            out.append(np.clip(boxes, -_FAR, _FAR))
+        return np.ascontiguousarray(np.concatenate(out, axis=0) if out else np.zeros((0, 6)))
