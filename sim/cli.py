@@ -1,16 +1,202 @@
-"""``sim``: command group. Commands appear here as they are implemented."""
+"""``sim``: render the docking station from given or random poses; record a docking episode.
+
+Both commands compose higher layers on purpose (this module is a composition root, imported
+only by the ``sim`` entry point): ``render`` is the ``datasets`` synth engine fed with explicit
+poses, ``episode`` drives ``rl``'s env and PID baseline. The ``sim`` library modules import
+neither.
+"""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import click
 
 from dockcore.cli import run_group
+from dockcore.errors import DockError
+
+_CTX = {"help_option_names": ["-h", "--help"]}
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.group(context_settings=_CTX)
 def cli() -> None:
     """Simulation: SAPIEN AUV and docking-station physics, underwater camera rendering."""
 
 
+def _water_choice(water: str | None, allow_random: bool) -> str:
+    from sim.water import PRESETS
+
+    name = water or "none"
+    known = [*PRESETS, *(["random"] if allow_random else []), "none"]
+    if name not in known:
+        raise DockError(f"unknown water preset {name!r}; known: {', '.join(known)}")
+    return name
+
+
+@cli.command(context_settings=_CTX)
+@click.option(
+    "--out",
+    "out_dir",
+    required=True,
+    type=click.Path(file_okay=False, path_type=Path),
+    help="Output folder (images/, labels.jsonl, camera, marker set, dataset.json).",
+)
+@click.option("--n", "n_frames", type=int, help="Random poses to render [default: 8].")
+@click.option(
+    "--poses",
+    "poses_csv",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="CSV of vehicle poses in world NED: x_m,y_m,z_m + qw,qx,qy,qz or "
+    "roll_deg,pitch_deg,yaw_deg (DS origin at 0,0,4.98).",
+)
+@click.option("--water", help="Water preset, 'random' or 'none' [default: none].")
+@click.option("--width", "width_px", type=int, default=0, help="Render width in px [camera's].")
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
+@click.option("--camera", "camera_file", type=click.Path(dir_okay=False), help="Camera file.")
+@click.option("--markers", "marker_set_path", type=click.Path(dir_okay=False), help="Marker set.")
+@click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True)
+@click.option("--quiet", is_flag=True, help="No progress bar; print only the folder.")
+def render(
+    out_dir, n_frames, poses_csv, water, width_px, seed, camera_file, marker_set_path, workers,
+    quiet,
+) -> None:  # fmt: skip
+    """Render images (+ labels.jsonl in the dataset format) for given or random poses."""
+    from datasets.loaders import load_poses_csv
+    from datasets.synth import SynthConfig, generate
+
+    if n_frames is not None and poses_csv is not None:
+        raise DockError("give either --n or --poses, not both")
+    poses = load_poses_csv(poses_csv) if poses_csv is not None else None
+    n = len(poses) if poses is not None else (8 if n_frames is None else n_frames)
+    try:
+        cfg = SynthConfig(
+            n_frames=n,
+            seed=seed,
+            water=_water_choice(water, allow_random=True),
+            camera_file=camera_file,
+            width_px=width_px,
+            marker_set_path=marker_set_path,
+        )
+        cfg.validate()
+    except ValueError as exc:
+        raise DockError(str(exc)) from None
+    result = generate(out_dir, cfg, workers=workers, poses=poses, progress=False if quiet else None)
+    if quiet:
+        click.echo(str(result.out_dir))
+    else:
+        click.echo(
+            f"rendered {len(result.rendered)} of {result.frames} frames into {result.out_dir} "
+            f"in {result.seconds:.1f} s"
+        )
+
+
+@cli.command(context_settings=_CTX)
+@click.option(
+    "--out",
+    "out_dir",
+    required=True,
+    type=click.Path(file_okay=False, path_type=Path),
+    help="Output folder (episode.mp4, summary.json, config.toml, provenance.json).",
+)
+@click.option("--controller", type=click.Choice(["pid"]), default="pid", show_default=True)
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
+@click.option("--water", help="Water of the downward view: a preset or 'none' [coastal].")
+@click.option(
+    "--seconds",
+    type=click.FloatRange(min=0.0, min_open=True),
+    default=30.0,
+    show_default=True,
+    help="Episode length (s); it ends earlier on docking.",
+)
+@click.option(
+    "--width",
+    "width_px",
+    type=click.IntRange(min=16),
+    default=484,
+    show_default=True,
+    help="Downward camera render width (px).",
+)
+@click.option(
+    "--outside-width",
+    "outside_width_px",
+    type=click.IntRange(min=16),
+    default=480,
+    show_default=True,
+    help="Outside view width (px; 4:3).",
+)
+@click.option(
+    "--config",
+    "config_path",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="TOML overriding rl.config.EnvConfig (obs_source defaults to 'proxy').",
+)
+@click.option("--quiet", is_flag=True, help="No progress bar; print only the video path.")
+def episode(
+    out_dir, controller, seed, water, seconds, width_px, outside_width_px, config_path, quiet
+) -> None:
+    """Run the scripted PID controller in the docking env and write a side-by-side MP4 of the
+    downward camera (with water) and an outside view, plus summary.json."""
+    import numpy as np
+    from tqdm import tqdm
+
+    from dockcore.config import load_config
+    from dockcore.io import atomic_write_json, ensure_writable_dir
+    from dockcore.provenance import write_provenance
+    from rl.baselines import PIDController
+    from rl.config import EnvConfig
+    from rl.env import DockingEnv
+    from sim.episode import EpisodeVideoConfig, record_episode
+    from sim.water import PRESETS
+
+    water_name = _water_choice(water or "coastal", allow_random=False)
+    env_cfg = load_config(
+        EnvConfig,
+        config_path,
+        overrides={"episode_s": float(seconds), "camera_width_px": width_px},
+        section="env",
+    )
+    video_cfg = EpisodeVideoConfig(
+        outside_width_px=outside_width_px,
+        outside_height_px=max(16, round(outside_width_px * 3 / 4)),
+        panel_height_px=max(16, round(outside_width_px * 3 / 4)),
+    )
+    video_cfg.validate()
+    out = ensure_writable_dir(out_dir)
+    env = DockingEnv(env_cfg, render_mode="rgb_array")
+    limits = np.asarray(env_cfg.wrench_limits, np.float64) * env_cfg.wrench_scale
+    policy = PIDController(limits, dt_s=1.0 / env_cfg.control_hz)
+    steps = round(env_cfg.episode_s * env_cfg.control_hz)
+    try:
+        with tqdm(total=steps, unit="step", desc="episode", disable=True if quiet else None) as bar:
+            summary = record_episode(
+                env,
+                policy,
+                out,
+                seed=seed,
+                water=None if water_name == "none" else PRESETS[water_name],
+                water_name=water_name,
+                cfg=video_cfg,
+                on_step=lambda _k: bar.update(1),
+            )
+    finally:
+        env.close()
+    summary["controller"] = controller
+    atomic_write_json(out / "summary.json", summary)
+    write_provenance(out, {"env": env_cfg, "video": video_cfg}, extra={"summary": summary})
+    if quiet:
+        click.echo(str(out / summary["video"]))
+        return
+    result = "docked" if summary["success_paper"] else "not docked"
+    click.echo(
+        f"{summary['steps']} steps ({summary['sim_time_s']:.1f} s), {result}, final |e| "
+        f"{summary['final_distance_m']:.2f} m, return {summary['return']:.0f} -> "
+        f"{out / summary['video']}"
+    )
+
+
 def main() -> None:
     run_group(cli)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

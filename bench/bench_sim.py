@@ -1,0 +1,348 @@
+"""Simulation benchmark: physics rate, render time, camera-in-the-loop rate, detection range.
+
+Usage::
+
+    python bench/bench_sim.py [--quick] [--seed 0]
+
+(a) Physics without camera, one process: control steps per second of ``rl.env.DockingEnv``
+    (proxy observation source, 300 Hz physics, 5 Hz control, uniform random actions, resets
+    when an episode ends) and of the bare ``sim.physics.VehicleBody.step`` (60 substeps per
+    control step; in the tank with the DS, random wrenches up to half the env limits, a new
+    random pose every 50 steps), with the free-flight fast path on and off where the vehicle
+    has one (``fast_share`` = steps that took it). Median and spread over ``runs`` runs of
+    ``steps`` steps after a warm-up.
+(b) Render time per frame on the CPU (SAPIEN rasteriser on lavapipe, its default thread count),
+    reference camera scaled to 320x240, 640x480 and 968x732, over aimed poses of the synth
+    sampler (DS at 1-6 m); also ``render + water`` (coastal preset).
+(c) Camera in the loop: per control step render + water (coastal) + detect (default pipeline,
+    one OpenCV thread) + board PnP, at widths 320, 480, 640 and 968; the physics step time from
+    (a) is added for the control-step rate. Also the share of frames with a pose.
+(d) Detection range: the reference camera (968x732) straight above the DS origin (image x along
+    DS y), altitude 1-10 m above the DS floor in 0.5 m steps, in a 12 m deep tank (so the camera
+    stays under water); per water preset the greatest altitude at which the median over noise
+    draws of the number of decoded DS markers is >= 3 and >= 1. (Two DS markers are on the rim,
+    1.76 m up: below ~2.3 m altitude the camera sees only the floor markers.)
+
+Writes ``bench/results/sim.json`` (rows + machine, commit, packages).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from calibration.camera import reference_camera
+from calibration.frames import make_T
+from dockcore.bench import format_table, save_results, time_call
+
+RESOLUTIONS = ((320, 240), (640, 480), (968, 732))
+LOOP_WIDTHS = (320, 480, 640, 968)
+
+
+def _rate(fn, steps: int, runs: int) -> dict[str, float]:
+    """Steps per second of ``fn`` (one step per call): median, min, max over runs."""
+    fn()  # warm-up
+    rates = []
+    for _ in range(runs):
+        t0 = time.perf_counter()
+        for _ in range(steps):
+            fn()
+        rates.append(steps / (time.perf_counter() - t0))
+    return {"median": statistics.median(rates), "min": min(rates), "max": max(rates)}
+
+
+def bench_physics(steps: int, runs: int, seed: int) -> list[dict]:
+    import inspect
+
+    from rl.config import EnvConfig
+    from rl.env import DockingEnv
+    from sim.docking_station import build_docking_station, build_tank
+    from sim.physics import VehicleBody, make_physics_scene
+
+    env = DockingEnv(EnvConfig())
+    env.reset(seed=seed)
+    rng = np.random.default_rng(seed)
+
+    def env_step() -> None:
+        _, _, term, trunc, _ = env.step(rng.uniform(-1.0, 1.0, 6))
+        if term or trunc:
+            env.reset(seed=int(rng.integers(1 << 31)))
+
+    env_rate = _rate(env_step, steps, runs)
+    rows = [
+        {
+            "what": "DockingEnv.step (proxy)",
+            "steps_per_s": env_rate["median"],
+            "min": env_rate["min"],
+            "max": env_rate["max"],
+            "ms_per_step": 1e3 / env_rate["median"],
+        }
+    ]
+    # the bare vehicle in the env's tank with the DS; reset every 50 steps to a spawn-like pose
+    has_fast = "fast_path" in inspect.signature(VehicleBody).parameters
+    for fast in (True, False) if has_fast else (None,):
+        scene = make_physics_scene()
+        build_tank(scene, visual=False, surface_lid=True)
+        build_docking_station(scene, visual=False)
+        vb = VehicleBody(scene) if fast is None else VehicleBody(scene, fast_path=fast)
+        pose_rng = np.random.default_rng(seed)
+        wrench_scale = np.array([140.0, 70.0, 134.0, 0.0, 20.0, 36.0])  # half the env limits
+        count = {"steps": 0, "fast": 0}
+
+        def raw_step(vb=vb, pose_rng=pose_rng, count=count, wrench_scale=wrench_scale) -> None:
+            if count["steps"] % 50 == 0:
+                p = pose_rng.uniform([-5.0, -3.0, 1.0], [5.0, 3.0, 3.5])
+                vb.reset(make_T(t=p))
+            vb.step(pose_rng.uniform(-1.0, 1.0, 6) * wrench_scale, 0.2)
+            count["steps"] += 1
+            count["fast"] += int(bool(getattr(vb, "last_step_fast", False)))
+
+        r = _rate(raw_step, steps, runs)
+        label = {None: "", True: ", fast path on", False: ", fast path off"}[fast]
+        rows.append(
+            {
+                "what": f"VehicleBody.step (60 substeps{label})",
+                "steps_per_s": r["median"],
+                "min": r["min"],
+                "max": r["max"],
+                "ms_per_step": 1e3 / r["median"],
+                "fast_share": count["fast"] / max(count["steps"], 1),
+            }
+        )
+    return rows
+
+
+def _aimed_poses(camera, T_body_cam, T_world_ds, n: int, seed: int) -> list[np.ndarray]:
+    from datasets.synth import PoseSamplingConfig, frame_rng, sample_pose
+
+    cfg = PoseSamplingConfig(aimed_fraction=1.0)
+    draws = (sample_pose(cfg, frame_rng(seed, k), camera, T_body_cam, T_world_ds) for k in range(n))
+    return [T for T, _ in draws]
+
+
+def bench_render(n_poses: int, repeats: int, seed: int) -> list[dict]:
+    from sim.render import CameraRig, make_render_scene
+    from sim.water import PRESETS, apply_water
+
+    base = reference_camera()
+    rs = make_render_scene()
+    T_body_cam = rs.rig.T_bodyfrd_camcv
+    rows = []
+    for w, h in RESOLUTIONS:
+        cam = base.scaled(w, h)
+        rig = CameraRig(rs.scene, cam, name=f"bench_{w}")
+        rs.rig.set_lamp(False)
+        poses = _aimed_poses(cam, T_body_cam, rs.ds.T_worldned_ds, n_poses, seed)
+        rig.render(poses[0])  # warm-up (pipeline creation)
+        t_render = time_call(lambda rig=rig, poses=poses: [rig.render(T) for T in poses], repeats)
+        results = [rig.render(T) for T in poses]
+        water_rng = np.random.default_rng(seed)
+        t_water = time_call(
+            lambda results=results, rng=water_rng: [
+                apply_water(r.rgb, r.range_m, PRESETS["coastal"], rng) for r in results
+            ],
+            repeats,
+        )
+        rows.append(
+            {
+                "resolution": f"{w}x{h}",
+                "render_ms": t_render["median_ms"] / n_poses,
+                "render_ms_min": t_render["min_ms"] / n_poses,
+                "water_ms": t_water["median_ms"] / n_poses,
+                "render_water_ms": (t_render["median_ms"] + t_water["median_ms"]) / n_poses,
+                "frames_per_s": 1e3 * n_poses / (t_render["median_ms"] + t_water["median_ms"]),
+            }
+        )
+        rig.set_lamp(False)
+    return rows
+
+
+def bench_loop(n_poses: int, repeats: int, seed: int, physics_ms: float) -> list[dict]:
+    from perception.detector import Detector, DetectorConfig
+    from perception.pose import solve_board
+    from sim.render import CameraRig, make_render_scene
+    from sim.water import PRESETS, apply_water
+
+    base = reference_camera()
+    rs = make_render_scene()
+    rs.rig.set_lamp(False)
+    ms = rs.ds.marker_set
+    corners_ds = ms.corners_ds()
+    detector = Detector(DetectorConfig(ids=ms.ids))
+    rows = []
+    for width in LOOP_WIDTHS:
+        cam = base.scaled(width, round(base.height_px * width / base.width_px))
+        rig = CameraRig(rs.scene, cam, name=f"loop_{width}")
+        poses = _aimed_poses(cam, rig.T_bodyfrd_camcv, rs.ds.T_worldned_ds, n_poses, seed)
+        rig.render(poses[0])
+        stage = {"render": [], "water": [], "detect": [], "pnp": []}
+        solved = 0
+        rng = np.random.default_rng(seed)
+        for _ in range(repeats):
+            solved = 0
+            for T in poses:
+                t0 = time.perf_counter()
+                res = rig.render(T)
+                t1 = time.perf_counter()
+                img = apply_water(res.rgb, res.range_m, PRESETS["coastal"], rng)
+                bgr = cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
+                t2 = time.perf_counter()
+                dets = detector.detect(bgr)
+                t3 = time.perf_counter()
+                pose = solve_board(dets, corners_ds, cam.K, cam.dist_coeffs) if dets else None
+                t4 = time.perf_counter()
+                solved += pose is not None
+                for key, dt in zip(stage, (t1 - t0, t2 - t1, t3 - t2, t4 - t3), strict=True):
+                    stage[key].append(dt * 1e3)
+        med = {k: statistics.median(v) for k, v in stage.items()}
+        camera_ms = sum(med.values())
+        rows.append(
+            {
+                "width": f"{cam.width_px}x{cam.height_px}",
+                "render_ms": med["render"],
+                "water_ms": med["water"],
+                "detect_ms": med["detect"],
+                "pnp_ms": med["pnp"],
+                "camera_ms": camera_ms,
+                "control_steps_per_s": 1e3 / (camera_ms + physics_ms),
+                "pose_rate": solved / len(poses),
+            }
+        )
+        rig.set_lamp(False)
+    return rows
+
+
+def bench_range(altitudes: np.ndarray, draws: int, seed: int) -> list[dict]:
+    from perception.detector import Detector, DetectorConfig
+    from sim.docking_station import DockingStationConfig
+    from sim.render import make_render_scene
+    from sim.water import PRESET_ORDER, PRESETS, apply_water
+
+    rs = make_render_scene(DockingStationConfig(tank_depth_m=12.0))
+    ms = rs.ds.marker_set
+    detector = Detector(DetectorConfig(ids=ms.ids))
+    # cam_cv: x = DS +y, y = DS -x, z = down (DS frame is NED-like with z down)
+    R_ds_cam = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    counts = {p: [] for p in PRESET_ORDER}
+    truth = []
+    for alt in altitudes:
+        T_world_cam = rs.ds.T_worldned_ds @ make_T(R_ds_cam, [0.0, 0.0, -float(alt)])
+        res = rs.render(T_worldned_camcv=T_world_cam)
+        truth.append(sum(p.visible for p in rs.ground_truth(res).values()))
+        for name in PRESET_ORDER:
+            n = []
+            for d in range(draws):
+                rng = np.random.default_rng([seed, d, int(alt * 10)])
+                img = apply_water(res.rgb, res.range_m, PRESETS[name], rng)
+                n.append(len(detector.detect(cv2.cvtColor(img, cv2.COLOR_RGB2BGR))))
+            counts[name].append(statistics.median(n))
+    rows = []
+    for name in PRESET_ORDER:
+        c = np.asarray(counts[name])
+
+        def max_alt(k: int, c=c) -> float | None:
+            ok = altitudes[c >= k]
+            return float(ok.max()) if ok.size else None
+
+        rows.append(
+            {
+                "water": name,
+                "max_alt_3_markers_m": max_alt(3),
+                "max_alt_1_marker_m": max_alt(1),
+                "detected_by_altitude": " ".join(f"{v:g}" for v in c),
+            }
+        )
+    rows.append(
+        {
+            "water": "(visible)",
+            "max_alt_3_markers_m": None,
+            "max_alt_1_marker_m": None,
+            "detected_by_altitude": " ".join(str(v) for v in truth),
+        }
+    )
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--quick", action="store_true", help="fewer runs and poses (~1 min)")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+    cv2.setNumThreads(1)
+    quick = args.quick
+    config = {
+        "quick": quick,
+        "seed": args.seed,
+        "physics_steps": 100 if quick else 300,
+        "physics_runs": 3 if quick else 7,
+        "render_poses": 5 if quick else 16,
+        "render_repeats": 2 if quick else 5,
+        "loop_poses": 5 if quick else 24,
+        "loop_repeats": 1 if quick else 3,
+        "range_step_m": 1.0 if quick else 0.5,
+        "range_draws": 1 if quick else 5,
+        "lp_num_threads": os.environ.get("LP_NUM_THREADS"),
+        "opencv_threads": 1,
+    }
+    t0 = time.perf_counter()
+    rows: list[dict] = []
+
+    phys = bench_physics(config["physics_steps"], config["physics_runs"], args.seed)
+    print("\n(a) Physics, no camera (300 Hz physics, 5 Hz control, one process)")
+    cols = ["what", "steps_per_s", "min", "max", "ms_per_step", "fast_share"]
+    print(format_table(phys, cols))
+    rows += [{"section": "physics", **r} for r in phys]
+
+    rend = bench_render(config["render_poses"], config["render_repeats"], args.seed)
+    print("\n(b) Render per frame, CPU (lavapipe), aimed poses 1-6 m; water = coastal preset")
+    print(
+        format_table(
+            rend,
+            ["resolution", "render_ms", "render_ms_min", "water_ms", "render_water_ms",
+             "frames_per_s"],
+        )
+    )  # fmt: skip
+    rows += [{"section": "render", **r} for r in rend]
+
+    physics_ms = phys[0]["ms_per_step"]
+    loop = bench_loop(config["loop_poses"], config["loop_repeats"], args.seed, physics_ms)
+    print(
+        f"\n(c) Camera in the loop per control step (+ {physics_ms:.1f} ms env physics step); "
+        "coastal water, default pipeline"
+    )
+    print(
+        format_table(
+            loop,
+            ["width", "render_ms", "water_ms", "detect_ms", "pnp_ms", "camera_ms",
+             "control_steps_per_s", "pose_rate"],
+        )
+    )  # fmt: skip
+    rows += [{"section": "camera_loop", **r} for r in loop]
+
+    altitudes = np.arange(1.0, 10.0 + 1e-9, config["range_step_m"])
+    rng_rows = bench_range(altitudes, config["range_draws"], args.seed)
+    print(
+        "\n(d) Detection range, 968x732 straight above the DS origin (altitude above the DS "
+        f"floor; counts = median decoded markers at {altitudes[0]:g}..{altitudes[-1]:g} m)"
+    )
+    print(
+        format_table(
+            rng_rows, ["water", "max_alt_3_markers_m", "max_alt_1_marker_m", "detected_by_altitude"]
+        )
+    )
+    rows += [{"section": "range", **r} for r in rng_rows]
+    path = save_results("sim", rows, config)
+    print(f"\nwrote {path} in {time.perf_counter() - t0:.0f} s")
+
+
+if __name__ == "__main__":
+    main()

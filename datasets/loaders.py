@@ -1,0 +1,201 @@
+"""Loaders: labelled datasets (``datasets synth`` / ``sim render`` output) and plain footage.
+
+* :class:`LabelledDataset`: a ``uwdock.dataset`` folder (format in :mod:`perception.groundtruth`),
+  validated on open; ``len``, indexing and iteration give :class:`Sample` (image + ground truth),
+  with the camera model, ``T_body_cam`` and the marker set.
+* :class:`FootageSource`: an image folder, a single image or a video, iterable any number of
+  times; a thin wrapper over :func:`perception.video.open_frames`.
+* :func:`load_poses_csv`: vehicle poses to render (``sim render --poses``).
+
+Example:
+    >>> ds = LabelledDataset("data/synth_coastal")
+    >>> for s in ds:
+    ...     detections = detector.detect(s.image)          # BGR uint8
+    ...     s.truth.T_cam_ds, s.truth.visible_ids
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from calibration.camera import CameraModel, load_camera
+from calibration.frames import R_from_quat_wxyz, R_from_rpy, make_T
+from dockcore.errors import DockError
+from markers.markerset import MarkerSet, load_marker_set
+from perception.groundtruth import FrameTruth, load_dataset
+from perception.video import FrameSource, open_frames, read_image
+
+__all__ = ["FootageSource", "LabelledDataset", "Sample", "load_poses_csv"]
+
+
+@dataclass(frozen=True)
+class Sample:
+    """One labelled frame.
+
+    Attributes:
+        index: position in the dataset (0..len-1).
+        image: (H, W, 3) uint8 BGR image (as ``cv2.imread`` gives it).
+        truth: the frame's ground truth (``T_cam_ds``, marker corners and visibility, water).
+        path: the image file.
+    """
+
+    index: int
+    image: np.ndarray
+    truth: FrameTruth
+    path: Path
+
+
+class LabelledDataset:
+    """A labelled dataset folder, opened and validated.
+
+    Args:
+        path: the dataset folder (holding ``dataset.json``).
+
+    Raises:
+        DockError: one line on a missing or malformed ``dataset.json``, a wrong format or
+            version, missing files, malformed labels, an unreadable camera or marker set file,
+            or a labelled image missing from the folder.
+    """
+
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        raw = load_dataset(path)
+        self.root: Path = raw.root
+        self.manifest: dict[str, Any] = raw.manifest
+        self.camera: CameraModel
+        self.camera, T_body_cam = load_camera(raw.camera_path)
+        self.T_body_cam: np.ndarray | None = T_body_cam
+        self.marker_set: MarkerSet = load_marker_set(raw.marker_set_path)
+        self.images_dir: Path = raw.images_dir
+        self.frames: list[FrameTruth] = [raw.frames[k] for k in sorted(raw.frames)]
+        for ft in self.frames:
+            if ft.image is None:
+                raise DockError(f"{self.root}: frame {ft.frame} names no image")
+            if not (self.root / ft.image).is_file():
+                raise DockError(f"{self.root}: frame {ft.frame}: image {ft.image} is missing")
+
+    @property
+    def config(self) -> dict[str, Any]:
+        """The generator config recorded in ``dataset.json``."""
+        return dict(self.manifest.get("config") or {})
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def image_path(self, index: int) -> Path:
+        """The image file of the ``index``-th frame."""
+        return self.root / str(self.frames[index].image)
+
+    def __getitem__(self, index: int) -> Sample:
+        if not -len(self) <= index < len(self):
+            raise IndexError(f"frame index {index} out of range (dataset has {len(self)})")
+        index %= len(self)
+        path = self.image_path(index)
+        image = read_image(path)
+        if image is None:
+            raise DockError(f"cannot read image {path} (corrupt or not an image)")
+        return Sample(index, image, self.frames[index], path)
+
+    def __iter__(self) -> Iterator[Sample]:
+        for index in range(len(self)):
+            yield self[index]
+
+    def __repr__(self) -> str:
+        return f"LabelledDataset({str(self.root)!r}, frames={len(self)})"
+
+
+class FootageSource:
+    """Real footage: a folder of images, one image or a video file (see
+    :func:`perception.video.open_frames`). Each iteration reopens the input.
+
+    Args:
+        path: the input.
+
+    Raises:
+        DockError: one line when the input is missing, empty or unreadable as a whole.
+    """
+
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        self.path = Path(path)
+        probe = open_frames(self.path)
+        self.kind: str = probe.kind
+        self.total: int | None = probe.total
+        self.fps: float | None = probe.fps
+        self._close(probe)
+
+    @staticmethod
+    def _close(source: FrameSource) -> None:
+        cap = getattr(source, "_cap", None)
+        if cap is not None:
+            cap.release()
+
+    def __len__(self) -> int:
+        """Frames expected (a video container's count may be wrong; 0 when unknown)."""
+        return int(self.total or 0)
+
+    def __iter__(self) -> Iterator[tuple[int, str, np.ndarray | None]]:
+        """``(index, name, BGR or grey image, or None for a corrupt frame)``."""
+        yield from open_frames(self.path)
+
+    def __repr__(self) -> str:
+        return f"FootageSource({str(self.path)!r}, kind={self.kind!r}, frames={self.total})"
+
+
+def load_poses_csv(path: str | os.PathLike[str]) -> np.ndarray:
+    """Vehicle poses (N, 4, 4) ``T_world_body`` from a CSV.
+
+    Columns (header required, extra columns ignored): ``x_m, y_m, z_m`` (body origin in world
+    NED: x north, y east, z down from the surface; the DS origin is at (0, 0, 4.98) by default)
+    and either ``qw, qx, qy, qz`` (body FRD orientation, normalised on load) or ``roll_deg,
+    pitch_deg, yaw_deg`` (ZYX Euler angles of body FRD in world NED). One frame per row.
+
+    Raises:
+        DockError: one line naming the file and line on a missing file, missing columns, a
+            non-numeric value or no rows.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise DockError(f"poses file not found: {path}") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DockError(f"cannot read poses file {path}: {exc}") from None
+    reader = csv.DictReader(text.splitlines())
+    header = [h.strip() for h in reader.fieldnames or []]
+    reader.fieldnames = header
+    quat, euler = ("qw", "qx", "qy", "qz"), ("roll_deg", "pitch_deg", "yaw_deg")
+    rot = quat if all(c in header for c in quat) else euler
+    need = ("x_m", "y_m", "z_m", *rot)
+    missing = [c for c in need if c not in header]
+    if missing:
+        raise DockError(
+            f"{path} line 1: missing column(s) {', '.join(missing)} (need x_m,y_m,z_m and "
+            "qw,qx,qy,qz or roll_deg,pitch_deg,yaw_deg)"
+        )
+    poses = []
+    for row in reader:
+        where = f"{path} line {reader.line_num}"
+        try:
+            v = [float(str(row[c]).strip()) for c in need]
+        except (TypeError, ValueError):
+            raise DockError(f"{where}: non-numeric value") from None
+        if not all(math.isfinite(x) for x in v):
+            raise DockError(f"{where}: non-finite value")
+        if rot is quat:
+            q = np.array(v[3:7])
+            if np.linalg.norm(q) < 1e-9:
+                raise DockError(f"{where}: zero quaternion")
+            R = R_from_quat_wxyz(q / np.linalg.norm(q))
+        else:
+            R = R_from_rpy(*np.radians(v[3:6]))
+        poses.append(make_T(R, v[:3]))
+    if not poses:
+        raise DockError(f"{path}: no pose rows")
+    return np.stack(poses)

@@ -1,0 +1,638 @@
+"""Labelled synthetic datasets: render the docking station from random AUV poses, apply water,
+write images and ground truth in the ``uwdock.dataset`` format (see :mod:`perception.groundtruth`).
+
+Poses (:func:`sample_pose`). Each frame is either
+
+* *aimed* (probability ``aimed_fraction``, default 80 %): the DS origin is put on a random pixel
+  (uniform over the image minus a margin) at a random range (``aimed_range_m``) from a camera
+  whose optical axis is tilted up to ``aimed_tilt_max_deg`` from straight down (vehicle roll and
+  pitch), any yaw; so the DS is in view, or at least its origin is;
+* *uniform*: the AUV origin uniform within +-``uniform_range_m`` of the point
+  ``uniform_height_m`` above the DS origin (the env's spawn box), any yaw, a small tilt.
+
+A pose is redrawn (up to 200 times) when the camera would be above the water surface (less than
+``min_depth_m`` deep), less than ``min_height_m`` above the DS floor, or the vehicle outside the
+tank; so aimed ranges that the tank cannot hold (e.g. 6 m straight down in a 5 m tank) come out
+as oblique views.
+
+Determinism: frame k draws everything (pose, random water, sensor noise) from
+``np.random.default_rng(SeedSequence([seed, k]))``; the frame's output depends only on
+``(config, k)``, so any number of worker processes gives byte-identical files. (A
+``SeedSequence`` of the pair rather than ``seed + k``: datasets with seeds 0 and 1 share no frame.)
+
+Crash safety and resume: a frame's image is written (atomic rename) before its label, which goes
+to its own file ``.partial/<k>.json`` (atomic rename). A frame counts as done when its image and
+its label (a partial file or a line of an existing ``labels.jsonl``) both exist; a rerun renders
+only the missing frames, then ``labels.jsonl`` is assembled atomically in frame order, the
+partial files removed, and ``dataset.json`` written last (its presence marks a complete dataset;
+it is removed when a run starts). A rerun with another config (other than ``n_frames``) is refused.
+
+Example:
+    >>> cfg = SynthConfig(n_frames=200, water="coastal")
+    >>> result = generate("data/synth_coastal", cfg, workers=2)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import multiprocessing as mp
+import os
+import re
+import shutil
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import ArrayLike
+from scipy.spatial.transform import Rotation
+
+from calibration.camera import REFERENCE_T_BODYFRD_CAMCV, CameraModel, load_camera, save_camera
+from calibration.frames import R_from_rpy, check_T, inv_T, make_T
+from dockcore.config import from_dict, to_dict
+from dockcore.errors import DockError
+from dockcore.io import atomic_path, atomic_write_bytes, atomic_write_json, ensure_writable_dir
+from dockcore.provenance import write_provenance
+from markers.markerset import MarkerSet, save_marker_set
+from perception.groundtruth import (
+    FrameTruth,
+    MarkerTruth,
+    frame_truth_to_json,
+    range_m,
+    view_angle_deg,
+    write_dataset_json,
+)
+from sim.docking_station import DockingStationConfig, resolve_marker_set
+from sim.render import RenderConfig
+from sim.water import PRESETS, WaterConfig, WaterRandomisation
+
+__all__ = [
+    "PoseSamplingConfig",
+    "SynthConfig",
+    "SynthResult",
+    "frame_rng",
+    "generate",
+    "resolve_camera",
+    "sample_pose",
+]
+
+#: Image and partial-label names of frame k.
+IMAGE_NAME = "{:06d}.png"
+_IMAGE_RE = re.compile(r"^(\d{6})\.png$")
+_PARTIAL = ".partial"
+_STATE = ".synth.json"
+_MAX_DRAWS = 200
+
+
+@dataclass(frozen=True)
+class PoseSamplingConfig:
+    """How vehicle poses are drawn (module docstring).
+
+    Attributes:
+        aimed_fraction: probability that a frame is aimed at the DS (-), in [0, 1].
+        aimed_range_m: (lo, hi) uniform distance camera -> DS origin of aimed frames (m).
+        aimed_tilt_max_deg: largest tilt of the optical axis from straight down (deg); the tilt
+            is uniform over the spherical cap (vehicle roll/pitch).
+        aimed_image_margin: the DS origin's pixel is uniform over the image shrunk by this
+            fraction of its width/height on every side (-), in [0, 0.5).
+        uniform_range_m: (x, y, z) half-widths of the box around the nominal AUV position (m).
+        uniform_height_m: nominal height of the AUV origin above the DS floor (m).
+        uniform_tilt_max_deg: largest roll/pitch tilt of uniform frames (deg).
+        min_depth_m: the camera stays at least this deep below the water surface (m).
+        min_height_m: the camera stays at least this high above the DS floor (m).
+        tank_margin_m: the AUV origin stays this far inside the tank walls (m).
+    """
+
+    aimed_fraction: float = 0.8
+    aimed_range_m: tuple[float, float] = (1.0, 6.0)
+    aimed_tilt_max_deg: float = 25.0
+    aimed_image_margin: float = 0.1
+    uniform_range_m: tuple[float, float, float] = (6.0, 3.0, 1.4)
+    uniform_height_m: float = 3.3
+    uniform_tilt_max_deg: float = 5.0
+    min_depth_m: float = 0.3
+    min_height_m: float = 0.3
+    tank_margin_m: float = 0.8
+
+    def validate(self) -> None:
+        """Raise ValueError naming the first invalid field."""
+        if not 0.0 <= self.aimed_fraction <= 1.0:
+            raise ValueError(f"aimed_fraction: must be in [0, 1], got {self.aimed_fraction}")
+        lo, hi = self.aimed_range_m
+        if not 0.0 < lo <= hi:
+            raise ValueError(f"aimed_range_m: need 0 < lo <= hi, got {self.aimed_range_m}")
+        for name in ("aimed_tilt_max_deg", "uniform_tilt_max_deg"):
+            if not 0.0 <= getattr(self, name) < 90.0:
+                raise ValueError(f"{name}: must be in [0, 90), got {getattr(self, name)}")
+        if not 0.0 <= self.aimed_image_margin < 0.5:
+            raise ValueError(
+                f"aimed_image_margin: must be in [0, 0.5), got {self.aimed_image_margin}"
+            )
+        if min(self.uniform_range_m) < 0.0:
+            raise ValueError(f"uniform_range_m: must be >= 0, got {self.uniform_range_m}")
+        for name in ("min_depth_m", "min_height_m", "tank_margin_m"):
+            if getattr(self, name) < 0.0:
+                raise ValueError(f"{name}: must be >= 0, got {getattr(self, name)}")
+
+
+@dataclass(frozen=True)
+class SynthConfig:
+    """A synthetic labelled dataset.
+
+    Attributes:
+        n_frames: number of frames (>= 1).
+        seed: base seed (>= 0); frame k uses ``SeedSequence([seed, k])``.
+        water: a water preset name (``sim.water.PRESETS``), "random" (a fresh
+            :class:`WaterRandomisation` draw per frame) or "none" (the clean render).
+        water_randomisation: ranges of the per-frame draw when ``water = "random"``.
+        camera_file: camera YAML/JSON (intrinsics and ``T_body_cam``; a file without
+            ``T_body_cam`` gets the reference extrinsics); None: the reference downward camera.
+        width_px: render width (px; the height keeps the aspect ratio, intrinsics scaled);
+            0 keeps the camera's size.
+        marker_set_path: marker set file (with render meshes); None: the default DS set.
+        occlusion_tol_m: a marker corner is occluded when the rendered surface along its ray is
+            nearer than the corner by more than this (m).
+        poses: how poses are drawn.
+        render: renderer and lamp.
+    """
+
+    n_frames: int = 100
+    seed: int = 0
+    water: str = "random"
+    water_randomisation: WaterRandomisation = field(default_factory=WaterRandomisation)
+    camera_file: str | None = None
+    width_px: int = 0
+    marker_set_path: str | None = None
+    occlusion_tol_m: float = 0.03
+    poses: PoseSamplingConfig = field(default_factory=PoseSamplingConfig)
+    render: RenderConfig = field(default_factory=RenderConfig)
+
+    def validate(self) -> None:
+        """Raise ValueError naming the first invalid field."""
+        if isinstance(self.n_frames, bool) or self.n_frames < 1:
+            raise ValueError(f"n_frames: must be >= 1, got {self.n_frames}")
+        if self.seed < 0:
+            raise ValueError(f"seed: must be >= 0, got {self.seed}")
+        if self.water not in (*PRESETS, "random", "none"):
+            raise ValueError(
+                f"water: unknown preset {self.water!r}; known: {', '.join(PRESETS)}, random, none"
+            )
+        if self.width_px < 0 or 0 < self.width_px < 16:
+            raise ValueError(f"width_px: must be 0 or >= 16, got {self.width_px}")
+        if self.occlusion_tol_m < 0.0:
+            raise ValueError(f"occlusion_tol_m: must be >= 0, got {self.occlusion_tol_m}")
+
+
+@dataclass(frozen=True)
+class SynthResult:
+    """What :func:`generate` did.
+
+    Attributes:
+        out_dir: the dataset folder.
+        frames: frames in the dataset.
+        rendered: frame indices rendered by this run (ascending).
+        seconds: wall time of the run (s).
+    """
+
+    out_dir: Path
+    frames: int
+    rendered: tuple[int, ...]
+    seconds: float
+
+
+# ----------------------------------------------------------------------------- poses
+
+
+def frame_rng(seed: int, k: int) -> np.random.Generator:
+    """The generator of frame ``k`` (pose, water draw, sensor noise)."""
+    return np.random.default_rng(np.random.SeedSequence([int(seed), int(k)]))
+
+
+def _tilted_yaw(rng: np.random.Generator, tilt_max_deg: float) -> np.ndarray:
+    """(3, 3) R_world_body: any yaw, then a tilt uniform over the cap about a random horizontal
+    axis."""
+    yaw = rng.uniform(-math.pi, math.pi)
+    cos_t = rng.uniform(math.cos(math.radians(tilt_max_deg)), 1.0)
+    tilt, azimuth = math.acos(cos_t), rng.uniform(-math.pi, math.pi)
+    axis = np.array([math.cos(azimuth), math.sin(azimuth), 0.0])
+    return Rotation.from_rotvec(tilt * axis).as_matrix() @ R_from_rpy(0.0, 0.0, yaw)
+
+
+def _aimed(
+    cfg: PoseSamplingConfig,
+    rng: np.random.Generator,
+    camera: CameraModel,
+    T_body_cam: np.ndarray,
+    T_world_ds: np.ndarray,
+) -> np.ndarray:
+    R_world_cam = _tilted_yaw(rng, cfg.aimed_tilt_max_deg) @ T_body_cam[:3, :3]
+    m = cfg.aimed_image_margin
+    uv = np.array(
+        [
+            rng.uniform(m * camera.width_px, (1 - m) * camera.width_px) - 0.5,
+            rng.uniform(m * camera.height_px, (1 - m) * camera.height_px) - 0.5,
+        ]
+    )
+    xy = cv2.undistortPoints(uv.reshape(1, 1, 2), camera.K, camera.dist_coeffs).reshape(2)
+    ray_cam = np.array([xy[0], xy[1], 1.0]) / math.hypot(xy[0], xy[1], 1.0)
+    r = rng.uniform(*cfg.aimed_range_m)
+    T_world_cam = make_T(R_world_cam, T_world_ds[:3, 3] - r * (R_world_cam @ ray_cam))
+    return T_world_cam @ inv_T(T_body_cam)
+
+
+def _uniform(
+    cfg: PoseSamplingConfig, rng: np.random.Generator, T_world_ds: np.ndarray
+) -> np.ndarray:
+    half = np.asarray(cfg.uniform_range_m, np.float64)
+    centre = T_world_ds[:3, 3] - np.array([0.0, 0.0, cfg.uniform_height_m])
+    return make_T(_tilted_yaw(rng, cfg.uniform_tilt_max_deg), centre + rng.uniform(-half, half))
+
+
+def sample_pose(
+    cfg: PoseSamplingConfig,
+    rng: np.random.Generator,
+    camera: CameraModel,
+    T_body_cam: ArrayLike,
+    T_world_ds: ArrayLike,
+    tank_size_m: tuple[float, float, float] = (19.0, 9.0, 5.0),
+) -> tuple[np.ndarray, str]:
+    """Draw one vehicle pose (module docstring).
+
+    Args:
+        cfg: sampling ranges.
+        rng: the frame's generator.
+        camera: intrinsics (the aimed pixel is drawn inside its image).
+        T_body_cam: (4, 4) camera extrinsics ``T_bodyfrd_camcv``.
+        T_world_ds: (4, 4) DS pose in world NED (origin on its floor).
+        tank_size_m: tank length, width, depth (m); world origin at the surface above its centre.
+
+    Returns:
+        ``(T_world_body, kind)``: (4, 4) body FRD in world NED and "aimed" or "uniform".
+    """
+    T_bc = check_T(T_body_cam, "T_body_cam")
+    T_wd = check_T(T_world_ds, "T_world_ds")
+    kind = "aimed" if rng.random() < cfg.aimed_fraction else "uniform"
+    hx = tank_size_m[0] / 2 - cfg.tank_margin_m
+    hy = tank_size_m[1] / 2 - cfg.tank_margin_m
+    T_wb = np.eye(4)
+    for _ in range(_MAX_DRAWS):
+        if kind == "aimed":
+            T_wb = _aimed(cfg, rng, camera, T_bc, T_wd)
+        else:
+            T_wb = _uniform(cfg, rng, T_wd)
+        cam_z = (T_wb @ T_bc)[2, 3]
+        if (
+            cam_z >= cfg.min_depth_m
+            and T_wd[2, 3] - cam_z >= cfg.min_height_m
+            and abs(T_wb[0, 3]) <= hx
+            and abs(T_wb[1, 3]) <= hy
+        ):
+            break
+    return T_wb, kind
+
+
+# ----------------------------------------------------------------------------- setup
+
+
+def resolve_camera(cfg: SynthConfig) -> tuple[CameraModel, np.ndarray]:
+    """The camera model (scaled to ``cfg.width_px``) and ``T_body_cam`` of a config."""
+    if cfg.camera_file is not None:
+        camera, T_body_cam = load_camera(cfg.camera_file)
+        if T_body_cam is None:
+            T_body_cam = np.array(REFERENCE_T_BODYFRD_CAMCV)
+    else:
+        from calibration.camera import reference_camera
+
+        camera, T_body_cam = reference_camera(), np.array(REFERENCE_T_BODYFRD_CAMCV)
+    if cfg.width_px and cfg.width_px != camera.width_px:
+        height = max(1, round(camera.height_px * cfg.width_px / camera.width_px))
+        camera = camera.scaled(cfg.width_px, height)
+    return camera, np.asarray(T_body_cam, np.float64)
+
+
+def _ds_config(cfg: SynthConfig) -> DockingStationConfig:
+    return DockingStationConfig(marker_set_path=cfg.marker_set_path)
+
+
+def _water_for_frame(cfg: SynthConfig, rng: np.random.Generator) -> tuple[WaterConfig | None, dict]:
+    if cfg.water == "none":
+        return None, {}
+    w = cfg.water_randomisation.sample(rng) if cfg.water == "random" else PRESETS[cfg.water]
+    return w, {"preset": cfg.water, **to_dict(w)}
+
+
+#: Render scenes of this process by scene key (camera, extrinsics, marker set, renderer), kept
+#: alive on purpose: building one is cheap, but once the last SAPIEN scene is gone the renderer
+#: drops its compiled pipelines, and the next first picture recompiles them (~6 s on lavapipe).
+_SCENES: dict[str, Any] = {}
+_MAX_SCENES = 3
+
+
+def _render_scene(cfg: SynthConfig, camera: CameraModel, T_body_cam: np.ndarray) -> Any:
+    """The cached render scene for ``cfg``'s camera, marker set and renderer settings."""
+    from sim.render import make_render_scene
+
+    key = json.dumps(
+        [to_dict(camera), T_body_cam.tolist(), cfg.marker_set_path, to_dict(cfg.render)],
+        sort_keys=True,
+    )
+    rs = _SCENES.get(key)
+    if rs is None:
+        rs = make_render_scene(
+            _ds_config(cfg),
+            camera_model=camera,
+            T_bodyfrd_camcv=T_body_cam,
+            render_cfg=cfg.render,
+        )
+        while len(_SCENES) >= _MAX_SCENES:  # evict the oldest; at least one stays alive
+            _SCENES.pop(next(iter(_SCENES)))
+        _SCENES[key] = rs
+    return rs
+
+
+class FrameRenderer:
+    """Renders and labels single frames of a config (the scene is built once per process).
+
+    Args:
+        cfg: the dataset config.
+        poses: optional (N, 4, 4) vehicle poses; frame k then uses ``poses[k]`` instead of a draw.
+    """
+
+    def __init__(self, cfg: SynthConfig, poses: np.ndarray | None = None) -> None:
+        self.cfg = cfg
+        self.poses = poses
+        self.camera, self.T_body_cam = resolve_camera(cfg)
+        ds_cfg = _ds_config(cfg)
+        self.tank_size_m = (ds_cfg.tank_length_m, ds_cfg.tank_width_m, ds_cfg.tank_depth_m)
+        self.rs = _render_scene(cfg, self.camera, self.T_body_cam)
+        self.T_world_ds = self.rs.ds.T_worldned_ds.copy()
+
+    def pose(self, k: int, rng: np.random.Generator) -> np.ndarray:
+        """(4, 4) T_world_body of frame k (drawn from ``rng`` unless poses were given)."""
+        if self.poses is not None:
+            return np.array(self.poses[k], np.float64)
+        T, _ = sample_pose(
+            self.cfg.poses, rng, self.camera, self.T_body_cam, self.T_world_ds, self.tank_size_m
+        )
+        return T
+
+    def frame(self, k: int) -> tuple[np.ndarray, dict[str, Any]]:
+        """Render frame k: (H, W, 3) uint8 BGR image and its ``labels.jsonl`` object."""
+        from sim.render import project_markers
+        from sim.water import apply_water
+
+        rng = frame_rng(self.cfg.seed, k)
+        T_world_body = self.pose(k, rng)
+        water, water_label = _water_for_frame(self.cfg, rng)
+        res = self.rs.render(T_world_body)
+        rgb = res.rgb if water is None else apply_water(res.rgb, res.range_m, water, rng)
+        T_cam_ds = inv_T(res.T_worldned_camcv) @ self.T_world_ds
+        proj = project_markers(
+            self.camera, T_cam_ds, self.rs.ds.marker_set, res.range_m, self.cfg.occlusion_tol_m
+        )
+        markers = tuple(
+            MarkerTruth(p.marker_id, p.corners_px, p.in_image, p.visible)
+            for p in sorted(proj.values(), key=lambda p: p.marker_id)
+        )
+        truth = FrameTruth(
+            frame=k,
+            T_cam_ds=T_cam_ds,
+            image=f"images/{IMAGE_NAME.format(k)}",
+            T_world_body=T_world_body,
+            range_m=range_m(T_cam_ds),
+            view_angle_deg=view_angle_deg(T_cam_ds),
+            water=water_label or None,
+            markers=markers,
+        )
+        return cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), frame_truth_to_json(truth)
+
+    def write(self, out_dir: Path, k: int) -> int:
+        """Render frame k and write its image, then its partial label (both atomically)."""
+        bgr, label = self.frame(k)
+        ok, png = cv2.imencode(".png", bgr)
+        if not ok:  # pragma: no cover - OpenCV encodes any uint8 BGR image
+            raise DockError(f"PNG encoding of frame {k} failed")
+        atomic_write_bytes(out_dir / "images" / IMAGE_NAME.format(k), png.tobytes())
+        atomic_write_text_line(out_dir / _PARTIAL / f"{k:06d}.json", label)
+        return k
+
+
+def atomic_write_text_line(path: Path, obj: dict[str, Any]) -> None:
+    """Write ``obj`` as one compact JSON line (the ``labels.jsonl`` encoding), atomically."""
+    with atomic_path(path) as tmp:
+        tmp.write_text(_jsonl_line(obj), encoding="utf-8")
+
+
+def _jsonl_line(obj: dict[str, Any]) -> str:
+    return json.dumps(obj, separators=(",", ":")) + "\n"
+
+
+# ----------------------------------------------------------------------------- workers
+
+
+def _worker_frame(args: tuple[dict[str, Any], str, list | None, int]) -> int:
+    """Pool task: render frame k (the worker process keeps its scene, see ``_SCENES``)."""
+    cfg_dict, out_dir, poses, k = args
+    cfg = from_dict(SynthConfig, cfg_dict)
+    renderer = FrameRenderer(cfg, None if poses is None else np.asarray(poses))
+    return renderer.write(Path(out_dir), k)
+
+
+# ----------------------------------------------------------------------------- the run
+
+
+def _read_jsonl_lenient(path: Path) -> dict[int, str]:
+    """frame -> line of an existing labels.jsonl (lines that do not parse are dropped)."""
+    out: dict[int, str] = {}
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except (OSError, UnicodeDecodeError):
+        return out
+    for line in lines:
+        try:
+            obj = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if isinstance(obj, dict) and isinstance(obj.get("frame"), int):
+            out[obj["frame"]] = line.strip() + "\n"
+    return out
+
+
+def _state(cfg: SynthConfig, poses: np.ndarray | None) -> dict[str, Any]:
+    """What must match for a resume: the config without n_frames, and the given poses."""
+    digest = None
+    if poses is not None:
+        digest = hashlib.sha1(np.ascontiguousarray(poses, np.float64).tobytes()).hexdigest()
+    return {"config": {**to_dict(cfg), "n_frames": None}, "poses_sha1": digest}
+
+
+def _changed_keys(a: Any, b: Any, prefix: str = "") -> list[str]:
+    """Dotted keys whose values differ between two JSON objects (``config.`` prefix dropped)."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        out = []
+        for k in sorted(set(a) | set(b), key=str):
+            out += _changed_keys(a.get(k), b.get(k), f"{prefix}{k}.")
+        return out
+    key = prefix.rstrip(".").removeprefix("config.")
+    return [] if a == b else [key.replace("poses_sha1", "poses")]
+
+
+def _check_resume(out_dir: Path, state: dict[str, Any]) -> None:
+    path = out_dir / _STATE
+    if not path.is_file():
+        ours = (out_dir / "labels.jsonl", out_dir / _PARTIAL)
+        images = out_dir / "images"
+        if any(p.exists() for p in ours) or (images.is_dir() and any(images.glob("*.png"))):
+            raise DockError(
+                f"{out_dir} holds frames of unknown origin (no {_STATE}); use a new --out"
+            )
+        return
+    try:
+        old = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, json.JSONDecodeError) as exc:
+        raise DockError(f"{path}: unreadable ({exc}); use a new --out") from None
+    new = json.loads(json.dumps(state))
+    if old != new:
+        changed = _changed_keys(old, new)
+        raise DockError(
+            f"{out_dir} holds a dataset made with another config (differs in "
+            f"{', '.join(changed[:4]) or 'format'}); use a new --out (or the same settings "
+            "to resume)"
+        )
+
+
+def _prepare(out_dir: Path, cfg: SynthConfig, camera: CameraModel, T_body_cam: np.ndarray) -> None:
+    """Camera file, marker set copy (without render meshes), provenance."""
+    save_camera(out_dir / "camera.yaml", camera, T_body_cam)
+    ms = resolve_marker_set(_ds_config(cfg))
+    plain = MarkerSet(
+        tuple(dataclasses.replace(m, render_mesh=None) for m in ms.markers), dict(ms.geometry)
+    )
+    save_marker_set(out_dir / "markerset.toml", plain)
+    write_provenance(out_dir, {"synth": cfg})
+
+
+def _done_frames(out_dir: Path, n: int, old_lines: dict[int, str]) -> set[int]:
+    images = out_dir / "images"
+    partial = out_dir / _PARTIAL
+    done = set()
+    for k in range(n):
+        if not (images / IMAGE_NAME.format(k)).is_file():
+            continue
+        if k in old_lines or (partial / f"{k:06d}.json").is_file():
+            done.add(k)
+    return done
+
+
+def _assemble(out_dir: Path, n: int, old_lines: dict[int, str]) -> None:
+    """labels.jsonl from the partial files and the old lines, in frame order; cleanup."""
+    partial = out_dir / _PARTIAL
+    with atomic_path(out_dir / "labels.jsonl") as tmp, tmp.open("w", encoding="utf-8") as fh:
+        for k in range(n):
+            p = partial / f"{k:06d}.json"
+            fh.write(p.read_text(encoding="utf-8") if p.is_file() else old_lines[k])
+    shutil.rmtree(partial, ignore_errors=True)
+    for p in (out_dir / "images").iterdir():  # frames beyond n from an earlier, longer run
+        match = _IMAGE_RE.match(p.name)
+        if match and int(match.group(1)) >= n:
+            p.unlink()
+
+
+def _render_all(
+    out_dir: Path,
+    cfg: SynthConfig,
+    todo: Sequence[int],
+    workers: int,
+    poses: np.ndarray | None,
+    on_frame: Callable[[int], None],
+) -> None:
+    if not todo:
+        return
+    if workers <= 1 or len(todo) == 1:
+        renderer = FrameRenderer(cfg, poses)
+        for k in todo:
+            on_frame(renderer.write(out_dir, k))
+        return
+    # 'spawn': SAPIEN/Vulkan must not be forked after initialisation
+    ctx = mp.get_context("spawn")
+    cfg_dict = to_dict(cfg)
+    pose_list = None if poses is None else np.asarray(poses).tolist()
+    tasks = [(cfg_dict, str(out_dir), pose_list, k) for k in todo]
+    with ctx.Pool(min(workers, len(todo))) as pool:
+        for k in pool.imap_unordered(_worker_frame, tasks, chunksize=1):
+            on_frame(k)
+
+
+def generate(
+    out_dir: str | os.PathLike[str],
+    cfg: SynthConfig,
+    workers: int = 1,
+    poses: ArrayLike | None = None,
+    progress: bool | None = None,
+) -> SynthResult:
+    """Render a labelled dataset into ``out_dir`` (resuming an interrupted run).
+
+    Args:
+        out_dir: the dataset folder (created).
+        cfg: the dataset config (validated).
+        workers: worker processes (1 renders in this process). The output does not depend on it.
+        poses: optional (N, 4, 4) vehicle poses ``T_world_body`` (body FRD in world NED, the DS
+            on the tank floor at the centre, see ``default_T_worldned_ds``); N must equal
+            ``cfg.n_frames``.
+        progress: show a tqdm bar (None: only on a terminal).
+
+    Returns:
+        A :class:`SynthResult`.
+
+    Raises:
+        DockError: an unwritable folder, a folder holding another dataset, bad poses, or a bad
+            camera / marker set file.
+        ValueError: an invalid config.
+    """
+    from tqdm import tqdm
+
+    t0 = time.perf_counter()
+    cfg.validate()
+    if workers < 1:
+        raise DockError(f"workers: must be >= 1, got {workers}")
+    pose_arr = None
+    if poses is not None:
+        pose_arr = np.asarray(poses, np.float64)
+        if pose_arr.shape != (cfg.n_frames, 4, 4):
+            raise DockError(f"poses: expected ({cfg.n_frames}, 4, 4), got {pose_arr.shape}")
+        for k, T in enumerate(pose_arr):
+            check_T(T, f"poses[{k}]")
+    out = ensure_writable_dir(out_dir)
+    state = _state(cfg, pose_arr)
+    _check_resume(out, state)
+    camera, T_body_cam = resolve_camera(cfg)
+    (out / "dataset.json").unlink(missing_ok=True)  # incomplete until written again
+    atomic_write_json(out / _STATE, state)
+    (out / "images").mkdir(exist_ok=True)
+    (out / _PARTIAL).mkdir(exist_ok=True)
+    _prepare(out, cfg, camera, T_body_cam)
+
+    n = cfg.n_frames
+    old_lines = _read_jsonl_lenient(out / "labels.jsonl")
+    done = _done_frames(out, n, old_lines)
+    todo = [k for k in range(n) if k not in done]
+    rendered: list[int] = []
+    disable = None if progress is None else not progress  # None: tqdm shows it on a tty only
+    with tqdm(total=n, initial=len(done), unit="frame", desc="synth", disable=disable) as bar:
+
+        def on_frame(k: int) -> None:
+            rendered.append(k)
+            bar.update(1)
+
+        _render_all(out, cfg, todo, workers, pose_arr, on_frame)
+    _assemble(out, n, old_lines)
+    write_dataset_json(
+        out, n, config=to_dict(cfg), generator="datasets synth", seed=cfg.seed, water=cfg.water
+    )
+    return SynthResult(out, n, tuple(sorted(rendered)), time.perf_counter() - t0)
