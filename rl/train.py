@@ -30,6 +30,7 @@ from dockcore.errors import DockError
 from dockcore.io import atomic_write_bytes
 from dockcore.provenance import write_provenance
 from rl.config import EnvConfig
+from rl.imitation import ImitationConfig
 
 
 @dataclass(frozen=True)
@@ -106,6 +107,7 @@ class TrainConfig:
         env: the environment.
         ppo: PPO hyperparameters.
         sac: SAC hyperparameters.
+        imitation: teacher-guided warm start before RL (``teacher = "none"``: pure RL).
     """
 
     algo: Literal["ppo", "sac"] = "ppo"
@@ -120,6 +122,7 @@ class TrainConfig:
     env: EnvConfig = field(default_factory=EnvConfig)
     ppo: PPOConfig = field(default_factory=PPOConfig)
     sac: SACConfig = field(default_factory=SACConfig)
+    imitation: ImitationConfig = field(default_factory=lambda: ImitationConfig(teacher="none"))
 
     def validate(self) -> None:
         if self.total_steps <= 0 or self.n_envs < 1:
@@ -288,6 +291,14 @@ def train(
                 gamma=cfg.ppo.gamma,
             )
         model = build_model(cfg, venv, run / "tb")
+        if cfg.imitation.teacher != "none" and not init_policy:
+            from rl.imitation import warm_start
+
+            hist = warm_start(
+                model, vecnorm, cfg.env, cfg.imitation, cfg.seed, cfg.ppo.gamma, progress=progress
+            )
+            atomic_write_bytes(run / "imitation.json", json.dumps(hist).encode())
+            save_checkpoint(model, vecnorm, run, 0)
         if init_policy:
             src = algo_cls.load(init_policy, device="cpu")
             model.policy.load_state_dict(src.policy.state_dict())

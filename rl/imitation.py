@@ -1,0 +1,167 @@
+"""Warm start: DAgger from the classical baseline into the PPO policy, before PPO fine-tuning.
+
+The teacher (:class:`rl.baselines.PIDController`) reads the *same* observation as the student
+(the filtered estimate, whatever the observation source), so imitation needs no privileged
+information. Iteration 0 rolls out the teacher; later iterations roll out the student (its mean
+action) while the teacher labels every visited observation (DAgger), so the student learns to
+recover from its own mistakes. The policy mean is fitted by mean-squared error, its log standard
+deviation is set to ``log_std``; the value network is fitted to the normalised discounted
+returns of the rollouts, so PPO starts with a critic that matches its actor.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from rl.config import EnvConfig
+
+
+@dataclass(frozen=True)
+class ImitationConfig:
+    """Teacher-guided warm start.
+
+    Attributes:
+        teacher: "pid" (the classical baseline) or "none" (pure PPO).
+        iterations: DAgger iterations (the first rolls out the teacher).
+        episodes_per_iteration: episodes collected per iteration.
+        epochs: passes over the aggregated data per iteration.
+        batch_size: minibatch size (transitions).
+        learning_rate: Adam step size of the supervised fit.
+        log_std: the policy's log standard deviation after the warm start (PPO explores from it).
+    """
+
+    teacher: str = "pid"
+    iterations: int = 4
+    episodes_per_iteration: int = 16
+    epochs: int = 30
+    batch_size: int = 512
+    learning_rate: float = 1e-3
+    log_std: float = -1.0
+
+    def validate(self) -> None:
+        if self.teacher not in ("pid", "none"):
+            raise ValueError(f"teacher: must be 'pid' or 'none', got {self.teacher!r}")
+        if self.iterations < 1 or self.episodes_per_iteration < 1:
+            raise ValueError("iterations and episodes_per_iteration must be >= 1")
+
+
+def _discounted(rewards: np.ndarray, gamma: float) -> np.ndarray:
+    out = np.zeros_like(rewards)
+    acc = 0.0
+    for k in range(len(rewards) - 1, -1, -1):
+        acc = rewards[k] + gamma * acc
+        out[k] = acc
+    return out
+
+
+def warm_start(
+    model,
+    vecnorm,
+    env_cfg: EnvConfig,
+    cfg: ImitationConfig,
+    seed: int,
+    gamma: float,
+    progress: bool = True,
+) -> dict[str, list[float]]:
+    """Fit ``model``'s policy (and value) to the teacher by DAgger; updates ``vecnorm``'s stats.
+
+    Returns:
+        Per iteration: the imitation loss and the fraction of docked episodes of the rollouts.
+    """
+    import torch
+    from tqdm import tqdm
+
+    from rl.baselines import PIDController
+    from rl.env import DockingEnv
+
+    env = DockingEnv(env_cfg)
+    limits = np.asarray(env_cfg.wrench_limits) * env_cfg.wrench_scale
+    teacher = PIDController(limits, dt_s=1.0 / env_cfg.control_hz)
+    policy = model.policy
+    obs_all, act_all, ret_all = [], [], []
+    history: dict[str, list[float]] = {"loss": [], "docked": []}
+    bar = tqdm(
+        total=cfg.iterations * cfg.episodes_per_iteration,
+        desc="imitation",
+        unit="ep",
+        disable=not progress,
+    )
+    rms = vecnorm.obs_rms if vecnorm is not None else None
+    ep_seed = seed + 500_000
+    for it in range(cfg.iterations):
+        docked = 0
+        for _ in range(cfg.episodes_per_iteration):
+            obs, _ = env.reset(seed=ep_seed)
+            ep_seed += 1
+            teacher.reset()
+            ep_obs, ep_act, ep_rew = [], [], []
+            done = False
+            while not done:
+                label = teacher.act(obs)
+                if it == 0:
+                    action = label
+                else:
+                    o = vecnorm.normalize_obs(obs[None]) if vecnorm is not None else obs[None]
+                    with torch.no_grad():
+                        dist = policy.get_distribution(torch.as_tensor(o, dtype=torch.float32))
+                        action = np.clip(dist.distribution.mean.numpy()[0], -1, 1)
+                ep_obs.append(obs)
+                ep_act.append(label)
+                obs, r, term, trunc, info = env.step(action)
+                ep_rew.append(r)
+                done = term or trunc
+            docked += int(info["success_paper"])
+            obs_all.append(np.asarray(ep_obs))
+            act_all.append(np.asarray(ep_act))
+            ret_all.append(_discounted(np.asarray(ep_rew), gamma))
+            bar.update(1)
+        X = np.concatenate(obs_all).astype(np.float64)
+        if rms is not None:
+            rms.update(X[-sum(len(o) for o in obs_all[-cfg.episodes_per_iteration :]) :])
+        loss = _fit(model, vecnorm, X, np.concatenate(act_all), np.concatenate(ret_all), cfg)
+        history["loss"].append(loss)
+        history["docked"].append(docked / cfg.episodes_per_iteration)
+        bar.set_postfix(loss=f"{loss:.4f}", docked=f"{docked / cfg.episodes_per_iteration:.2f}")
+    bar.close()
+    env.close()
+    with torch.no_grad():
+        policy.log_std.fill_(cfg.log_std)
+    return history
+
+
+def _fit(
+    model, vecnorm, X: np.ndarray, A: np.ndarray, G: np.ndarray, cfg: ImitationConfig
+) -> float:
+    import torch
+
+    policy = model.policy
+    Xn = vecnorm.normalize_obs(X) if vecnorm is not None else X
+    if vecnorm is not None and vecnorm.norm_reward:
+        # PPO sees rewards divided by the running return std: fit the critic on that scale
+        scale = float(np.std(G)) + 1e-8
+        vecnorm.ret_rms.mean = np.zeros(())
+        vecnorm.ret_rms.var = np.array(scale**2)
+        vecnorm.ret_rms.count = float(len(G))
+        G = G / scale
+    x = torch.as_tensor(Xn, dtype=torch.float32)
+    a = torch.as_tensor(np.clip(A, -1, 1), dtype=torch.float32)
+    g = torch.as_tensor(G, dtype=torch.float32)
+    opt = torch.optim.Adam(policy.parameters(), lr=cfg.learning_rate)
+    n = len(x)
+    gen = torch.Generator().manual_seed(0)
+    last = 0.0
+    for _ in range(cfg.epochs):
+        perm = torch.randperm(n, generator=gen)
+        for k in range(0, n, cfg.batch_size):
+            idx = perm[k : k + cfg.batch_size]
+            dist = policy.get_distribution(x[idx])
+            pi_loss = torch.mean((dist.distribution.mean - a[idx]) ** 2)
+            v_loss = torch.mean((policy.predict_values(x[idx]).squeeze(-1) - g[idx]) ** 2)
+            loss = pi_loss + 0.5 * v_loss
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            last = float(pi_loss)
+    return last
