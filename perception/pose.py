@@ -34,11 +34,13 @@ from dockcore.errors import ConfigError, DockError
 __all__ = [
     "BoardPose",
     "BoardPoseConfig",
+    "LevelBoardPose",
     "MarkerPose",
     "PoseCandidate",
     "T_body_ds",
     "choose_candidate",
     "marker_frame_from_corners",
+    "refine_level_board",
     "reprojection_errors_px",
     "solve_board",
     "solve_marker",
@@ -549,3 +551,84 @@ def solve_board(
         method=method,
         ambiguity_ratio=ambiguity,
     )
+
+
+# --------------------------------------------------------------------------- level DS
+
+
+@dataclass(frozen=True)
+class LevelBoardPose:
+    """DS pose constrained to be level, in a gravity-aligned world frame.
+
+    Attributes:
+        T_world_ds: (4, 4) DS pose in the world (roll = pitch = 0 by construction).
+        covariance: (4, 4) covariance of [x, y, z (m), yaw (rad)] from the fit's Jacobian.
+        reprojection_rms_px: RMS corner reprojection error of the fit (px).
+        used_ids: markers used.
+    """
+
+    T_world_ds: np.ndarray
+    covariance: np.ndarray
+    reprojection_rms_px: float
+    used_ids: tuple[int, ...]
+
+
+def refine_level_board(
+    board: BoardPose,
+    detections: Iterable[Any] | Mapping[int, ArrayLike],
+    object_points: Mapping[int, ArrayLike],
+    K: ArrayLike,
+    dist: ArrayLike | None,
+    T_world_cam: ArrayLike,
+    sigma_floor_px: float = 0.3,
+) -> LevelBoardPose:
+    """Re-solve a board pose with the DS known to be level (4 unknowns: x, y, z, yaw).
+
+    A vehicle knows its roll and pitch well (IMU) and a docking station stands level on the
+    floor: with only a few coplanar markers in view the full 6-DoF PnP leaves the tilt poorly
+    determined (degrees), and the tilt leaks into yaw and position. Fixing the DS's roll and
+    pitch to zero in a gravity-aligned world frame removes that ambiguity.
+
+    Args:
+        board: the unconstrained solution (initial guess and the markers to use).
+        detections, object_points, K, dist: as for :func:`solve_board`.
+        T_world_cam: (4, 4) camera pose (OpenCV frame) in a z-down gravity-aligned world.
+        sigma_floor_px: lower bound of the corner noise used for the covariance (px).
+
+    Returns:
+        The level pose with its covariance.
+    """
+    from scipy.optimize import least_squares
+
+    K, dist = _intrinsics(K, dist)
+    T_wc = check_T(T_world_cam, "T_world_cam")
+    obs = _match(detections, object_points)
+    ids = [i for i in board.used_ids if i in obs]
+    obj, img = _stack(obs, ids)
+    T_cw = inv_T(T_wc)
+    T0 = T_wc @ board.T_cam_ds
+    x0 = np.array([*T0[:3, 3], math.atan2(T0[1, 0], T0[0, 0])])
+
+    def T_cam_ds(x: np.ndarray) -> np.ndarray:
+        c, s = math.cos(x[3]), math.sin(x[3])
+        return T_cw @ make_T(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]), x[:3])
+
+    def residual(x: np.ndarray) -> np.ndarray:
+        T = T_cam_ds(x)
+        rvec, _ = cv2.Rodrigues(T[:3, :3])
+        proj, _ = cv2.projectPoints(obj, rvec, T[:3, 3], K, dist)
+        return (proj.reshape(-1, 2) - img).ravel()
+
+    sol = least_squares(residual, x0, method="lm", x_scale=[0.1, 0.1, 0.1, 0.05])
+    r = sol.fun
+    dof = max(r.size - 4, 1)
+    sigma2 = max(float(r @ r) / dof, sigma_floor_px**2)
+    try:
+        cov = sigma2 * np.linalg.inv(sol.jac.T @ sol.jac)
+    except np.linalg.LinAlgError:
+        cov = np.diag([0.05**2] * 3 + [math.radians(3.0) ** 2])
+    x = sol.x
+    c, s = math.cos(x[3]), math.sin(x[3])
+    T_world_ds = make_T(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]), x[:3])
+    rms = float(np.sqrt(np.mean(r.reshape(-1, 2) ** 2) * 2))
+    return LevelBoardPose(T_world_ds, cov, rms, tuple(ids))

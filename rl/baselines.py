@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rl.env import POS_SCALE_M
+from rl.observation import POS_SCALE_M
 
 
 @dataclass(frozen=True)

@@ -25,16 +25,10 @@ from dockcore.errors import DockError
 from rl.config import EnvConfig
 from rl.estimator import DSPoseFilter
 from rl.obs_sources import ObservationSource, ProxySource, StepContext
+from rl.observation import OBS_BOUND, frame_dim, observation_frame
 from rl.rewards import DockingReward
 from rl.task import docking_errors, ds_visible, paper_success, pegs_seated
 from rl.world import DockingWorld
-
-#: Observation normalisation: positions clipped to +-5 m then /5, yaw /pi, accelerations /5.
-POS_SCALE_M = 5.0
-ACC_SCALE_MPS2 = 5.0
-BASE_OBS_DIM = 11
-#: Every observation entry is clipped to +-this (velocities in m/s and rad/s included).
-OBS_BOUND = 5.0
 
 
 class SimulationError(DockError):
@@ -71,9 +65,9 @@ class DockingEnv(gym.Env):
         self.filter = DSPoseFilter(est_cfg)
         self.reward_fn = DockingReward(c.reward)
         self._limits = np.asarray(c.wrench_limits, dtype=np.float64) * c.wrench_scale
-        frame_dim = BASE_OBS_DIM + (6 if c.obs_last_action else 0) + (2 if c.obs_uncertainty else 0)
+        dim = frame_dim(c)
         self.observation_space = gym.spaces.Box(
-            -OBS_BOUND, OBS_BOUND, shape=(frame_dim * c.obs_frames,), dtype=np.float32
+            -OBS_BOUND, OBS_BOUND, shape=(dim * c.obs_frames,), dtype=np.float32
         )
         self.action_space = gym.spaces.Box(-1.0, 1.0, shape=(6,), dtype=np.float32)
         self._frames: list[np.ndarray] = []
@@ -151,7 +145,7 @@ class DockingEnv(gym.Env):
             raise SimulationError(
                 f"simulator blew up at t={world.time_s:.2f} s (vehicle pose not finite/bounded)"
             )
-        imu = world.vehicle.read_imu()
+        imu = self._last_imu = world.vehicle.read_imu()
         collided = self.reward_fn.collision(imu.specific_force_frd_mps2, self.prev_specific_force)
         self.prev_specific_force = imu.specific_force_frd_mps2
         self._measure_and_filter(T_world_body, predict=True)
@@ -206,21 +200,17 @@ class DockingEnv(gym.Env):
         self.filter.update(T, np.diag([sigma**2] * 3 + [1e6]))
 
     def _frame(self, imu, T_world_body: np.ndarray) -> np.ndarray:
-        e_hat, psi_hat = docking_errors(T_world_body, self.filter.T_world_ds, self.cfg.task)
-        parts = [
-            np.clip(e_hat, -POS_SCALE_M, POS_SCALE_M) / POS_SCALE_M,
-            [psi_hat / math.pi],
+        m = self.last_measurement
+        return observation_frame(
+            self.cfg,
+            T_world_body,
+            self.filter,
             imu.velocity_frd_mps,
-            [imu.angular_velocity_frd_radps[2]],
-            np.clip(imu.acceleration_frd_mps2 / ACC_SCALE_MPS2, -5.0, 5.0),
-        ]
-        if self.cfg.obs_last_action:
-            parts.append(self.prev_action)
-        if self.cfg.obs_uncertainty:
-            m = self.last_measurement
-            sigma_xy = float(np.sqrt(0.5 * (self.filter.P[0, 0] + self.filter.P[1, 1])))
-            parts.append([min(sigma_xy, 2.0), float(m is not None and m.detected)])
-        return np.clip(np.concatenate(parts), -OBS_BOUND, OBS_BOUND).astype(np.float32)
+            float(imu.angular_velocity_frd_radps[2]),
+            imu.acceleration_frd_mps2,
+            self.prev_action,
+            m is not None and m.detected,
+        )
 
     def _obs(self) -> np.ndarray:
         return np.concatenate(self._frames).astype(np.float32)

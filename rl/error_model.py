@@ -114,11 +114,14 @@ def fit_error_model(
     from markers.markerset import load_marker_set
     from perception.detector import Detector, DetectorConfig
     from perception.groundtruth import load_dataset
-    from perception.pose import BoardPoseConfig, solve_board
+    from perception.pose import BoardPoseConfig, refine_level_board, solve_board
 
     cfg = cfg or ErrorModelConfig()
     ds = load_dataset(dataset)
     camera, T_body_cam = load_camera(ds.camera_path)
+    from calibration.camera import REFERENCE_T_BODYFRD_CAMCV
+
+    T_bc = np.asarray(T_body_cam if T_body_cam is not None else REFERENCE_T_BODYFRD_CAMCV)
     ms = load_marker_set(ds.marker_set_path)
     det_cfg = DetectorConfig(dictionary=ms.dictionary, ids=tuple(ms.ids))
     board_cfg = BoardPoseConfig()
@@ -135,8 +138,16 @@ def fit_error_model(
         water = (ft.water or {}).get("preset", "unknown")
         r_bin = min(int(ft.range_m / cfg.range_bin_m), n_bins - 1)
         n_vis = min(count_in_view(camera, ft.T_cam_ds, corners), N_VISIBLE_BINS - 1)
-        pose = solve_board(detector.detect(img), board, camera.K, camera.dist_coeffs, board_cfg)
-        err = None if pose is None else pose_error(pose.T_cam_ds, ft.T_cam_ds)
+        dets = detector.detect(img)
+        pose = solve_board(dets, board, camera.K, camera.dist_coeffs, board_cfg)
+        if pose is not None and ft.T_world_body is not None:
+            # the camera source's path: the level-DS refinement with the known attitude
+            T_world_cam = ft.T_world_body @ T_bc
+            lv = refine_level_board(pose, dets, board, camera.K, camera.dist_coeffs, T_world_cam)
+            T_est = inv_T(T_world_cam) @ lv.T_world_ds
+        else:
+            T_est = None if pose is None else pose.T_cam_ds
+        err = None if T_est is None else pose_error(T_est, ft.T_cam_ds)
         samples.setdefault(water, []).append((r_bin, n_vis, err is not None, err))
     if not samples:
         raise DockError(f"no readable frames in dataset {ds.root}")

@@ -1,0 +1,156 @@
+"""Deployment: camera frames + odometry in, body wrench out, at 5 Hz (no ROS, no simulator).
+
+:class:`DockingRunner` is the policy's path onto a vehicle: each control tick it takes the latest
+downward-camera frame and the navigation solution (pose in a local NED frame, body velocities,
+yaw rate, gravity-free acceleration), runs the same 3DBM detector, board PnP and DS filter as the
+simulator's camera source, builds the same observation and runs the exported ONNX policy. A
+USBL fix (or a surveyed DS position) can be fed in whenever one arrives.
+
+Example::
+
+    runner = DockingRunner("docking.onnx", camera_file="girona_cam.yaml")
+    runner.reset(T_world_ds_prior)              # e.g. from the USBL / the mission plan
+    while docking:
+        wrench = runner.step(frame_bgr, Odometry(T_world_body, v, r, acc))
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+from calibration.camera import REFERENCE_T_BODYFRD_CAMCV, load_camera, reference_camera
+from rl.camera_source import measure_from_image
+from rl.config import EnvConfig
+from rl.estimator import DSPoseFilter
+from rl.export import OnnxPolicy
+from rl.observation import frame_dim, observation_frame
+
+
+@dataclass(frozen=True)
+class Odometry:
+    """The vehicle's navigation solution at a control tick.
+
+    Attributes:
+        T_world_body: (4, 4) body FRD pose in a local NED frame (m).
+        velocity_frd_mps: (3,) body velocity (DVL) (m/s).
+        yaw_rate_radps: yaw rate (rad/s).
+        acceleration_frd_mps2: (3,) gravity-free acceleration (IMU) (m/s^2).
+    """
+
+    T_world_body: np.ndarray
+    velocity_frd_mps: np.ndarray
+    yaw_rate_radps: float
+    acceleration_frd_mps2: np.ndarray
+
+
+class DockingRunner:
+    """Run a docking policy on real frames and odometry (module docstring).
+
+    Args:
+        policy: an exported ONNX policy (``rl export``) or any object with ``act(obs)``.
+        camera_file: the camera YAML/JSON (intrinsics + ``T_body_cam``); None: the reference
+            camera at ``env_cfg.camera_width_px``.
+        marker_set: the DS marker set file; None: the reference DS set.
+        env_cfg: the environment the policy was trained in (observation layout, limits, filter).
+    """
+
+    def __init__(
+        self,
+        policy,
+        camera_file: str | os.PathLike[str] | None = None,
+        marker_set: str | os.PathLike[str] | None = None,
+        env_cfg: EnvConfig | None = None,
+    ) -> None:
+        from markers.config import MarkerConfig
+        from markers.markerset import load_marker_set, marker_set_from_config
+        from perception.detector import Detector, DetectorConfig
+
+        self.cfg = env_cfg or EnvConfig()
+        self.policy = OnnxPolicy(policy) if isinstance(policy, (str, os.PathLike)) else policy
+        if camera_file is not None:
+            self.camera, T = load_camera(camera_file)
+            self.T_body_cam = np.asarray(T if T is not None else REFERENCE_T_BODYFRD_CAMCV)
+        else:
+            cam = reference_camera()
+            w = self.cfg.camera_width_px or cam.width_px
+            self.camera = cam.scaled(w, round(cam.height_px * w / cam.width_px))
+            self.T_body_cam = np.array(REFERENCE_T_BODYFRD_CAMCV)
+        ms = (
+            load_marker_set(marker_set)
+            if marker_set is not None
+            else marker_set_from_config(MarkerConfig())
+        )
+        self.board = ms.corners_ds()
+        self.detector = Detector(DetectorConfig(dictionary=ms.dictionary, ids=tuple(ms.ids)))
+        self.limits = np.asarray(self.cfg.wrench_limits) * self.cfg.wrench_scale
+        self.dt_s = 1.0 / self.cfg.control_hz
+        self.filter = DSPoseFilter(self.cfg.estimator)
+        self.prev_action = np.zeros(6)
+        self.detected = False
+        self._frames: list[np.ndarray] = []
+
+    def reset(self, T_world_ds_prior: np.ndarray, sigma_xy_m: float | None = None) -> None:
+        """Start a docking run from a prior DS pose (USBL / survey), no motion yet."""
+        self.filter.x = np.array(
+            [*T_world_ds_prior[:3, 3], np.arctan2(T_world_ds_prior[1, 0], T_world_ds_prior[0, 0])]
+        )
+        c = self.filter.cfg
+        s_xy = c.prior_sigma_xy_m if sigma_xy_m is None else sigma_xy_m
+        self.filter.P = np.diag(
+            [s_xy**2, s_xy**2, c.prior_sigma_z_m**2, np.deg2rad(c.prior_sigma_yaw_deg) ** 2]
+        )
+        self.filter.measured = False
+        self.prev_action = np.zeros(6)
+        self.detected = False
+        self._frames = []
+
+    def usbl_fix(self, p_world_ds_m: np.ndarray, sigma_m: float) -> None:
+        """Fuse an acoustic position fix of the DS (world NED, m)."""
+        T = self.filter.T_world_ds.copy()
+        T[:3, 3] = p_world_ds_m
+        self.filter.update(T, np.diag([sigma_m**2] * 3 + [1e6]))
+
+    def observe(self, image: np.ndarray | None, odom: Odometry, predict: bool = True) -> np.ndarray:
+        """Update the DS estimate from a frame and return the policy's observation."""
+        if predict:
+            self.filter.predict(self.dt_s)
+        self.detected = False
+        if image is not None:
+            m, _ = measure_from_image(
+                image,
+                self.detector,
+                self.board,
+                self.camera,
+                odom.T_world_body @ self.T_body_cam,
+                self.filter.T_world_ds,
+            )
+            if m is not None:
+                self.filter.update(m.T_world_ds, m.cov_xyzyaw)
+                self.detected = True
+        frame = observation_frame(
+            self.cfg,
+            odom.T_world_body,
+            self.filter,
+            odom.velocity_frd_mps,
+            odom.yaw_rate_radps,
+            odom.acceleration_frd_mps2,
+            self.prev_action,
+            self.detected,
+        )
+        if not self._frames:
+            self._frames = [frame] * self.cfg.obs_frames
+        else:
+            self._frames = [*self._frames[1:], frame]
+        return np.concatenate(self._frames)
+
+    def step(self, image: np.ndarray | None, odom: Odometry) -> np.ndarray:
+        """One 5 Hz tick: returns the body wrench (6,) [N, N m] to send to the allocator."""
+        obs = self.observe(image, odom)
+        if obs.shape[0] != frame_dim(self.cfg) * self.cfg.obs_frames:
+            raise ValueError("observation layout does not match the environment config")
+        action = np.clip(np.asarray(self.policy.act(obs), dtype=np.float64), -1.0, 1.0)
+        self.prev_action = action
+        return action * self.limits
