@@ -2,8 +2,8 @@
 
 It reads the same observation vector as the policy (so it sees the same filtered estimate,
 whatever the observation source) and returns an action in [-1, 1]^6. Strategy: hold a safe
-altitude above the docking point while aligning yaw and closing the horizontal error, then
-descend once aligned (the funnels do the last centimetres).
+altitude above the docking point while aligning yaw and closing the horizontal error, and
+descend as the alignment errors shrink (the funnels do the last centimetres).
 """
 
 from __future__ import annotations
@@ -32,6 +32,9 @@ class PIDConfig:
         approach_altitude_m: altitude above the docking point held until aligned (m).
         descend_xy_m: horizontal error below which the descent starts (m).
         descend_yaw_deg: yaw error below which the descent starts (deg).
+        descend_blend_m: the altitude offset grows from 0 to ``approach_altitude_m`` over this
+            much horizontal error beyond ``descend_xy_m`` (m).
+        descend_blend_deg: same over this much yaw error beyond ``descend_yaw_deg`` (deg).
         integral_limit: anti-windup bound of each horizontal integral (m s).
     """
 
@@ -44,8 +47,10 @@ class PIDConfig:
     kp_yaw: float = 60.0
     kd_yaw: float = 80.0
     approach_altitude_m: float = 1.6
-    descend_xy_m: float = 0.10
+    descend_xy_m: float = 0.04
     descend_yaw_deg: float = 8.0
+    descend_blend_m: float = 0.06
+    descend_blend_deg: float = 3.0
     integral_limit: float = 5.0
 
 
@@ -74,10 +79,13 @@ class PIDController:
         e_psi = o[3] * math.pi
         v = o[4:7]
         r = o[7]
-        aligned = np.hypot(e[0], e[1]) < c.descend_xy_m and abs(e_psi) < math.radians(
-            c.descend_yaw_deg
+        # hold the approach altitude while misaligned, descend smoothly as the horizontal and
+        # yaw errors shrink (a continuous schedule: no switching, easy to imitate)
+        misalign = max(
+            (np.hypot(e[0], e[1]) - c.descend_xy_m) / c.descend_blend_m,
+            (abs(e_psi) - math.radians(c.descend_yaw_deg)) / math.radians(c.descend_blend_deg),
         )
-        e_z = e[2] if aligned else e[2] - c.approach_altitude_m
+        e_z = e[2] - c.approach_altitude_m * float(np.clip(misalign, 0.0, 1.0))
         err = np.array([e[0], e[1], e_z])
         self.integral = np.clip(
             self.integral + err * self.dt_s, -c.integral_limit, c.integral_limit

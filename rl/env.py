@@ -171,6 +171,45 @@ class DockingEnv(gym.Env):
             return self.world.render_camera()
         return None
 
+    def camera_frame(self) -> np.ndarray | None:
+        """The downward camera's view now (RGB, water applied), with the detected markers
+        outlined and the step's status written on it; None without a camera."""
+        import cv2
+
+        img = getattr(self.source, "last_image", None)
+        dets = getattr(self.source, "last_detections", [])
+        if img is None:
+            res = self.world.render()
+            if res is None:
+                return None
+            from sim.water import apply_water, preset
+
+            img = apply_water(res.rgb, res.range_m, preset(self.cfg.water_preset), self.np_random)
+            dets = []
+        out = np.ascontiguousarray(img.copy())
+        for d in dets:
+            pts = np.round(d.corners_px).astype(np.int32)
+            cv2.polylines(out, [pts], True, (0, 255, 0), 2)
+            cv2.putText(
+                out,
+                str(d.marker_id),
+                tuple(int(v) for v in pts[0]),
+                cv2.FONT_HERSHEY_SIMPLEX,
+                0.5,
+                (0, 255, 0),
+                1,
+                cv2.LINE_AA,
+            )
+        e, _ = docking_errors(self.world.T_world_body, self.world.T_world_ds, self.cfg.task)
+        text = (
+            f"t={self.world.time_s:4.1f}s  e=({e[0]:+.2f},{e[1]:+.2f},{e[2]:+.2f}) m  "
+            f"{'DS detected' if self.last_measurement is not None else 'no fix'}"
+        )
+        cv2.putText(
+            out, text, (8, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 0), 1, cv2.LINE_AA
+        )
+        return out
+
     def close(self) -> None:
         self.world.close()
 

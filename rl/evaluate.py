@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
@@ -69,75 +70,191 @@ def run_episodes(
     record: bool = True,
     video_episodes: tuple[int, ...] = (),
     progress=None,
+    episodes: list[int] | None = None,
+    video_dir: str | None = None,
 ) -> EvalResult:
-    """Run ``n_episodes`` seeded episodes (episode k uses seed + k) and summarise them.
+    """Run seeded episodes (episode k uses seed + k) and summarise them.
 
     Args:
         policy: a :class:`Controller` or an SB3 model.
         env_cfg: the environment (its ``obs_source`` decides what the policy sees).
-        n_episodes: number of episodes.
-        seed: seed of the first episode.
+        n_episodes: number of episodes (indices 0 .. n-1 unless ``episodes`` is given).
+        seed: seed of episode 0.
         vecnorm: observation normalisation of an SB3 model.
         record: keep per-step traces (for the figures).
-        video_episodes: episode indices whose camera view is kept as frames.
-        progress: optional callable(k, n) called after each episode.
+        video_episodes: episode indices whose camera view is filmed.
+        progress: optional callable(done, total) called after each episode.
+        episodes: the episode indices to run (for splitting work between processes).
+        video_dir: write ``camera_ep<k>.mp4`` there (frames are not kept in the traces);
+            None keeps the frames in ``EpisodeTrace.frames``.
     """
     from rl.env import DockingEnv
 
     ctrl = _as_controller(policy, vecnorm)
+    todo = list(range(n_episodes)) if episodes is None else list(episodes)
     env = DockingEnv(env_cfg, render_mode="rgb_array" if video_episodes else None)
     rows, traces = [], []
     try:
-        for k in range(n_episodes):
-            obs, info = env.reset(seed=seed + k)
-            ctrl.reset()
-            tr = EpisodeTrace()
-            ret, collisions, steps = 0.0, 0, 0
-            dock_time = None
-            done = False
-            while not done:
-                a = ctrl.act(obs)
-                obs, r, term, trunc, info = env.step(a)
-                ret += r
-                steps += 1
-                collisions += int(info["collided"])
-                if info["success_paper"] and dock_time is None:
-                    dock_time = info["time_s"]
-                if record:
-                    tr.time_s.append(info["time_s"])
-                    tr.pos_body_m.append(info["T_world_body"][:3, 3].copy())
-                    tr.pos_ds_m.append(info["T_world_ds"][:3, 3].copy())
-                    tr.wrench.append(np.asarray(a) * env._limits)
-                    tr.e_true.append(np.append(info["e_true"], info["e_psi_true"]))
-                    tr.e_obs.append(np.append(obs[0:3] * 5.0, obs[3] * math.pi))
-                    tr.detected.append(info["detected"])
-                if k in video_episodes:
-                    frame = env.render()
-                    if frame is not None:
-                        tr.frames.append(frame)
-                done = term or trunc
-            e = info["e_true"]
-            rows.append(
-                {
-                    "episode": k,
-                    "seed": seed + k,
-                    "success": bool(info["success_paper"]),
-                    "success_strict": bool(info["success_strict"]),
-                    "time_to_dock_s": dock_time,
-                    "steps": steps,
-                    "return": ret,
-                    "collisions": collisions,
-                    "final_e_xy_m": float(np.hypot(e[0], e[1])),
-                    "final_e_z_m": float(abs(e[2])),
-                    "final_e_yaw_deg": float(abs(math.degrees(info["e_psi_true"]))),
-                }
-            )
+        for done_count, k in enumerate(todo, start=1):
+            row, tr = _episode(env, ctrl, k, seed, record, k in video_episodes)
+            if video_dir is not None and tr.frames:
+                from rl.report import write_video
+
+                write_video(tr.frames, Path(video_dir) / f"camera_ep{k}.mp4")
+                tr.frames = []
+            rows.append(row)
             traces.append(tr)
             if progress is not None:
-                progress(k + 1, n_episodes)
+                progress(done_count, len(todo))
     finally:
         env.close()
     return EvalResult(summarise(rows), rows, traces)
+
+
+def _episode(
+    env, ctrl: Controller, k: int, seed: int, record: bool, film: bool
+) -> tuple[dict[str, Any], EpisodeTrace]:
+    obs, info = env.reset(seed=seed + k)
+    ctrl.reset()
+    tr = EpisodeTrace()
+    ret, collisions, steps = 0.0, 0, 0
+    dock_time = None
+    done = False
+    while not done:
+        a = ctrl.act(obs)
+        obs, r, term, trunc, info = env.step(a)
+        ret += r
+        steps += 1
+        collisions += int(info["collided"])
+        if info["success_paper"] and dock_time is None:
+            dock_time = info["time_s"]
+        if record:
+            tr.time_s.append(info["time_s"])
+            tr.pos_body_m.append(info["T_world_body"][:3, 3].copy())
+            tr.pos_ds_m.append(info["T_world_ds"][:3, 3].copy())
+            tr.wrench.append(np.asarray(a) * env._limits)
+            tr.e_true.append(np.append(info["e_true"], info["e_psi_true"]))
+            tr.e_obs.append(np.append(obs[0:3] * 5.0, obs[3] * math.pi))
+            tr.detected.append(info["detected"])
+        if film:
+            frame = env.camera_frame()
+            if frame is not None:
+                tr.frames.append(frame)
+        done = term or trunc
+    e = info["e_true"]
+    row = {
+        "episode": k,
+        "seed": seed + k,
+        "success": bool(info["success_paper"]),
+        "success_strict": bool(info["success_strict"]),
+        "time_to_dock_s": dock_time,
+        "steps": steps,
+        "return": ret,
+        "collisions": collisions,
+        "final_e_xy_m": float(np.hypot(e[0], e[1])),
+        "final_e_z_m": float(abs(e[2])),
+        "final_e_yaw_deg": float(abs(math.degrees(info["e_psi_true"]))),
+    }
+    return row, tr
+
+
+def _worker(
+    policy_spec: str,
+    env_cfg: EnvConfig,
+    n: int,
+    seed: int,
+    indices: list[int],
+    record: bool,
+    video_episodes: tuple[int, ...],
+    video_dir: str | None,
+    queue,
+):
+    from rl.report import load_controller
+
+    ctrl, vecnorm, _ = load_controller(policy_spec, env_cfg)
+    res = run_episodes(
+        ctrl,
+        env_cfg,
+        n,
+        seed,
+        vecnorm=vecnorm,
+        record=record,
+        video_episodes=video_episodes,
+        episodes=indices,
+        video_dir=video_dir,
+        progress=(lambda d, t: queue.put(1)) if queue is not None else None,
+    )
+    return res.episodes, res.traces
+
+
+def run_episodes_parallel(
+    policy_spec: str,
+    env_cfg: EnvConfig,
+    n_episodes: int,
+    seed: int = 0,
+    workers: int = 2,
+    record: bool = True,
+    video_episodes: tuple[int, ...] = (),
+    video_dir: str | None = None,
+    progress=None,
+) -> EvalResult:
+    """:func:`run_episodes` split over ``workers`` processes (each loads the policy and builds
+    its own simulator); the result is the same as in one process."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    if workers <= 1:
+        from rl.report import load_controller
+
+        ctrl, vecnorm, _ = load_controller(policy_spec, env_cfg)
+        return run_episodes(
+            ctrl,
+            env_cfg,
+            n_episodes,
+            seed,
+            vecnorm,
+            record,
+            video_episodes,
+            progress,
+            video_dir=video_dir,
+        )
+    ctx = mp.get_context("spawn")
+    manager = ctx.Manager()
+    queue = manager.Queue() if progress is not None else None
+    chunks = [list(range(w, n_episodes, workers)) for w in range(workers)]
+    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+        futs = [
+            pool.submit(
+                _worker,
+                policy_spec,
+                env_cfg,
+                n_episodes,
+                seed,
+                c,
+                record,
+                tuple(v for v in video_episodes if v in c),
+                video_dir,
+                queue,
+            )
+            for c in chunks
+            if c
+        ]
+        done = 0
+        while queue is not None and done < n_episodes and not all(f.done() for f in futs):
+            try:
+                queue.get(timeout=0.5)
+                done += 1
+                progress(done, n_episodes)
+            except Exception:
+                continue
+        parts = [f.result() for f in futs]
+    manager.shutdown()
+    pairs = sorted(
+        ((r, t) for rows, traces in parts for r, t in zip(rows, traces, strict=True)),
+        key=lambda p: p[0]["episode"],
+    )
+    rows = [p[0] for p in pairs]
+    return EvalResult(summarise(rows), rows, [p[1] for p in pairs])
 
 
 def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
