@@ -98,9 +98,26 @@ def train(
 )
 @click.option("--stress", is_flag=True, help="Also run the graded stress tables.")
 @click.option("--stress-episodes", type=int, default=20, show_default=True)
+@click.option(
+    "--workers",
+    type=int,
+    default=1,
+    show_default=True,
+    help="Evaluation processes (episodes are split; results do not depend on it).",
+)
 @click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), required=True)
 def eval_cmd(
-    policy, episodes, obs, error_model, config_path, seed, videos, stress, stress_episodes, out_dir
+    policy,
+    episodes,
+    obs,
+    error_model,
+    config_path,
+    seed,
+    videos,
+    stress,
+    stress_episodes,
+    workers,
+    out_dir,
 ) -> None:
     """Evaluate a policy (or the PID baseline) over seeded episodes."""
     from rl.config import EnvConfig
@@ -129,6 +146,7 @@ def eval_cmd(
         vids,
         stress=stress,
         stress_episodes=stress_episodes,
+        workers=workers,
     )
     click.echo(
         f"success {summary['success_rate']:.1%} (strict "

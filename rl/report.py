@@ -14,7 +14,7 @@ from dockcore.errors import DockError
 from dockcore.io import atomic_path, atomic_write_json, atomic_write_text, ensure_writable_dir
 from dockcore.provenance import provenance
 from rl.config import EnvConfig
-from rl.evaluate import EpisodeTrace, run_episodes
+from rl.evaluate import EpisodeTrace, run_episodes_parallel
 
 
 def load_controller(policy: str, env_cfg: EnvConfig):
@@ -136,57 +136,41 @@ STRESS_THRUSTER_ERRORS_M = (0.0, 0.02, 0.05)
 
 
 def stress_tables(
-    controller, vecnorm, env_cfg: EnvConfig, episodes: int, seed: int, progress=None
+    policy: str, env_cfg: EnvConfig, episodes: int, seed: int, workers: int = 1
 ) -> dict[str, list[dict[str, Any]]]:
     """Graded stress: current speed (random direction), water preset, thruster placement."""
     from sim.thrusters import ThrusterRandomisation
     from sim.vehicle import VehicleRandomisation
+
+    def run(cfg: EnvConfig) -> dict[str, Any]:
+        res = run_episodes_parallel(policy, cfg, episodes, seed, workers=workers, record=False)
+        return _short(res.summary)
 
     out: dict[str, list[dict[str, Any]]] = {"current": [], "water": [], "thruster": []}
     for speed in STRESS_CURRENTS_MPS:
         cur = replace(
             env_cfg.current, mode="random", range_x_mps=(-speed, speed), range_y_mps=(-speed, speed)
         )
-        s = run_episodes(
-            controller, replace(env_cfg, current=cur), episodes, seed, vecnorm=vecnorm, record=False
-        ).summary
-        out["current"].append({"current_max_mps": speed, **_short(s)})
+        out["current"].append({"current_max_mps": speed, **run(replace(env_cfg, current=cur))})
     if env_cfg.obs_source == "camera":
         for preset in ("clear_tank", "coastal", "turbid"):
-            s = run_episodes(
-                controller,
-                replace(env_cfg, water_preset=preset),
-                episodes,
-                seed,
-                vecnorm=vecnorm,
-                record=False,
-            ).summary
-            out["water"].append({"water": preset, **_short(s)})
+            out["water"].append({"water": preset, **run(replace(env_cfg, water_preset=preset))})
     for err in STRESS_THRUSTER_ERRORS_M:
         rnd = VehicleRandomisation(thrusters=ThrusterRandomisation(position_m=err))
-        s = run_episodes(
-            controller,
-            replace(env_cfg, randomise_vehicle=True, vehicle_randomisation=rnd),
-            episodes,
-            seed,
-            vecnorm=vecnorm,
-            record=False,
-        ).summary
-        out["thruster"].append({"thruster_position_error_m": err, **_short(s)})
+        cfg = replace(env_cfg, randomise_vehicle=True, vehicle_randomisation=rnd)
+        out["thruster"].append({"thruster_position_error_m": err, **run(cfg)})
     return out
 
 
 def _short(s: dict[str, Any]) -> dict[str, Any]:
-    return {
-        k: s[k]
-        for k in (
-            "episodes",
-            "success_rate",
-            "success_rate_strict",
-            "mean_time_to_dock_s",
-            "mean_collisions",
-        )
-    }
+    keys = (
+        "episodes",
+        "success_rate",
+        "success_rate_strict",
+        "mean_time_to_dock_s",
+        "mean_collisions",
+    )
+    return {k: s[k] for k in keys}
 
 
 def evaluate_to_folder(
@@ -198,37 +182,47 @@ def evaluate_to_folder(
     video_episodes: tuple[int, ...] = (),
     stress: bool = False,
     stress_episodes: int = 20,
+    workers: int = 1,
 ) -> dict[str, Any]:
     """Run the evaluation and write the report folder; returns the summary."""
+    import time
+
     from tqdm import tqdm
 
     out = ensure_writable_dir(out_dir)
-    controller, vecnorm, label = load_controller(policy, env_cfg)
+    _, _, label = load_controller(policy, env_cfg)  # fail fast on a bad policy
     bar = tqdm(total=episodes, desc=f"eval {env_cfg.obs_source}", unit="ep")
-    res = run_episodes(
-        controller,
+    t0 = time.perf_counter()
+    res = run_episodes_parallel(
+        policy,
         env_cfg,
         episodes,
         seed,
-        vecnorm=vecnorm,
+        workers=workers,
         record=True,
         video_episodes=video_episodes,
-        progress=lambda k, n: bar.update(1),
+        video_dir=str(out),
+        progress=lambda k, n: bar.update(k - bar.n),
     )
     bar.close()
-    summary = {"policy": label, "obs_source": env_cfg.obs_source, **res.summary}
+    wall = time.perf_counter() - t0
+    steps = sum(r["steps"] for r in res.episodes)
+    summary = {
+        "policy": label,
+        "obs_source": env_cfg.obs_source,
+        **res.summary,
+        "wall_clock_s": wall,
+        "control_steps_per_s": steps / wall,
+        "workers": workers,
+    }
     atomic_write_text(out / "episodes.csv", _csv(res.episodes))
     plot_trajectories(res.traces, res.episodes, out / "trajectories_top.png")
     for k in sorted(set(video_episodes) | {0}):
         if k < len(res.traces):
             ok = "docked" if res.episodes[k]["success"] else "not docked"
             plot_traces(res.traces[k], out / f"traces_ep{k}.png", f"episode {k} ({ok})")
-    for k in video_episodes:
-        if k < len(res.traces):
-            write_video(res.traces[k].frames, out / f"camera_ep{k}.mp4")
     if stress:
-        tables = stress_tables(controller, vecnorm, env_cfg, stress_episodes, seed)
-        summary["stress"] = tables
+        summary["stress"] = stress_tables(policy, env_cfg, stress_episodes, seed, workers)
     record = provenance({"env": env_cfg}, extra={"summary": summary})
     atomic_write_json(
         out / "summary.json", {**summary, "config": to_dict(env_cfg), "provenance": record}
