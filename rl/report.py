@@ -120,14 +120,24 @@ def write_video(frames: list[np.ndarray], path: Path, fps: float = 5.0) -> Path 
 
     if not frames:
         return None
+    import os
+    import tempfile
+
     h, w = frames[0].shape[:2]
-    with atomic_path(path) as tmp:
-        vw = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    try:  # the container is chosen from the suffix, so the temporary file keeps it
+        vw = cv2.VideoWriter(tmp, cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
         if not vw.isOpened():
             raise DockError(f"cannot open a video writer for {path}")
         for f in frames:
             vw.write(cv2.cvtColor(f, cv2.COLOR_RGB2BGR))
         vw.release()
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
     return path
 
 
