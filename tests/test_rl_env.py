@@ -247,3 +247,33 @@ def test_registered_with_gymnasium():
     obs, _ = env.reset(seed=0)
     assert env.observation_space.contains(obs)
     env.close()
+
+
+def test_dagger_warm_start_imitates_the_teacher(tmp_path):
+    """After the warm start the policy's mean action follows the PID teacher on its states."""
+    import torch
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+    from rl.imitation import ImitationConfig, warm_start
+    from rl.train import TrainConfig, build_model
+
+    cfg = replace(TrainConfig(), n_envs=1, env=replace(EnvConfig(), episode_s=6.0))
+    venv = VecNormalize(DummyVecEnv([lambda: DockingEnv(cfg.env)]))
+    model = build_model(cfg, venv, tmp_path / "tb")
+    icfg = ImitationConfig(iterations=2, episodes_per_iteration=2, epochs=40, log_std=-1.5)
+    hist = warm_start(model, venv, cfg.env, icfg, seed=0, gamma=0.99, progress=False)
+    assert len(hist["loss"]) == 2 and hist["loss"][-1] < 0.05
+    assert torch.allclose(model.policy.log_std, torch.full((6,), -1.5))
+    # the student reproduces the teacher on the states it was taught (seeded as warm_start does)
+    env = DockingEnv(cfg.env)
+    teacher = PIDController(np.asarray(cfg.env.wrench_limits))
+    obs, _ = env.reset(seed=500_000)
+    diffs = []
+    for _ in range(20):
+        a_t = teacher.act(obs)
+        with torch.no_grad():
+            o = torch.as_tensor(venv.normalize_obs(obs[None]), dtype=torch.float32)
+            a_s = model.policy.get_distribution(o).distribution.mean.numpy()[0]
+        diffs.append(np.abs(np.clip(a_s, -1, 1) - a_t).mean())
+        obs, *_ = env.step(a_t)
+    assert np.mean(diffs) < 0.2
