@@ -47,7 +47,7 @@ class PIDConfig:
     kp_yaw: float = 60.0
     kd_yaw: float = 80.0
     approach_altitude_m: float = 1.6
-    descend_xy_m: float = 0.04
+    descend_xy_m: float = 0.08
     descend_yaw_deg: float = 8.0
     descend_blend_m: float = 0.06
     descend_blend_deg: float = 3.0
