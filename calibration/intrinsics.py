@@ -39,6 +39,7 @@ from calibration.patterns import (
 from dockcore.config import to_dict
 from dockcore.errors import DockError
 from dockcore.io import atomic_path, atomic_write_json
+from dockcore.media import open_video, quiet_native_stderr
 from dockcore.provenance import provenance
 
 __all__ = [
@@ -253,29 +254,6 @@ def _round(x: float | None, digits: int = 6) -> float | None:
 # --------------------------------------------------------------------------- input views
 
 
-@contextlib.contextmanager
-def _quiet_native_stderr() -> Iterator[None]:
-    """Silence OpenCV/FFmpeg messages written straight to file descriptor 2 (decoder noise)."""
-    level = cv2.utils.logging.getLogLevel()
-    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
-    saved = None
-    try:
-        sys.stderr.flush()
-        saved = os.dup(2)
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, 2)
-        os.close(devnull)
-    except OSError:  # no usable fd 2: nothing to silence
-        saved = None
-    try:
-        yield
-    finally:
-        if saved is not None:
-            os.dup2(saved, 2)
-            os.close(saved)
-        cv2.utils.logging.setLogLevel(level)
-
-
 def _read_image(path: Path) -> np.ndarray | None:
     """Greyscale uint8 image, or None when the file cannot be decoded."""
     try:
@@ -284,18 +262,12 @@ def _read_image(path: Path) -> np.ndarray | None:
         return None
     if data.size == 0:
         return None
-    with _quiet_native_stderr():
+    with quiet_native_stderr():
         return cv2.imdecode(data, cv2.IMREAD_GRAYSCALE)
 
 
 def _video_frames(path: Path, max_frames: int) -> tuple[int, Iterator[tuple[str, np.ndarray]]]:
-    with _quiet_native_stderr():
-        cap = cv2.VideoCapture(str(path))
-        opened = cap.isOpened()
-        ok, first = cap.read() if opened else (False, None)
-    if not ok or first is None:
-        cap.release()
-        raise DockError(f"cannot read video {path} (not a video, or no decodable frame)")
+    cap, first = open_video(path)
     count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
     stride = max(1, math.ceil(count / max_frames)) if count > 0 else 1
     total = min(max_frames, math.ceil(count / stride)) if count > 0 else max_frames

@@ -182,8 +182,12 @@ def load_config(
 
 
 def replace(cfg: C, **changes: Any) -> C:
-    """``dataclasses.replace`` that re-validates (raises ConfigError on a bad value)."""
-    return from_dict(type(cfg), merge(to_dict(cfg), changes))
+    """``dataclasses.replace`` that re-validates (raises ConfigError on a bad value).
+
+    Values may be plain data or config dataclasses (which replace that table whole).
+    """
+    plain = {k: to_dict(v) if dataclasses.is_dataclass(v) else v for k, v in changes.items()}
+    return from_dict(type(cfg), merge(to_dict(cfg), plain))
 
 
 def to_dict(cfg: Any) -> dict[str, Any]:

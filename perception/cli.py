@@ -68,23 +68,29 @@ def _marker_options(fn):
     return fn
 
 
+def _camera_option(help_text: str):
+    """``--camera`` (a camera file), described by ``help_text``."""
+    return click.option(
+        "--camera", "camera_path", type=click.Path(dir_okay=False, path_type=Path), help=help_text
+    )
+
+
+def _out_option(**kwargs: Any):
+    """``--out`` (the output folder); ``kwargs`` add ``default``/``required`` and the like."""
+    return click.option(
+        "--out",
+        "out_dir",
+        type=click.Path(file_okay=False, path_type=Path),
+        help="Output folder.",
+        **kwargs,
+    )
+
+
 @cli.command(context_settings=_CTX)
 @click.argument("input_path", metavar="INPUT", type=click.Path(path_type=Path))
 @_marker_options
-@click.option(
-    "--camera",
-    "camera_path",
-    type=click.Path(dir_okay=False, path_type=Path),
-    help="Camera file [default: the reference camera scaled to the frames].",
-)
-@click.option(
-    "--out",
-    "out_dir",
-    type=click.Path(file_okay=False, path_type=Path),
-    default=Path("perception_detect"),
-    show_default=True,
-    help="Output folder.",
-)
+@_camera_option("Camera file [default: the reference camera scaled to the frames].")
+@_out_option(default=Path("perception_detect"), show_default=True)
 @click.option("--no-annotate", is_flag=True, help="Write only detections.jsonl/.csv.")
 def detect(
     input_path,
@@ -160,12 +166,7 @@ def _print_summary(report: dict[str, Any], out_dir: Path) -> None:
 @cli.command(name="eval", context_settings=_CTX)
 @click.argument("input_path", metavar="INPUT", type=click.Path(path_type=Path))
 @_marker_options
-@click.option(
-    "--camera",
-    "camera_path",
-    type=click.Path(dir_okay=False, path_type=Path),
-    help="Camera file (required unless INPUT is a labelled dataset folder).",
-)
+@_camera_option("Camera file (required unless INPUT is a labelled dataset folder).")
 @click.option(
     "--ground-truth",
     "gt_path",
@@ -173,13 +174,7 @@ def _print_summary(report: dict[str, Any], out_dir: Path) -> None:
     help="Labelled dataset folder, labels.jsonl or pose CSV (frame,x_m,y_m,z_m,qw,qx,qy,qz).",
 )
 @click.option("--compare", help="Comma-separated pipelines to run side by side.")
-@click.option(
-    "--out",
-    "out_dir",
-    type=click.Path(file_okay=False, path_type=Path),
-    required=True,
-    help="Output folder.",
-)
+@_out_option(required=True)
 @click.option("--json", "as_json", is_flag=True, help="Print report.json to stdout.")
 def eval_cmd(
     input_path,

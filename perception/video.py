@@ -25,14 +25,12 @@ Images are returned as OpenCV reads them (``IMREAD_ANYDEPTH | IMREAD_ANYCOLOR``)
 
 from __future__ import annotations
 
-import contextlib
 import math
 import os
-import sys
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any
 
 import cv2
 import numpy as np
@@ -40,6 +38,7 @@ import numpy as np
 from calibration.camera import CameraModel
 from dockcore.errors import DockError
 from dockcore.io import atomic_write_bytes
+from dockcore.media import AtomicVideoWriter, open_video, quiet_native_stderr
 from perception.preprocess import as_uint8
 
 __all__ = [
@@ -62,29 +61,6 @@ IMAGE_SUFFIXES: tuple[str, ...] = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".ti
 MAX_CONSECUTIVE_VIDEO_FAILURES = 25
 
 Frame = tuple[int, str, "np.ndarray | None"]
-
-
-@contextlib.contextmanager
-def quiet_native_stderr() -> Iterator[None]:
-    """Silence OpenCV's log and native decoder warnings (libjpeg, FFmpeg) on file descriptor 2."""
-    level = cv2.utils.logging.getLogLevel()
-    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
-    saved = None
-    try:
-        sys.stderr.flush()
-        saved = os.dup(2)
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, 2)
-        os.close(devnull)
-    except OSError:  # no real fd 2 (embedded interpreters): only the log level is changed
-        saved = None
-    try:
-        yield
-    finally:
-        if saved is not None:
-            os.dup2(saved, 2)
-            os.close(saved)
-        cv2.utils.logging.setLogLevel(level)
 
 
 def read_image(path: str | os.PathLike[str]) -> np.ndarray | None:
@@ -173,13 +149,7 @@ class FrameSource:
 
 
 def _open_video(path: Path) -> FrameSource:
-    with quiet_native_stderr():
-        cap = cv2.VideoCapture(str(path))
-        opened = cap.isOpened()
-        ok, first = cap.read() if opened else (False, None)
-    if not ok or first is None:
-        cap.release()
-        raise DockError(f"cannot read video {path} (not a video, or no decodable frame)")
+    cap, first = open_video(path)
     count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
     fps = float(cap.get(cv2.CAP_PROP_FPS))
     return FrameSource(
@@ -226,74 +196,26 @@ def iter_frames(path: str | os.PathLike[str]) -> Iterator[Frame]:
     return iter(open_frames(path))
 
 
-class AnnotatedVideoWriter:
-    """Writes BGR frames to a video that appears at ``path`` only when :meth:`close` succeeds.
-
-    The container follows the suffix: ``.mp4`` (codec ``mp4v``) or ``.avi`` (``MJPG``). The size
-    is fixed by the first frame; later frames of another size are resized to it. Frames go to a
-    hidden temporary file beside ``path`` (same suffix, so the backend picks the same container)
-    which is renamed onto ``path`` on close; :meth:`abort` (or an exception inside a ``with``
-    block) removes it and leaves any earlier file at ``path`` untouched.
+class AnnotatedVideoWriter(AtomicVideoWriter):
+    """The annotated-frame video: an :class:`dockcore.media.AtomicVideoWriter` (``.mp4`` with
+    ``mp4v`` or ``.avi`` with ``MJPG``, written to a temporary file and renamed on close) that
+    resizes later frames of another size to the first one's.
 
     Args:
         path: output video file (.mp4 or .avi).
-        fps: frame rate written into the container (Hz), > 0.
+        fps: frame rate written into the container (Hz); None or <= 0 gives 10 Hz (a video
+            whose container states no rate).
     """
 
-    _FOURCC: ClassVar[dict[str, str]] = {".mp4": "mp4v", ".avi": "MJPG"}
-
-    def __init__(self, path: str | os.PathLike[str], fps: float) -> None:
-        self.path = Path(path)
-        suffix = self.path.suffix.lower()
-        if suffix not in self._FOURCC:
-            raise DockError(f"annotated video must end in .mp4 or .avi: {self.path}")
-        self.fps = float(fps) if fps and fps > 0 else 10.0
-        self._tmp = self.path.with_name(f".{self.path.stem}.partial{suffix}")
-        self._writer: cv2.VideoWriter | None = None
-        self._size: tuple[int, int] | None = None
-        self.frames = 0
-
-    def write(self, frame_bgr: np.ndarray) -> None:
-        """Append one (H, W, 3) uint8 BGR frame."""
-        if self._writer is None:
-            h, w = frame_bgr.shape[:2]
-            self._size = (w, h)
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            fourcc = cv2.VideoWriter_fourcc(*self._FOURCC[self.path.suffix.lower()])
-            with quiet_native_stderr():
-                self._writer = cv2.VideoWriter(str(self._tmp), fourcc, self.fps, (w, h))
-            if not self._writer.isOpened():
-                self._writer = None
-                raise DockError(f"cannot open a video writer for {self.path}")
-        if frame_bgr.shape[1::-1] != self._size:
-            frame_bgr = cv2.resize(frame_bgr, self._size, interpolation=cv2.INTER_AREA)
-        self._writer.write(np.ascontiguousarray(frame_bgr))
-        self.frames += 1
+    def __init__(self, path: str | os.PathLike[str], fps: float | None) -> None:
+        super().__init__(path, fps if fps and fps > 0 else 10.0, resize=True)
 
     def close(self) -> Path | None:
         """Finish the file and move it onto ``path``; None when no frame was written."""
-        if self._writer is None:
-            return None
-        self._writer.release()
-        self._writer = None
-        os.replace(self._tmp, self.path)
-        return self.path
-
-    def abort(self) -> None:
-        """Drop the partial file."""
-        if self._writer is not None:
-            self._writer.release()
-            self._writer = None
-        self._tmp.unlink(missing_ok=True)
-
-    def __enter__(self) -> AnnotatedVideoWriter:
-        return self
-
-    def __exit__(self, exc_type, exc, tb) -> None:
-        if exc_type is None:
-            self.close()
-        else:
+        if self.frames == 0:
             self.abort()
+            return None
+        return super().close()
 
 
 # --------------------------------------------------------------------------- drawing

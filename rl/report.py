@@ -10,8 +10,8 @@ from typing import Any
 import numpy as np
 
 from dockcore.config import replace, to_dict
-from dockcore.errors import DockError
 from dockcore.io import atomic_path, atomic_write_json, atomic_write_text, ensure_writable_dir
+from dockcore.media import AtomicVideoWriter
 from dockcore.provenance import provenance
 from rl.config import EnvConfig
 from rl.evaluate import EpisodeTrace, run_episodes_parallel
@@ -115,30 +115,15 @@ def plot_traces(tr: EpisodeTrace, path: Path, title: str) -> None:
 
 
 def write_video(frames: list[np.ndarray], path: Path, fps: float = 5.0) -> Path | None:
-    """RGB frames -> MP4 (mp4v) written atomically."""
+    """(H, W, 3) uint8 RGB frames -> MP4 (mp4v) written atomically; None when there is none."""
     import cv2
 
     if not frames:
         return None
-    import os
-    import tempfile
-
-    h, w = frames[0].shape[:2]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    try:  # the container is chosen from the suffix, so the temporary file keeps it
-        vw = cv2.VideoWriter(tmp, cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
-        if not vw.isOpened():
-            raise DockError(f"cannot open a video writer for {path}")
+    with AtomicVideoWriter(path, fps) as video:
         for f in frames:
-            vw.write(cv2.cvtColor(f, cv2.COLOR_RGB2BGR))
-        vw.release()
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return path
+            video.write(cv2.cvtColor(f, cv2.COLOR_RGB2BGR))
+    return video.path
 
 
 STRESS_CURRENTS_MPS = (0.0, 0.1, 0.2, 0.3)

@@ -38,6 +38,7 @@ import sapien
 from calibration.camera import CameraModel
 from calibration.frames import inv_T, make_T, transform_points
 from dockcore.errors import DockError
+from dockcore.media import AtomicVideoWriter
 from sim.render import CameraRig, RenderConfig
 from sim.water import WaterConfig, apply_water, preset
 
@@ -147,51 +148,8 @@ def add_vehicle_visual(
     return body
 
 
-class VideoWriter:
-    """An MP4 (``mp4v``) written to a hidden temporary file and renamed onto ``path`` on close.
-
-    Args:
-        path: output ``.mp4``.
-        fps: frame rate (Hz).
-    """
-
-    def __init__(self, path: str | os.PathLike[str], fps: float) -> None:
-        self.path = Path(path)
-        self.fps = float(fps)
-        self._tmp = self.path.with_name(f".{self.path.stem}.partial.mp4")
-        self._writer: cv2.VideoWriter | None = None
-        self._size: tuple[int, int] | None = None
-        self.frames = 0
-
-    def write(self, bgr: np.ndarray) -> None:
-        """Append one (H, W, 3) uint8 BGR frame (all frames the size of the first)."""
-        if self._writer is None:
-            self._size = (bgr.shape[1], bgr.shape[0])
-            fourcc = cv2.VideoWriter_fourcc(*"mp4v")
-            self._writer = cv2.VideoWriter(str(self._tmp), fourcc, self.fps, self._size)
-            if not self._writer.isOpened():
-                self._writer = None
-                raise DockError(f"cannot open an MP4 writer for {self.path}")
-        if (bgr.shape[1], bgr.shape[0]) != self._size:
-            raise ValueError(f"frame size {bgr.shape[1::-1]} differs from {self._size}")
-        self._writer.write(np.ascontiguousarray(bgr))
-        self.frames += 1
-
-    def close(self) -> Path:
-        """Finish the file and move it onto ``path``."""
-        if self._writer is None:
-            raise DockError(f"no frame was written to {self.path}")
-        self._writer.release()
-        self._writer = None
-        os.replace(self._tmp, self.path)
-        return self.path
-
-    def abort(self) -> None:
-        """Drop the partial file."""
-        if self._writer is not None:
-            self._writer.release()
-            self._writer = None
-        self._tmp.unlink(missing_ok=True)
+#: The episode video writer (kept under its old name): MP4, atomic, frames of one size.
+VideoWriter = AtomicVideoWriter
 
 
 def _text(img: np.ndarray, lines: list[str]) -> None:
@@ -340,9 +298,8 @@ def record_episode(
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 1]))
     views = _Views(env, cfg, water, rng)
     fps = float(getattr(getattr(env, "cfg", None), "control_hz", 5.0))  # real time
-    writer = VideoWriter(out / video_name, fps)
     t0 = time.perf_counter()
-    try:
+    with VideoWriter(out / video_name, fps) as writer:
         obs, info = env.reset(seed=seed)
         policy.reset()
         writer.write(views.render(*_lines(info, water_name)))
@@ -360,16 +317,12 @@ def record_episode(
             writer.write(views.render(*_lines(info, water_name)))
             if on_step is not None:
                 on_step(steps)
-        video = writer.close()
-    except BaseException:
-        writer.abort()
-        raise
     e = np.asarray(info.get("e_true", np.full(3, np.nan)), np.float64)
     return {
-        "video": video.name,
+        "video": writer.path.name,
         "frames": writer.frames,
         "fps": fps,
-        "size_px": [int(v) for v in (writer._size or (0, 0))],
+        "size_px": [int(v) for v in (writer.size_px or (0, 0))],
         "steps": steps,
         "sim_time_s": float(info.get("time_s", math.nan)),
         "terminated": bool(terminated),
