@@ -18,6 +18,7 @@ class TrainingCallback(BaseCallback):
         super().__init__()
         self.progress = progress
         self._bar = None
+        self.best: tuple[float, float] | None = None
         self.cfg = cfg
         self.run_dir = Path(run_dir)
         self.vecnorm = vecnorm
@@ -87,5 +88,16 @@ class TrainingCallback(BaseCallback):
         for k in ("success_rate", "success_rate_strict", "mean_time_to_dock_s"):
             if summary.get(k) is not None:
                 self.logger.record(f"eval/{k}", summary[k])
+        score = (summary["success_rate"], summary["success_rate_strict"])
+        if self.best is None or score > self.best:
+            self.best = score
+            best = self.run_dir / "best"
+            best.mkdir(exist_ok=True)
+            from rl.train import save_model, save_vecnormalize
+
+            save_model(self.model, best / "policy.zip")
+            if self.vecnorm is not None:
+                save_vecnormalize(self.vecnorm, best / "vecnormalize.pkl")
+            summary = {**summary, "best": True}
         with (self.run_dir / "eval_history.jsonl").open("a") as fh:
             fh.write(json.dumps({"step": step, **summary}) + "\n")

@@ -298,6 +298,10 @@ def train(
                 model, vecnorm, cfg.env, cfg.imitation, cfg.seed, cfg.ppo.gamma, progress=progress
             )
             atomic_write_bytes(run / "imitation.json", json.dumps(hist).encode())
+            if vecnorm is not None:
+                # the imitated policy was fitted on these statistics: freeze them, or PPO's
+                # rollouts would shift the network's inputs under it
+                vecnorm.training = False
             save_checkpoint(model, vecnorm, run, 0)
         if init_policy:
             src = algo_cls.load(init_policy, device="cpu")
