@@ -19,6 +19,7 @@ class TrainingCallback(BaseCallback):
         self.progress = progress
         self._bar = None
         self.best: tuple[float, float] | None = None
+        self.critic_warmup_until = 0
         self.cfg = cfg
         self.run_dir = Path(run_dir)
         self.vecnorm = vecnorm
@@ -27,6 +28,22 @@ class TrainingCallback(BaseCallback):
         self._next_eval = None
         self._terms: dict[str, list[float]] = defaultdict(list)
         self._episodes: list[tuple[bool, bool]] = []
+
+    def _actor_params(self):
+        pol = self.model.policy
+        if not hasattr(pol, "action_net"):  # SAC: no shared actor-critic module
+            return []
+        return [
+            *pol.mlp_extractor.policy_net.parameters(),
+            *pol.action_net.parameters(),
+            pol.log_std,
+        ]
+
+    def _on_rollout_end(self) -> None:
+        freeze = self.model.num_timesteps < self.critic_warmup_until
+        for p in self._actor_params():
+            p.requires_grad_(not freeze)
+        self._log_rollout()
 
     def _on_training_start(self) -> None:
         n = self.model.num_timesteps
@@ -38,6 +55,8 @@ class TrainingCallback(BaseCallback):
             )
         self._next_ckpt = n + self.cfg.checkpoint_every
         self._next_eval = n + self.cfg.eval_every if self.cfg.eval_every else None
+        if self.cfg.eval_every and self.critic_warmup_until:
+            self._evaluate(n)  # the warm-started policy competes for best/ too
 
     def _on_step(self) -> bool:
         for info, done in zip(self.locals["infos"], self.locals["dones"], strict=True):
@@ -65,7 +84,7 @@ class TrainingCallback(BaseCallback):
         if self._bar is not None:
             self._bar.close()
 
-    def _on_rollout_end(self) -> None:
+    def _log_rollout(self) -> None:
         for k, v in self._terms.items():
             self.logger.record(f"charts/reward_{k}", float(np.mean(v)))
         if self._episodes:

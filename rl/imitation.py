@@ -30,6 +30,9 @@ class ImitationConfig:
         batch_size: minibatch size (transitions).
         learning_rate: Adam step size of the supervised fit.
         log_std: the policy's log standard deviation after the warm start (PPO explores from it).
+        critic_warmup_steps: after the warm start, PPO first trains only its value function for
+            this many environment steps (the actor frozen), so the first policy updates use
+            advantages from a critic that matches the imitated policy.
     """
 
     teacher: str = "pid"
@@ -39,6 +42,7 @@ class ImitationConfig:
     batch_size: int = 512
     learning_rate: float = 1e-3
     log_std: float = -1.0
+    critic_warmup_steps: int = 30_000
 
     def validate(self) -> None:
         if self.teacher not in ("pid", "none"):

@@ -314,6 +314,8 @@ def train(
     remaining = cfg.total_steps - model.num_timesteps
     if remaining > 0:
         cb = TrainingCallback(cfg, run, vecnorm, save_checkpoint, progress=progress)
+        if cfg.imitation.teacher != "none" and ckpt is None and not init_policy:
+            cb.critic_warmup_until = cfg.imitation.critic_warmup_steps
         model.learn(
             total_timesteps=remaining,
             callback=cb,
