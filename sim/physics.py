@@ -267,6 +267,7 @@ class VehicleBody:
         self.thrust_command_n = np.zeros(self.thrusters.n)
         self.time_s = 0.0
         self._acc_zup = (0.0,) * 6  # last substep's CoM and angular acceleration, world
+        self._acc_mean_zup = (0.0,) * 6  # the same averaged over the last control step
         self._T_cache = None
         if rng is not None:
             self._rng = rng
@@ -299,9 +300,19 @@ class VehicleBody:
     @property
     def nu_dot(self) -> np.ndarray:
         """(6,) last substep's acceleration of the origin and angular acceleration, body FRD."""
+        return self._origin_acceleration(self._acc_zup)
+
+    @property
+    def nu_dot_mean(self) -> np.ndarray:
+        """(6,) like :attr:`nu_dot`, averaged over the last control step (velocity change over
+        its duration): what a delta-velocity IMU sampled at the control rate reports, so an
+        impact inside the step shows even when it is over by the step's end."""
+        return self._origin_acceleration(self._acc_mean_zup)
+
+    def _origin_acceleration(self, acc_zup) -> np.ndarray:
         R_t = self._R_t_zup_flu()
-        a_cg = R_t @ np.asarray(self._acc_zup[:3]) * _S_BODY
-        alpha = R_t @ np.asarray(self._acc_zup[3:]) * _S_BODY
+        a_cg = R_t @ np.asarray(acc_zup[:3]) * _S_BODY
+        alpha = R_t @ np.asarray(acc_zup[3:]) * _S_BODY
         w = R_t @ self.component.get_angular_velocity().astype(float) * _S_BODY
         c = self.config.cg_m
         a_o = a_cg - _cross(alpha, c) - _cross(w, _cross(w, c))
@@ -314,9 +325,10 @@ class VehicleBody:
         )
 
     def read_imu(self) -> ImuReading:
-        """Sample the noisy navigation sensors at the current state."""
-        s = self.state()
-        return self.imu.measure(s.T_world_ned_body_frd[:3, :3], s.nu, s.nu_dot[:3], s.depth_m)
+        """Sample the noisy navigation sensors at the current state (the accelerometer reports
+        the mean over the last control step, see :attr:`nu_dot_mean`)."""
+        T = self.T_world_ned_body_frd
+        return self.imu.measure(T[:3, :3], self.nu, self.nu_dot_mean[:3], float(T[2, 3]))
 
     # ------------------------------------------------------------------ stepping
 
@@ -349,6 +361,9 @@ class VehicleBody:
         """
         n = self._substeps(duration_s)
         dt = self.dt_s
+        comp = self.component
+        v0 = comp.get_linear_velocity().astype(float)
+        w0 = comp.get_angular_velocity().astype(float)
         cmd = np.asarray(thrust_command_n, dtype=float)
         thrust = self.thrusters.response(self.thrust_n, cmd, dt, n)  # (n, k)
         wrenches = np.ascontiguousarray(thrust @ self._B_T)
@@ -361,6 +376,11 @@ class VehicleBody:
         self.thrust_n = thrust[-1].copy()
         self.time_s += n * dt
         self._T_cache = None
+        span = n * dt
+        self._acc_mean_zup = tuple(
+            np.concatenate([comp.get_linear_velocity() - v0, comp.get_angular_velocity() - w0])
+            / span
+        )
 
     def _run_free(self, wrenches: np.ndarray, currents: np.ndarray) -> bool:
         """Try the control step without PhysX; False (nothing changed) if a contact was

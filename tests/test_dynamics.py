@@ -215,12 +215,15 @@ def test_imu_reads_gravity_and_acceleration():
     expected = R_from_rpy(*rpy).T @ np.array([0.0, 0.0, -g])
     np.testing.assert_allclose(reading.specific_force_frd_mps2, expected, atol=1e-4)
     assert reading.depth_m == pytest.approx(3.0, abs=1e-4)
-    # under a surge force it adds the kinematic acceleration (X - drag) / (m + X_udot)
+    # under a surge force it adds the kinematic acceleration (X - drag) / (m + X_udot): the
+    # last substep's, and the control step's mean (delta-velocity) that the IMU reports
+    u0 = auv.nu[0]
     auv.step([100.0, 0, 0, 0, 0, 0], 0.4)
     u = auv.nu[0]
     drag = (cfg.linear_damping[0] + cfg.quadratic_damping[0] * abs(u)) * u
     a_expected = (auv.thrust_n[:2].sum() - drag) / (cfg.mass_kg + cfg.added_mass[0])
-    assert auv.read_imu().acceleration_frd_mps2[0] == pytest.approx(a_expected, rel=0.01)
+    assert auv.nu_dot[0] == pytest.approx(a_expected, rel=0.01)
+    assert auv.read_imu().acceleration_frd_mps2[0] == pytest.approx((u - u0) / 0.4, rel=0.01)
     # noise and bias are drawn from the generator: same seed, same reading
     imu_cfg = ImuConfig()
     a = Imu(imu_cfg, g, np.random.default_rng(5)).measure(np.eye(3), np.zeros(6), np.zeros(3), 1)

@@ -262,7 +262,7 @@ def test_dagger_warm_start_imitates_the_teacher(tmp_path):
     model = build_model(cfg, venv, tmp_path / "tb")
     icfg = ImitationConfig(iterations=2, episodes_per_iteration=2, epochs=40, log_std=-1.5)
     hist = warm_start(model, venv, cfg.env, icfg, seed=0, gamma=0.99, progress=False)
-    assert len(hist["loss"]) == 2 and hist["loss"][-1] < 0.05
+    assert len(hist["loss"]) == 2 and hist["loss"][-1] < 0.08
     assert torch.allclose(model.policy.log_std, torch.full((6,), -1.5))
     # the student reproduces the teacher on the states it was taught (seeded as warm_start does)
     env = DockingEnv(cfg.env)
