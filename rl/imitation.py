@@ -71,9 +71,16 @@ def warm_start(
 ) -> dict[str, list[float]]:
     """Fit ``model``'s policy (and value) to the teacher by DAgger; updates ``vecnorm``'s stats.
 
+    The student of every iteration is scored by the docked fraction of the next iteration's
+    rollouts (the last one by an extra batch); the best-scoring student is kept, since the
+    imitation of a controller with sharp decisions does not improve monotonically.
+
     Returns:
-        Per iteration: the imitation loss and the fraction of docked episodes of the rollouts.
+        Per iteration: the imitation loss and the docked fraction of the rollouts (iteration 0:
+        the teacher; k > 0: the student fitted at k - 1), and the selected iteration.
     """
+    import copy
+
     import torch
     from tqdm import tqdm
 
@@ -86,27 +93,23 @@ def warm_start(
     policy = model.policy
     obs_all, act_all, ret_all = [], [], []
     history: dict[str, list[float]] = {"loss": [], "docked": []}
-    bar = tqdm(
-        total=cfg.iterations * cfg.episodes_per_iteration,
-        desc="imitation",
-        unit="ep",
-        disable=not progress,
-    )
+    total = (cfg.iterations + 1) * cfg.episodes_per_iteration
+    bar = tqdm(total=total, desc="imitation", unit="ep", disable=not progress)
     rms = vecnorm.obs_rms if vecnorm is not None else None
-    ep_seed = seed + 500_000
-    for it in range(cfg.iterations):
-        docked = 0
+    ep_seed = [seed + 500_000]
+
+    def rollouts(student: bool) -> tuple[float, list, list, list]:
+        docked, O, A, G = 0, [], [], []
         for _ in range(cfg.episodes_per_iteration):
-            obs, _ = env.reset(seed=ep_seed)
-            ep_seed += 1
+            obs, _ = env.reset(seed=ep_seed[0])
+            ep_seed[0] += 1
             teacher.reset()
             ep_obs, ep_act, ep_rew = [], [], []
             done = False
             while not done:
                 label = teacher.act(obs)
-                if it == 0:
-                    action = label
-                else:
+                action = label
+                if student:
                     o = vecnorm.normalize_obs(obs[None]) if vecnorm is not None else obs[None]
                     with torch.no_grad():
                         dist = policy.get_distribution(torch.as_tensor(o, dtype=torch.float32))
@@ -117,17 +120,32 @@ def warm_start(
                 ep_rew.append(r)
                 done = term or trunc
             docked += int(info["success_paper"])
-            obs_all.append(np.asarray(ep_obs))
-            act_all.append(np.asarray(ep_act))
-            ret_all.append(_discounted(np.asarray(ep_rew), gamma))
+            O.append(np.asarray(ep_obs))
+            A.append(np.asarray(ep_act))
+            G.append(_discounted(np.asarray(ep_rew), gamma))
             bar.update(1)
+        return docked / cfg.episodes_per_iteration, O, A, G
+
+    states: list[dict] = []
+    for it in range(cfg.iterations):
+        frac, O, A, G = rollouts(student=it > 0)
+        obs_all += O
+        act_all += A
+        ret_all += G
         X = np.concatenate(obs_all).astype(np.float64)
         if rms is not None:
-            rms.update(X[-sum(len(o) for o in obs_all[-cfg.episodes_per_iteration :]) :])
+            rms.update(np.concatenate(O).astype(np.float64))
         loss = _fit(model, vecnorm, X, np.concatenate(act_all), np.concatenate(ret_all), cfg)
+        states.append(copy.deepcopy(policy.state_dict()))
         history["loss"].append(loss)
-        history["docked"].append(docked / cfg.episodes_per_iteration)
-        bar.set_postfix(loss=f"{loss:.4f}", docked=f"{docked / cfg.episodes_per_iteration:.2f}")
+        history["docked"].append(frac)
+        bar.set_postfix(loss=f"{loss:.4f}", docked=f"{frac:.2f}")
+    final_frac, *_ = rollouts(student=True)
+    history["docked"].append(final_frac)
+    scores = history["docked"][1:]  # score of the student fitted at iteration k is scores[k]
+    best = int(np.argmax(scores))
+    policy.load_state_dict(states[best])
+    history["selected_iteration"] = [best]
     bar.close()
     env.close()
     with torch.no_grad():
