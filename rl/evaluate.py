@@ -169,7 +169,17 @@ def _worker(
     video_dir: str | None,
     queue,
 ):
+    import os
+
     from rl.report import load_controller
+
+    parent = os.getppid()
+
+    def tick(done: int, total: int) -> None:
+        if os.getppid() != parent:  # the evaluation was killed: do not run on as an orphan
+            raise SystemExit(1)
+        if queue is not None:
+            queue.put(1)
 
     ctrl, vecnorm, _ = load_controller(policy_spec, env_cfg)
     res = run_episodes(
@@ -182,7 +192,7 @@ def _worker(
         video_episodes=video_episodes,
         episodes=indices,
         video_dir=video_dir,
-        progress=(lambda d, t: queue.put(1)) if queue is not None else None,
+        progress=tick,
     )
     return res.episodes, res.traces
 
