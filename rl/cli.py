@@ -121,7 +121,7 @@ def eval_cmd(
 ) -> None:
     """Evaluate a policy (or the PID baseline) over seeded episodes."""
     from rl.config import EnvConfig
-    from rl.report import evaluate_to_folder
+    from rl.report import evaluate_to_folder, policy_env_settings
 
     env_cfg = load_config(
         EnvConfig,
@@ -132,7 +132,8 @@ def eval_cmd(
             "error_model_path": str(error_model) if error_model else None,
         },
     )
-    env_cfg = replace(env_cfg, terminate_on="strict")
+    # the policy's observation layout and action scaling come from its own run config
+    env_cfg = replace(env_cfg, terminate_on="strict", **policy_env_settings(str(policy)))
     try:
         vids = tuple(int(v) for v in videos.split(",") if v.strip())
     except ValueError:

@@ -16,6 +16,32 @@ from dockcore.provenance import provenance
 from rl.config import EnvConfig
 from rl.evaluate import EpisodeTrace, run_episodes_parallel
 
+#: EnvConfig fields that define a policy's interface (observation layout, action scaling).
+POLICY_INTERFACE_FIELDS = (
+    "obs_last_action",
+    "obs_uncertainty",
+    "obs_frames",
+    "wrench_limits",
+    "wrench_scale",
+    "control_hz",
+)
+
+
+def policy_env_settings(policy: str) -> dict[str, Any]:
+    """The interface fields of the env a policy was trained in, from the ``config.toml`` of its
+    run folder (beside ``policy.zip`` or one level up, as for ``best/``); {} if none."""
+    from dockcore.config import read_toml
+
+    if policy == "pid":
+        return {}
+    p = Path(policy)
+    folder = p if p.is_dir() else p.parent
+    for cand in (folder / "config.toml", folder.parent / "config.toml"):
+        if cand.is_file():
+            env = read_toml(cand).get("train", {}).get("env", {})
+            return {k: env[k] for k in POLICY_INTERFACE_FIELDS if k in env}
+    return {}
+
 
 def load_controller(policy: str, env_cfg: EnvConfig):
     """'pid', an .onnx file, or a policy.zip / run folder -> (controller, vecnorm, label)."""
