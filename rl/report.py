@@ -22,7 +22,6 @@ POLICY_INTERFACE_FIELDS = (
     "obs_uncertainty",
     "obs_frames",
     "wrench_limits",
-    "wrench_scale",
     "control_hz",
 )
 
