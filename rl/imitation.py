@@ -98,6 +98,8 @@ def warm_start(
     rms = vecnorm.obs_rms if vecnorm is not None else None
     ep_seed = [seed + 500_000]
 
+    steps = [0]
+
     def rollouts(student: bool) -> tuple[float, list, list, list]:
         docked, O, A, G = 0, [], [], []
         for _ in range(cfg.episodes_per_iteration):
@@ -117,6 +119,7 @@ def warm_start(
                 ep_obs.append(obs)
                 ep_act.append(label)
                 obs, r, term, trunc, info = env.step(action)
+                steps[0] += 1
                 ep_rew.append(r)
                 done = term or trunc
             docked += int(info["success_paper"])
@@ -146,6 +149,7 @@ def warm_start(
     best = int(np.argmax(scores))
     policy.load_state_dict(states[best])
     history["selected_iteration"] = [best]
+    history["env_steps"] = [steps[0]]
     bar.close()
     env.close()
     with torch.no_grad():
