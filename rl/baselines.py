@@ -38,9 +38,9 @@ class PIDConfig:
         integral_limit: anti-windup bound of each horizontal integral (m s).
     """
 
-    kp_xy: float = 120.0
-    kd_xy: float = 260.0
-    ki_xy: float = 8.0
+    kp_xy: float = 300.0
+    kd_xy: float = 450.0
+    ki_xy: float = 0.0
     kp_z: float = 150.0
     kd_z: float = 250.0
     ki_z: float = 20.0
