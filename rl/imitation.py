@@ -189,5 +189,5 @@ def _fit(
             opt.zero_grad()
             loss.backward()
             opt.step()
-            last = float(pi_loss)
+            last = pi_loss.item()
     return last
