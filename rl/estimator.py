@@ -17,12 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibration.frames import make_T, rpy_from_R, wrap_angle_rad
-
-
-def _Rz(yaw: float) -> np.ndarray:
-    c, s = math.cos(yaw), math.sin(yaw)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+from calibration.frames import R_from_rpy, make_T, rpy_from_R, wrap_angle_rad
 
 
 @dataclass(frozen=True)
@@ -131,7 +126,7 @@ class DSPoseFilter:
     @property
     def T_world_ds(self) -> np.ndarray:
         """(4, 4) estimated DS pose (level: roll and pitch zero)."""
-        return make_T(_Rz(self.x[3]), self.x[:3])
+        return make_T(R_from_rpy(0.0, 0.0, self.x[3]), self.x[:3])
 
     @property
     def sigma_xyz_m(self) -> np.ndarray:

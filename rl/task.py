@@ -14,12 +14,7 @@ from functools import cached_property
 
 import numpy as np
 
-from calibration.frames import inv_T, make_T, rpy_from_R, wrap_angle_rad
-
-
-def _Rz(yaw_rad: float) -> np.ndarray:
-    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+from calibration.frames import R_from_rpy, inv_T, make_T, rpy_from_R, wrap_angle_rad
 
 
 @dataclass(frozen=True)
@@ -75,7 +70,9 @@ class DockingTaskConfig:
     @cached_property
     def T_ds_target(self) -> np.ndarray:
         """(4, 4) body pose of a docked AUV in the DS frame (do not modify in place)."""
-        return make_T(_Rz(math.radians(self.dock_yaw_deg)), [0.0, 0.0, -self.dock_height_m])
+        return make_T(
+            R_from_rpy(0.0, 0.0, math.radians(self.dock_yaw_deg)), [0.0, 0.0, -self.dock_height_m]
+        )
 
 
 def yaw_of(T: np.ndarray) -> float:
