@@ -69,22 +69,24 @@ class DSPoseFilter:
         self.measured = False
         self.time_since_measurement_s = math.inf
 
-    def reset(self, T_world_ds_true: np.ndarray, rng: np.random.Generator) -> None:
-        """Start from the USBL-like prior: the truth plus a draw of the prior's noise."""
+    def prior_sigma(self, sigma_xy_m: float | None = None) -> np.ndarray:
+        """(4,) standard deviations of the USBL-like prior [x, y, z (m), yaw (rad)]."""
         c = self.cfg
-        sig = np.array(
-            [
-                c.prior_sigma_xy_m,
-                c.prior_sigma_xy_m,
-                c.prior_sigma_z_m,
-                math.radians(c.prior_sigma_yaw_deg),
-            ]
-        )
-        self.x = self._state(T_world_ds_true) + sig * rng.standard_normal(4)
-        self.x[3] = float(wrap_angle_rad(self.x[3]))
-        self.P = np.diag(np.maximum(sig, 1e-6) ** 2)
+        s_xy = c.prior_sigma_xy_m if sigma_xy_m is None else sigma_xy_m
+        return np.array([s_xy, s_xy, c.prior_sigma_z_m, math.radians(c.prior_sigma_yaw_deg)])
+
+    def set_prior(self, T_world_ds_prior: np.ndarray, sigma_xy_m: float | None = None) -> None:
+        """Start from a prior DS pose (a USBL fix, a survey) with the configured uncertainty."""
+        self.x = self._state(T_world_ds_prior)
+        self.P = np.diag(np.maximum(self.prior_sigma(sigma_xy_m), 1e-6) ** 2)
         self.measured = False
         self.time_since_measurement_s = math.inf
+
+    def reset(self, T_world_ds_true: np.ndarray, rng: np.random.Generator) -> None:
+        """Start from the USBL-like prior: the truth plus a draw of the prior's noise."""
+        self.set_prior(T_world_ds_true)
+        self.x = self.x + self.prior_sigma() * rng.standard_normal(4)
+        self.x[3] = float(wrap_angle_rad(self.x[3]))
 
     @staticmethod
     def _state(T_world_ds: np.ndarray) -> np.ndarray:

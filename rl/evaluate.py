@@ -10,6 +10,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from rl.config import EnvConfig
+from rl.observation import POS_SCALE_M, frame_dim
 
 
 class Controller(Protocol):
@@ -134,7 +135,8 @@ def _episode(
             tr.pos_ds_m.append(info["T_world_ds"][:3, 3].copy())
             tr.wrench.append(np.asarray(a) * env._limits)
             tr.e_true.append(np.append(info["e_true"], info["e_psi_true"]))
-            tr.e_obs.append(np.append(obs[0:3] * 5.0, obs[3] * math.pi))
+            latest = obs[-frame_dim(env.cfg) :]  # the newest frame of a stacked observation
+            tr.e_obs.append(np.append(latest[0:3] * POS_SCALE_M, latest[3] * math.pi))
             tr.detected.append(info["detected"])
         if film:
             frame = env.camera_frame()

@@ -94,15 +94,7 @@ class DockingRunner:
 
     def reset(self, T_world_ds_prior: np.ndarray, sigma_xy_m: float | None = None) -> None:
         """Start a docking run from a prior DS pose (USBL / survey), no motion yet."""
-        self.filter.x = np.array(
-            [*T_world_ds_prior[:3, 3], np.arctan2(T_world_ds_prior[1, 0], T_world_ds_prior[0, 0])]
-        )
-        c = self.filter.cfg
-        s_xy = c.prior_sigma_xy_m if sigma_xy_m is None else sigma_xy_m
-        self.filter.P = np.diag(
-            [s_xy**2, s_xy**2, c.prior_sigma_z_m**2, np.deg2rad(c.prior_sigma_yaw_deg) ** 2]
-        )
-        self.filter.measured = False
+        self.filter.set_prior(T_world_ds_prior, sigma_xy_m)
         self.prev_action = np.zeros(6)
         self.detected = False
         self._frames = []

@@ -24,8 +24,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-import numpy as np
-
 from dockcore.errors import DockError
 from dockcore.io import atomic_write_bytes
 from dockcore.provenance import write_provenance
@@ -329,9 +327,3 @@ def train(
     venv.close()
     (run / "DONE").write_text(json.dumps({"steps": int(model.num_timesteps)}) + "\n")
     return final
-
-
-def obs_rms_arrays(vecnorm) -> tuple[np.ndarray, np.ndarray]:
-    """Mean and std of the observation normalisation (for export)."""
-    rms = vecnorm.obs_rms
-    return rms.mean.astype(np.float32), np.sqrt(rms.var + vecnorm.epsilon).astype(np.float32)

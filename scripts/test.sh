@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # README command 2: lint (ruff) and run the test suite. Extra arguments go to pytest:
-#   scripts/test.sh                 default suite (slow and GPU tests excluded)
-#   scripts/test.sh -m slow         the slow target only
+#   scripts/test.sh                 the suite (tests marked slow or gpu are excluded)
+#   scripts/test.sh -m render       only the SAPIEN rendering tests
 #   scripts/test.sh tests/test_markers.py -k decode
 set -euo pipefail
 cd "$(dirname "$0")/.."
