@@ -2,7 +2,7 @@
 
 Usage::
 
-    python bench/bench_sim.py [--quick] [--seed 0]
+    python bench/bench_sim.py [--quick] [--seed 0] [--out-dir DIR --name sim_gpu]
 
 (a) Physics without camera, one process: control steps per second of ``rl.env.DockingEnv``
     (proxy observation source, 300 Hz physics, 5 Hz control, uniform random actions, resets
@@ -17,11 +17,12 @@ Usage::
 (c) Camera in the loop: per control step render + water (coastal) + detect (default pipeline,
     one OpenCV thread) + board PnP, at widths 320, 480, 640 and 968; the physics step time from
     (a) is added for the control-step rate. Also the share of frames with a pose.
-(d) Detection range: the reference camera (968x732) straight above the DS origin (image x along
-    DS y), altitude 1-10 m above the DS floor in 0.5 m steps, in a 12 m deep tank (so the camera
-    stays under water); per water preset the greatest altitude at which the median over noise
-    draws of the number of decoded DS markers is >= 3 and >= 1. (Two DS markers are on the rim,
-    1.76 m up: below ~2.3 m altitude the camera sees only the floor markers.)
+(d) Detection range: the reference camera at 968, 640 and 480 px wide straight above the DS
+    origin (image x along DS y), altitude 1-10 m above the DS floor in 0.5 m steps, in a 12 m
+    deep tank (so the camera stays under water); per water preset the greatest altitude at
+    which the median over noise draws of the number of decoded DS markers is >= 3 and >= 1.
+    (Two DS markers are on the rim, 1.76 m up: below ~2.3 m altitude the camera sees only the
+    floor markers.)
 
 Writes ``bench/results/sim.json`` (rows + machine, commit, packages).
 """
@@ -46,6 +47,7 @@ from dockcore.bench import format_table, save_results, time_call
 
 RESOLUTIONS = ((320, 240), (640, 480), (968, 732))
 LOOP_WIDTHS = (320, 480, 640, 968)
+RANGE_WIDTHS = (968, 640, 480)
 
 
 def _rate(fn, steps: int, runs: int) -> dict[str, float]:
@@ -221,13 +223,15 @@ def bench_loop(n_poses: int, repeats: int, seed: int, physics_ms: float) -> list
     return rows
 
 
-def bench_range(altitudes: np.ndarray, draws: int, seed: int) -> list[dict]:
+def bench_range(altitudes: np.ndarray, draws: int, seed: int, width_px: int) -> list[dict]:
     from perception.detector import Detector, DetectorConfig
     from sim.docking_station import DockingStationConfig
     from sim.render import make_render_scene
     from sim.water import PRESET_ORDER, PRESETS, apply_water
 
-    rs = make_render_scene(DockingStationConfig(tank_depth_m=12.0))
+    base = reference_camera()
+    cam = base.scaled(width_px, round(base.height_px * width_px / base.width_px))
+    rs = make_render_scene(DockingStationConfig(tank_depth_m=12.0), camera_model=cam)
     ms = rs.ds.marker_set
     detector = Detector(DetectorConfig(ids=ms.ids))
     # cam_cv: x = DS +y, y = DS -x, z = down (DS frame is NED-like with z down)
@@ -255,6 +259,7 @@ def bench_range(altitudes: np.ndarray, draws: int, seed: int) -> list[dict]:
 
         rows.append(
             {
+                "width": f"{cam.width_px}x{cam.height_px}",
                 "water": name,
                 "max_alt_3_markers_m": max_alt(3),
                 "max_alt_1_marker_m": max_alt(1),
@@ -263,6 +268,7 @@ def bench_range(altitudes: np.ndarray, draws: int, seed: int) -> list[dict]:
         )
     rows.append(
         {
+            "width": f"{cam.width_px}x{cam.height_px}",
             "water": "(visible)",
             "max_alt_3_markers_m": None,
             "max_alt_1_marker_m": None,
@@ -272,10 +278,25 @@ def bench_range(altitudes: np.ndarray, draws: int, seed: int) -> list[dict]:
     return rows
 
 
+def render_device() -> str:
+    """The renderer SAPIEN picked (first line of its device summary, e.g. llvmpipe or a GPU)."""
+    import sapien
+
+    sapien.render.RenderSystem()  # creates the default device
+    lines = sapien.render.get_device_summary().splitlines()
+    return lines[0].removeprefix("GPU:").strip() if lines else "unknown"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="fewer runs and poses (~1 min)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--out-dir", type=Path, default=None, help="results folder (default bench/results)"
+    )
+    parser.add_argument(
+        "--name", default="sim", help="results file stem (e.g. sim_gpu for a GPU machine)"
+    )
     args = parser.parse_args()
     cv2.setNumThreads(1)
     quick = args.quick
@@ -292,6 +313,7 @@ def main() -> None:
         "range_draws": 1 if quick else 5,
         "lp_num_threads": os.environ.get("LP_NUM_THREADS"),
         "opencv_threads": 1,
+        "render_device": render_device(),
     }
     t0 = time.perf_counter()
     rows: list[dict] = []
@@ -303,7 +325,10 @@ def main() -> None:
     rows += [{"section": "physics", **r} for r in phys]
 
     rend = bench_render(config["render_poses"], config["render_repeats"], args.seed)
-    print("\n(b) Render per frame, CPU (lavapipe), aimed poses 1-6 m; water = coastal preset")
+    print(
+        f"\n(b) Render per frame on {config['render_device']}, aimed poses 1-6 m; "
+        "water = coastal preset"
+    )
     print(
         format_table(
             rend,
@@ -329,18 +354,21 @@ def main() -> None:
     rows += [{"section": "camera_loop", **r} for r in loop]
 
     altitudes = np.arange(1.0, 10.0 + 1e-9, config["range_step_m"])
-    rng_rows = bench_range(altitudes, config["range_draws"], args.seed)
+    rng_rows = [
+        r for w in RANGE_WIDTHS for r in bench_range(altitudes, config["range_draws"], args.seed, w)
+    ]
     print(
-        "\n(d) Detection range, 968x732 straight above the DS origin (altitude above the DS "
-        f"floor; counts = median decoded markers at {altitudes[0]:g}..{altitudes[-1]:g} m)"
+        "\n(d) Detection range straight above the DS origin (altitude above the DS floor; "
+        f"counts = median decoded markers at {altitudes[0]:g}..{altitudes[-1]:g} m)"
     )
     print(
         format_table(
-            rng_rows, ["water", "max_alt_3_markers_m", "max_alt_1_marker_m", "detected_by_altitude"]
+            rng_rows,
+            ["width", "water", "max_alt_3_markers_m", "max_alt_1_marker_m", "detected_by_altitude"],
         )
     )
     rows += [{"section": "range", **r} for r in rng_rows]
-    path = save_results("sim", rows, config)
+    path = save_results(args.name, rows, config, out_dir=args.out_dir)
     print(f"\nwrote {path} in {time.perf_counter() - t0:.0f} s")
 
 

@@ -62,9 +62,10 @@ class PIDController:
         limits: np.ndarray,
         cfg: PIDConfig | None = None,
         dt_s: float = 0.2,
-        obs_last_action: bool = True,
+        obs_frames: int = 1,
     ) -> None:
         self.cfg = cfg or PIDConfig()
+        self.obs_frames = obs_frames  # a stacked observation: read the newest (last) frame
         self.limits = np.asarray(limits, dtype=np.float64)
         self.dt_s = dt_s
         self.reset()
@@ -74,7 +75,7 @@ class PIDController:
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         c = self.cfg
-        o = np.asarray(obs, dtype=np.float64)
+        o = np.asarray(obs, dtype=np.float64).reshape(self.obs_frames, -1)[-1]
         e = o[0:3] * POS_SCALE_M
         e_psi = o[3] * math.pi
         v = o[4:7]

@@ -99,9 +99,12 @@ def run_episodes(
         for done_count, k in enumerate(todo, start=1):
             row, tr = _episode(env, ctrl, k, seed, record, k in video_episodes)
             if video_dir is not None and tr.frames:
-                from rl.report import write_video
+                from rl.report import write_frames_sheet, write_video
 
                 write_video(tr.frames, Path(video_dir) / f"camera_ep{k}.mp4")
+                dt_s = 1.0 / env_cfg.control_hz  # frames are taken after each control step
+                sheet = Path(video_dir) / f"camera_ep{k}_frames.png"
+                write_frames_sheet(tr.frames, sheet, dt_s, first_s=dt_s)
                 tr.frames = []
             rows.append(row)
             traces.append(tr)

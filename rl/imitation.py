@@ -76,8 +76,9 @@ def warm_start(
     imitation of a controller with sharp decisions does not improve monotonically.
 
     Returns:
-        Per iteration: the imitation loss and the docked fraction of the rollouts (iteration 0:
-        the teacher; k > 0: the student fitted at k - 1), and the selected iteration.
+        Per iteration: the imitation loss, the docked fraction of the rollouts (iteration 0:
+        the teacher; k > 0: the student fitted at k - 1) and the number of transitions; the
+        selected iteration and the environment steps.
     """
     import copy
 
@@ -88,11 +89,12 @@ def warm_start(
     from rl.env import DockingEnv
 
     env = DockingEnv(env_cfg)
+    success_key = f"success_{env_cfg.terminate_on}"  # the condition that ends an episode
     limits = np.asarray(env_cfg.wrench_limits) * env_cfg.wrench_scale
-    teacher = PIDController(limits, dt_s=1.0 / env_cfg.control_hz)
+    teacher = PIDController(limits, dt_s=1.0 / env_cfg.control_hz, obs_frames=env_cfg.obs_frames)
     policy = model.policy
     obs_all, act_all, ret_all = [], [], []
-    history: dict[str, list[float]] = {"loss": [], "docked": []}
+    history: dict[str, list[float]] = {"loss": [], "docked": [], "samples": []}
     total = (cfg.iterations + 1) * cfg.episodes_per_iteration
     bar = tqdm(total=total, desc="imitation", unit="ep", disable=not progress)
     rms = vecnorm.obs_rms if vecnorm is not None else None
@@ -122,7 +124,7 @@ def warm_start(
                 steps[0] += 1
                 ep_rew.append(r)
                 done = term or trunc
-            docked += int(info["success_paper"])
+            docked += int(info[success_key])
             O.append(np.asarray(ep_obs))
             A.append(np.asarray(ep_act))
             G.append(_discounted(np.asarray(ep_rew), gamma))
@@ -139,15 +141,21 @@ def warm_start(
         if rms is not None:
             rms.update(np.concatenate(O).astype(np.float64))
         loss = _fit(model, vecnorm, X, np.concatenate(act_all), np.concatenate(ret_all), cfg)
-        states.append(copy.deepcopy(policy.state_dict()))
+        # the student is only valid with the normalisation it was fitted under: keep both
+        norm = copy.deepcopy((vecnorm.obs_rms, vecnorm.ret_rms)) if vecnorm is not None else None
+        states.append((copy.deepcopy(policy.state_dict()), norm))
         history["loss"].append(loss)
         history["docked"].append(frac)
+        history["samples"].append(sum(len(o) for o in O))
         bar.set_postfix(loss=f"{loss:.4f}", docked=f"{frac:.2f}")
     final_frac, *_ = rollouts(student=True)
     history["docked"].append(final_frac)
     scores = history["docked"][1:]  # score of the student fitted at iteration k is scores[k]
-    best = int(np.argmax(scores))
-    policy.load_state_dict(states[best])
+    best = len(scores) - 1 - int(np.argmax(scores[::-1]))  # ties: the later, better-fed student
+    weights, norm = states[best]
+    policy.load_state_dict(weights)
+    if vecnorm is not None:
+        vecnorm.obs_rms, vecnorm.ret_rms = norm
     history["selected_iteration"] = [best]
     history["env_steps"] = [steps[0]]
     bar.close()

@@ -48,7 +48,11 @@ def load_controller(policy: str, env_cfg: EnvConfig):
         from rl.baselines import PIDController
 
         limits = np.asarray(env_cfg.wrench_limits) * env_cfg.wrench_scale
-        return PIDController(limits, dt_s=1.0 / env_cfg.control_hz), None, "pid"
+        return (
+            PIDController(limits, dt_s=1.0 / env_cfg.control_hz, obs_frames=env_cfg.obs_frames),
+            None,
+            "pid",
+        )
     path = Path(policy)
     if path.suffix == ".onnx":
         from rl.export import OnnxPolicy
@@ -151,6 +155,25 @@ def write_video(frames: list[np.ndarray], path: Path, fps: float = 5.0) -> Path 
     return video.path
 
 
+def write_frames_sheet(
+    frames: list[np.ndarray], path: Path, dt_s: float, first_s: float = 0.0, n: int = 8
+) -> Path | None:
+    """``n`` evenly spaced camera frames of an episode (RGB) as a captioned contact sheet PNG;
+    frame k is captioned with its time ``first_s + k * dt_s``."""
+    import cv2
+
+    from perception.video import write_contact_sheet
+
+    if not frames:
+        return None
+    idx = np.unique(np.linspace(0, len(frames) - 1, min(n, len(frames))).round().astype(int))
+    thumbs = [
+        (int(k), f"t = {first_s + k * dt_s:.1f} s", cv2.cvtColor(frames[k], cv2.COLOR_RGB2BGR))
+        for k in idx
+    ]
+    return write_contact_sheet(path, thumbs, cols=4)
+
+
 STRESS_CURRENTS_MPS = (0.0, 0.1, 0.2, 0.3)
 STRESS_THRUSTER_ERRORS_M = (0.0, 0.02, 0.05)
 
@@ -173,7 +196,9 @@ def stress_tables(
         )
         out["current"].append({"current_max_mps": speed, **run(replace(env_cfg, current=cur))})
     if env_cfg.obs_source == "camera":
-        for preset in ("clear_tank", "coastal", "turbid"):
+        from sim.water import PRESET_ORDER
+
+        for preset in PRESET_ORDER:
             out["water"].append({"water": preset, **run(replace(env_cfg, water_preset=preset))})
     for err in STRESS_THRUSTER_ERRORS_M:
         rnd = VehicleRandomisation(thrusters=ThrusterRandomisation(position_m=err))

@@ -164,7 +164,7 @@ def episode(
     out = ensure_writable_dir(out_dir)
     env = DockingEnv(env_cfg, render_mode="rgb_array")
     limits = np.asarray(env_cfg.wrench_limits, np.float64) * env_cfg.wrench_scale
-    policy = PIDController(limits, dt_s=1.0 / env_cfg.control_hz)
+    policy = PIDController(limits, dt_s=1.0 / env_cfg.control_hz, obs_frames=env_cfg.obs_frames)
     steps = round(env_cfg.episode_s * env_cfg.control_hz)
     try:
         with tqdm(total=steps, unit="step", desc="episode", disable=True if quiet else None) as bar:

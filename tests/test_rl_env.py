@@ -108,6 +108,23 @@ def test_pid_baseline_docks_with_the_proxy():
     assert res.summary["success_rate_strict"] >= 2 / 3
 
 
+def test_pid_reads_the_newest_frame_of_a_stacked_observation():
+    cfg = replace(EnvConfig(), obs_frames=3, episode_s=2.0)
+    env = DockingEnv(cfg)
+    try:
+        obs, _ = env.reset(seed=4)
+        for _ in range(4):
+            obs, *_ = env.step(np.zeros(6))
+    finally:
+        env.close()
+    limits = np.asarray(cfg.wrench_limits)
+    frames = obs.reshape(3, -1)
+    assert not np.allclose(frames[0], frames[-1])  # history differs from the present
+    stacked = PIDController(limits, obs_frames=3).act(obs)
+    single = PIDController(limits).act(frames[-1])
+    np.testing.assert_allclose(stacked, single)
+
+
 def test_train_resume_eval_export_through_the_cli(run_cli, tmp_path):
     cfg = tmp_path / "train.toml"
     cfg.write_text(
@@ -264,6 +281,9 @@ def test_dagger_warm_start_imitates_the_teacher(tmp_path):
     hist = warm_start(model, venv, cfg.env, icfg, seed=0, gamma=0.99, progress=False)
     assert len(hist["loss"]) == 2 and hist["loss"][-1] < 0.08
     assert torch.allclose(model.policy.log_std, torch.full((6,), -1.5))
+    # the kept student comes with the normalisation statistics it was fitted under
+    sel = hist["selected_iteration"][0]
+    assert venv.obs_rms.count == pytest.approx(1e-4 + sum(hist["samples"][: sel + 1]))
     # the student reproduces the teacher on the states it was taught (seeded as warm_start does)
     env = DockingEnv(cfg.env)
     teacher = PIDController(np.asarray(cfg.env.wrench_limits))
@@ -277,3 +297,26 @@ def test_dagger_warm_start_imitates_the_teacher(tmp_path):
         diffs.append(np.abs(np.clip(a_s, -1, 1) - a_t).mean())
         obs, *_ = env.step(a_t)
     assert np.mean(diffs) < 0.2
+
+
+def test_camera_frames_sheet_picks_evenly_spaced_captioned_frames(tmp_path):
+    import cv2
+
+    from rl.report import write_frames_sheet
+
+    frames = [np.full((48, 64, 3), 10 * k, np.uint8) for k in range(20)]
+    path = write_frames_sheet(frames, tmp_path / "sheet.png", dt_s=0.2, n=8)
+    sheet = cv2.imread(str(path))
+    pad = 4
+    assert sheet.shape[:2] == (2 * (48 + pad) + pad, 4 * (64 + pad) + pad)  # 8 tiles, 4 columns
+    # first tile is frame 0 (dark), last tile frame 19 (brightest); sample above the caption
+    assert sheet[pad + 5, pad + 5, 0] == 0
+    assert sheet[2 * pad + 48 + 5, 3 * (64 + pad) + pad + 5, 0] == 190
+    assert write_frames_sheet([], tmp_path / "none.png", dt_s=0.2) is None
+
+
+def test_unknown_water_preset_is_refused_naming_the_key():
+    from dockcore.config import ConfigError
+
+    with pytest.raises(ConfigError, match="water_preset: unknown 'lagoon'"):
+        replace(EnvConfig(), water_preset="lagoon")
