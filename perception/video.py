@@ -355,7 +355,8 @@ class ThumbnailBuffer:
 def write_contact_sheet(
     path: str | os.PathLike[str], thumbs: Sequence[tuple[int, str, np.ndarray]], cols: int = 4
 ) -> Path | None:
-    """A grid of (already annotated) thumbnails as one PNG, written atomically.
+    """A grid of (already annotated) thumbnails as one image (format from the suffix of
+    ``path``: .png, .jpg, ...), written atomically.
 
     Returns:
         The path, or None when there is no thumbnail.
@@ -374,4 +375,4 @@ def write_contact_sheet(
         y, x = pad + r * (th + pad), pad + c * (tw + pad)
         sheet[y : y + th, x : x + tw] = tile
         _text(sheet, name, (x + 6, y + th - 8), max(tw / 600.0, 0.45), _WHITE)
-    return atomic_write_bytes(path, encode_image(sheet, ".png"))
+    return atomic_write_bytes(path, encode_image(sheet, Path(path).suffix or ".png"))

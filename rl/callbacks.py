@@ -124,5 +124,9 @@ class TrainingCallback(BaseCallback):
             if self.vecnorm is not None:
                 save_vecnormalize(self.vecnorm, best / "vecnormalize.pkl")
             summary = {**summary, "best": True}
-        with (self.run_dir / "eval_history.jsonl").open("a") as fh:
+        history = self.run_dir / "eval_history.jsonl"
+        with history.open("a") as fh:
             fh.write(json.dumps({"step": step, **summary}) + "\n")
+        from rl.report import plot_eval_history
+
+        plot_eval_history(history, self.run_dir / "eval_history.png")

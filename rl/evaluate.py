@@ -103,7 +103,7 @@ def run_episodes(
 
                 write_video(tr.frames, Path(video_dir) / f"camera_ep{k}.mp4")
                 dt_s = 1.0 / env_cfg.control_hz  # frames are taken after each control step
-                sheet = Path(video_dir) / f"camera_ep{k}_frames.png"
+                sheet = Path(video_dir) / f"camera_ep{k}_frames.jpg"
                 write_frames_sheet(tr.frames, sheet, dt_s, first_s=dt_s)
                 tr.frames = []
             rows.append(row)

@@ -155,10 +155,50 @@ def write_video(frames: list[np.ndarray], path: Path, fps: float = 5.0) -> Path 
     return video.path
 
 
+def plot_eval_history(history_path: Path, path: Path) -> Path | None:
+    """Training curve from a run's ``eval_history.jsonl``: paper and strict success, time to
+    dock and collisions against environment steps (each new best checkpoint marked)."""
+    import json
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = [json.loads(line) for line in Path(history_path).read_text().splitlines() if line]
+    if not rows:
+        return None
+    step = np.array([r["step"] for r in rows], dtype=float)
+
+    def col(key: str) -> np.ndarray:
+        return np.array([np.nan if r.get(key) is None else r[key] for r in rows], dtype=float)
+
+    fig, axes = plt.subplots(1, 3, figsize=(12, 3.4))
+    ax = axes[0]
+    ax.plot(step, 100 * col("success_rate"), "o-", label="paper")
+    ax.plot(step, 100 * col("success_rate_strict"), "s-", label="strict")
+    best = np.array([bool(r.get("best")) for r in rows])
+    ax.plot(step[best], 100 * col("success_rate")[best], "k*", ms=10, label="new best (kept)")
+    ax.set(xlabel="env steps", ylabel="success (%)", ylim=(-3, 103), title="evaluation success")
+    ax.legend(loc="lower right", fontsize=8)
+    axes[1].plot(step, col("mean_time_to_dock_s"), "o-")
+    axes[1].set(xlabel="env steps", ylabel="s", title="mean time to dock")
+    axes[2].plot(step, col("mean_collisions"), "o-", color="tab:red")
+    axes[2].set(xlabel="env steps", ylabel="per episode", title="IMU-detected collisions")
+    for a in axes:
+        a.grid(alpha=0.3)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=100)
+    plt.close(fig)
+    return Path(path)
+
+
 def write_frames_sheet(
     frames: list[np.ndarray], path: Path, dt_s: float, first_s: float = 0.0, n: int = 8
 ) -> Path | None:
-    """``n`` evenly spaced camera frames of an episode (RGB) as a captioned contact sheet PNG;
+    """``n`` evenly spaced camera frames of an episode (RGB) as a captioned contact sheet (PNG
+    or JPEG, from the suffix of ``path``);
     frame k is captioned with its time ``first_s + k * dt_s``."""
     import cv2
 

@@ -116,9 +116,9 @@ say "main job 1/2: generating the docking-station marker set into $OUT/markers"
 "$VENV/bin/markers" generate --quiet --out "$OUT/markers"
 POLICY=$ROOT/rl/policies/error_model_ppo
 say "main job 2/2: one docking episode with the camera in the loop (shipped policy) into $OUT/demo"
-say "  (render -> underwater model -> 3DBM detector -> board PnP -> policy, at 5 Hz; ~1-3 min on a CPU)"
+say "  (render -> underwater model -> 3DBM detector -> board PnP -> policy, at 5 Hz; well under a minute on a CPU)"
 "$VENV/bin/rl" eval --policy "$POLICY" --obs camera --episodes 1 --seed 7 --videos 0 \
   --out "$OUT/demo" \
   || die "the camera-in-the-loop episode failed (see above); SAPIEN needs Mesa >= 24.3 or a GPU"
-say "wrote $OUT/demo/camera_ep0.mp4 (camera view), summary.json, trajectories_top.png, traces_ep0.png"
+say "wrote $OUT/demo/camera_ep0.mp4 (camera view), camera_ep0_frames.jpg, summary.json, trajectories_top.png, traces_ep0.png"
 say "done. Activate the environment with: source $VENV/bin/activate"

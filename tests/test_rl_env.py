@@ -272,9 +272,14 @@ def test_dagger_warm_start_imitates_the_teacher(tmp_path):
     from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
     from rl.imitation import ImitationConfig, warm_start
-    from rl.train import TrainConfig, build_model
+    from rl.train import PPOConfig, TrainConfig, build_model
 
-    cfg = replace(TrainConfig(), n_envs=1, env=replace(EnvConfig(), episode_s=6.0))
+    cfg = replace(
+        TrainConfig(),
+        n_envs=1,
+        env=replace(EnvConfig(), episode_s=6.0),
+        ppo=replace(PPOConfig(), batch_size=512),  # one env x 512 steps: no partial batch
+    )
     venv = VecNormalize(DummyVecEnv([lambda: DockingEnv(cfg.env)]))
     model = build_model(cfg, venv, tmp_path / "tb")
     icfg = ImitationConfig(iterations=2, episodes_per_iteration=2, epochs=40, log_std=-1.5)
@@ -320,3 +325,22 @@ def test_unknown_water_preset_is_refused_naming_the_key():
 
     with pytest.raises(ConfigError, match="water_preset: unknown 'lagoon'"):
         replace(EnvConfig(), water_preset="lagoon")
+
+
+def test_eval_history_plot(tmp_path):
+    from rl.report import plot_eval_history
+
+    hist = tmp_path / "eval_history.jsonl"
+    rows = [
+        {"step": 0, "success_rate": 0.9, "success_rate_strict": 0.5, "mean_time_to_dock_s": 12.0,
+         "mean_collisions": 0.5, "best": True},
+        {"step": 25000, "success_rate": 0.0, "success_rate_strict": 0.0,
+         "mean_time_to_dock_s": None, "mean_collisions": 2.0},
+    ]  # fmt: skip
+    hist.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    path = plot_eval_history(hist, tmp_path / "curve.png")
+    import cv2
+
+    assert cv2.imread(str(path)).shape == (340, 1200, 3)
+    hist.write_text("")
+    assert plot_eval_history(hist, tmp_path / "none.png") is None
