@@ -344,3 +344,41 @@ def test_eval_history_plot(tmp_path):
     assert cv2.imread(str(path)).shape == (340, 1200, 3)
     hist.write_text("")
     assert plot_eval_history(hist, tmp_path / "none.png") is None
+
+
+def test_dagger_restores_the_normalisation_of_the_student_it_keeps(tmp_path, monkeypatch):
+    """When an earlier student scores best, it comes back with the statistics it was fitted on."""
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+    import rl.env
+    from rl.imitation import ImitationConfig, warm_start
+    from rl.train import PPOConfig, TrainConfig, build_model
+
+    class ScriptedSuccess(DockingEnv):
+        """Only the rollouts that score the iteration-0 student (episodes 2 and 3) 'dock'."""
+
+        episodes = -1
+
+        def reset(self, **kw):
+            type(self).episodes += 1
+            return super().reset(**kw)
+
+        def step(self, action):
+            obs, r, term, trunc, info = super().step(action)
+            info = {**info, "success_paper": type(self).episodes in (2, 3)}
+            return obs, r, term, trunc, info
+
+    cfg = replace(
+        TrainConfig(),
+        n_envs=1,
+        env=replace(EnvConfig(), episode_s=2.0),
+        ppo=replace(PPOConfig(), batch_size=512),
+    )
+    venv = VecNormalize(DummyVecEnv([lambda: DockingEnv(cfg.env)]))
+    model = build_model(cfg, venv, tmp_path / "tb")
+    monkeypatch.setattr(rl.env, "DockingEnv", ScriptedSuccess)
+    icfg = ImitationConfig(iterations=3, episodes_per_iteration=2, epochs=2)
+    hist = warm_start(model, venv, cfg.env, icfg, seed=0, gamma=0.99, progress=False)
+    assert hist["selected_iteration"] == [0]
+    assert venv.obs_rms.count == pytest.approx(1e-4 + hist["samples"][0])
+    assert hist["samples"][0] < sum(hist["samples"])  # later data was seen, and left out
