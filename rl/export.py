@@ -95,6 +95,8 @@ def export_onnx(policy_path: str | os.PathLike[str], out: str | os.PathLike[str]
     """Write ``out`` (.onnx) and ``<out>.json`` (observation layout, limits, provenance)."""
     import torch
 
+    from rl.report import policy_env_settings
+
     model, vecnorm = load_policy(policy_path)
     actor = _actor_module(model, vecnorm)
     dim = model.observation_space.shape[0]
@@ -119,6 +121,9 @@ def export_onnx(policy_path: str | os.PathLike[str], out: str | os.PathLike[str]
             "action_dim": 6,
             "source_policy": str(policy_path),
             "action_meaning": "body wrench / wrench_limits, [Fx, Fy, Fz, Mx, My, Mz]",
+            # the EnvConfig fields of the policy's interface (observation layout, limits, rate),
+            # so `rl eval` and the runner rebuild the observation it was trained on
+            "env": policy_env_settings(str(policy_path)),
         },
     )
     return out

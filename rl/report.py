@@ -28,12 +28,19 @@ POLICY_INTERFACE_FIELDS = (
 
 def policy_env_settings(policy: str) -> dict[str, Any]:
     """The interface fields of the env a policy was trained in, from the ``config.toml`` of its
-    run folder (beside ``policy.zip`` or one level up, as for ``best/``); {} if none."""
+    run folder (beside ``policy.zip`` or one level up, as for ``best/``) or, for an exported
+    ``.onnx``, from the ``.json`` written beside it; {} if none."""
+    import json
+
     from dockcore.config import read_toml
 
     if policy == "pid":
         return {}
     p = Path(policy)
+    if p.suffix == ".onnx":
+        meta = p.with_suffix(".json")
+        env = json.loads(meta.read_text()).get("env", {}) if meta.is_file() else {}
+        return {k: env[k] for k in POLICY_INTERFACE_FIELDS if k in env}
     folder = p if p.is_dir() else p.parent
     for cand in (folder / "config.toml", folder.parent / "config.toml"):
         if cand.is_file():

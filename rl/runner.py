@@ -54,7 +54,8 @@ class DockingRunner:
         camera_file: the camera YAML/JSON (intrinsics + ``T_body_cam``); None: the reference
             camera at ``env_cfg.camera_width_px``.
         marker_set: the DS marker set file; None: the reference DS set.
-        env_cfg: the environment the policy was trained in (observation layout, limits, filter).
+        env_cfg: the environment the policy was trained in (observation layout, limits, filter);
+            None: the defaults with the interface fields stored beside an exported policy.
     """
 
     def __init__(
@@ -68,7 +69,13 @@ class DockingRunner:
         from markers.markerset import load_marker_set, marker_set_from_config
         from perception.detector import Detector, DetectorConfig
 
-        self.cfg = env_cfg or EnvConfig()
+        if env_cfg is None:  # an exported policy carries its observation layout and limits
+            from dockcore.config import replace
+            from rl.report import policy_env_settings
+
+            exported = isinstance(policy, (str, os.PathLike))
+            env_cfg = replace(EnvConfig(), **(policy_env_settings(str(policy)) if exported else {}))
+        self.cfg = env_cfg
         self.policy = OnnxPolicy(policy) if isinstance(policy, (str, os.PathLike)) else policy
         if camera_file is not None:
             self.camera, T = load_camera(camera_file)

@@ -184,6 +184,12 @@ def test_train_resume_eval_export_through_the_cli(run_cli, tmp_path):
 
     model, vecnorm = load_policy(run / "policy.zip")
     sb3, onnx = SB3Controller(model, vecnorm), OnnxPolicy(onnx_path)
+    # the exported policy carries its interface (observation layout, limits) for eval and runner
+    from rl.report import policy_env_settings
+
+    carried = policy_env_settings(str(onnx_path))
+    assert carried == policy_env_settings(str(run)) and carried["obs_last_action"] is False
+    assert len(carried["wrench_limits"]) == 6
     obs = np.random.default_rng(0).normal(size=(5, model.observation_space.shape[0]))
     for o in obs.astype(np.float32):
         np.testing.assert_allclose(onnx.act(o), sb3.act(o), atol=1e-5)
