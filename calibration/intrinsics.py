@@ -39,7 +39,7 @@ from calibration.patterns import (
 from dockcore.config import to_dict
 from dockcore.errors import DockError
 from dockcore.io import atomic_path, atomic_write_json
-from dockcore.media import open_video, quiet_native_stderr
+from dockcore.media import IMAGE_SUFFIXES, open_video, read_image
 from dockcore.provenance import provenance
 
 __all__ = [
@@ -54,7 +54,6 @@ __all__ = [
 ]
 
 #: Image files read from an input folder (case-insensitive).
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 
 #: Fewest calibration views (held-out views excluded) a calibration accepts.
 MIN_VIEWS = 4
@@ -254,18 +253,6 @@ def _round(x: float | None, digits: int = 6) -> float | None:
 # --------------------------------------------------------------------------- input views
 
 
-def _read_image(path: Path) -> np.ndarray | None:
-    """Greyscale uint8 image, or None when the file cannot be decoded."""
-    try:
-        data = np.fromfile(path, dtype=np.uint8)
-    except OSError:
-        return None
-    if data.size == 0:
-        return None
-    with quiet_native_stderr():
-        return cv2.imdecode(data, cv2.IMREAD_GRAYSCALE)
-
-
 def _video_frames(path: Path, max_frames: int) -> tuple[int, Iterator[tuple[str, np.ndarray]]]:
     cap, first = open_video(path)
     count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
@@ -315,7 +302,7 @@ def iter_views(
         )
         if not files:
             raise DockError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in folder {path}")
-        return len(files), ((p.name, _read_image(p)) for p in files)
+        return len(files), ((p.name, read_image(p, grey=True)) for p in files)
     if path.is_file():
         return _video_frames(path, video_max_frames)
     raise DockError(f"input not found: {path}")

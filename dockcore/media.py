@@ -3,6 +3,7 @@
 * :func:`quiet_native_stderr` silences OpenCV's log and the native decoder/encoder libraries
   (libjpeg, FFmpeg) that write straight to file descriptor 2;
 * :func:`open_video` opens a video file and decodes its first frame, quietly;
+* :func:`read_image` decodes an image file (``IMAGE_SUFFIXES``), None when it cannot;
 * :class:`AtomicVideoWriter` writes BGR frames to a video that appears at its path only when
   it is closed successfully (like :func:`dockcore.io.atomic_path` for files).
 
@@ -23,16 +24,26 @@ import sys
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any
 
 import numpy as np
 
 from dockcore.errors import DockError
 
-__all__ = ["VIDEO_FOURCC", "AtomicVideoWriter", "open_video", "quiet_native_stderr"]
+__all__ = [
+    "IMAGE_SUFFIXES",
+    "VIDEO_FOURCC",
+    "AtomicVideoWriter",
+    "open_video",
+    "quiet_native_stderr",
+    "read_image",
+]
 
 #: Video container suffix -> OpenCV FourCC of the codec written into it.
 VIDEO_FOURCC: dict[str, str] = {".mp4": "mp4v", ".avi": "MJPG"}
+
+#: File suffixes read as images (case-insensitive).
+IMAGE_SUFFIXES: tuple[str, ...] = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 
 
 @contextlib.contextmanager
@@ -62,6 +73,31 @@ def quiet_native_stderr() -> Iterator[None]:
             os.dup2(saved, 2)
             os.close(saved)
         cv2.utils.logging.setLogLevel(level)
+
+
+def read_image(path: str | os.PathLike[str], grey: bool = False) -> np.ndarray | None:
+    """Decode an image file, quietly; None when it is missing, empty or not decodable.
+
+    Returns:
+        (H, W) uint8 grey when ``grey``; else (H, W) grey or (H, W, 3) BGR, uint8 or uint16
+        (alpha dropped).
+    """
+    import cv2
+
+    try:
+        data = np.fromfile(Path(path), dtype=np.uint8)
+    except OSError:
+        return None
+    if data.size == 0:
+        return None
+    flags = cv2.IMREAD_GRAYSCALE if grey else cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR
+    with quiet_native_stderr():
+        img = cv2.imdecode(data, flags)
+    if img is None or img.size == 0:
+        return None
+    if img.ndim == 3 and img.shape[2] == 4:
+        img = np.ascontiguousarray(img[:, :, :3])
+    return img
 
 
 def open_video(path: str | os.PathLike[str]) -> tuple[Any, np.ndarray]:
@@ -111,12 +147,10 @@ class AtomicVideoWriter:
         DockError: (one line) an unsupported suffix, or no video writer can be opened.
     """
 
-    FOURCC: ClassVar[dict[str, str]] = VIDEO_FOURCC
-
     def __init__(self, path: str | os.PathLike[str], fps: float, *, resize: bool = False) -> None:
         self.path = Path(path)
-        if self.path.suffix.lower() not in self.FOURCC:
-            raise DockError(f"video must end in {' or '.join(self.FOURCC)}: {self.path}")
+        if self.path.suffix.lower() not in VIDEO_FOURCC:
+            raise DockError(f"video must end in {' or '.join(VIDEO_FOURCC)}: {self.path}")
         if not fps > 0:
             raise ValueError(f"fps: must be > 0, got {fps}")
         self.fps = float(fps)
@@ -136,7 +170,7 @@ class AtomicVideoWriter:
         )
         os.close(fd)
         self._tmp = Path(tmp)
-        fourcc = cv2.VideoWriter_fourcc(*self.FOURCC[suffix.lower()])
+        fourcc = cv2.VideoWriter_fourcc(*VIDEO_FOURCC[suffix.lower()])
         with quiet_native_stderr():
             writer = cv2.VideoWriter(str(self._tmp), fourcc, self.fps, size_px)
         if not writer.isOpened():

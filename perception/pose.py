@@ -28,8 +28,16 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike
 
-from calibration.frames import check_T, inv_T, make_T, rotation_angle_deg, transform_points
+from calibration.frames import (
+    R_from_rpy,
+    check_T,
+    inv_T,
+    make_T,
+    rotation_angle_deg,
+    transform_points,
+)
 from dockcore.errors import ConfigError, DockError
+from markers.markerset import corners_marker_m
 
 __all__ = [
     "BoardPose",
@@ -113,11 +121,6 @@ def T_body_ds(T_body_cam: ArrayLike, T_cam_ds: ArrayLike) -> np.ndarray:
 # --------------------------------------------------------------------------- single marker
 
 
-def _square_object_points(side_m: float) -> np.ndarray:
-    h = 0.5 * side_m
-    return np.array([[-h, h, 0.0], [h, h, 0.0], [h, -h, 0.0], [-h, -h, 0.0]])
-
-
 @dataclass(frozen=True)
 class PoseCandidate:
     """One PnP solution.
@@ -191,7 +194,7 @@ def solve_marker(
     img = _points(corners_px, (4, 2), "corners_px")
     if not (marker_size_m > 0 and math.isfinite(marker_size_m)):
         raise DockError(f"marker_size_m must be > 0, got {marker_size_m}")
-    obj = _square_object_points(marker_size_m)
+    obj = corners_marker_m(marker_size_m)
     try:
         n, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj, img, K, dist, flags=cv2.SOLVEPNP_IPPE_SQUARE)
     except cv2.error as exc:
@@ -246,7 +249,7 @@ def marker_frame_from_corners(corners_obj_m: ArrayLike) -> tuple[np.ndarray, flo
     U, _, Vt = np.linalg.svd(M)
     R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
     T = make_T(R, c.mean(axis=0))
-    fit = transform_points(T, _square_object_points(side))
+    fit = transform_points(T, corners_marker_m(side))
     if (
         side <= 0
         or np.max(np.abs(edges - side)) > 0.02 * side
@@ -478,7 +481,12 @@ def _covariance(T, obj, img, K, dist, sigma_floor_px: float) -> np.ndarray:
 
 
 def _marker_errors(T, obs, ids, K, dist) -> dict[int, float]:
-    return {i: _rms(reprojection_errors_px(T, obs[i][0], obs[i][1], K, dist)) for i in ids}
+    """RMS corner error per marker, from one projection of all their corners."""
+    if not ids:
+        return {}
+    obj, img = _stack(obs, ids)
+    e = reprojection_errors_px(T, obj, img, K, dist).reshape(len(ids), -1)
+    return {i: _rms(e[k]) for k, i in enumerate(ids)}
 
 
 def solve_board(
@@ -536,7 +544,8 @@ def solve_board(
         rejected.append(worst)
         T, ambiguity, method = solution
         errors = _marker_errors(T, obs, ids, K, dist)
-    rms = _rms(np.concatenate([reprojection_errors_px(T, *obs[i], K, dist) for i in ids]))
+    # every marker has four corners: the board RMS is the RMS of the per-marker RMS errors
+    rms = _rms(np.array([errors[i] for i in ids]))
     if rms > cfg.max_rms_px or len(ids) < cfg.min_markers:
         return None
     errors.update(_marker_errors(T, obs, rejected, K, dist))
@@ -606,17 +615,14 @@ def refine_level_board(
     ids = [i for i in board.used_ids if i in obs]
     obj, img = _stack(obs, ids)
     T_cw = inv_T(T_wc)
+    R_cw, t_cw = T_cw[:3, :3], T_cw[:3, 3]
     T0 = T_wc @ board.T_cam_ds
     x0 = np.array([*T0[:3, 3], math.atan2(T0[1, 0], T0[0, 0])])
 
-    def T_cam_ds(x: np.ndarray) -> np.ndarray:
-        c, s = math.cos(x[3]), math.sin(x[3])
-        return T_cw @ make_T(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]), x[:3])
-
     def residual(x: np.ndarray) -> np.ndarray:
-        T = T_cam_ds(x)
-        rvec, _ = cv2.Rodrigues(T[:3, :3])
-        proj, _ = cv2.projectPoints(obj, rvec, T[:3, 3], K, dist)
+        # T_cam_ds = T_cam_world @ T_world_ds(x, y, z, yaw), composed without re-validation
+        rvec, _ = cv2.Rodrigues(R_cw @ R_from_rpy(0.0, 0.0, x[3]))
+        proj, _ = cv2.projectPoints(obj, rvec, R_cw @ x[:3] + t_cw, K, dist)
         return (proj.reshape(-1, 2) - img).ravel()
 
     sol = least_squares(residual, x0, method="lm", x_scale=[0.1, 0.1, 0.1, 0.05])
@@ -628,7 +634,6 @@ def refine_level_board(
     except np.linalg.LinAlgError:
         cov = np.diag([0.05**2] * 3 + [math.radians(3.0) ** 2])
     x = sol.x
-    c, s = math.cos(x[3]), math.sin(x[3])
-    T_world_ds = make_T(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]), x[:3])
+    T_world_ds = make_T(R_from_rpy(0.0, 0.0, x[3]), x[:3])
     rms = float(np.sqrt(np.mean(r.reshape(-1, 2) ** 2) * 2))
     return LevelBoardPose(T_world_ds, cov, rms, tuple(ids))

@@ -38,7 +38,13 @@ import numpy as np
 from calibration.camera import CameraModel
 from dockcore.errors import DockError
 from dockcore.io import atomic_write_bytes
-from dockcore.media import AtomicVideoWriter, open_video, quiet_native_stderr
+from dockcore.media import (
+    IMAGE_SUFFIXES,
+    AtomicVideoWriter,
+    open_video,
+    quiet_native_stderr,
+    read_image,
+)
 from perception.preprocess import as_uint8
 
 __all__ = [
@@ -48,40 +54,15 @@ __all__ = [
     "ThumbnailBuffer",
     "annotate",
     "encode_image",
-    "iter_frames",
     "open_frames",
     "read_image",
     "write_contact_sheet",
 ]
 
-#: File suffixes read as images (case-insensitive).
-IMAGE_SUFFIXES: tuple[str, ...] = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
-
 #: A video read gives up after this many consecutive undecodable frames.
 MAX_CONSECUTIVE_VIDEO_FAILURES = 25
 
 Frame = tuple[int, str, "np.ndarray | None"]
-
-
-def read_image(path: str | os.PathLike[str]) -> np.ndarray | None:
-    """Decode an image file; None when it is missing, empty or not decodable.
-
-    Returns:
-        (H, W) grey or (H, W, 3) BGR array, uint8 or uint16 (alpha dropped).
-    """
-    try:
-        data = np.fromfile(Path(path), dtype=np.uint8)
-    except OSError:
-        return None
-    if data.size == 0:
-        return None
-    with quiet_native_stderr():
-        img = cv2.imdecode(data, cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
-    if img is None or img.size == 0:
-        return None
-    if img.ndim == 3 and img.shape[2] == 4:
-        img = np.ascontiguousarray(img[:, :, :3])
-    return img
 
 
 @dataclass
@@ -186,14 +167,6 @@ def open_frames(path: str | os.PathLike[str]) -> FrameSource:
             raise DockError(f"cannot read image {path} (corrupt or not an image)")
         return FrameSource(path, "image", 1, _files=[path])
     return _open_video(path)
-
-
-def iter_frames(path: str | os.PathLike[str]) -> Iterator[Frame]:
-    """``(index, name, image or None)`` for every frame of an input; see :func:`open_frames`.
-
-    Errors about the input as a whole are raised here, before the first frame.
-    """
-    return iter(open_frames(path))
 
 
 class AnnotatedVideoWriter(AtomicVideoWriter):

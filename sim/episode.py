@@ -45,7 +45,6 @@ from sim.water import WaterConfig, apply_water, preset
 __all__ = [
     "EpisodeVideoConfig",
     "Policy",
-    "VideoWriter",
     "add_vehicle_visual",
     "look_at",
     "record_episode",
@@ -146,10 +145,6 @@ def add_vehicle_visual(
         body.attach(visual)
     component.entity.add_component(body)
     return body
-
-
-#: The episode video writer (kept under its old name): MP4, atomic, frames of one size.
-VideoWriter = AtomicVideoWriter
 
 
 def _text(img: np.ndarray, lines: list[str]) -> None:
@@ -299,7 +294,7 @@ def record_episode(
     views = _Views(env, cfg, water, rng)
     fps = float(getattr(getattr(env, "cfg", None), "control_hz", 5.0))  # real time
     t0 = time.perf_counter()
-    with VideoWriter(out / video_name, fps) as writer:
+    with AtomicVideoWriter(out / video_name, fps) as writer:
         obs, info = env.reset(seed=seed)
         policy.reset()
         writer.write(views.render(*_lines(info, water_name)))

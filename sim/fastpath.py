@@ -50,7 +50,6 @@ if TYPE_CHECKING:  # pragma: no cover
     from sim.vehicle import Hydrodynamics
 
 __all__ = [
-    "BODY_PARAMS",
     "HYDRO_PARAMS",
     "StaticObstacles",
     "body_params",
@@ -64,9 +63,6 @@ __all__ = [
 #: Length of :func:`hydro_params`'s vector: m, W-B, W r_g - B r_b (3), r_g (3), added mass (6),
 #: linear (6) and quadratic (6) damping, I_O (9, row-major), (M_RB + M_A)^-1 (36, row-major).
 HYDRO_PARAMS = 71
-#: Length of :func:`body_params`'s vector: m_e, I_e (3), max angular speed (rad/s), and m_e,
-#: I_e (3) as PhysX holds them (float32).
-BODY_PARAMS = 9
 #: Unbounded side of an obstacle box (a half-space, or a shape we cannot bound).
 _FAR = 1e30
 

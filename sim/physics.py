@@ -42,7 +42,6 @@ Example:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 import sapien
@@ -72,7 +71,6 @@ __all__ = [
     "FREE_FLIGHT_MARGIN_M",
     "PHYSICS_RATE_HZ",
     "VehicleBody",
-    "VehicleState",
     "make_physics_scene",
 ]
 
@@ -105,32 +103,6 @@ def make_physics_scene(timestep_s: float = 1.0 / PHYSICS_RATE_HZ) -> sapien.Scen
     scene = sapien.Scene([sapien.physx.PhysxCpuSystem()])
     scene.set_timestep(timestep_s)
     return scene
-
-
-@dataclass(frozen=True)
-class VehicleState:
-    """Snapshot of the vehicle (marine convention).
-
-    Attributes:
-        time_s: simulated time since the last reset (s).
-        T_world_ned_body_frd: (4, 4) pose of body FRD in world NED.
-        nu: (6,) body velocity [u, v, w (m/s), p, q, r (rad/s)] of the origin, FRD.
-        nu_dot: (6,) acceleration over the last substep: the origin's world-frame acceleration
-            and the angular acceleration, both expressed in body FRD (m/s^2, rad/s^2); contact
-            forces included.
-        thrust_n: (n,) thrust each thruster produces now (N).
-    """
-
-    time_s: float
-    T_world_ned_body_frd: np.ndarray
-    nu: np.ndarray
-    nu_dot: np.ndarray
-    thrust_n: np.ndarray
-
-    @property
-    def depth_m(self) -> float:
-        """NED z of the body origin (m; the world origin is at the surface)."""
-        return float(self.T_world_ned_body_frd[2, 3])
 
 
 def _shape_pose_flu(center_frd: ArrayLike, axis: str) -> sapien.Pose:
@@ -318,12 +290,6 @@ class VehicleBody:
         a_o = a_cg - _cross(alpha, c) - _cross(w, _cross(w, c))
         return np.concatenate([a_o, alpha])
 
-    def state(self) -> VehicleState:
-        """A snapshot of pose, velocity, acceleration and thrust (marine convention)."""
-        return VehicleState(
-            self.time_s, self.T_world_ned_body_frd, self.nu, self.nu_dot, self.thrust_n.copy()
-        )
-
     def read_imu(self) -> ImuReading:
         """Sample the noisy navigation sensors at the current state (the accelerometer reports
         the mean over the last control step, see :attr:`nu_dot_mean`)."""
@@ -346,10 +312,6 @@ class VehicleBody:
         thrust, so thruster randomisation shows up as a wrench error.
         """
         setpoint = self.allocator.setpoint_from_thrust(self.allocator.allocate(wrench_frd))
-        self.step_thrust(self.thrusters.thrust_from_setpoint(setpoint), duration_s)
-
-    def step_setpoints(self, setpoint: ArrayLike, duration_s: float = 0.2) -> None:
-        """Hold thruster setpoints (n,) in [-1, 1] for ``duration_s`` (s)."""
         self.step_thrust(self.thrusters.thrust_from_setpoint(setpoint), duration_s)
 
     def step_thrust(self, thrust_command_n: ArrayLike, duration_s: float = 0.2) -> None:

@@ -43,7 +43,6 @@ from sim.docking_station import (
 
 __all__ = [
     "CameraRig",
-    "DownwardCamera",
     "MarkerProjection",
     "RenderConfig",
     "RenderResult",
@@ -258,10 +257,6 @@ class CameraRig:
             return depth, hit
         pos = comp.get_picture("Position")  # float32 (x, y, z, depth buffer value in [0, 1])
         return -pos[:, :, 2], pos[:, :, 3] < 1.0
-
-
-#: The Girona AUV's downward camera is a CameraRig with the reference defaults.
-DownwardCamera = CameraRig
 
 
 def _distortion_maps(cam: CameraModel) -> tuple[np.ndarray, np.ndarray]:

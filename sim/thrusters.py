@@ -42,9 +42,6 @@ __all__ = [
     "ThrusterRandomisation",
 ]
 
-#: Names of the six wrench axes, in order: forces (N) then moments about the origin (N m).
-WRENCH_AXES = ("surge", "sway", "heave", "roll", "pitch", "yaw")
-
 
 @dataclass(frozen=True)
 class ThrusterConfig:
@@ -189,6 +186,8 @@ class ThrusterArray:
         self.B = np.vstack([axes.T, np.cross(pos, axes).T])  # (6, n)
         self.max_thrust_n = np.array([t.max_thrust_n for t in ts], dtype=float)
         self.time_constant_s = np.array([t.time_constant_s for t in ts], dtype=float)
+        self._powers_key: tuple[float, int] | None = None
+        self._powers = np.empty((0, len(ts)))
         w = np.sqrt(np.asarray(self.config.allocation_weights, dtype=float))
         self._alloc = np.linalg.pinv(w[:, None] * self.B) * w[None, :]  # (n, 6)
         self._max_wrench = self._compute_max_wrench()
@@ -260,8 +259,17 @@ class ThrusterArray:
         """
         c = np.asarray(command_n, dtype=float)
         e0 = np.asarray(thrust_n, dtype=float) - c
-        k = np.arange(1, n_steps + 1, dtype=float)[:, None]
-        return c + e0 * self.decay(dt_s)[None, :] ** k
+        return c + e0 * self._decay_powers(dt_s, n_steps)
+
+    def _decay_powers(self, dt_s: float, n_steps: int) -> np.ndarray:
+        """(n_steps, n) ``decay(dt_s) ** k`` for k = 1..n_steps, kept for the last (dt, n): every
+        control step asks for the same table."""
+        key = (float(dt_s), int(n_steps))
+        if self._powers_key != key:
+            k = np.arange(1, n_steps + 1, dtype=float)[:, None]
+            self._powers = self.decay(dt_s)[None, :] ** k
+            self._powers_key = key
+        return self._powers
 
     def max_wrench(self) -> np.ndarray:
         """(6,) largest pure wrench per axis (N, N m) the allocation reaches within the limits.

@@ -421,10 +421,14 @@ _LOCAL = threading.local()
 
 
 def _workspace(height: int, width: int) -> _Workspace:
-    """The calling thread's workspace for this image size (the last size used is kept)."""
-    ws = getattr(_LOCAL, "ws", None)
-    if ws is None or ws.r.shape != (height, width):
-        ws = _LOCAL.ws = _Workspace(height, width)
+    """The calling thread's workspace for this image size (one per size used: an episode video
+    alternates the downward and the outside view)."""
+    cache = getattr(_LOCAL, "by_size", None)
+    if cache is None:
+        cache = _LOCAL.by_size = {}
+    ws = cache.get((height, width))
+    if ws is None:
+        ws = cache[(height, width)] = _Workspace(height, width)
     return ws
 
 
@@ -442,7 +446,8 @@ def _forward_scatter(J: np.ndarray, r: np.ndarray, cfg: WaterConfig, ws: _Worksp
     out = J
     for level in range(1, cfg.blur_levels):
         a = np.clip(t - np.float32(level - 1), 0.0, 1.0, out=ws.weight)
-        dst = ws.blend if out is not ws.blend else ws.a
+        # ping-pong between two buffers apply_water does not reuse while J is alive
+        dst = ws.blend if out is not ws.blend else ws.b
         out = cv2.blendLinear(out, _blur_level(J, level * step, ws.level), 1.0 - a, a, dst=dst)
     return out
 

@@ -388,3 +388,22 @@ def test_dagger_restores_the_normalisation_of_the_student_it_keeps(tmp_path, mon
     assert hist["selected_iteration"] == [0]
     assert venv.obs_rms.count == pytest.approx(1e-4 + hist["samples"][0])
     assert hist["samples"][0] < sum(hist["samples"])  # later data was seen, and left out
+
+
+def test_sac_option_trains_and_resumes_through_the_cli(run_cli, tmp_path):
+    cfg = tmp_path / "sac.toml"
+    cfg.write_text(
+        'algo = "sac"\nn_envs = 1\ncheckpoint_every = 48\neval_every = 0\n'
+        "[env]\nepisode_s = 4.0\n"
+        "[sac]\nbuffer_size = 1000\nbatch_size = 16\nlearning_starts = 16\nnet_arch = [16, 16]\n"
+    )
+    run = tmp_path / "sac_run"
+    res = run_cli(cli.main, "train", "--config", cfg, "--steps", "48", "--out", run)
+    assert res.code == 0, res.err
+    assert (run / "checkpoints" / "step_48.zip").is_file()
+    res = run_cli(cli.main, "train", "--steps", "96", "--out", run, "--resume")
+    assert res.code == 0, res.err
+    assert json.loads((run / "DONE").read_text())["steps"] == 96
+    from stable_baselines3 import SAC
+
+    assert isinstance(SAC.load(run / "policy.zip", device="cpu"), SAC)

@@ -56,6 +56,17 @@ def test_exact_formula_on_constant_image(gamma: float, artificial_light: bool, r
     assert np.abs(out.astype(np.float64) - expected).max() <= 0.51  # rounding only
 
 
+@pytest.mark.parametrize("levels", [2, 3, 4, 5])
+def test_forward_scatter_leaves_a_uniform_image_on_the_formula(levels: int) -> None:
+    """Blurring a uniform image changes nothing, whatever the number of blur levels."""
+    cfg = preset("coastal", **{**PLAIN, "blur_sigma_per_m": 0.02, "blur_levels": levels})
+    img = _const((230, 128, 40), h=40, w=60)
+    r = np.linspace(0.5, 4.0, 40 * 60).reshape(40, 60)
+    out = apply_water(img, r, cfg).astype(np.float64)
+    expected = np.stack([_model(img[0, 0], float(v), cfg) for v in r.ravel()]).reshape(out.shape)
+    assert np.abs(out - expected).max() <= 1.01  # rounding (+ blur float error)
+
+
 def test_zero_range_returns_scene_unchanged() -> None:
     rng = np.random.default_rng(1)
     img = rng.integers(0, 256, (48, 64, 3), dtype=np.uint8)
