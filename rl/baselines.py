@@ -70,6 +70,13 @@ class PIDController:
         self.dt_s = dt_s
         self.reset()
 
+    @classmethod
+    def for_env(cls, env_cfg, cfg: PIDConfig | None = None) -> PIDController:
+        """The baseline for an env's action limits, control rate and observation stacking."""
+        return cls(
+            env_cfg.action_limits, cfg, dt_s=1.0 / env_cfg.control_hz, obs_frames=env_cfg.obs_frames
+        )
+
     def reset(self) -> None:
         self.integral = np.zeros(3)
 

@@ -96,6 +96,14 @@ def train(
     show_default=True,
     help="Comma-separated episode indices to film ('' for none).",
 )
+@click.option(
+    "--terminate-on",
+    type=click.Choice(["strict", "paper"]),
+    default="strict",
+    show_default=True,
+    help="What ends an episode early: 'strict' runs on past the paper's condition, so both "
+    "success rates are measured on the same episodes.",
+)
 @click.option("--stress", is_flag=True, help="Also run the graded stress tables.")
 @click.option("--stress-episodes", type=int, default=20, show_default=True)
 @click.option(
@@ -114,6 +122,7 @@ def eval_cmd(
     config_path,
     seed,
     videos,
+    terminate_on,
     stress,
     stress_episodes,
     workers,
@@ -130,10 +139,11 @@ def eval_cmd(
         overrides={
             "obs_source": obs,
             "error_model_path": str(error_model) if error_model else None,
+            "terminate_on": terminate_on,
         },
     )
     # the policy's observation layout and action scaling come from its own run config
-    env_cfg = replace(env_cfg, terminate_on="strict", **policy_env_settings(str(policy)))
+    env_cfg = replace(env_cfg, **policy_env_settings(str(policy)))
     try:
         vids = tuple(int(v) for v in videos.split(",") if v.strip())
     except ValueError:

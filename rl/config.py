@@ -5,6 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
+import numpy as np
+
 from rl.estimator import EstimatorConfig
 from rl.rewards import RewardConfig
 from rl.task import DockingTaskConfig
@@ -100,6 +102,11 @@ class EnvConfig:
     current: CurrentConfig = field(default_factory=CurrentConfig)
     vehicle: VehicleConfig = field(default_factory=VehicleConfig)
     vehicle_randomisation: VehicleRandomisation = field(default_factory=VehicleRandomisation)
+
+    @property
+    def action_limits(self) -> np.ndarray:
+        """(6,) wrench of a unit action: ``wrench_limits * wrench_scale`` (N, N m)."""
+        return np.asarray(self.wrench_limits, dtype=np.float64) * self.wrench_scale
 
     def validate(self) -> None:
         ratio = self.physics_hz / self.control_hz

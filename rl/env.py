@@ -64,7 +64,7 @@ class DockingEnv(gym.Env):
             est_cfg = replace(est_cfg, fuse=False)
         self.filter = DSPoseFilter(est_cfg)
         self.reward_fn = DockingReward(c.reward)
-        self._limits = np.asarray(c.wrench_limits, dtype=np.float64) * c.wrench_scale
+        self._limits = c.action_limits
         dim = frame_dim(c)
         self.observation_space = gym.spaces.Box(
             -OBS_BOUND, OBS_BOUND, shape=(dim * c.obs_frames,), dtype=np.float32
@@ -117,6 +117,8 @@ class DockingEnv(gym.Env):
         T_world_ds, T_world_body = self._spawn(rng)
         self.world.reset(T_world_ds, T_world_body, rng)
         self.source.reset(rng)
+        # spawning a child sequence consumes no draws of the episode's stream
+        self._film_rng = np.random.default_rng(rng.bit_generator.seed_seq.spawn(1)[0])
         self.filter.reset(T_world_ds, rng)
         self.reward_fn.reset()
         self.steps = 0
@@ -184,7 +186,7 @@ class DockingEnv(gym.Env):
                 return None
             from sim.water import apply_water, preset
 
-            img = apply_water(res.rgb, res.range_m, preset(self.cfg.water_preset), self.np_random)
+            img = apply_water(res.rgb, res.range_m, preset(self.cfg.water_preset), self._film_rng)
             dets = []
         out = np.ascontiguousarray(img.copy())
         for d in dets:
@@ -203,7 +205,7 @@ class DockingEnv(gym.Env):
         e, _ = docking_errors(self.world.T_world_body, self.world.T_world_ds, self.cfg.task)
         text = (
             f"t={self.world.time_s:4.1f}s  e=({e[0]:+.2f},{e[1]:+.2f},{e[2]:+.2f}) m  "
-            f"{'DS detected' if self.last_measurement is not None else 'no fix'}"
+            f"{'DS detected' if self._detected() else 'no fix'}"
         )
         cv2.putText(
             out, text, (8, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 0), 1, cv2.LINE_AA
@@ -234,12 +236,14 @@ class DockingEnv(gym.Env):
             return
         true_p = self.world.T_world_ds[:3, 3]
         sigma = self.filter.usbl_sigma_m(float(np.linalg.norm(true_p - T_world_body[:3, 3])))
-        T = self.filter.T_world_ds.copy()  # keep the yaw estimate: USBL gives no heading
-        T[:3, 3] = true_p + self.np_random.normal(0.0, sigma, 3)
-        self.filter.update(T, np.diag([sigma**2] * 3 + [1e6]))
+        self.filter.update_position(true_p + self.np_random.normal(0.0, sigma, 3), sigma)
+
+    def _detected(self) -> bool:
+        """The camera (or its error model) found the DS this step (not a proxy or USBL fix)."""
+        m = self.last_measurement
+        return m is not None and m.detected
 
     def _frame(self, imu, T_world_body: np.ndarray) -> np.ndarray:
-        m = self.last_measurement
         return observation_frame(
             self.cfg,
             T_world_body,
@@ -248,7 +252,7 @@ class DockingEnv(gym.Env):
             float(imu.angular_velocity_frd_radps[2]),
             imu.acceleration_frd_mps2,
             self.prev_action,
-            m is not None and m.detected,
+            self._detected(),
         )
 
     def _obs(self) -> np.ndarray:
@@ -263,13 +267,12 @@ class DockingEnv(gym.Env):
         collided: bool,
     ) -> dict[str, Any]:
         world = self.world
-        m = self.last_measurement
         return {
             "reward_terms": dict(terms),
             "success_paper": self.success_paper,
             "success_strict": self.success_strict,
             "collided": collided,
-            "detected": bool(m is not None and m.detected),
+            "detected": self._detected(),
             "e_true": e_true,
             "e_psi_true": psi_true,
             "time_s": world.time_s,

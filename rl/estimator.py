@@ -121,6 +121,12 @@ class DSPoseFilter:
         self.time_since_measurement_s = 0.0
         return True
 
+    def update_position(self, p_world_ds_m: np.ndarray, sigma_m: float) -> bool:
+        """Fuse a position-only fix of the DS (USBL; world NED, m): the yaw estimate is kept."""
+        T = self.T_world_ds.copy()
+        T[:3, 3] = p_world_ds_m
+        return self.update(T, np.diag([sigma_m**2] * 3 + [1e6]))
+
     def usbl_sigma_m(self, slant_range_m: float) -> float:
         """USBL fix standard deviation at a slant range (m)."""
         return self.cfg.usbl_sigma_floor_m + self.cfg.usbl_sigma_per_m * slant_range_m

@@ -90,8 +90,7 @@ def warm_start(
 
     env = DockingEnv(env_cfg)
     success_key = f"success_{env_cfg.terminate_on}"  # the condition that ends an episode
-    limits = np.asarray(env_cfg.wrench_limits) * env_cfg.wrench_scale
-    teacher = PIDController(limits, dt_s=1.0 / env_cfg.control_hz, obs_frames=env_cfg.obs_frames)
+    teacher = PIDController.for_env(env_cfg)
     policy = model.policy
     obs_all, act_all, ret_all = [], [], []
     history: dict[str, list[float]] = {"loss": [], "docked": [], "samples": []}

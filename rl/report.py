@@ -22,6 +22,7 @@ POLICY_INTERFACE_FIELDS = (
     "obs_uncertainty",
     "obs_frames",
     "wrench_limits",
+    "wrench_scale",
     "control_hz",
 )
 
@@ -54,12 +55,7 @@ def load_controller(policy: str, env_cfg: EnvConfig):
     if policy == "pid":
         from rl.baselines import PIDController
 
-        limits = np.asarray(env_cfg.wrench_limits) * env_cfg.wrench_scale
-        return (
-            PIDController(limits, dt_s=1.0 / env_cfg.control_hz, obs_frames=env_cfg.obs_frames),
-            None,
-            "pid",
-        )
+        return PIDController.for_env(env_cfg), None, "pid"
     path = Path(policy)
     if path.suffix == ".onnx":
         from rl.export import OnnxPolicy

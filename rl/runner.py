@@ -92,7 +92,7 @@ class DockingRunner:
         )
         self.board = ms.corners_ds()
         self.detector = Detector(DetectorConfig(dictionary=ms.dictionary, ids=tuple(ms.ids)))
-        self.limits = np.asarray(self.cfg.wrench_limits) * self.cfg.wrench_scale
+        self.limits = self.cfg.action_limits
         self.dt_s = 1.0 / self.cfg.control_hz
         self.filter = DSPoseFilter(self.cfg.estimator)
         self.prev_action = np.zeros(6)
@@ -108,9 +108,7 @@ class DockingRunner:
 
     def usbl_fix(self, p_world_ds_m: np.ndarray, sigma_m: float) -> None:
         """Fuse an acoustic position fix of the DS (world NED, m)."""
-        T = self.filter.T_world_ds.copy()
-        T[:3, 3] = p_world_ds_m
-        self.filter.update(T, np.diag([sigma_m**2] * 3 + [1e6]))
+        self.filter.update_position(p_world_ds_m, sigma_m)
 
     def observe(self, image: np.ndarray | None, odom: Odometry, predict: bool = True) -> np.ndarray:
         """Update the DS estimate from a frame and return the policy's observation."""

@@ -16,7 +16,6 @@ observation-normalisation statistics, so nothing is lost.
 from __future__ import annotations
 
 import io
-import json
 import os
 import pickle
 import re
@@ -25,7 +24,7 @@ from pathlib import Path
 from typing import Literal
 
 from dockcore.errors import DockError
-from dockcore.io import atomic_write_bytes
+from dockcore.io import atomic_write_bytes, atomic_write_json
 from dockcore.provenance import write_provenance
 from rl.config import EnvConfig
 from rl.imitation import ImitationConfig
@@ -262,17 +261,19 @@ def train(
 
     torch.set_num_threads(1)
     run = Path(run_dir)
-    ckpt = latest_checkpoint(run) if resume else None
-    if resume and ckpt is None:
+    found = latest_checkpoint(run)
+    if resume and found is None:
         raise DockError(f"nothing to resume in {run}: no checkpoints/step_*.zip")
-    if not resume and latest_checkpoint(run) is not None:
+    if not resume and found is not None:
         raise DockError(f"{run} already holds a run: use --resume or another --out")
+    ckpt = found if resume else None
     run.mkdir(parents=True, exist_ok=True)
     write_provenance(run, {"train": cfg}, extra={"resumed_from": str(ckpt[0]) if ckpt else None})
 
     venv = make_vec_env(cfg.env, cfg.n_envs, cfg.seed)
     vecnorm = None
     algo_cls = PPO if cfg.algo == "ppo" else SAC
+    gamma = cfg.ppo.gamma if cfg.algo == "ppo" else cfg.sac.gamma
     if ckpt is not None:
         path, step = ckpt
         vn_path = run / "checkpoints" / f"vecnormalize_{step}.pkl"
@@ -286,29 +287,28 @@ def train(
                 venv,
                 norm_obs=cfg.normalize_obs,
                 norm_reward=cfg.normalize_reward,
-                gamma=cfg.ppo.gamma,
+                gamma=gamma,
             )
         model = build_model(cfg, venv, run / "tb")
         if cfg.imitation.teacher != "none" and not init_policy:
             from rl.imitation import warm_start
 
             hist = warm_start(
-                model, vecnorm, cfg.env, cfg.imitation, cfg.seed, cfg.ppo.gamma, progress=progress
+                model, vecnorm, cfg.env, cfg.imitation, cfg.seed, gamma, progress=progress
             )
-            atomic_write_bytes(run / "imitation.json", json.dumps(hist).encode())
+            atomic_write_json(run / "imitation.json", hist)
             if vecnorm is not None:
                 # the imitated policy was fitted on these statistics: freeze them, or PPO's
                 # rollouts would shift the network's inputs under it
                 vecnorm.training = False
             save_checkpoint(model, vecnorm, run, 0)
         if init_policy:
-            src = algo_cls.load(init_policy, device="cpu")
+            from rl.export import load_policy
+
+            src, vn_src = load_policy(init_policy)
             model.policy.load_state_dict(src.policy.state_dict())
-            vn_src = Path(init_policy).with_name("vecnormalize.pkl")
-            if vecnorm is not None and vn_src.exists():
-                loaded = VecNormalize.load(str(vn_src), venv.venv)
-                vecnorm.obs_rms = loaded.obs_rms
-                vecnorm.ret_rms = loaded.ret_rms
+            if vecnorm is not None and vn_src is not None:
+                vecnorm.obs_rms, vecnorm.ret_rms = vn_src.obs_rms, vn_src.ret_rms
     remaining = cfg.total_steps - model.num_timesteps
     if remaining > 0:
         cb = TrainingCallback(cfg, run, vecnorm, save_checkpoint, progress=progress)
@@ -325,5 +325,5 @@ def train(
     if vecnorm is not None:
         save_vecnormalize(vecnorm, run / "vecnormalize.pkl")
     venv.close()
-    (run / "DONE").write_text(json.dumps({"steps": int(model.num_timesteps)}) + "\n")
+    atomic_write_json(run / "DONE", {"steps": int(model.num_timesteps)})
     return final

@@ -136,7 +136,6 @@ def episode(
 ) -> None:
     """Run the scripted PID controller in the docking env and write a side-by-side MP4 of the
     downward camera (with water) and an outside view, plus summary.json."""
-    import numpy as np
     from tqdm import tqdm
 
     from dockcore.config import load_config
@@ -163,8 +162,7 @@ def episode(
     video_cfg.validate()
     out = ensure_writable_dir(out_dir)
     env = DockingEnv(env_cfg, render_mode="rgb_array")
-    limits = np.asarray(env_cfg.wrench_limits, np.float64) * env_cfg.wrench_scale
-    policy = PIDController(limits, dt_s=1.0 / env_cfg.control_hz, obs_frames=env_cfg.obs_frames)
+    policy = PIDController.for_env(env_cfg)
     steps = round(env_cfg.episode_s * env_cfg.control_hz)
     try:
         with tqdm(total=steps, unit="step", desc="episode", disable=True if quiet else None) as bar:

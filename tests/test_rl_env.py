@@ -407,3 +407,14 @@ def test_sac_option_trains_and_resumes_through_the_cli(run_cli, tmp_path):
     from stable_baselines3 import SAC
 
     assert isinstance(SAC.load(run / "policy.zip", device="cpu"), SAC)
+
+
+@pytest.mark.render
+def test_filming_an_episode_does_not_change_it():
+    cfg = replace(EnvConfig(), episode_s=3.0, camera_width_px=96)
+    pid = PIDController.for_env(cfg)
+    plain = run_episodes(pid, cfg, 1, seed=3, record=False)
+    filmed = run_episodes(pid, cfg, 1, seed=3, record=False, video_episodes=(0,))
+    assert filmed.traces[0].frames  # the camera view was filmed
+    assert filmed.episodes[0]["return"] == plain.episodes[0]["return"]
+    assert filmed.episodes[0]["final_e_xy_m"] == plain.episodes[0]["final_e_xy_m"]
