@@ -65,6 +65,8 @@ class DSPoseFilter:
     def __init__(self, cfg: EstimatorConfig | None = None) -> None:
         self.cfg = cfg or EstimatorConfig()
         self.x = np.zeros(4)
+        self._T_key: bytes | None = None
+        self._T = np.eye(4)
         self.P = np.eye(4)
         self.measured = False
         self.time_since_measurement_s = math.inf
@@ -133,8 +135,15 @@ class DSPoseFilter:
 
     @property
     def T_world_ds(self) -> np.ndarray:
-        """(4, 4) estimated DS pose (level: roll and pitch zero)."""
-        return make_T(R_from_rpy(0.0, 0.0, self.x[3]), self.x[:3])
+        """(4, 4) estimated DS pose (level: roll and pitch zero), a fresh copy.
+
+        Read several times per control step while the state changes only on updates: the
+        validated matrix is rebuilt only when ``x`` has changed.
+        """
+        key = self.x.tobytes()
+        if key != self._T_key:
+            self._T, self._T_key = make_T(R_from_rpy(0.0, 0.0, self.x[3]), self.x[:3]), key
+        return self._T.copy()
 
     @property
     def sigma_xyz_m(self) -> np.ndarray:
