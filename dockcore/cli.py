@@ -1,35 +1,153 @@
 """The CLI convention shared by every command group.
 
 A command group's ``main()`` calls :func:`run_group`: any :class:`DockError` (bad input, bad
-config) or ``OSError`` becomes one line on stderr, ``error: ...``, and exit status 2.
+config) or ``OSError`` becomes one line on stderr, ``error: ...``, and exit status 2; a usage
+error (an unknown option, a value outside its domain) is click's one line, also exit 2; SIGINT
+and SIGTERM end the command the same way (``error: interrupted``, exit 130 / 143) after the
+open atomic writes have been rolled back; anything else is a bug: one line, exit 1, and the
+traceback only with ``UWDOCK_DEBUG=1``.
+
+Numeric options take their domain from :mod:`dockcore.domains`, the same declaration the config
+fields use: ``click.option("--size-mm", type=domain_type(Positive))``, or straight from the field
+they override, ``type=field_type(MarkerConfig, "size_mm")``.
 """
 
 from __future__ import annotations
 
+import errno
+import os
+import signal
 import sys
+import traceback
+import types
+import typing
+from pathlib import Path
+from typing import Any
 
 import click
 
+from dockcore.domains import check, describe, domain_of, split_annotated
 from dockcore.errors import DockError
+
+#: ``context_settings`` of every group and command (``-h`` as well as ``--help``).
+CONTEXT = {"help_option_names": ["-h", "--help"]}
+
+
+class DomainType(click.ParamType):
+    """A click type for an int or float option with a declared domain (finite, bounds).
+
+    ``"nan"``, ``"inf"``, ``"1e999"``, ``"1.5"`` for an integer, or a value outside the bounds is
+    click's one-line usage error naming the option, before the command runs.
+    """
+
+    def __init__(self, tp: Any) -> None:
+        base, meta = split_annotated(tp)
+        if base not in (int, float) or domain_of(tp) is None:
+            raise TypeError(f"DomainType needs Annotated[int|float, <domain>], got {tp!r}")
+        self.base: type = base
+        self.meta = meta
+        self.name = "integer" if base is int else "float"
+
+    def get_metavar(self, param: click.Parameter, ctx: click.Context | None = None) -> str:
+        return "INTEGER" if self.base is int else "FLOAT"
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
+        if isinstance(value, self.base) and not isinstance(value, bool):
+            parsed = value
+        else:
+            text = str(value).strip()
+            try:
+                parsed = int(text, 10) if self.base is int else float(text)
+            except ValueError:
+                self.fail(f"must be {describe(self.meta, self.base is int)}, got {text!r}")
+        reason = check(parsed, self.base, self.meta, "value")
+        if reason:
+            self.fail(reason.removeprefix("value: "), param, ctx)
+        return parsed
+
+    def __repr__(self) -> str:
+        return f"DomainType({self.base.__name__}, {describe(self.meta, self.base is int)})"
+
+
+def domain_type(tp: Any) -> DomainType:
+    """The click type of an option whose values are ``tp`` (an annotated int or float)."""
+    return DomainType(tp)
+
+
+def field_type(cls: type, name: str) -> DomainType:
+    """The click type of an option that overrides config field ``cls.name`` (same domain).
+
+    A field ``float | None`` gives the type of its number (an unset option stays None)."""
+    tp = typing.get_type_hints(cls, include_extras=True)[name]
+    if typing.get_origin(tp) in (typing.Union, types.UnionType):
+        tp = next(a for a in typing.get_args(tp) if a is not type(None))
+    return DomainType(tp)
+
+
+class _Interrupted(KeyboardInterrupt):
+    """SIGTERM, delivered as an interrupt so cleanup code runs as for Ctrl-C."""
+
+
+def _on_sigterm(signum: int, frame: Any) -> None:
+    raise _Interrupted()
+
+
+def _oserror_line(exc: OSError) -> str:
+    """One line for a failed file operation: the file first, then the reason."""
+    reason = exc.strerror or str(exc) or type(exc).__name__
+    if exc.errno == errno.ENOSPC:
+        reason = "no space left on the device"
+    elif exc.errno == errno.EROFS:
+        reason = "read-only file system"
+    name = exc.filename
+    return f"{name}: {reason}" if name else reason
 
 
 def run_group(group: click.Group, args: list[str] | None = None) -> None:
-    """Run a click group with the toolkit's error convention."""
+    """Run a click group with the toolkit's error convention (module docstring)."""
+    previous = None
     try:
-        group.main(args=args, standalone_mode=False)
-    except click.exceptions.Abort:
-        click.echo("error: aborted", err=True)
+        previous = signal.signal(signal.SIGTERM, _on_sigterm)
+    except ValueError:  # not the main thread (embedded use): leave SIGTERM alone
+        previous = None
+    argv = list(sys.argv[1:] if args is None else args)
+    try:
+        # click's main() without its standalone handling (which prints a blank line on an
+        # interrupt): make the context, invoke, and let every exception come here
+        with group.make_context(Path(sys.argv[0]).name or group.name, argv) as ctx:
+            group.invoke(ctx)
+    except _Interrupted:
+        click.echo("error: interrupted (SIGTERM)", err=True)
+        sys.exit(128 + signal.SIGTERM)
+    except (KeyboardInterrupt, click.exceptions.Abort):
+        click.echo("error: interrupted", err=True)
         sys.exit(130)
+    except click.exceptions.NoArgsIsHelpError as exc:  # a bare group: its help, not an error
+        click.echo(exc.ctx.get_help() if exc.ctx else group.get_help(click.Context(group)))
+        sys.exit(2)
     except click.ClickException as exc:  # usage errors: click's own one-line message
-        click.echo(f"error: {exc.format_message()}", err=True)
+        message = " ".join(exc.format_message().split())
+        click.echo(f"error: {message}", err=True)
         sys.exit(exc.exit_code)
     except click.exceptions.Exit as exc:
         sys.exit(exc.exit_code)
     except DockError as exc:
-        click.echo(f"error: {exc}", err=True)
+        click.echo(f"error: {' '.join(str(exc).split())}", err=True)
         sys.exit(2)
     except OSError as exc:
-        name = f" {exc.filename}" if exc.filename else ""
-        click.echo(f"error:{name}: {exc.strerror or exc}", err=True)
+        click.echo(f"error: {_oserror_line(exc)}", err=True)
         sys.exit(2)
+    except Exception as exc:  # a bug: one line, the traceback on request
+        if os.environ.get("UWDOCK_DEBUG"):
+            traceback.print_exc()
+        text = " ".join(str(exc).split()) or type(exc).__name__
+        click.echo(
+            f"error: internal error ({type(exc).__name__}: {text[:300]}); "
+            "rerun with UWDOCK_DEBUG=1 for the traceback and please report it",
+            err=True,
+        )
+        sys.exit(1)
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
     sys.exit(0)

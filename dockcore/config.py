@@ -5,7 +5,10 @@ Conventions:
       with its unit, and the unit sits in the field name (``size_mm``, ``hfov_deg``).
     * A TOML file overrides any subset of fields; nested dataclasses are TOML tables.
     * An unknown key, a wrong type or an out-of-range value raises :class:`ConfigError`
-      naming the key (``marker.size_mm: must be > 0, got -3``).
+      naming the key (``marker.size_mm: must be a finite number > 0, got -3``).
+    * A numeric field declares its domain in its type (:mod:`dockcore.domains`:
+      ``size_mm: Positive``, ``gamma: Annotated[float, Interval(ge=0, le=1)]``); every float is
+      finite (NaN and infinity are refused everywhere), an int is an int.
     * A dataclass may define ``validate(self) -> None`` that raises ``ValueError``; it is called
       after every load and on :func:`replace`.
 
@@ -16,6 +19,7 @@ Example:
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import sys
 import types
@@ -26,6 +30,8 @@ from typing import Any, TypeVar
 
 import tomli_w
 
+from dockcore.domains import check as check_domain
+from dockcore.domains import split_annotated
 from dockcore.errors import ConfigError
 
 if sys.version_info >= (3, 11):
@@ -36,20 +42,45 @@ else:  # pragma: no cover
 C = TypeVar("C")
 
 
-def read_toml(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """Read a TOML file; a missing or malformed file raises a one-line :class:`ConfigError`."""
+def read_toml(path: str | os.PathLike[str], what: str = "config file") -> dict[str, Any]:
+    """Read a UTF-8 TOML file (a byte-order mark is accepted); a missing, unreadable, non-UTF-8
+    or malformed file raises a one-line :class:`ConfigError` that calls it ``what``."""
     path = Path(path)
     try:
-        with path.open("rb") as fh:
-            return tomllib.load(fh)
+        data = path.read_bytes()
     except FileNotFoundError:
-        raise ConfigError(f"config file not found: {path}") from None
+        raise ConfigError(f"{what} not found: {path}") from None
+    except IsADirectoryError:
+        raise ConfigError(f"{what} is a folder, not a file: {path}") from None
+    except OSError as exc:
+        raise ConfigError(f"cannot read {what} {path}: {exc.strerror or exc}") from None
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(
+            f"{what} {path} is not UTF-8 text (byte {exc.start}: {data[exc.start]:#04x})"
+        ) from None
+    try:
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"malformed TOML in {path}: {exc}") from None
 
 
 def _coerce(value: Any, tp: Any, key: str) -> Any:
     """Convert a TOML value to the annotated type ``tp`` or raise ConfigError naming ``key``."""
+    base, meta = split_annotated(tp)
+    if meta and base in (int, float):
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            what = "an integer" if base is int else "a number"
+            raise ConfigError(f"{key}: expected {what}, got {value!r}")
+        if base is int and not isinstance(value, int):
+            raise ConfigError(f"{key}: expected an integer, got {value!r}")
+        reason = check_domain(value, base, meta, key)
+        if reason:
+            raise ConfigError(reason)
+        return base(value)
+    if meta:
+        return _coerce(value, base, key)
     origin = typing.get_origin(tp)
     args = typing.get_args(tp)
     if tp is Any:
@@ -102,6 +133,8 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"{key}: expected a number, got {value!r}")
+        if not math.isfinite(value):
+            raise ConfigError(f"{key}: must be a finite number, got {value!r}")
         return float(value)
     if tp is str:
         if not isinstance(value, str):
@@ -111,7 +144,7 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
 
 
 def _build(cls: type[C], data: Mapping[str, Any], prefix: str = "") -> C:
-    hints = typing.get_type_hints(cls)
+    hints = typing.get_type_hints(cls, include_extras=True)
     names = {f.name for f in dataclasses.fields(cls) if f.init}
     unknown = sorted(set(data) - names)
     if unknown:
@@ -148,6 +181,15 @@ def _validate(obj: Any, prefix: str = "") -> None:
 def from_dict(cls: type[C], data: Mapping[str, Any]) -> C:
     """Build ``cls`` from a (possibly partial, possibly nested) mapping of overrides."""
     return _build(cls, data)
+
+
+def validated(cfg: C) -> C:
+    """``cfg`` checked as if it had been loaded from a file: every field's type and domain, then
+    ``validate()``. Returns an equal config or raises :class:`ConfigError` naming the key.
+
+    Library entry points call it on configs built in Python (``SynthConfig(n_frames=...)``), so
+    the API refuses what a TOML file or a flag would."""
+    return from_dict(type(cfg), to_dict(cfg))
 
 
 def merge(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:

@@ -1,10 +1,18 @@
-"""Atomic file output: a reader (or a crash) never sees a half-written file."""
+"""Atomic file output: a reader (or a crash) never sees a half-written file.
+
+Temporary files are hidden siblings named ``.<name>.<pid>.<random>.uwtmp`` (a video keeps its
+container suffix after that: ``….uwtmp.mp4``). A process killed with SIGKILL cannot remove its
+own; :func:`clean_stale_temps` removes those whose process is gone, and every command does so in
+its output folder when it starts (:func:`dockcore.outdir.claim_output_dir`).
+"""
 
 from __future__ import annotations
 
 import contextlib
 import json
 import os
+import re
+import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -12,22 +20,92 @@ from typing import Any
 
 from dockcore.errors import DockError
 
+#: The mark in the name of every temporary file or folder the toolkit writes.
+TEMP_MARK = ".uwtmp"
+_TEMP_RE = re.compile(r"^\..*\.(\d+)\.[A-Za-z0-9_]+\.uwtmp(\.[A-Za-z0-9]+)?$")
+
+
+def temp_prefix(name: str) -> str:
+    """The ``mkstemp``/``mkdtemp`` prefix of a temporary sibling of ``name`` (this process)."""
+    return f".{name}.{os.getpid()}."
+
+
+def _pid_alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's live process
+        return True
+    return True
+
+
+def clean_stale_temps(folder: str | os.PathLike[str], recursive: bool = True) -> int:
+    """Remove temporary files and folders left in ``folder`` by processes that are gone.
+
+    Returns:
+        How many were removed. Unreadable folders are skipped; files of live processes kept.
+    """
+    folder = Path(folder)
+    removed = 0
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return 0
+    for entry in entries:
+        m = _TEMP_RE.match(entry.name)
+        if m and not _pid_alive(int(m.group(1))):
+            try:
+                if entry.is_dir(follow_symlinks=False):
+                    shutil.rmtree(entry.path)
+                else:
+                    os.unlink(entry.path)
+                removed += 1
+            except OSError:
+                pass
+        elif recursive and entry.is_dir(follow_symlinks=False):
+            removed += clean_stale_temps(entry.path, recursive=True)
+    return removed
+
+
+def _name_target(exc: OSError, path: Path) -> OSError:
+    """The same error, naming ``path`` instead of the hidden temporary file."""
+    return type(exc)(exc.errno, exc.strerror or str(exc), str(path))
+
 
 @contextlib.contextmanager
-def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
+def atomic_path(path: str | os.PathLike[str], suffix: str = "") -> Iterator[Path]:
     """Yield a temporary path beside ``path``; on success it is renamed onto ``path``.
 
-    On an exception the temporary file is removed and ``path`` is left as it was.
+    On an exception the temporary file is removed and ``path`` is left as it was; a failed
+    write (disk full, read-only disk) is an ``OSError`` naming ``path``, not the temporary file.
+
+    Args:
+        path: the file to write.
+        suffix: appended to the temporary name after ``.uwtmp`` (``".mp4"``: writers that pick
+            the format from the suffix).
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(
+            prefix=temp_prefix(path.name), suffix=TEMP_MARK + suffix, dir=path.parent
+        )
+    except OSError as exc:
+        raise _name_target(exc, path) from None
     os.close(fd)
     tmp_path = Path(tmp)
     try:
         yield tmp_path
         os.chmod(tmp_path, 0o644)
         os.replace(tmp_path, path)
+    except OSError as exc:
+        tmp_path.unlink(missing_ok=True)
+        if exc.filename in (str(tmp_path), tmp):
+            raise _name_target(exc, path) from None
+        raise
     except BaseException:
         tmp_path.unlink(missing_ok=True)
         raise
@@ -59,7 +137,7 @@ def ensure_writable_dir(path: str | os.PathLike[str]) -> Path:
     path = Path(path)
     try:
         path.mkdir(parents=True, exist_ok=True)
-        fd, probe = tempfile.mkstemp(prefix=".write-probe.", dir=path)
+        fd, probe = tempfile.mkstemp(prefix=temp_prefix("write-probe"), suffix=TEMP_MARK, dir=path)
         os.close(fd)
         os.unlink(probe)
     except OSError as exc:

@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from dockcore.errors import DockError
+from dockcore.io import TEMP_MARK, temp_prefix
 
 __all__ = [
     "IMAGE_SUFFIXES",
@@ -163,11 +164,14 @@ class AtomicVideoWriter:
     def _open(self, size_px: tuple[int, int]) -> None:
         import cv2
 
-        self.path.parent.mkdir(parents=True, exist_ok=True)
         suffix = self.path.suffix
-        fd, tmp = tempfile.mkstemp(
-            prefix=f".{self.path.stem}.", suffix=suffix, dir=self.path.parent
-        )
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(
+                prefix=temp_prefix(self.path.name), suffix=TEMP_MARK + suffix, dir=self.path.parent
+            )
+        except OSError as exc:
+            raise type(exc)(exc.errno, exc.strerror, str(self.path)) from None
         os.close(fd)
         self._tmp = Path(tmp)
         fourcc = cv2.VideoWriter_fourcc(*VIDEO_FOURCC[suffix.lower()])

@@ -26,8 +26,10 @@ as_root() {
   fi
 }
 
-mesa_version() {
-  dpkg-query -W -f='${Version}' mesa-vulkan-drivers 2>/dev/null | sed -E 's/^[0-9]+://; s/[^0-9.].*//'
+mesa_version() {  # installed mesa-vulkan-drivers version (upstream part), empty when absent
+  local v
+  v=$(dpkg-query -W -f='${Version}' mesa-vulkan-drivers 2>/dev/null) || v=""
+  printf '%s' "$v" | sed -E 's/^[0-9]+://; s/[^0-9.].*//'
 }
 
 version_ge() { [ "$(printf '%s\n%s\n' "$2" "$1" | sort -V | head -n1)" = "$2" ]; }
