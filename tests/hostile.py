@@ -150,7 +150,7 @@ def _outside(leaf: Leaf) -> list[Any]:
     if "le" in b:
         edges += [b["le"] + step * max(1.0, abs(b["le"])), b["le"] + 1e6]
     if base is int:
-        edges = [int(math.floor(e)) if e < 0 or "ge" in b else int(e) for e in edges]
+        edges = [math.floor(e) if e < 0 or "ge" in b else int(e) for e in edges]
         edges = [e for e in edges if _refused(leaf, e)]
         return [*wrong, 1.5, 2.0, *special, *edges]
     return [*wrong, *special, *[float(e) for e in edges if _refused(leaf, float(e))]]
