@@ -21,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import re
 import sys
 import types
 import typing
@@ -40,6 +41,7 @@ else:  # pragma: no cover
     import tomli as tomllib
 
 C = TypeVar("C")
+_KEYED = re.compile(r"^[A-Za-z_][\w.\[\]]*: ")
 
 
 def read_toml(path: str | os.PathLike[str], what: str = "config file") -> dict[str, Any]:
@@ -175,7 +177,10 @@ def _validate(obj: Any, prefix: str = "") -> None:
         except ConfigError:
             raise
         except ValueError as exc:
-            raise ConfigError(f"{prefix}{exc}") from None
+            text = str(exc)
+            if _KEYED.match(text):  # "key: reason"
+                raise ConfigError(f"{prefix}{text}") from None
+            raise ConfigError(f"{prefix.rstrip('.') or type(obj).__name__}: {text}") from None
 
 
 def from_dict(cls: type[C], data: Mapping[str, Any]) -> C:
@@ -203,6 +208,15 @@ def merge(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
     return out
 
 
+def config_data(path: str | os.PathLike[str], section: str | None = None) -> dict[str, Any]:
+    """The plain data of a TOML config file; with ``section``, a file whose only top-level key
+    is that table (an output's ``config.toml``) is read from inside it."""
+    data: dict[str, Any] = read_toml(path)
+    if section is not None and set(data) == {section} and isinstance(data[section], Mapping):
+        data = dict(data[section])
+    return data
+
+
 def load_config(
     cls: type[C],
     path: str | os.PathLike[str] | None = None,
@@ -215,9 +229,7 @@ def load_config(
     With ``section``, a file whose only top-level key is that table (as in the ``config.toml``
     written next to every output) is read from inside it, so an output's config can be reused.
     """
-    data: dict[str, Any] = read_toml(path) if path is not None else {}
-    if section is not None and set(data) == {section} and isinstance(data[section], Mapping):
-        data = dict(data[section])
+    data = config_data(path, section) if path is not None else {}
     if overrides:
         data = merge(data, {k: v for k, v in overrides.items() if v is not None})
     return _build(cls, data)

@@ -10,10 +10,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Annotated
 
 import numpy as np
 
+from dockcore.domains import Interval
 from rl.observation import POS_SCALE_M
+
+_Gain = Annotated[float, Interval(ge=0, le=100_000)]
 
 
 @dataclass(frozen=True)
@@ -38,20 +42,20 @@ class PIDConfig:
         integral_limit: anti-windup bound of each horizontal integral (m s).
     """
 
-    kp_xy: float = 300.0
-    kd_xy: float = 450.0
-    ki_xy: float = 0.0
-    kp_z: float = 150.0
-    kd_z: float = 250.0
-    ki_z: float = 20.0
-    kp_yaw: float = 60.0
-    kd_yaw: float = 80.0
-    approach_altitude_m: float = 1.6
-    descend_xy_m: float = 0.08
-    descend_yaw_deg: float = 8.0
-    descend_blend_m: float = 0.06
-    descend_blend_deg: float = 3.0
-    integral_limit: float = 5.0
+    kp_xy: _Gain = 300.0
+    kd_xy: _Gain = 450.0
+    ki_xy: _Gain = 0.0
+    kp_z: _Gain = 150.0
+    kd_z: _Gain = 250.0
+    ki_z: _Gain = 20.0
+    kp_yaw: _Gain = 60.0
+    kd_yaw: _Gain = 80.0
+    approach_altitude_m: Annotated[float, Interval(ge=0, le=20)] = 1.6
+    descend_xy_m: Annotated[float, Interval(gt=0, le=10)] = 0.08
+    descend_yaw_deg: Annotated[float, Interval(gt=0, le=180)] = 8.0
+    descend_blend_m: Annotated[float, Interval(gt=0, le=10)] = 0.06
+    descend_blend_deg: Annotated[float, Interval(gt=0, le=180)] = 3.0
+    integral_limit: Annotated[float, Interval(ge=0, le=1000)] = 5.0
 
 
 class PIDController:

@@ -3,22 +3,26 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Annotated
 
 import click
 
-from dockcore.cli import run_group
-from dockcore.config import load_config, replace
+from dockcore.cli import CONTEXT, domain_type, field_type, run_group
+from dockcore.config import config_data, from_dict, load_config, merge, replace, to_dict
+from dockcore.domains import Count, Interval, Seed
 from dockcore.errors import DockError
+from rl.error_model import ErrorModelConfig
+from rl.train import TrainConfig
 
 OBS_CHOICES = click.Choice(["proxy", "error-model", "camera"])
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.group(context_settings=CONTEXT)
 def cli() -> None:
     """Reinforcement learning: docking env, PPO training, evaluation, export."""
 
 
-@cli.command()
+@cli.command(context_settings=CONTEXT)
 @click.option(
     "--config",
     "config_path",
@@ -33,13 +37,22 @@ def cli() -> None:
     help="Fitted error model file (for --obs error-model).",
 )
 @click.option("--algo", type=click.Choice(["ppo", "sac"]), help="Algorithm [ppo].")
-@click.option("--steps", type=int, help="Total environment steps.")
-@click.option("--envs", type=int, help="Parallel environments (subprocesses).")
-@click.option("--seed", type=int, help="Base seed.")
+@click.option("--steps", type=field_type(TrainConfig, "total_steps"), help="Total env steps.")
+@click.option("--envs", type=field_type(TrainConfig, "n_envs"), help="Parallel environments.")
+@click.option("--seed", type=field_type(TrainConfig, "seed"), help="Base seed.")
 @click.option(
     "--init-policy", type=click.Path(path_type=Path), help="Start from this policy (fine-tuning)."
 )
-@click.option("--resume", is_flag=True, help="Continue the run in --out from its last checkpoint.")
+@click.option(
+    "--resume",
+    is_flag=True,
+    help="Continue the run in --out from its newest complete checkpoint, with its config.toml.",
+)
+@click.option(
+    "--allow-config-change",
+    is_flag=True,
+    help="With --resume: accept --config/flags that change the run's config (recorded).",
+)
 @click.option(
     "--out",
     "out_dir",
@@ -48,39 +61,52 @@ def cli() -> None:
     help="Run folder.",
 )
 def train(
-    config_path, obs, error_model, algo, steps, envs, seed, init_policy, resume, out_dir
-) -> None:
-    """Train a docking policy (PPO with the paper's hyperparameters by default)."""
-    from rl.train import TrainConfig
+    config_path, obs, error_model, algo, steps, envs, seed, init_policy, resume,
+    allow_config_change, out_dir,
+) -> None:  # fmt: skip
+    """Train a docking policy (PPO with the paper's hyperparameters by default).
+
+    Killed at any moment, `--resume` goes on from the newest complete checkpoint and gives the
+    same checkpoints, evaluation history and best/ as a run never stopped.
+    """
+    from rl.train import run_config
     from rl.train import train as run
 
-    if resume and config_path is None and (out_dir / "config.toml").exists():
-        config_path = out_dir / "config.toml"
     env_over = {"obs_source": obs, "error_model_path": str(error_model) if error_model else None}
-    cfg = load_config(
-        TrainConfig,
-        config_path,
-        section="train",
-        overrides={
-            "algo": algo,
-            "total_steps": steps,
-            "n_envs": envs,
-            "seed": seed,
-            "env": {k: v for k, v in env_over.items() if v is not None},
-        },
+    overrides = {
+        "algo": algo,
+        "total_steps": steps,
+        "n_envs": envs,
+        "seed": seed,
+        "env": {k: v for k, v in env_over.items() if v is not None},
+    }
+    if allow_config_change and not resume:
+        raise DockError("--allow-config-change goes with --resume")
+    if resume:
+        base = to_dict(run_config(out_dir))
+        extra = config_data(config_path, section="train") if config_path else {}
+        overrides = {k: v for k, v in overrides.items() if v is not None and v != {}}
+        cfg = from_dict(TrainConfig, merge(merge(base, extra), overrides))
+    else:
+        cfg = load_config(TrainConfig, config_path, section="train", overrides=overrides)
+    final = run(
+        cfg,
+        out_dir,
+        resume=resume,
+        init_policy=str(init_policy) if init_policy else None,
+        allow_config_change=allow_config_change,
     )
-    final = run(cfg, out_dir, resume=resume, init_policy=str(init_policy) if init_policy else None)
     click.echo(f"policy: {final}")
 
 
-@cli.command("eval")
+@cli.command("eval", context_settings=CONTEXT)
 @click.option(
     "--policy",
     required=True,
     type=click.Path(path_type=Path),
     help="policy.zip / run folder / .onnx, or 'pid' for the classical baseline.",
 )
-@click.option("--episodes", type=int, default=100, show_default=True)
+@click.option("--episodes", type=domain_type(Count), default=100, show_default=True)
 @click.option("--obs", type=OBS_CHOICES, default="camera", show_default=True)
 @click.option("--error-model", "error_model", type=click.Path(path_type=Path))
 @click.option(
@@ -89,7 +115,7 @@ def train(
     type=click.Path(dir_okay=False, path_type=Path),
     help="TOML overriding EnvConfig.",
 )
-@click.option("--seed", type=int, default=1000, show_default=True)
+@click.option("--seed", type=domain_type(Seed), default=1000, show_default=True)
 @click.option(
     "--videos",
     default="0",
@@ -105,10 +131,10 @@ def train(
     "success rates are measured on the same episodes.",
 )
 @click.option("--stress", is_flag=True, help="Also run the graded stress tables.")
-@click.option("--stress-episodes", type=int, default=20, show_default=True)
+@click.option("--stress-episodes", type=domain_type(Count), default=20, show_default=True)
 @click.option(
     "--workers",
-    type=int,
+    type=domain_type(Annotated[int, Interval(ge=1, le=256)]),
     default=1,
     show_default=True,
     help="Evaluation processes (episodes are split; results do not depend on it).",
@@ -145,9 +171,14 @@ def eval_cmd(
     # the policy's observation layout and action scaling come from its own run config
     env_cfg = replace(env_cfg, **policy_env_settings(str(policy)))
     try:
-        vids = tuple(int(v) for v in videos.split(",") if v.strip())
+        vids = tuple(int(v, 10) for v in videos.split(",") if v.strip())
     except ValueError:
-        raise DockError(f"--videos must be comma-separated integers, got '{videos}'") from None
+        raise DockError(
+            f"--videos must be comma-separated episode indices, got '{videos}'"
+        ) from None
+    bad = [v for v in vids if not 0 <= v < episodes]
+    if bad:
+        raise DockError(f"--videos: episode {bad[0]} is not among the {episodes} episodes")
     summary = evaluate_to_folder(
         str(policy),
         env_cfg,
@@ -166,7 +197,7 @@ def eval_cmd(
     )
 
 
-@cli.command()
+@cli.command(context_settings=CONTEXT)
 @click.option("--policy", required=True, type=click.Path(path_type=Path))
 @click.option(
     "--out",
@@ -182,7 +213,7 @@ def export(policy, out_path) -> None:
     click.echo(f"wrote {export_onnx(policy, out_path)}")
 
 
-@cli.command("fit-error-model")
+@cli.command("fit-error-model", context_settings=CONTEXT)
 @click.argument("dataset", type=click.Path(path_type=Path))
 @click.option(
     "--out",
@@ -191,10 +222,12 @@ def export(policy, out_path) -> None:
     required=True,
     help="Error model file (JSON) to write.",
 )
-@click.option("--range-bin-m", type=float, help="Range bin width [0.5].")
+@click.option(
+    "--range-bin-m", type=field_type(ErrorModelConfig, "range_bin_m"), help="Range bin width [0.5]."
+)
 def fit_error_model_cmd(dataset, out_path, range_bin_m) -> None:
     """Fit the image-derived error model from a labelled dataset (`datasets synth`)."""
-    from rl.error_model import ErrorModelConfig, fit_error_model, save_error_model
+    from rl.error_model import fit_error_model, save_error_model
 
     cfg = load_config(ErrorModelConfig, overrides={"range_bin_m": range_bin_m})
     model = fit_error_model(dataset, cfg)

@@ -3,16 +3,22 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
 
+from dockcore.domains import Interval
 from rl.estimator import EstimatorConfig
 from rl.rewards import RewardConfig
 from rl.task import DockingTaskConfig
 from sim.vehicle import CurrentConfig, VehicleConfig, VehicleRandomisation
 
 ObsSourceName = Literal["proxy", "error-model", "camera"]
+
+_Wrench = Annotated[float, Interval(ge=0, le=10_000)]  # N or N m at action +-1
+_TankSide = Annotated[float, Interval(gt=0, le=1000)]  # m
+_Range = Annotated[float, Interval(ge=0, le=1000)]  # m, half-width of a spawn box
+_HalfTurn = Annotated[float, Interval(ge=0, le=180)]  # deg
 
 
 @dataclass(frozen=True)
@@ -68,10 +74,10 @@ class EnvConfig:
     """
 
     obs_source: ObsSourceName = "proxy"
-    control_hz: float = 5.0
-    physics_hz: float = 300.0
-    episode_s: float = 60.0
-    wrench_limits: tuple[float, float, float, float, float, float] = (
+    control_hz: Annotated[float, Interval(gt=0, le=100)] = 5.0
+    physics_hz: Annotated[float, Interval(gt=0, le=5000)] = 300.0
+    episode_s: Annotated[float, Interval(gt=0, le=3600)] = 60.0
+    wrench_limits: tuple[_Wrench, _Wrench, _Wrench, _Wrench, _Wrench, _Wrench] = (
         280.0,
         140.0,
         268.0,
@@ -79,21 +85,21 @@ class EnvConfig:
         39.0,
         72.0,
     )
-    wrench_scale: float = 1.0
-    tank_size_m: tuple[float, float, float] = (19.0, 9.0, 5.0)
-    spawn_auv_range_m: tuple[float, float, float] = (6.0, 3.0, 1.4)
-    spawn_auv_height_m: float = 3.3
-    spawn_auv_yaw_deg: float = 180.0
-    spawn_ds_range_m: tuple[float, float, float] = (1.0, 2.0, 0.0)
-    spawn_ds_yaw_deg: float = 180.0
+    wrench_scale: Annotated[float, Interval(gt=0, le=1)] = 1.0
+    tank_size_m: tuple[_TankSide, _TankSide, _TankSide] = (19.0, 9.0, 5.0)
+    spawn_auv_range_m: tuple[_Range, _Range, _Range] = (6.0, 3.0, 1.4)
+    spawn_auv_height_m: Annotated[float, Interval(gt=0, le=100)] = 3.3
+    spawn_auv_yaw_deg: _HalfTurn = 180.0
+    spawn_ds_range_m: tuple[_Range, _Range, _Range] = (1.0, 2.0, 0.0)
+    spawn_ds_yaw_deg: _HalfTurn = 180.0
     terminate_on: Literal["paper", "strict"] = "paper"
     obs_last_action: bool = False
     obs_uncertainty: bool = True
-    obs_frames: int = 1
+    obs_frames: Annotated[int, Interval(ge=1, le=64)] = 1
     randomise_vehicle: bool = True
     error_model_path: str | None = None
     camera_file: str | None = None
-    camera_width_px: int = 480
+    camera_width_px: Annotated[int, Interval(ge=0, le=8192)] = 480
     water_preset: str = "clear_tank"
     marker_set_path: str | None = None
     task: DockingTaskConfig = field(default_factory=DockingTaskConfig)
@@ -112,10 +118,23 @@ class EnvConfig:
         ratio = self.physics_hz / self.control_hz
         if self.control_hz <= 0 or abs(ratio - round(ratio)) > 1e-9:
             raise ValueError("physics_hz: must be a positive multiple of control_hz")
-        if self.episode_s <= 0 or self.obs_frames < 1:
-            raise ValueError("episode_s must be > 0 and obs_frames >= 1")
-        if not 0 < self.wrench_scale <= 1:
-            raise ValueError("wrench_scale: must be in (0, 1]")
+        if round(self.episode_s * self.control_hz) < 1:
+            raise ValueError(
+                f"episode_s: {self.episode_s:g} s is shorter than one control step "
+                f"({1 / self.control_hz:g} s)"
+            )
+        if self.camera_width_px and self.camera_width_px < 16:
+            raise ValueError(f"camera_width_px: must be 0 or >= 16, got {self.camera_width_px}")
+        length_m, width_m, _ = self.tank_size_m
+        if self.spawn_auv_range_m[0] >= length_m / 2 or self.spawn_auv_range_m[1] >= width_m / 2:
+            raise ValueError(
+                f"spawn_auv_range_m: the spawn box {self.spawn_auv_range_m[:2]} m reaches the "
+                f"walls of a {length_m:g} x {width_m:g} m tank"
+            )
+        if self.spawn_ds_range_m[0] >= length_m / 2 or self.spawn_ds_range_m[1] >= width_m / 2:
+            raise ValueError(
+                f"spawn_ds_range_m: {self.spawn_ds_range_m[:2]} m reaches the tank walls"
+            )
         if self.spawn_auv_height_m - self.spawn_auv_range_m[2] < 1.5:
             raise ValueError("spawn_auv_height_m: the AUV would spawn inside the DS (< 1.5 m)")
         if self.spawn_auv_height_m + self.spawn_auv_range_m[2] > self.tank_size_m[2] - 0.3:
@@ -128,3 +147,21 @@ class EnvConfig:
             raise ValueError(
                 f"water_preset: unknown {self.water_preset!r} (known: {', '.join(PRESET_ORDER)})"
             )
+
+
+def check_env_files(cfg: EnvConfig) -> None:
+    """Read the files an env of ``cfg`` will read (error model, camera, marker set), so a
+    missing or broken one is a one-line DockError in the calling process, before worker
+    processes start or any output is written."""
+    if cfg.obs_source == "error-model":
+        from rl.error_model import load_error_model
+
+        load_error_model(cfg.error_model_path)
+    if cfg.camera_file:
+        from calibration.camera import load_camera
+
+        load_camera(cfg.camera_file)
+    if cfg.marker_set_path:
+        from markers.markerset import load_marker_set
+
+        load_marker_set(cfg.marker_set_path)

@@ -24,7 +24,7 @@ import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -32,6 +32,7 @@ from scipy.spatial.transform import Rotation
 from calibration.camera import CameraModel, load_camera
 from calibration.frames import inv_T, make_T
 from dockcore.config import to_dict
+from dockcore.domains import Interval
 from dockcore.errors import DockError
 from dockcore.io import atomic_write_json
 from dockcore.provenance import provenance
@@ -56,11 +57,19 @@ class ErrorModelConfig:
         max_outlier_samples: gross-error samples kept per bin (-).
     """
 
-    range_bin_m: float = 0.5
-    range_max_m: float = 8.0
-    outlier_deg: float = 10.0
-    min_inliers: int = 8
-    max_outlier_samples: int = 40
+    range_bin_m: Annotated[float, Interval(gt=0, le=100)] = 0.5
+    range_max_m: Annotated[float, Interval(gt=0, le=1000)] = 8.0
+    outlier_deg: Annotated[float, Interval(gt=0, le=180)] = 10.0
+    min_inliers: Annotated[int, Interval(ge=1, le=1_000_000)] = 8
+    max_outlier_samples: Annotated[int, Interval(ge=0, le=1_000_000)] = 40
+
+    def validate(self) -> None:
+        bins = self.range_max_m / self.range_bin_m
+        if bins > 1000:
+            raise ValueError(
+                f"range_bin_m: {self.range_bin_m:g} m over {self.range_max_m:g} m gives "
+                f"{bins:.0f} bins (at most 1000)"
+            )
 
 
 def _dataset_checksum(root: Path) -> str:

@@ -14,10 +14,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Annotated
 
 import numpy as np
 
 from calibration.frames import R_from_rpy, make_T, rpy_from_R, wrap_angle_rad
+from dockcore.domains import Interval
+
+_Sigma = Annotated[float, Interval(ge=0, le=100)]  # m
 
 
 @dataclass(frozen=True)
@@ -42,21 +46,16 @@ class EstimatorConfig:
         usbl_sigma_per_m: USBL standard deviation growth with slant range (m per m).
     """
 
-    prior_sigma_xy_m: float = 1.0
-    prior_sigma_z_m: float = 0.3
-    prior_sigma_yaw_deg: float = 15.0
-    drift_xyz_m_per_sqrt_s: float = 0.02
-    drift_yaw_deg_per_sqrt_s: float = 0.2
+    prior_sigma_xy_m: _Sigma = 1.0
+    prior_sigma_z_m: _Sigma = 0.3
+    prior_sigma_yaw_deg: Annotated[float, Interval(ge=0, le=180)] = 15.0
+    drift_xyz_m_per_sqrt_s: Annotated[float, Interval(ge=0, le=10)] = 0.02
+    drift_yaw_deg_per_sqrt_s: Annotated[float, Interval(ge=0, le=180)] = 0.2
     fuse: bool = True
-    gate_sigma: float = 0.0
-    usbl_period_s: float = 1.0
-    usbl_sigma_floor_m: float = 0.15
-    usbl_sigma_per_m: float = 0.03
-
-    def validate(self) -> None:
-        for name in ("prior_sigma_xy_m", "prior_sigma_z_m", "prior_sigma_yaw_deg"):
-            if getattr(self, name) < 0:
-                raise ValueError(f"{name}: must be >= 0")
+    gate_sigma: Annotated[float, Interval(ge=0, le=1000)] = 0.0
+    usbl_period_s: Annotated[float, Interval(ge=0, le=3600)] = 1.0
+    usbl_sigma_floor_m: _Sigma = 0.15
+    usbl_sigma_per_m: Annotated[float, Interval(ge=0, le=1)] = 0.03
 
 
 class DSPoseFilter:

@@ -9,6 +9,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from dockcore.errors import DockError
 from rl.config import EnvConfig
 from rl.observation import POS_SCALE_M, frame_dim
 
@@ -125,7 +126,12 @@ def _episode(
     dock_time = None
     done = False
     while not done:
-        a = ctrl.act(obs)
+        a = np.asarray(ctrl.act(obs), dtype=np.float64)
+        if a.shape != (6,) or not np.all(np.isfinite(a)):
+            raise DockError(
+                f"the policy gave a non-finite or malformed action {a.tolist()} in episode {k} "
+                f"at step {steps} (seed {seed + k}): its weights or normalisation are broken"
+            )
         obs, r, term, trunc, info = env.step(a)
         ret += r
         steps += 1

@@ -23,36 +23,55 @@ def load_policy(path: str | os.PathLike[str]):
     """Load ``policy.zip`` (PPO or SAC) and, if beside it, ``vecnormalize.pkl``.
 
     Raises:
-        DockError: missing or unreadable policy file.
+        DockError: one line for a missing, truncated or garbage policy or normalisation file,
+            or a policy whose weights or statistics hold NaN or infinity.
     """
     import pickle
-    import zipfile
 
     from stable_baselines3 import PPO, SAC
+
+    from rl.checkpoint import require_finite_policy
 
     p = Path(path)
     if p.is_dir():
         p = p / "policy.zip"
     if not p.is_file():
         raise DockError(f"policy file not found: {p}")
-    model = None
+    model, reasons = None, []
     for cls in (PPO, SAC):
         try:
-            model = cls.load(str(p), device="cpu")
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                model = cls.load(str(p), device="cpu")
             break
-        except (KeyError, ValueError, TypeError, AssertionError):
-            continue
-        except (zipfile.BadZipFile, EOFError, OSError) as exc:
-            raise DockError(f"cannot read policy {p}: {exc}") from None
+        except Exception as exc:  # SB3 raises anything from zip, pickle and torch errors
+            reasons.append(" ".join(str(exc).split())[:160] or type(exc).__name__)
     if model is None:
-        raise DockError(f"cannot read policy {p}: not a PPO or SAC model")
+        raise DockError(f"cannot read policy {p}: not a PPO or SAC model ({reasons[0]})")
+    require_finite_policy(model, f"policy {p}")
     vecnorm = None
     vn = p.with_name("vecnormalize.pkl")
     if vn.exists():
-        with vn.open("rb") as fh:
-            vecnorm = pickle.load(fh)
+        try:
+            with vn.open("rb") as fh:
+                vecnorm = pickle.load(fh)
+            stats = (vecnorm.obs_rms.mean, vecnorm.obs_rms.var)
+        except Exception as exc:
+            raise DockError(f"cannot read normalisation {vn}: {type(exc).__name__}") from None
+        if not all(np.all(np.isfinite(a)) for a in stats):
+            raise DockError(f"normalisation {vn} holds NaN or infinity")
         vecnorm.training = False
     return model, vecnorm
+
+
+def check_obs_dim(policy_dim: int, env_dim: int, policy: str) -> None:
+    """Raise DockError when a policy's observation size differs from the env's."""
+    if policy_dim != env_dim:
+        raise DockError(
+            f"policy {policy} takes {policy_dim} observation values, the env gives {env_dim}: "
+            "it was trained with another observation layout (obs_last_action, obs_uncertainty, "
+            "obs_frames); keep its run's config.toml (or the .json beside an .onnx) next to it"
+        )
 
 
 def _actor_module(model, vecnorm):
@@ -100,6 +119,7 @@ def export_onnx(policy_path: str | os.PathLike[str], out: str | os.PathLike[str]
     model, vecnorm = load_policy(policy_path)
     actor = _actor_module(model, vecnorm)
     dim = model.observation_space.shape[0]
+    _require_finite_outputs(actor, dim, str(policy_path))
     buf = io.BytesIO()
     with warnings.catch_warnings():  # the TorchScript exporter needs no onnxscript
         warnings.simplefilter("ignore", DeprecationWarning)
@@ -129,6 +149,17 @@ def export_onnx(policy_path: str | os.PathLike[str], out: str | os.PathLike[str]
     return out
 
 
+def _require_finite_outputs(actor, dim: int, policy: str) -> None:
+    """Raise DockError when the actor maps typical observations to NaN or infinity."""
+    import torch
+
+    probe = torch.as_tensor(np.random.default_rng(0).uniform(-2, 2, (64, dim)), dtype=torch.float32)
+    with torch.no_grad():
+        out = actor(torch.cat([torch.zeros(1, dim), probe]))
+    if not bool(torch.isfinite(out).all()):
+        raise DockError(f"policy {policy} outputs NaN or infinity: refusing to export it")
+
+
 class OnnxPolicy:
     """Run an exported policy with onnxruntime: ``act(obs) -> action`` (a Controller)."""
 
@@ -140,9 +171,19 @@ class OnnxPolicy:
             raise DockError(f"ONNX policy not found: {p}")
         opts = ort.SessionOptions()
         opts.intra_op_num_threads = 1
-        self.session = ort.InferenceSession(str(p), opts, providers=["CPUExecutionProvider"])
+        opts.log_severity_level = 4
+        try:
+            self.session = ort.InferenceSession(str(p), opts, providers=["CPUExecutionProvider"])
+        except Exception as exc:
+            text = " ".join(str(exc).split())[:160]
+            raise DockError(f"cannot read ONNX policy {p}: {text or type(exc).__name__}") from None
+        shape = self.session.get_inputs()[0].shape
+        self.obs_dim = shape[-1] if isinstance(shape[-1], int) else None
         meta = p.with_suffix(".json")
-        self.meta = json.loads(meta.read_text()) if meta.exists() else {}
+        try:
+            self.meta = json.loads(meta.read_text(encoding="utf-8")) if meta.exists() else {}
+        except (OSError, ValueError) as exc:
+            raise DockError(f"cannot read {meta}: {exc}") from None
 
     def reset(self) -> None:
         pass

@@ -12,9 +12,11 @@ returns of the rollouts, so PPO starts with a critic that matches its actor.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Annotated, Literal
 
 import numpy as np
 
+from dockcore.domains import Interval
 from rl.config import EnvConfig
 
 
@@ -35,20 +37,14 @@ class ImitationConfig:
             advantages from a critic that matches the imitated policy.
     """
 
-    teacher: str = "pid"
-    iterations: int = 4
-    episodes_per_iteration: int = 16
-    epochs: int = 30
-    batch_size: int = 512
-    learning_rate: float = 1e-3
-    log_std: float = -1.0
-    critic_warmup_steps: int = 30_000
-
-    def validate(self) -> None:
-        if self.teacher not in ("pid", "none"):
-            raise ValueError(f"teacher: must be 'pid' or 'none', got {self.teacher!r}")
-        if self.iterations < 1 or self.episodes_per_iteration < 1:
-            raise ValueError("iterations and episodes_per_iteration must be >= 1")
+    teacher: Literal["pid", "none"] = "pid"
+    iterations: Annotated[int, Interval(ge=1, le=1000)] = 4
+    episodes_per_iteration: Annotated[int, Interval(ge=1, le=100_000)] = 16
+    epochs: Annotated[int, Interval(ge=1, le=100_000)] = 30
+    batch_size: Annotated[int, Interval(ge=1, le=1_000_000)] = 512
+    learning_rate: Annotated[float, Interval(gt=0, le=1)] = 1e-3
+    log_std: Annotated[float, Interval(ge=-20, le=2)] = -1.0
+    critic_warmup_steps: Annotated[int, Interval(ge=0, le=10**9)] = 30_000
 
 
 def _discounted(rewards: np.ndarray, gamma: float) -> np.ndarray:

@@ -10,8 +10,10 @@ from typing import Any
 import numpy as np
 
 from dockcore.config import replace, to_dict
-from dockcore.io import atomic_path, atomic_write_json, atomic_write_text, ensure_writable_dir
+from dockcore.errors import DockError
+from dockcore.io import atomic_path, atomic_write_json, atomic_write_text
 from dockcore.media import AtomicVideoWriter
+from dockcore.outdir import claim_output_dir
 from dockcore.provenance import provenance
 from rl.config import EnvConfig
 from rl.evaluate import EpisodeTrace, run_episodes_parallel
@@ -40,12 +42,18 @@ def policy_env_settings(policy: str) -> dict[str, Any]:
     p = Path(policy)
     if p.suffix == ".onnx":
         meta = p.with_suffix(".json")
-        env = json.loads(meta.read_text()).get("env", {}) if meta.is_file() else {}
+        try:
+            data = json.loads(meta.read_text(encoding="utf-8")) if meta.is_file() else {}
+        except (OSError, ValueError) as exc:
+            raise DockError(f"cannot read {meta}: {exc}") from None
+        env = data.get("env", {}) if isinstance(data, dict) else {}
         return {k: env[k] for k in POLICY_INTERFACE_FIELDS if k in env}
     folder = p if p.is_dir() else p.parent
     for cand in (folder / "config.toml", folder.parent / "config.toml"):
         if cand.is_file():
-            env = read_toml(cand).get("train", {}).get("env", {})
+            env = read_toml(cand, what="run config").get("train", {}).get("env", {})
+            if not isinstance(env, dict):
+                raise DockError(f"{cand}: [train.env] is not a table")
             return {k: env[k] for k in POLICY_INTERFACE_FIELDS if k in env}
     return {}
 
@@ -57,13 +65,17 @@ def load_controller(policy: str, env_cfg: EnvConfig):
 
         return PIDController.for_env(env_cfg), None, "pid"
     path = Path(policy)
+    from rl.export import OnnxPolicy, check_obs_dim, load_policy
+    from rl.observation import frame_dim
+
+    env_dim = frame_dim(env_cfg) * env_cfg.obs_frames
     if path.suffix == ".onnx":
-        from rl.export import OnnxPolicy
-
-        return OnnxPolicy(path), None, path.name
-    from rl.export import load_policy
-
+        onnx = OnnxPolicy(path)
+        if onnx.obs_dim is not None:
+            check_obs_dim(onnx.obs_dim, env_dim, str(path))
+        return onnx, None, path.name
     model, vecnorm = load_policy(path)
+    check_obs_dim(int(model.observation_space.shape[0]), env_dim, str(path))
     return model, vecnorm, str(path)
 
 
@@ -272,13 +284,42 @@ def evaluate_to_folder(
     stress_episodes: int = 20,
     workers: int = 1,
 ) -> dict[str, Any]:
-    """Run the evaluation and write the report folder; returns the summary."""
+    """Run the evaluation and write the report folder; returns the summary.
+
+    Everything is checked (counts, filmed episodes, the policy file and its observation
+    layout) before the folder is claimed (``rl eval``) and anything is written."""
+    if episodes < 1 or workers < 1:
+        raise DockError(f"need episodes >= 1 and workers >= 1, got {episodes} and {workers}")
+    bad = [k for k in video_episodes if not 0 <= k < episodes]
+    if bad:
+        raise DockError(f"--videos: episode {bad[0]} is not among the {episodes} episodes")
+    from rl.config import check_env_files
+
+    check_env_files(env_cfg)
+    _, _, label = load_controller(policy, env_cfg)  # fail fast on a bad policy
+    with claim_output_dir(out_dir, "rl eval") as out:
+        return _evaluate_into(
+            out, policy, label, env_cfg, episodes, seed, video_episodes, stress,
+            stress_episodes, workers,
+        )  # fmt: skip
+
+
+def _evaluate_into(
+    out: Path,
+    policy: str,
+    label: str,
+    env_cfg: EnvConfig,
+    episodes: int,
+    seed: int,
+    video_episodes: tuple[int, ...],
+    stress: bool,
+    stress_episodes: int,
+    workers: int,
+) -> dict[str, Any]:
     import time
 
     from tqdm import tqdm
 
-    out = ensure_writable_dir(out_dir)
-    _, _, label = load_controller(policy, env_cfg)  # fail fast on a bad policy
     bar = tqdm(total=episodes, desc=f"eval {env_cfg.obs_source}", unit="ep")
     t0 = time.perf_counter()
     res = run_episodes_parallel(

@@ -9,8 +9,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Annotated
 
 import numpy as np
+
+from dockcore.domains import Interval
+
+_Weight = Annotated[float, Interval(ge=0, le=1000)]
+_Reward = Annotated[float, Interval(ge=0, le=1e6)]
 
 
 @dataclass(frozen=True)
@@ -28,18 +34,16 @@ class RewardConfig:
         weights: multiplier per term name (dist, angle, smooth, collision, mission).
     """
 
-    w_xyz: tuple[float, float, float] = (1.0, 1.0, 0.5)
-    angle_gain: float = 2.0
-    smooth_scale: float = 0.1
-    collision_penalty: float = 10.0
-    gamma_set_mps2: float = 1.0
-    success_reward: float = 500.0
-    truncation_penalty: float = 10.0
-    weights: dict[str, float] | None = None
+    w_xyz: tuple[_Weight, _Weight, _Weight] = (1.0, 1.0, 0.5)
+    angle_gain: Annotated[float, Interval(ge=0, le=100)] = 2.0
+    smooth_scale: _Weight = 0.1
+    collision_penalty: _Reward = 10.0
+    gamma_set_mps2: Annotated[float, Interval(gt=0, le=1000)] = 1.0
+    success_reward: _Reward = 500.0
+    truncation_penalty: _Reward = 10.0
+    weights: dict[str, _Weight] | None = None
 
     def validate(self) -> None:
-        if self.gamma_set_mps2 <= 0:
-            raise ValueError("gamma_set_mps2: must be > 0")
         unknown = set(self.weights or {}) - set(TERMS)
         if unknown:
             raise ValueError(f"weights: unknown term {sorted(unknown)[0]!r} (terms: {TERMS})")

@@ -11,10 +11,17 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from functools import cached_property
+from typing import Annotated
 
 import numpy as np
 
 from calibration.frames import R_from_rpy, inv_T, make_T, rpy_from_R, wrap_angle_rad
+from dockcore.domains import Interval
+
+_Tolerance = Annotated[float, Interval(gt=0, le=10)]  # m
+_HalfAngle = Annotated[float, Interval(gt=0, lt=90)]  # deg
+_Coord = Annotated[float, Interval(ge=-10, le=10)]  # m, on the vehicle or the DS
+_Point = tuple[_Coord, _Coord, _Coord]
 
 
 @dataclass(frozen=True)
@@ -38,24 +45,24 @@ class DockingTaskConfig:
         notch_positions_ds_m: the four notch seats in the DS frame, where the pegs rest (m).
     """
 
-    dock_height_m: float = 0.91
-    dock_yaw_deg: float = 90.0
-    success_xy_m: float = 0.07
-    success_z_m: float = 0.10
-    success_yaw_deg: float = 10.0
+    dock_height_m: Annotated[float, Interval(gt=0, le=10)] = 0.91
+    dock_yaw_deg: Annotated[float, Interval(ge=-180, le=180)] = 90.0
+    success_xy_m: _Tolerance = 0.07
+    success_z_m: _Tolerance = 0.10
+    success_yaw_deg: Annotated[float, Interval(gt=0, le=180)] = 10.0
     success_requires_visible: bool = True
-    strict_peg_xy_m: float = 0.05
-    strict_peg_z_m: float = 0.04
-    strict_hold_s: float = 1.0
-    visibility_range_m: float = 5.0
-    visibility_half_angles_deg: tuple[float, float] = (31.0, 38.7)
-    peg_positions_body_m: tuple[tuple[float, float, float], ...] = (
+    strict_peg_xy_m: _Tolerance = 0.05
+    strict_peg_z_m: _Tolerance = 0.04
+    strict_hold_s: Annotated[float, Interval(gt=0, le=60)] = 1.0
+    visibility_range_m: Annotated[float, Interval(gt=0, le=100)] = 5.0
+    visibility_half_angles_deg: tuple[_HalfAngle, _HalfAngle] = (31.0, 38.7)
+    peg_positions_body_m: tuple[_Point, ...] = (
         (0.42, 0.57, -0.195),
         (0.42, -0.57, -0.195),
         (-0.42, 0.57, -0.195),
         (-0.42, -0.57, -0.195),
     )
-    notch_positions_ds_m: tuple[tuple[float, float, float], ...] = (
+    notch_positions_ds_m: tuple[_Point, ...] = (
         (-0.57, 0.425, -1.105),
         (0.57, 0.425, -1.105),
         (-0.57, -0.425, -1.105),
@@ -63,9 +70,13 @@ class DockingTaskConfig:
     )
 
     def validate(self) -> None:
-        for name in ("success_xy_m", "success_z_m", "success_yaw_deg", "strict_hold_s"):
-            if getattr(self, name) <= 0:
-                raise ValueError(f"{name}: must be > 0")
+        if len(self.peg_positions_body_m) != len(self.notch_positions_ds_m):
+            raise ValueError(
+                f"notch_positions_ds_m: {len(self.notch_positions_ds_m)} notches for "
+                f"{len(self.peg_positions_body_m)} pegs"
+            )
+        if not self.peg_positions_body_m:
+            raise ValueError("peg_positions_body_m: needs at least one peg")
 
     @cached_property
     def T_ds_target(self) -> np.ndarray:

@@ -4,30 +4,50 @@ Run folder layout::
 
     RUN/
       config.toml, provenance.json   resolved TrainConfig (env included), commit, versions
-      checkpoints/step_<N>.zip       policy + optimiser (atomic), plus vecnormalize_<N>.pkl
+      checkpoints/step_<N>/          checkpoint units (rl.checkpoint): model, normalisation,
+                                     best/, schedule, evaluation state, RNG states, manifest
       tb/                            TensorBoard scalars (charts/, losses/, eval/)
-      eval_history.jsonl             periodic deterministic evaluation (success rates)
-      policy.zip, vecnormalize.pkl   the final (or best) policy
+      eval_history.jsonl, .png       periodic deterministic evaluation (success rates)
+      best/                          the best evaluated policy (policy.zip, vecnormalize.pkl)
+      imitation.json                 the DAgger warm start's history (when there is one)
+      policy.zip, vecnormalize.pkl   the final policy; DONE is written last
+      resume_log.jsonl               one line per resume (step, command, commit, config change)
 
-``--resume`` continues from the newest checkpoint with the step counter, optimiser state and
-observation-normalisation statistics, so nothing is lost.
+``--resume`` continues from the newest complete checkpoint (falling back past damaged ones)
+and gives a run identical to an uninterrupted one (:mod:`rl.session`).
 """
 
 from __future__ import annotations
 
+import datetime
 import io
+import json
 import os
-import pickle
-import re
+import sys
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Any, Literal
 
+from dockcore.config import dumps_toml, load_config, to_dict, validated
+from dockcore.domains import Count, Fraction, Interval, Seed
 from dockcore.errors import DockError
-from dockcore.io import atomic_write_bytes, atomic_write_json
+from dockcore.io import atomic_write_bytes, atomic_write_json, atomic_write_text
+from dockcore.outdir import claim_output_dir
 from dockcore.provenance import write_provenance
-from rl.config import EnvConfig
+from rl.checkpoint import (
+    has_legacy_checkpoints,
+    latest_unit,
+    list_units,
+    model_bytes,
+    pickle_bytes,
+    require_finite_policy,
+)
+from rl.config import EnvConfig, check_env_files
 from rl.imitation import ImitationConfig
+
+_LearningRate = Annotated[float, Interval(gt=0, le=1)]
+_Width = Annotated[int, Interval(ge=1, le=4096)]  # units in a hidden layer
 
 
 @dataclass(frozen=True)
@@ -48,16 +68,16 @@ class PPOConfig:
         net_arch: hidden layer sizes of policy and value networks.
     """
 
-    learning_rate: float = 5e-4
-    learning_rate_final: float | None = None
-    n_steps: int = 512
-    batch_size: int = 1024
-    n_epochs: int = 10
-    gamma: float = 0.99
-    gae_lambda: float = 0.95
-    ent_coef: float = 0.01
-    clip_range: float = 0.2
-    net_arch: tuple[int, ...] = (64, 64)
+    learning_rate: _LearningRate = 5e-4
+    learning_rate_final: _LearningRate | None = None
+    n_steps: Annotated[int, Interval(ge=1, le=1_000_000)] = 512
+    batch_size: Annotated[int, Interval(ge=2, le=1_000_000)] = 1024
+    n_epochs: Annotated[int, Interval(ge=1, le=1000)] = 10
+    gamma: Fraction = 0.99
+    gae_lambda: Fraction = 0.95
+    ent_coef: Annotated[float, Interval(ge=0, le=10)] = 0.01
+    clip_range: Annotated[float, Interval(gt=0, le=10)] = 0.2
+    net_arch: tuple[_Width, ...] = (64, 64)
 
 
 @dataclass(frozen=True)
@@ -76,15 +96,15 @@ class SACConfig:
         net_arch: hidden layer sizes.
     """
 
-    learning_rate: float = 5e-4
-    buffer_size: int = 500_000
-    batch_size: int = 1024
-    tau: float = 0.005
-    gamma: float = 0.99
-    learning_starts: int = 1000
-    train_freq: int = 1
-    gradient_steps: int = 1
-    net_arch: tuple[int, ...] = (256, 256)
+    learning_rate: _LearningRate = 5e-4
+    buffer_size: Annotated[int, Interval(ge=1, le=100_000_000)] = 500_000
+    batch_size: Annotated[int, Interval(ge=1, le=1_000_000)] = 1024
+    tau: Annotated[float, Interval(gt=0, le=1)] = 0.005
+    gamma: Fraction = 0.99
+    learning_starts: Annotated[int, Interval(ge=0, le=10**9)] = 1000
+    train_freq: Annotated[int, Interval(ge=1, le=1_000_000)] = 1
+    gradient_steps: Annotated[int, Interval(ge=1, le=10_000)] = 1
+    net_arch: tuple[_Width, ...] = (256, 256)
 
 
 @dataclass(frozen=True)
@@ -108,12 +128,12 @@ class TrainConfig:
     """
 
     algo: Literal["ppo", "sac"] = "ppo"
-    total_steps: int = 2_000_000
-    n_envs: int = 2
-    seed: int = 0
-    checkpoint_every: int = 50_000
-    eval_every: int = 100_000
-    eval_episodes: int = 20
+    total_steps: Count = 2_000_000
+    n_envs: Annotated[int, Interval(ge=1, le=256)] = 2
+    seed: Seed = 0
+    checkpoint_every: Annotated[int, Interval(ge=1, le=10**9)] = 50_000
+    eval_every: Annotated[int, Interval(ge=0, le=10**9)] = 100_000
+    eval_episodes: Annotated[int, Interval(ge=1, le=100_000)] = 20
     normalize_obs: bool = True
     normalize_reward: bool = True
     env: EnvConfig = field(default_factory=EnvConfig)
@@ -122,69 +142,12 @@ class TrainConfig:
     imitation: ImitationConfig = field(default_factory=lambda: ImitationConfig(teacher="none"))
 
     def validate(self) -> None:
-        if self.total_steps <= 0 or self.n_envs < 1:
-            raise ValueError("total_steps must be > 0 and n_envs >= 1")
-
-
-def _make_env_fn(env_cfg: EnvConfig, seed: int):
-    def make():
-        from stable_baselines3.common.monitor import Monitor
-
-        from rl.env import DockingEnv
-
-        env = Monitor(DockingEnv(env_cfg), info_keywords=("success_paper", "success_strict"))
-        env.reset(seed=seed)
-        return env
-
-    return make
-
-
-def make_vec_env(env_cfg: EnvConfig, n_envs: int, seed: int):
-    """``n_envs`` docking envs, in subprocesses when more than one."""
-    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
-
-    fns = [_make_env_fn(env_cfg, seed + i) for i in range(n_envs)]
-    if n_envs == 1:
-        return DummyVecEnv(fns)
-    return SubprocVecEnv(fns, start_method="fork" if os.name == "posix" else "spawn")
-
-
-_CKPT = re.compile(r"step_(\d+)\.zip$")
-
-
-def latest_checkpoint(run_dir: Path) -> tuple[Path, int] | None:
-    """The newest ``checkpoints/step_N.zip`` and N, or None."""
-    found = []
-    for p in (run_dir / "checkpoints").glob("step_*.zip"):
-        m = _CKPT.search(p.name)
-        if m:
-            found.append((int(m.group(1)), p))
-    if not found:
-        return None
-    n, p = max(found)
-    return p, n
-
-
-def save_checkpoint(model, vecnorm, run_dir: Path, step: int) -> Path:
-    """Policy (+ optimiser) and normalisation statistics, each written atomically."""
-    ck = run_dir / "checkpoints"
-    ck.mkdir(parents=True, exist_ok=True)
-    path = save_model(model, ck / f"step_{step}.zip")
-    if vecnorm is not None:
-        save_vecnormalize(vecnorm, ck / f"vecnormalize_{step}.pkl")
-    return path
-
-
-def save_model(model, path: Path) -> Path:
-    """``model.save`` into memory, then one atomic write."""
-    buf = io.BytesIO()
-    model.save(buf)
-    return atomic_write_bytes(path, buf.getvalue())
-
-
-def save_vecnormalize(vecnorm, path: Path) -> Path:
-    """Pickle the normalisation statistics atomically (VecNormalize drops its envs itself)."""
-    return atomic_write_bytes(path, pickle.dumps(vecnorm))
+        if self.algo == "ppo" and self.ppo.n_steps * self.n_envs < 2:
+            raise ValueError("ppo.n_steps: n_steps x n_envs must be >= 2 (a rollout to learn from)")
+        if self.algo == "sac" and self.sac.batch_size > self.sac.buffer_size:
+            raise ValueError(
+                f"sac.batch_size: {self.sac.batch_size} exceeds buffer_size {self.sac.buffer_size}"
+            )
 
 
 def _lr(cfg: PPOConfig):
@@ -237,93 +200,227 @@ def build_model(cfg: TrainConfig, venv, tb_dir: Path):
     )
 
 
+def rollout_steps(cfg: TrainConfig) -> int:
+    """Environment steps between two policy updates (PPO: ``n_steps`` per env; SAC:
+    ``train_freq`` per env); checkpoints and evaluations fall on these boundaries."""
+    per_env = cfg.ppo.n_steps if cfg.algo == "ppo" else cfg.sac.train_freq
+    return per_env * cfg.n_envs
+
+
+def changed_keys(a: Any, b: Any, prefix: str = "") -> list[str]:
+    """Dotted keys whose values differ between two config dicts."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        out = []
+        for k in sorted(set(a) | set(b)):
+            out += changed_keys(a.get(k), b.get(k), f"{prefix}{k}.")
+        return out
+    return [] if a == b else [prefix.rstrip(".")]
+
+
+def run_config(run_dir: str | os.PathLike[str]) -> TrainConfig:
+    """The ``TrainConfig`` a run folder was started with (its ``config.toml``).
+
+    Raises:
+        DockError: no ``config.toml``: not a run folder of ``rl train``.
+    """
+    path = Path(run_dir) / "config.toml"
+    if not path.is_file():
+        raise DockError(
+            f"{run_dir} has no config.toml: not a run folder of `rl train` (nothing to resume)"
+        )
+    return load_config(TrainConfig, path, section="train")
+
+
+def _check_config(cfg: TrainConfig, run: Path, allow_change: bool) -> list[str]:
+    changed = changed_keys(to_dict(run_config(run)), to_dict(cfg))
+    if changed and not allow_change:
+        shown = ", ".join(changed[:5]) + (" ..." if len(changed) > 5 else "")
+        raise DockError(
+            f"the config differs from the run's config.toml in {shown}: resume with the run's "
+            "own config (drop --config and the flags), or pass --allow-config-change"
+        )
+    return changed
+
+
+def _note_rollout_rounding(cfg: TrainConfig, note: Callable[[str], None]) -> None:
+    per = rollout_steps(cfg)
+    total = -(-cfg.total_steps // per) * per
+    if total != cfg.total_steps:
+        note(
+            f"training {total:,} steps: {cfg.algo.upper()} steps in rollouts of {per:,} "
+            f"({'n_steps' if cfg.algo == 'ppo' else 'train_freq'} x n_envs), so total_steps "
+            f"{cfg.total_steps:,} is rounded up"
+        )
+
+
+def _stderr_note(msg: str) -> None:
+    print(f"note: {msg}", file=sys.stderr, flush=True)
+
+
 def train(
     cfg: TrainConfig,
     run_dir: str | os.PathLike[str],
     resume: bool = False,
     progress: bool = True,
     init_policy: str | None = None,
+    allow_config_change: bool = False,
+    note: Callable[[str], None] = _stderr_note,
 ) -> Path:
     """Train (or resume) into ``run_dir``; returns the final policy path.
 
+    A run killed at any moment (SIGINT, SIGTERM, SIGKILL, a failed worker) and resumed gives
+    the same checkpoints, evaluation history and ``best/`` as an uninterrupted run
+    (:mod:`rl.session`).
+
     Args:
-        cfg: the run's configuration (on resume, must match the folder's).
+        cfg: the run's configuration; on resume it must equal the run's ``config.toml``
+            unless ``allow_config_change`` (the change is recorded in ``resume_log.jsonl``).
         run_dir: the run folder.
-        resume: continue from the newest checkpoint in ``run_dir``.
+        resume: continue from the newest complete checkpoint in ``run_dir`` (from the start
+            when the run stopped before its first checkpoint).
         progress: show a progress bar.
-        init_policy: start from this policy's weights (fine-tuning, e.g. error-model -> camera).
+        init_policy: start from this policy's weights (fine-tuning; not with ``resume``).
+        allow_config_change: resume with a config that differs from the run's.
+        note: where one-line notes go (stderr by default).
+
+    Raises:
+        DockError: a bad config, a run folder that does not fit the request, a damaged or
+            non-finite policy, a failed environment worker.
     """
+    cfg = validated(cfg)
+    if resume and init_policy:
+        raise DockError("--init-policy starts a new run; it cannot be combined with --resume")
+    check_env_files(cfg.env)
+    init = None
+    if init_policy:
+        from rl.export import check_obs_dim, load_policy
+        from rl.observation import frame_dim
+
+        init = load_policy(init_policy)  # refuses damaged or non-finite policies
+        env_dim = frame_dim(cfg.env) * cfg.env.obs_frames
+        check_obs_dim(int(init[0].observation_space.shape[0]), env_dim, init_policy)
+    with claim_output_dir(run_dir, "rl train") as run:
+        ckpts = run / "checkpoints"
+        if not resume and ((run / "config.toml").exists() or list_units(ckpts)):
+            raise DockError(f"{run} already holds a run: use --resume or another --out")
+        if resume and has_legacy_checkpoints(ckpts) and not list_units(ckpts):
+            raise DockError(
+                f"{run} holds checkpoints of an older version (step_N.zip) that cannot be "
+                "resumed exactly: start a new run (--init-policy RUN/policy.zip keeps its weights)"
+            )
+        changed = _check_config(cfg, run, allow_config_change) if resume else []
+        done = run / "DONE"
+        if resume and done.is_file():
+            steps = int(json.loads(done.read_text(encoding="utf-8")).get("steps", 0))
+            if steps >= cfg.total_steps:
+                note(f"{run} is complete ({steps:,} steps): nothing to resume")
+                return run / "policy.zip"
+        unit = latest_unit(ckpts, note) if resume else None
+        if resume and unit is None:
+            note(f"no complete checkpoint in {run}: starting the run again from the beginning")
+        if resume:
+            _log_resume(run, unit, changed, cfg)
+        else:
+            write_provenance(run, {"train": cfg})
+        done.unlink(missing_ok=True)
+        _note_rollout_rounding(cfg, note)
+        return _run(cfg, run, unit, init, progress, note)
+
+
+def _log_resume(run: Path, unit, changed: list[str], cfg: TrainConfig) -> None:
+    from dockcore.provenance import git_commit
+
+    record = {
+        "resumed_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]),
+        "from_step": unit.step if unit is not None else None,
+        "git": git_commit(),
+        "config_changed": changed,
+    }
+    log = run / "resume_log.jsonl"
+    old = log.read_text(encoding="utf-8") if log.is_file() else ""
+    atomic_write_text(log, old + json.dumps(record) + "\n")
+    if changed:
+        atomic_write_text(run / "config.toml", dumps_toml({"train": cfg}))
+
+
+def _run(cfg: TrainConfig, run: Path, unit, init, progress: bool, note) -> Path:
     import torch
     from stable_baselines3 import PPO, SAC
     from stable_baselines3.common.vec_env import VecNormalize
 
     from rl.callbacks import TrainingCallback
+    from rl.session import TrainingSession, load_model, load_vecnormalize
+    from rl.workers import EnvWorkers
 
     torch.set_num_threads(1)
-    run = Path(run_dir)
-    found = latest_checkpoint(run)
-    if resume and found is None:
-        raise DockError(f"nothing to resume in {run}: no checkpoints/step_*.zip")
-    if not resume and found is not None:
-        raise DockError(f"{run} already holds a run: use --resume or another --out")
-    ckpt = found if resume else None
-    run.mkdir(parents=True, exist_ok=True)
-    write_provenance(run, {"train": cfg}, extra={"resumed_from": str(ckpt[0]) if ckpt else None})
-
-    venv = make_vec_env(cfg.env, cfg.n_envs, cfg.seed)
-    vecnorm = None
     algo_cls = PPO if cfg.algo == "ppo" else SAC
     gamma = cfg.ppo.gamma if cfg.algo == "ppo" else cfg.sac.gamma
-    if ckpt is not None:
-        path, step = ckpt
-        vn_path = run / "checkpoints" / f"vecnormalize_{step}.pkl"
-        if vn_path.exists():
-            venv = vecnorm = VecNormalize.load(str(vn_path), venv)
-        model = algo_cls.load(str(path), env=venv, device="cpu")
-        model.tensorboard_log = str(run / "tb")
-    else:
-        if cfg.normalize_obs or cfg.normalize_reward:
-            venv = vecnorm = VecNormalize(
-                venv,
-                norm_obs=cfg.normalize_obs,
-                norm_reward=cfg.normalize_reward,
-                gamma=gamma,
-            )
-        model = build_model(cfg, venv, run / "tb")
-        if cfg.imitation.teacher != "none" and not init_policy:
-            from rl.imitation import warm_start
+    workers = EnvWorkers(cfg.env, cfg.n_envs, cfg.seed)
+    session = None
+    try:
+        venv = workers.venv
+        vecnorm = None
+        if unit is not None:
+            if "vecnormalize.pkl" in unit.files:
+                venv = vecnorm = load_vecnormalize(unit.files["vecnormalize.pkl"], venv)
+            model = load_model(algo_cls, unit.files["model.zip"], venv)
+            model.tensorboard_log = str(run / "tb")
+            if "replay_buffer.pkl" in unit.files:
+                model.load_replay_buffer(io.BytesIO(unit.files["replay_buffer.pkl"]))
+            session = TrainingSession(cfg, run, model, vecnorm, note)
+            session.restore(unit)
+        else:
+            if cfg.normalize_obs or cfg.normalize_reward:
+                venv = vecnorm = VecNormalize(
+                    venv, norm_obs=cfg.normalize_obs, norm_reward=cfg.normalize_reward, gamma=gamma
+                )
+            model = build_model(cfg, venv, run / "tb")
+            warm = cfg.imitation.teacher != "none" and init is None
+            if warm:
+                from rl.imitation import warm_start
 
-            hist = warm_start(
-                model, vecnorm, cfg.env, cfg.imitation, cfg.seed, gamma, progress=progress
-            )
-            atomic_write_json(run / "imitation.json", hist)
-            if vecnorm is not None:
-                # the imitated policy was fitted on these statistics: freeze them, or PPO's
-                # rollouts would shift the network's inputs under it
-                vecnorm.training = False
-            save_checkpoint(model, vecnorm, run, 0)
-        if init_policy:
-            from rl.export import load_policy
-
-            src, vn_src = load_policy(init_policy)
-            model.policy.load_state_dict(src.policy.state_dict())
-            if vecnorm is not None and vn_src is not None:
-                vecnorm.obs_rms, vecnorm.ret_rms = vn_src.obs_rms, vn_src.ret_rms
-    remaining = cfg.total_steps - model.num_timesteps
-    if remaining > 0:
-        cb = TrainingCallback(cfg, run, vecnorm, save_checkpoint, progress=progress)
-        if cfg.imitation.teacher != "none" and ckpt is None and not init_policy:
-            cb.critic_warmup_until = cfg.imitation.critic_warmup_steps
-        model.learn(
-            total_timesteps=remaining,
-            callback=cb,
-            reset_num_timesteps=ckpt is None,
-            tb_log_name="tb",
-        )
-        save_checkpoint(model, vecnorm, run, model.num_timesteps)
-    final = save_model(model, run / "policy.zip")
-    if vecnorm is not None:
-        save_vecnormalize(vecnorm, run / "vecnormalize.pkl")
-    venv.close()
-    atomic_write_json(run / "DONE", {"steps": int(model.num_timesteps)})
-    return final
+                hist = warm_start(
+                    model, vecnorm, cfg.env, cfg.imitation, cfg.seed, gamma, progress=progress
+                )
+                atomic_write_json(run / "imitation.json", hist)
+                if vecnorm is not None:
+                    # the imitated policy was fitted on these statistics: freeze them, or PPO's
+                    # rollouts would shift the network's inputs under it
+                    vecnorm.training = False
+            if init is not None:
+                src, vn_src = init
+                model.policy.load_state_dict(src.policy.state_dict())
+                if vecnorm is not None and vn_src is not None:
+                    vecnorm.obs_rms, vecnorm.ret_rms = vn_src.obs_rms, vn_src.ret_rms
+            session = TrainingSession(cfg, run, model, vecnorm, note)
+            session.start(warm_started=warm)
+        if model.num_timesteps < cfg.total_steps:
+            cb = TrainingCallback(session, cfg.total_steps, progress=progress)
+            try:
+                model.learn(
+                    total_timesteps=cfg.total_steps - model.num_timesteps,
+                    callback=cb,
+                    reset_num_timesteps=unit is None,
+                    tb_log_name="tb",
+                )
+            finally:
+                cb.close()
+        session.boundary(final=True)
+        require_finite_policy(model, "the trained policy")
+        final = atomic_write_bytes(run / "policy.zip", model_bytes(model))
+        if vecnorm is not None:
+            atomic_write_bytes(run / "vecnormalize.pkl", pickle_bytes(vecnorm))
+        atomic_write_json(run / "DONE", {"steps": int(model.num_timesteps)})
+        return final
+    except (EOFError, ConnectionError, BrokenPipeError) as exc:
+        workers.raise_worker_error(exc)
+        raise  # unreachable: raise_worker_error raises
+    except KeyboardInterrupt:
+        last = session.last_checkpoint if session is not None else None
+        where = f"step {last:,}" if last is not None else "the beginning"
+        note(f"interrupted: `rl train --out {run} --resume` goes on from {where}")
+        workers.close(force=True)
+        raise
+    finally:
+        workers.close()

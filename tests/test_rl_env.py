@@ -134,10 +134,18 @@ def test_train_resume_eval_export_through_the_cli(run_cli, tmp_path):
     run = tmp_path / "run"
     res = run_cli(cli.main, "train", "--config", cfg, "--steps", "128", "--out", run)
     assert res.code == 0, res.err
-    assert (run / "policy.zip").is_file() and (run / "checkpoints" / "step_128.zip").is_file()
+    assert (run / "policy.zip").is_file()
+    assert (run / "checkpoints" / "step_0000000128" / "manifest.json").is_file()
+    # a longer run is a change of the run's config: refused unless asked for, then recorded
     res = run_cli(cli.main, "train", "--steps", "256", "--out", run, "--resume")
+    assert res.code == 2 and "differs from the run's config.toml in total_steps" in res.err
+    res = run_cli(
+        cli.main, "train", "--steps", "256", "--out", run, "--resume", "--allow-config-change"
+    )
     assert res.code == 0, res.err
     assert json.loads((run / "DONE").read_text())["steps"] == 256
+    log = json.loads((run / "resume_log.jsonl").read_text().splitlines()[-1])
+    assert log["from_step"] == 128 and log["config_changed"] == ["total_steps"]
     # a second fresh run into the same folder is refused
     res = run_cli(cli.main, "train", "--config", cfg, "--steps", "64", "--out", run)
     assert res.code != 0 and "already holds a run" in res.err
@@ -400,8 +408,10 @@ def test_sac_option_trains_and_resumes_through_the_cli(run_cli, tmp_path):
     run = tmp_path / "sac_run"
     res = run_cli(cli.main, "train", "--config", cfg, "--steps", "48", "--out", run)
     assert res.code == 0, res.err
-    assert (run / "checkpoints" / "step_48.zip").is_file()
-    res = run_cli(cli.main, "train", "--steps", "96", "--out", run, "--resume")
+    assert (run / "checkpoints" / "step_0000000048" / "replay_buffer.pkl").is_file()
+    res = run_cli(
+        cli.main, "train", "--steps", "96", "--out", run, "--resume", "--allow-config-change"
+    )
     assert res.code == 0, res.err
     assert json.loads((run / "DONE").read_text())["steps"] == 96
     from stable_baselines3 import SAC

@@ -1,0 +1,218 @@
+"""One training run's state between rollouts: the schedule, evaluations, ``best/`` and the
+checkpoints (:mod:`rl.checkpoint`), so that a run killed at any moment and resumed gives the
+same checkpoints, the same evaluation history and the same ``best/`` as one never stopped.
+
+How resuming can be exact: everything happens at *rollout boundaries* (after a policy update,
+before the next rollout), where the learner holds no half-collected data. At a checkpoint the
+training envs are reset with seeds drawn from ``(seed, step)`` (episodes in flight end as a
+truncation, which PPO has already bootstrapped with the value of the last observation), then
+the unit is written. A resumed run loads the unit and resets its fresh envs with the same
+seeds, so learner, normalisation, random generators and envs are all where they were.
+Evaluations run at boundaries too, on their own envs with fixed seeds.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import pickle
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dockcore.io import atomic_write_bytes, atomic_write_text
+from rl.checkpoint import (
+    Unit,
+    model_bytes,
+    pickle_bytes,
+    replay_buffer_bytes,
+    restore_rng,
+    rng_state,
+    write_unit,
+)
+
+HISTORY = "eval_history.jsonl"
+EVAL_SEED = 10_000
+
+
+def boundary_seed(seed: int, step: int) -> int:
+    """The seed the training envs are reset with at a checkpoint at ``step``."""
+    return int(np.random.SeedSequence([seed, step]).generate_state(1, np.uint32)[0])
+
+
+class TrainingSession:
+    """The run's state at rollout boundaries (module docstring).
+
+    Args:
+        cfg: the run's ``TrainConfig``.
+        run: the run folder.
+        model: the SB3 model (its env is ``vecnorm`` or the raw VecEnv).
+        vecnorm: the ``VecNormalize`` wrapper, or None.
+        note: where notes go (one line each).
+    """
+
+    def __init__(self, cfg, run: Path, model, vecnorm, note: Callable[[str], None]) -> None:
+        self.cfg = cfg
+        self.run = run
+        self.model = model
+        self.vecnorm = vecnorm
+        self.note = note
+        self.schedule: dict[str, Any] = {}
+        self.history: list[dict[str, Any]] = []
+        self.best_files: dict[str, bytes] = {}
+        self.last_checkpoint: int | None = None
+
+    # ------------------------------------------------------------------ start
+
+    def start(self, warm_started: bool) -> None:
+        """A new run: first checkpoint at step 0; the warm-started policy is evaluated first."""
+        every = self.cfg.eval_every
+        warmup = self.cfg.imitation.critic_warmup_steps if warm_started else 0
+        self.schedule = {
+            "next_checkpoint": 0,
+            "next_eval": (0 if warm_started else every) if every else None,
+            "critic_warmup_until": warmup,
+            "best_score": None,
+            "best_step": None,
+        }
+        self._write_history()
+
+    def restore(self, unit: Unit) -> None:
+        """Continue from ``unit`` (the model and normalisation are already loaded)."""
+        self.schedule = dict(unit.state["schedule"])
+        self.history = list(unit.state["eval_history"])
+        self.best_files = {k[5:]: v for k, v in unit.files.items() if k.startswith("best/")}
+        self.last_checkpoint = unit.step
+        self._write_history()
+        self._write_best()
+        saved = self.model._last_obs
+        self.reset_envs(unit.step)
+        if saved is not None and not np.array_equal(saved, self.model._last_obs):
+            self.note(
+                "the environments do not come back to the checkpoint's state: the resumed run "
+                "will differ from an uninterrupted one"
+            )
+        restore_rng(self.model, unit.state["rng"])
+
+    # ------------------------------------------------------------------ at boundaries
+
+    @property
+    def critic_warmup_until(self) -> int:
+        return int(self.schedule.get("critic_warmup_until", 0))
+
+    def boundary(self, final: bool = False) -> None:
+        """Evaluate and/or checkpoint if due at the current step (``final``: always save)."""
+        n = int(self.model.num_timesteps)
+        s = self.schedule
+        if s["next_eval"] is not None and n >= s["next_eval"]:
+            self.evaluate(n)
+            while s["next_eval"] <= n:
+                s["next_eval"] += self.cfg.eval_every
+        if n >= s["next_checkpoint"] or (final and self.last_checkpoint != n):
+            while s["next_checkpoint"] <= n:
+                s["next_checkpoint"] += self.cfg.checkpoint_every
+            self.checkpoint(n)
+
+    def reset_envs(self, step: int) -> None:
+        """Reset the training envs with the seeds of ``step`` (no normalisation update)."""
+        model, vecnorm = self.model, self.vecnorm
+        raw_venv = vecnorm.venv if vecnorm is not None else model.get_env()
+        raw_venv.seed(boundary_seed(self.cfg.seed, step))
+        raw = raw_venv.reset()
+        obs = raw
+        if vecnorm is not None:
+            vecnorm.old_obs = raw
+            vecnorm.returns = np.zeros(vecnorm.num_envs)
+            obs = vecnorm.normalize_obs(raw)
+        model._last_obs = obs
+        model._last_episode_starts = np.ones((raw_venv.num_envs,), dtype=bool)
+        if hasattr(model, "_last_original_obs"):
+            model._last_original_obs = raw
+
+    def checkpoint(self, step: int) -> Path:
+        """Reset the envs, then write the unit of ``step``."""
+        self.reset_envs(step)
+        files = {"model.zip": model_bytes(self.model)}
+        if self.vecnorm is not None:
+            files["vecnormalize.pkl"] = pickle_bytes(self.vecnorm)
+        if hasattr(self.model, "replay_buffer") and self.model.replay_buffer is not None:
+            files["replay_buffer.pkl"] = replay_buffer_bytes(self.model)
+        files.update({f"best/{k}": v for k, v in self.best_files.items()})
+        state = {
+            "step": step,
+            "schedule": self.schedule,
+            "eval_history": self.history,
+            "rng": rng_state(self.model),
+        }
+        path = write_unit(self.run / "checkpoints", step, files, state)
+        self.last_checkpoint = step
+        return path
+
+    def evaluate(self, step: int) -> dict[str, Any]:
+        """Evaluate the deterministic policy on the fixed episodes; keep it in ``best/`` when
+        it scores higher (success that ends the episode, then the other, then the return)."""
+        from rl.evaluate import run_episodes
+
+        summary = run_episodes(
+            self.model,
+            self.cfg.env,
+            self.cfg.eval_episodes,
+            seed=EVAL_SEED,
+            vecnorm=self.vecnorm,
+            record=False,
+        ).summary
+        logger = getattr(self.model, "_logger", None)
+        if logger is not None:
+            for k in ("success_rate", "success_rate_strict", "mean_time_to_dock_s"):
+                if summary.get(k) is not None:
+                    logger.record(f"eval/{k}", summary[k])
+        paper, strict = summary["success_rate"], summary["success_rate_strict"]
+        first, second = (
+            (strict, paper) if self.cfg.env.terminate_on == "strict" else (paper, strict)
+        )
+        score = [first, second, summary["mean_return"]]
+        best = self.schedule["best_score"]
+        record = {"step": step, **summary}
+        if best is None or score > best:
+            self.schedule["best_score"], self.schedule["best_step"] = score, step
+            self.best_files = {"policy.zip": model_bytes(self.model)}
+            if self.vecnorm is not None:
+                self.best_files["vecnormalize.pkl"] = pickle_bytes(self.vecnorm)
+            self._write_best()
+            record["best"] = True
+        self.history.append(record)
+        self._write_history()
+        return record
+
+    # ------------------------------------------------------------------ files
+
+    def _write_history(self) -> None:
+        path = self.run / HISTORY
+        text = "".join(json.dumps(r, sort_keys=True) + "\n" for r in self.history)
+        atomic_write_text(path, text)
+        if self.history:
+            from rl.report import plot_eval_history
+
+            plot_eval_history(path, self.run / "eval_history.png")
+
+    def _write_best(self) -> None:
+        best = self.run / "best"
+        for name, data in self.best_files.items():
+            atomic_write_bytes(best / name, data)
+        for stale in ("policy.zip", "vecnormalize.pkl"):
+            if best.is_dir() and stale not in self.best_files:
+                (best / stale).unlink(missing_ok=True)
+
+
+def load_vecnormalize(data: bytes, venv):
+    """A pickled ``VecNormalize`` put back on ``venv``."""
+    vecnorm = pickle.loads(data)
+    vecnorm.set_venv(venv)
+    return vecnorm
+
+
+def load_model(algo_cls, data: bytes, env):
+    """An SB3 model from checkpoint bytes, on ``env``, on the CPU."""
+    return algo_cls.load(io.BytesIO(data), env=env, device="cpu")

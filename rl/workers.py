@@ -1,0 +1,148 @@
+"""The training environments: ``n_envs`` docking envs, in worker processes when more than one.
+
+What this adds to SB3's ``SubprocVecEnv``:
+
+* **one line for a worker's failure**: an env that cannot be built (a typo in a file name, a
+  damaged error model) or fails during a step (a simulator blow-up) writes its one-line reason
+  to a file the parent reads, and the parent raises a :class:`DockError` with it (instead of
+  the worker's traceback and ``Connection reset by peer``);
+* **no orphans**: workers die with the parent, whatever killed it
+  (:func:`dockcore.procs.die_with_parent`), ignore SIGINT (the parent decides), and are
+  terminated if they do not close in time.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import tempfile
+from pathlib import Path
+
+from dockcore.errors import DockError
+from rl.config import EnvConfig
+
+
+class WorkerError(DockError):
+    """An environment worker process failed (its one-line reason)."""
+
+
+def _reason(exc: BaseException) -> str:
+    text = " ".join(str(exc).split())
+    return text if isinstance(exc, DockError) else f"{type(exc).__name__}: {text}"
+
+
+def _report_and_exit(error_file: str, index: int, exc: BaseException) -> None:
+    try:
+        Path(error_file).write_text(f"env {index}: {_reason(exc)}\n", encoding="utf-8")
+    finally:
+        os._exit(3)
+
+
+def _guarded_env(env, error_file: str, index: int):
+    """Wrap ``env`` so an exception in a worker ends it with its reason written down."""
+    import gymnasium as gym
+
+    class Guard(gym.Wrapper):
+        def reset(self, **kwargs):
+            try:
+                return self.env.reset(**kwargs)
+            except Exception as exc:
+                _report_and_exit(error_file, index, exc)
+
+        def step(self, action):
+            try:
+                return self.env.step(action)
+            except Exception as exc:
+                _report_and_exit(error_file, index, exc)
+
+    return Guard(env)
+
+
+def _make_env_fn(
+    env_cfg: EnvConfig, seed: int, index: int, error_file: str | None, parent: int | None
+):
+    def make():
+        if parent is not None:  # a worker process: the parent alone handles signals
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+            signal.signal(signal.SIGTERM, signal.SIG_DFL)
+            from dockcore.procs import die_with_parent
+
+            die_with_parent(parent)
+        from stable_baselines3.common.monitor import Monitor
+
+        from rl.env import DockingEnv
+
+        try:
+            env = Monitor(DockingEnv(env_cfg), info_keywords=("success_paper", "success_strict"))
+            env.reset(seed=seed)
+        except Exception as exc:
+            if error_file is None:
+                raise
+            _report_and_exit(error_file, index, exc)
+        return env if error_file is None else _guarded_env(env, error_file, index)
+
+    return make
+
+
+class EnvWorkers:
+    """The vectorised training env and the files its workers report failures in.
+
+    Attributes:
+        venv: the SB3 VecEnv (``DummyVecEnv`` for one env, else ``SubprocVecEnv``).
+    """
+
+    def __init__(self, env_cfg: EnvConfig, n_envs: int, seed: int) -> None:
+        from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+
+        self._dir = None
+        if n_envs == 1:
+            self.venv = DummyVecEnv([_make_env_fn(env_cfg, seed, 0, None, None)])
+            return
+        self._dir = tempfile.TemporaryDirectory(prefix="uwdock-workers-")
+        parent = os.getpid()
+        fns = [
+            _make_env_fn(env_cfg, seed + i, i, str(Path(self._dir.name) / f"env{i}.err"), parent)
+            for i in range(n_envs)
+        ]
+        try:
+            self.venv = SubprocVecEnv(fns, start_method="fork" if os.name == "posix" else "spawn")
+        except (EOFError, ConnectionError, BrokenPipeError) as exc:
+            self.raise_worker_error(exc)
+
+    def worker_errors(self) -> list[str]:
+        """The reasons written by failed workers so far."""
+        if self._dir is None:
+            return []
+        out = []
+        for p in sorted(Path(self._dir.name).glob("env*.err")):
+            text = p.read_text(encoding="utf-8", errors="replace").strip()
+            if text:
+                out.append(text)
+        return out
+
+    def raise_worker_error(self, exc: BaseException) -> None:
+        """Raise a :class:`WorkerError` with the workers' reasons (``exc``: what the parent
+        saw, used when no worker left a reason)."""
+        reasons = self.worker_errors()
+        self.close(force=True)
+        what = "; ".join(reasons) if reasons else f"a worker process died ({_reason(exc)})"
+        raise WorkerError(f"environment worker failed: {what}") from None
+
+    def close(self, force: bool = False) -> None:
+        """Close the envs; with ``force`` (or if they do not answer), terminate the workers."""
+        venv = getattr(self, "venv", None)
+        procs = list(getattr(venv, "processes", []) or [])
+        if venv is not None and not force:
+            try:
+                venv.close()
+            except Exception:
+                force = True
+        for p in procs:  # workers hold nothing worth flushing: SIGKILL the ones still there
+            if not force:
+                p.join(timeout=2.0)
+            if p.is_alive():
+                p.kill()
+                p.join(timeout=2.0)
+        if self._dir is not None:
+            self._dir.cleanup()
+            self._dir = None
