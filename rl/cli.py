@@ -174,7 +174,7 @@ def eval_cmd(
         vids = tuple(int(v, 10) for v in videos.split(",") if v.strip())
     except ValueError:
         raise DockError(
-            f"--videos must be comma-separated episode indices, got '{videos}'"
+            f"--videos must be comma-separated episode numbers, got '{videos}'"
         ) from None
     bad = [v for v in vids if not 0 <= v < episodes]
     if bad:

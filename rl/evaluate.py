@@ -34,6 +34,11 @@ class SB3Controller:
         o = obs[None, :]
         if self.vecnorm is not None:
             o = self.vecnorm.normalize_obs(o)
+        if not np.all(np.isfinite(o)):
+            raise DockError(
+                "the policy's observation normalisation gives NaN or infinity "
+                "(a broken vecnormalize.pkl)"
+            )
         action, _ = self.model.predict(o, deterministic=True)
         return np.asarray(action[0], dtype=np.float64)
 

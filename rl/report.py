@@ -322,18 +322,20 @@ def _evaluate_into(
 
     bar = tqdm(total=episodes, desc=f"eval {env_cfg.obs_source}", unit="ep")
     t0 = time.perf_counter()
-    res = run_episodes_parallel(
-        policy,
-        env_cfg,
-        episodes,
-        seed,
-        workers=workers,
-        record=True,
-        video_episodes=video_episodes,
-        video_dir=str(out),
-        progress=lambda k, n: bar.update(k - bar.n),
-    )
-    bar.close()
+    try:
+        res = run_episodes_parallel(
+            policy,
+            env_cfg,
+            episodes,
+            seed,
+            workers=workers,
+            record=True,
+            video_episodes=video_episodes,
+            video_dir=str(out),
+            progress=lambda k, n: bar.update(k - bar.n),
+        )
+    finally:
+        bar.close()
     wall = time.perf_counter() - t0
     steps = sum(r["steps"] for r in res.episodes)
     summary = {

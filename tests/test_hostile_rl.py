@@ -1,0 +1,209 @@
+"""Hostile input to ``rl``: absurd config values, bad policy files, folders of other tools.
+Each is one ``error:`` line, exit status 2, no traceback, and nothing written."""
+
+from __future__ import annotations
+
+import io
+import pickle
+import shutil
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rl import cli
+
+SHIPPED = Path(__file__).resolve().parent.parent / "rl" / "policies" / "error_model_ppo"
+
+
+def _refused(res, out: Path, message: str) -> None:
+    assert res.code == 2, (res.code, res.err)
+    assert res.out == "" or "error" not in res.out
+    errors = [line for line in res.err.splitlines() if line.startswith("error")]
+    assert errors == [f"error: {message}"] or (len(errors) == 1 and message in errors[0]), res.err
+    assert "Traceback" not in res.err
+    assert not out.exists(), f"{out} was written"
+
+
+_BIG = "[1, 1000000000]"
+
+
+@pytest.mark.parametrize(
+    "toml,message",
+    [
+        ("checkpoint_every = 0\n", f"checkpoint_every: must be an integer in {_BIG}, got 0"),
+        ("eval_every = -5\n", "eval_every: must be an integer in [0, 1000000000], got -5"),
+        ("[ppo]\nnet_arch = [0]\n", "ppo.net_arch[0]: must be an integer in [1, 4096], got 0"),
+        ("[env]\nwrench_limits = [-280.0, 140.0, 268.0, 0.0, 39.0, 72.0]\n",
+         "env.wrench_limits[0]: must be a finite number in [0, 10000], got -280"),
+        ("[env]\nepisode_s = nan\n", "env.episode_s: must be a finite number in (0, 3600], got"),
+        ("[env]\nepisode_s = 1e-9\n", "env.episode_s: 1e-09 s is shorter than one control step"),
+        ("[env]\nspawn_auv_height_m = inf\n", "env.spawn_auv_height_m: must be a finite number"),
+        ("[env]\ntank_size_m = [19.0, 0.0, 5.0]\n", "env.tank_size_m[1]: must be a finite number"),
+        ("[env]\ntank_size_m = [4.0, 9.0, 5.0]\n", "spawn_auv_range_m: the spawn box"),
+        ("[ppo]\nlearning_rate = 0.0\n", "ppo.learning_rate: must be a finite number in (0, 1]"),
+        ("[ppo]\ngamma = 1.5\n", "ppo.gamma: must be a finite number in [0, 1], got 1.5"),
+        ("[ppo]\nbatch_size = 0\n", "ppo.batch_size: must be an integer in [2, 1000000], got 0"),
+        ("[ppo]\nn_steps = -1\n", "ppo.n_steps: must be an integer in [1, 1000000], got -1"),
+        ("seed = -1\n", "seed: must be an integer in [0, 4294967295], got -1"),
+        ("[imitation]\nteacher = 'mpc'\n", "imitation.teacher: must be one of ['pid', 'none']"),
+    ],
+)  # fmt: skip
+def test_absurd_training_configs_are_one_line(run_cli, tmp_path, toml, message):
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(toml)
+    out = tmp_path / "run"
+    _refused(run_cli(cli.main, "train", "--config", cfg, "--out", out), out, message)
+
+
+@pytest.mark.parametrize(
+    "args,message",
+    [
+        (["--episodes", "0"], "Invalid value for '--episodes': must be an integer in [1, "),
+        (
+            ["--workers", "0"],
+            "Invalid value for '--workers': must be an integer in [1, 256], got 0",
+        ),
+        (["--videos", "-1"], "--videos: episode -1 is not among the 100 episodes"),
+        (["--videos", "0,x"], "--videos must be comma-separated episode numbers, got '0,x'"),
+        (["--stress-episodes", "nan"], "Invalid value for '--stress-episodes'"),
+    ],
+)
+def test_absurd_eval_options_are_one_line(run_cli, tmp_path, args, message):
+    out = tmp_path / "e"
+    res = run_cli(cli.main, "eval", "--policy", "pid", "--obs", "proxy", *args, "--out", out)
+    _refused(res, out, message)
+
+
+def test_fit_error_model_bins_are_bounded(run_cli, tmp_path):
+    out = tmp_path / "em.json"
+    res = run_cli(cli.main, "fit-error-model", tmp_path, "--range-bin-m", "1e-9", "--out", out)
+    _refused(res, out, "range_bin_m: 1e-09 m over 8 m gives 8000000000 bins (at most 1000)")
+    res = run_cli(cli.main, "fit-error-model", tmp_path, "--range-bin-m", "nan", "--out", out)
+    _refused(res, out, "Invalid value for '--range-bin-m'")
+
+
+# ----------------------------------------------------------------------------- policy files
+
+
+def _rewrite_zip(src: Path, dst: Path, name: str, body: bytes) -> Path:
+    zin = zipfile.ZipFile(src)
+    with zipfile.ZipFile(dst, "w") as zout:
+        for info in zin.infolist():
+            zout.writestr(info, body if info.filename == name else zin.read(info.filename))
+    return dst
+
+
+def _policy_folder(tmp_path: Path, name: str) -> Path:
+    folder = tmp_path / name
+    folder.mkdir()
+    for f in ("policy.zip", "vecnormalize.pkl", "config.toml"):
+        shutil.copy(SHIPPED / f, folder / f)
+    return folder
+
+
+def _nan_weights(folder: Path) -> Path:
+    import torch
+
+    z = zipfile.ZipFile(folder / "policy.zip")
+    state = torch.load(io.BytesIO(z.read("policy.pth")), weights_only=False)
+    key = next(k for k in state if k.startswith("action_net.weight"))
+    state[key][0, 0] = float("nan")
+    buf = io.BytesIO()
+    torch.save(state, buf)
+    tmp = folder / "policy.tmp.zip"
+    _rewrite_zip(folder / "policy.zip", tmp, "policy.pth", buf.getvalue())
+    tmp.replace(folder / "policy.zip")
+    return folder
+
+
+def _eval(run_cli, policy, out, *extra):
+    return run_cli(
+        cli.main, "eval", "--policy", policy, "--obs", "proxy", "--episodes", "1", *extra,
+        "--out", out,
+    )  # fmt: skip
+
+
+def test_garbage_inside_a_policy_zip(run_cli, tmp_path):
+    folder = _policy_folder(tmp_path, "p")
+    _rewrite_zip(SHIPPED / "policy.zip", folder / "policy.zip", "policy.pth", b"\x00garbage" * 9)
+    out = tmp_path / "e"
+    _refused(_eval(run_cli, folder, out), out, f"cannot read policy {folder}/policy.zip")
+
+
+def test_corrupt_normalisation_file(run_cli, tmp_path):
+    folder = _policy_folder(tmp_path, "p")
+    (folder / "vecnormalize.pkl").write_bytes(b"\x80\x04not a pickle")
+    out = tmp_path / "e"
+    message = f"cannot read normalisation {folder}/vecnormalize.pkl: UnpicklingError"
+    _refused(_eval(run_cli, folder, out), out, message)
+
+
+def test_truncated_onnx(run_cli, tmp_path):
+    onnx = tmp_path / "p.onnx"
+    assert run_cli(cli.main, "export", "--policy", SHIPPED, "--out", onnx).code == 0
+    onnx.write_bytes(onnx.read_bytes()[:300])
+    out = tmp_path / "e"
+    _refused(_eval(run_cli, onnx, out), out, f"cannot read ONNX policy {onnx}")
+
+
+def test_other_observation_layout_without_its_config(run_cli, tmp_path):
+    folder = tmp_path / "bare"
+    folder.mkdir()
+    shutil.copy(SHIPPED / "policy.zip", folder / "policy.zip")  # no config.toml beside it
+    env = tmp_path / "env.toml"
+    env.write_text("obs_frames = 2\n")
+    out = tmp_path / "e"
+    res = _eval(run_cli, folder, out, "--config", env)
+    _refused(res, out, f"policy {folder} takes 13 observation values, the env gives 26")
+
+
+def test_nan_policy_is_refused_by_eval_export_and_init_policy(run_cli, tmp_path):
+    folder = _nan_weights(_policy_folder(tmp_path, "nan"))
+    message = "holds NaN or infinity"
+    out = tmp_path / "e"
+    _refused(_eval(run_cli, folder, out), out, message)
+    onnx = tmp_path / "nan.onnx"
+    _refused(run_cli(cli.main, "export", "--policy", folder, "--out", onnx), onnx, message)
+    run = tmp_path / "run"
+    res = run_cli(cli.main, "train", "--init-policy", folder, "--out", run)
+    _refused(res, run, message)
+
+
+def test_policy_with_finite_weights_but_nan_outputs(run_cli, tmp_path):
+    """Broken normalisation (negative variance): NaN actions. Export refuses; eval stops at the
+    first such action with one line."""
+    folder = _policy_folder(tmp_path, "neg")
+    vn = pickle.loads((folder / "vecnormalize.pkl").read_bytes())
+    vn.obs_rms.var = -np.ones_like(vn.obs_rms.var)
+    vn.class_attributes, vn.venv, vn.returns = {}, None, np.zeros(1)
+    (folder / "vecnormalize.pkl").write_bytes(pickle.dumps(vn))
+    onnx = tmp_path / "neg.onnx"
+    res = run_cli(cli.main, "export", "--policy", folder, "--out", onnx)
+    _refused(res, onnx, "outputs NaN or infinity: refusing to export it")
+    out = tmp_path / "e"
+    res = _eval(run_cli, folder, out)
+    assert res.code == 2 and "normalisation gives NaN or infinity" in res.err
+    assert res.err.count("error:") == 1 and "Traceback" not in res.err
+
+
+def test_commands_do_not_write_into_another_tools_folder(run_cli, tmp_path):
+    ev = tmp_path / "eval"
+    res = _eval(run_cli, "pid", ev, "--config", _short_env(tmp_path), "--videos", "")
+    assert res.code == 0, res.err
+    before = (ev / "summary.json").read_bytes()
+    res = run_cli(cli.main, "train", "--out", ev)
+    assert res.code == 2 and "holds the output of `rl eval`; `rl train` will not" in res.err
+    assert (ev / "summary.json").read_bytes() == before and not (ev / "config.toml").exists()
+    run = tmp_path / "run"
+    (run).mkdir()
+    shutil.copy(SHIPPED / "provenance.json", run / "provenance.json")  # a legacy rl train folder
+    res = _eval(run_cli, "pid", run)
+    assert res.code == 2 and "holds the output of `rl train`; `rl eval` will not" in res.err
+
+
+def _short_env(tmp_path: Path) -> Path:
+    env = tmp_path / "short.toml"
+    env.write_text("episode_s = 2.0\n")
+    return env
