@@ -38,7 +38,8 @@ from numpy.typing import ArrayLike
 
 from calibration.frames import check_T
 from dockcore.errors import DockError
-from dockcore.io import atomic_path, atomic_write_json
+from dockcore.io import atomic_path, atomic_write_json, read_text
+from dockcore.media import quiet_native_stderr
 
 __all__ = [
     "CAMERA_FILE_VERSION",
@@ -54,6 +55,12 @@ CAMERA_FILE_VERSION = 1
 
 #: Accepted lengths of the OpenCV distortion vector.
 _DIST_LENGTHS = (4, 5, 8, 12, 14)
+#: Largest image side (px), focal length and principal point coordinate (px, in absolute value;
+#: a 100000 px image with a 0.1 deg field of view has f = 5.7e7 px) and distortion coefficient a
+#: camera may state: beyond them a file is wrong, and projections overflow.
+MAX_IMAGE_PX = 100_000
+MAX_FOCAL_PX = 1e8
+MAX_DIST_COEFF = 1e6
 
 
 @dataclass(frozen=True)
@@ -61,14 +68,14 @@ class CameraModel:
     """Pinhole intrinsics with OpenCV distortion.
 
     Attributes:
-        width_px: image width (px), > 0.
-        height_px: image height (px), > 0.
-        fx_px: focal length along u (px), > 0.
-        fy_px: focal length along v (px), > 0.
-        cx_px: principal point u (px; pixel centres at integers).
-        cy_px: principal point v (px).
+        width_px: image width (px), 1 ... ``MAX_IMAGE_PX``.
+        height_px: image height (px), 1 ... ``MAX_IMAGE_PX``.
+        fx_px: focal length along u (px), in (0, ``MAX_FOCAL_PX``].
+        fy_px: focal length along v (px), in (0, ``MAX_FOCAL_PX``].
+        cx_px: principal point u (px; pixel centres at integers), within +-``MAX_FOCAL_PX``.
+        cy_px: principal point v (px), within +-``MAX_FOCAL_PX``.
         dist: OpenCV distortion coefficients (k1, k2, p1, p2[, k3, ...]); length 4, 5, 8, 12 or
-            14; dimensionless. Zeros for an ideal pinhole.
+            14; dimensionless, within +-``MAX_DIST_COEFF``. Zeros for an ideal pinhole.
         rms_px: RMS reprojection error of the calibration that produced it (px), or None.
         name: a label for files and reports.
     """
@@ -94,25 +101,33 @@ class CameraModel:
         """Raise ValueError (one line naming the field) if a value is out of range."""
         for key in ("width_px", "height_px"):
             value = getattr(self, key)
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value <= 0:
-                raise ValueError(f"{key}: must be a positive integer, got {value!r}")
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+                raise ValueError(f"{key}: must be an integer in [1, {MAX_IMAGE_PX}], got {value!r}")
+            if not 1 <= value <= MAX_IMAGE_PX:
+                raise ValueError(f"{key}: must be an integer in [1, {MAX_IMAGE_PX}], got {value!r}")
         for key in ("fx_px", "fy_px", "cx_px", "cy_px"):
             value = getattr(self, key)
             if not isinstance(value, (int, float, np.number)) or not math.isfinite(value):
                 raise ValueError(f"{key}: must be a finite number, got {value!r}")
+            if abs(value) > MAX_FOCAL_PX:
+                raise ValueError(f"{key}: must be within +-{MAX_FOCAL_PX:g} px, got {value!r}")
         for key in ("fx_px", "fy_px"):
             if getattr(self, key) <= 0:
                 raise ValueError(f"{key}: must be > 0, got {getattr(self, key)!r}")
         if len(self.dist) not in _DIST_LENGTHS:
             raise ValueError(f"dist: length must be one of {_DIST_LENGTHS}, got {len(self.dist)}")
-        if not all(math.isfinite(d) for d in self.dist):
-            raise ValueError(f"dist: must be finite, got {self.dist}")
+        if not all(math.isfinite(d) and abs(d) <= MAX_DIST_COEFF for d in self.dist):
+            raise ValueError(
+                f"dist: must be finite and within +-{MAX_DIST_COEFF:g}, got {self.dist}"
+            )
         if self.rms_px is not None and not (
             isinstance(self.rms_px, (int, float, np.number))
             and math.isfinite(self.rms_px)
-            and self.rms_px >= 0
+            and 0 <= self.rms_px <= MAX_IMAGE_PX
         ):
-            raise ValueError(f"rms_px: must be None or a finite number >= 0, got {self.rms_px!r}")
+            raise ValueError(
+                f"rms_px: must be None or a number in [0, {MAX_IMAGE_PX}], got {self.rms_px!r}"
+            )
         if not isinstance(self.name, str) or not self.name:
             raise ValueError(f"name: must be a non-empty string, got {self.name!r}")
 
@@ -354,8 +369,12 @@ def _node_value(node: Any) -> Any:
 
 def _read_yaml(path: Path) -> dict[str, Any]:
     """Raw key -> value (ndarray, float or str) of an OpenCV FileStorage YAML file."""
+    text = read_text(path, "camera file")
+    if not text.strip():
+        raise DockError(f"malformed camera file {path}: the file is empty")
     try:
-        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+        with quiet_native_stderr():
+            fs = cv2.FileStorage(text, cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY)
     except (cv2.error, SystemError) as exc:
         cause = exc.__cause__ or exc.__context__ or exc
         raise DockError(f"malformed camera file {path}: {_one_line(cause)}") from None
@@ -378,8 +397,8 @@ def _read_yaml(path: Path) -> dict[str, Any]:
 
 def _read_json(path: Path) -> dict[str, Any]:
     try:
-        raw = json.loads(path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raw = json.loads(read_text(path, "camera file"))
+    except json.JSONDecodeError as exc:
         raise DockError(f"malformed camera file {path}: {_one_line(exc)}") from None
     if not isinstance(raw, dict):
         raise DockError(f"malformed camera file {path}: top level is not an object")

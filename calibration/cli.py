@@ -3,32 +3,61 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Annotated
 
 import click
 
-from dockcore.cli import run_group
+from dockcore.cli import CONTEXT, DomainType, domain_type, field_type, run_group
 from dockcore.config import load_config
+from dockcore.domains import Interval
 
-_CTX = {"help_option_names": ["-h", "--help"]}
+#: ``extrinsics set --xyz-m``: the camera's position in the body frame (m; a vehicle is a few
+#: metres long).
+XyzM = Annotated[float, Interval(ge=-100.0, le=100.0)]
+#: ``extrinsics set --rpy-deg``: roll, pitch, yaw (deg).
+RpyDeg = Annotated[float, Interval(ge=-360.0, le=360.0)]
+#: ``reference-camera --width/--height`` (px).
+ImageSidePx = Annotated[int, Interval(ge=16, le=20000)]
 
 
-@click.group(context_settings=_CTX)
+def _cfg(name: str) -> DomainType:
+    """The click type of the option that overrides ``IntrinsicsConfig.<name>`` (its domain)."""
+    from calibration.intrinsics import IntrinsicsConfig
+
+    return field_type(IntrinsicsConfig, name)
+
+
+@click.group(context_settings=CONTEXT)
 def cli() -> None:
     """Calibration: camera intrinsics and the camera-to-vehicle extrinsics."""
 
 
-@cli.command(context_settings=_CTX)
+@cli.command(context_settings=CONTEXT)
 @click.argument("source", type=click.Path(path_type=Path))
 @click.option("--pattern", help="Target: chessboard or charuco [chessboard].")
-@click.option("--cols", type=int, help="Chessboard: inner corners per row; charuco: squares [9].")
-@click.option("--rows", type=int, help="Chessboard: inner corners per column; charuco: squares [6]")
-@click.option("--square-mm", type=float, help="Square side in mm [25].")
-@click.option("--marker-mm", type=float, help="ChArUco marker side in mm [0.75 x square].")
+@click.option(
+    "--cols", type=_cfg("cols"), help="Chessboard: inner corners per row; charuco: squares [9]."
+)
+@click.option(
+    "--rows", type=_cfg("rows"), help="Chessboard: inner corners per column; charuco: squares [6]"
+)
+@click.option("--square-mm", type=_cfg("square_mm"), help="Square side in mm [25].")
+@click.option(
+    "--marker-mm", type=_cfg("marker_mm"), help="ChArUco marker side in mm [0.75 x square]."
+)
 @click.option("--dictionary", help="ChArUco marker dictionary [DICT_4X4_50].")
-@click.option("--blur-threshold-px", type=float, help="Reject views with wider edges (px) [6].")
-@click.option("--max-views", type=int, help="Most views kept, spread over poses [40].")
-@click.option("--holdout-fraction", type=float, help="Fraction of views held out [0.2].")
-@click.option("--seed", type=int, help="Seed of the hold-out draw [0].")
+@click.option(
+    "--blur-threshold-px",
+    type=_cfg("blur_threshold_px"),
+    help="Reject views with wider edges (px) [6].",
+)
+@click.option(
+    "--max-views", type=_cfg("max_views"), help="Most views kept, spread over poses [40]."
+)
+@click.option(
+    "--holdout-fraction", type=_cfg("holdout_fraction"), help="Fraction of views held out [0.2]."
+)
+@click.option("--seed", type=_cfg("seed"), help="Seed of the hold-out draw [0].")
 @click.option(
     "--distortion-model",
     type=click.Choice(["k1k2", "k1k2k3", "k1k2p1p2", "k1k2p1p2k3", "rational"]),
@@ -94,6 +123,8 @@ def intrinsics(
         section="intrinsics",
     )
     result = calibrate_intrinsics(source, cfg, name=name, progress=False if quiet else None)
+    for note in result.notes:
+        click.echo(f"note: {note}", err=True)
     paths, kept_T = write_outputs(result, out)
     if quiet:
         click.echo(str(paths[0]))
@@ -115,7 +146,7 @@ def intrinsics(
     click.echo("wrote " + ", ".join(str(p) for p in paths))
 
 
-@cli.group(context_settings=_CTX)
+@cli.group(context_settings=CONTEXT)
 def extrinsics() -> None:
     """Show or set T_body_cam (camera cv frame in body FRD) in a camera file.
 
@@ -124,7 +155,7 @@ def extrinsics() -> None:
     """
 
 
-@extrinsics.command(context_settings=_CTX)
+@extrinsics.command(context_settings=CONTEXT)
 @click.argument("camera_file", type=click.Path(path_type=Path))
 @click.option("--json", "as_json", is_flag=True, help="Print JSON.")
 def show(camera_file, as_json) -> None:
@@ -136,12 +167,20 @@ def show(camera_file, as_json) -> None:
     click.echo(format_extrinsics(T, source, as_json=as_json))
 
 
-@extrinsics.command(name="set", context_settings=_CTX)
+@extrinsics.command(name="set", context_settings=CONTEXT)
 @click.argument("camera_file", type=click.Path(path_type=Path))
 @click.option(
-    "--xyz-m", nargs=3, type=float, required=True, help="Camera position X Y Z in body FRD (m)."
+    "--xyz-m",
+    nargs=3,
+    type=domain_type(XyzM),
+    help="Camera position X Y Z in body FRD (m, each within +-100) [required].",
 )
-@click.option("--rpy-deg", nargs=3, type=float, required=True, help="Roll pitch yaw (deg), ZYX.")
+@click.option(
+    "--rpy-deg",
+    nargs=3,
+    type=domain_type(RpyDeg),
+    help="Roll pitch yaw (deg, each within +-360), ZYX [required].",
+)
 def set_(camera_file, xyz_m, rpy_deg) -> None:
     """Write T_body_cam into CAMERA_FILE (both twins; intrinsics unchanged)."""
     from calibration.extrinsics import (
@@ -150,12 +189,17 @@ def set_(camera_file, xyz_m, rpy_deg) -> None:
         write_extrinsics,
     )
 
+    # required, checked here rather than by click so that a bad value of either option is
+    # reported before a missing one (both are parsed first)
+    for name, value in (("--xyz-m", xyz_m), ("--rpy-deg", rpy_deg)):
+        if value is None:
+            raise click.UsageError(f"Missing option '{name}'.")
     T = T_body_cam_from_xyz_rpy(xyz_m, rpy_deg)
     yaml_path, json_path = write_extrinsics(camera_file, T)
     click.echo(format_extrinsics(T, f"written to {yaml_path} and {json_path}"))
 
 
-@cli.command(name="reference-camera", context_settings=_CTX)
+@cli.command(name="reference-camera", context_settings=CONTEXT)
 @click.option(
     "--out",
     type=click.Path(dir_okay=False, path_type=Path),
@@ -163,8 +207,16 @@ def set_(camera_file, xyz_m, rpy_deg) -> None:
     show_default=True,
     help="Camera file (.yaml + .json twin).",
 )
-@click.option("--width", type=int, help="Image width (px) [968]; alone keeps the aspect ratio.")
-@click.option("--height", type=int, help="Image height (px) [732]; alone keeps the aspect ratio.")
+@click.option(
+    "--width",
+    type=domain_type(ImageSidePx),
+    help="Image width (px) [968]; alone keeps the aspect ratio.",
+)
+@click.option(
+    "--height",
+    type=domain_type(ImageSidePx),
+    help="Image height (px) [732]; alone keeps the aspect ratio.",
+)
 def reference_camera(out, width, height) -> None:
     """Write the reference Girona downward camera (968x732, 55 deg HFOV) with its T_body_cam."""
     from calibration.camera import load_camera

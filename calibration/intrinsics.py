@@ -20,7 +20,7 @@ from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import cv2
 import numpy as np
@@ -36,10 +36,11 @@ from calibration.patterns import (
     spread_subset,
     view_quad_px,
 )
-from dockcore.config import to_dict
+from dockcore.config import to_dict, validated
+from dockcore.domains import Interval, Seed
 from dockcore.errors import DockError
 from dockcore.io import atomic_path, atomic_write_json
-from dockcore.media import IMAGE_SUFFIXES, open_video, read_image
+from dockcore.media import IMAGE_SUFFIXES, open_video, quiet_native_stderr, read_image
 from dockcore.provenance import provenance
 
 __all__ = [
@@ -53,10 +54,20 @@ __all__ = [
     "write_outputs",
 ]
 
-#: Image files read from an input folder (case-insensitive).
-
 #: Fewest calibration views (held-out views excluded) a calibration accepts.
 MIN_VIEWS = 4
+#: A video read stops after this many failed reads in a row (the end of a damaged stream).
+MAX_VIDEO_FAILURES = 25
+#: Views smaller than this on a side (px) are rejected as ``too_small`` (no target fits).
+MIN_VIEW_PX = 16
+#: Most views one calibration keeps (``max_views``): ``cv2.calibrateCamera`` grows with them.
+MAX_VIEWS = 500
+
+#: Inner corners (chessboard) or squares (ChArUco) along one side of a target (OpenCV's
+#: chessboard finder needs more than 2).
+BoardCount = Annotated[int, Interval(ge=3, le=100)]
+#: A square or marker side of a printed target (mm): 0.1 mm ... 1 m.
+TargetMm = Annotated[float, Interval(ge=0.1, le=1000.0)]
 
 #: OpenCV calibration flags of each distortion model.
 _DIST_FLAGS = {
@@ -74,74 +85,78 @@ class IntrinsicsConfig:
 
     Attributes:
         pattern: ``"chessboard"`` or ``"charuco"``.
-        cols: chessboard: inner corners per row; charuco: squares per row.
-        rows: chessboard: inner corners per column; charuco: squares per column.
-        square_mm: side of one square (mm). Scales the board poses only; K does not depend on it.
-        marker_mm: ChArUco marker side (mm), < ``square_mm``; ``None``: 0.75 x ``square_mm``.
-        dictionary: ChArUco marker dictionary (``cv2.aruco`` name, e.g. ``DICT_4X4_50``).
+        cols: chessboard: inner corners per row; charuco: squares per row (3 ... 100).
+        rows: chessboard: inner corners per column; charuco: squares per column (3 ... 100).
+        square_mm: side of one square (mm, 0.1 ... 1000). Scales the board poses only; K does
+            not depend on it.
+        marker_mm: ChArUco marker side (mm, 0.1 ... 1000), < ``square_mm``; ``None``: 0.75 x
+            ``square_mm``.
+        dictionary: ChArUco marker dictionary (``cv2.aruco`` name, e.g. ``DICT_4X4_50``); it
+            must hold the board's cols x rows / 2 markers.
         legacy_charuco: the board was printed by OpenCV < 4.6 (matters for an even row count).
         blur_threshold_px: views whose pattern edge width exceeds this are rejected as blurred
-            (px; a sharp image gives ~2, a Gaussian blur of sigma s gives ~2.5 s).
+            (px, (0, 1000]; a sharp image gives ~2, a Gaussian blur of sigma s gives ~2.5 s).
         duplicate_threshold_frac: a view whose board outline lies closer than this to a kept
-            view's (mean corner distance, as a fraction of the image diagonal) is a duplicate.
-        max_views: most views used (calibration + hold-out); extra views are dropped so that
-            the kept ones spread over board positions and tilts.
+            view's (mean corner distance, as a fraction of the image diagonal, [0, 1)) is a
+            duplicate.
+        max_views: most views used (calibration + hold-out, ``MIN_VIEWS`` ... ``MAX_VIEWS``);
+            extra views are dropped so that the kept ones spread over board positions and tilts.
         holdout_fraction: fraction of the kept views held out of the fit to validate it, in
             [0, 0.5]; at least one when there are more than ``MIN_VIEWS`` views, none otherwise.
-        seed: seed of the hold-out draw and the spread selection.
+        seed: seed of the hold-out draw and the spread selection (0 ... 2^32 - 1).
         distortion_model: ``k1k2``, ``k1k2k3``, ``k1k2p1p2``, ``k1k2p1p2k3`` (OpenCV's default)
             or ``rational`` (8 coefficients).
-        min_corners: fewest ChArUco corners for a view to count (a chessboard is all or nothing).
-        subpix_win_px: largest half window of the sub-pixel corner search (px).
-        video_max_frames: most frames sampled (evenly) from a video input.
+        min_corners: fewest ChArUco corners for a view to count (4 ... the board's inner
+            corners; a chessboard is all or nothing).
+        subpix_win_px: largest half window of the sub-pixel corner search (px, 2 ... 100).
+        video_max_frames: most frames sampled (evenly) from a video input (1 ... 100000).
     """
 
     pattern: str = "chessboard"
-    cols: int = 9
-    rows: int = 6
-    square_mm: float = 25.0
-    marker_mm: float | None = None
+    cols: BoardCount = 9
+    rows: BoardCount = 6
+    square_mm: TargetMm = 25.0
+    marker_mm: TargetMm | None = None
     dictionary: str = "DICT_4X4_50"
     legacy_charuco: bool = False
-    blur_threshold_px: float = 6.0
-    duplicate_threshold_frac: float = 0.01
-    max_views: int = 40
-    holdout_fraction: float = 0.2
-    seed: int = 0
+    blur_threshold_px: Annotated[float, Interval(gt=0.0, le=1000.0)] = 6.0
+    duplicate_threshold_frac: Annotated[float, Interval(ge=0.0, lt=1.0)] = 0.01
+    max_views: Annotated[int, Interval(ge=MIN_VIEWS, le=MAX_VIEWS)] = 40
+    holdout_fraction: Annotated[float, Interval(ge=0.0, le=0.5)] = 0.2
+    seed: Seed = 0
     distortion_model: Literal["k1k2", "k1k2k3", "k1k2p1p2", "k1k2p1p2k3", "rational"] = "k1k2p1p2k3"
-    min_corners: int = 8
-    subpix_win_px: int = 11
-    video_max_frames: int = 300
+    min_corners: Annotated[int, Interval(ge=4, le=100 * 100)] = 8
+    subpix_win_px: Annotated[int, Interval(ge=2, le=100)] = 11
+    video_max_frames: Annotated[int, Interval(ge=1, le=100_000)] = 300
 
     def validate(self) -> None:
-        """Raise ValueError (one line naming the field) for an out-of-range value."""
+        """Raise ValueError (one line naming the field) for values that do not go together
+        (each numeric field's own range is its declared domain)."""
         if self.pattern not in PATTERNS:
             raise ValueError(f"pattern: must be one of {list(PATTERNS)}, got {self.pattern!r}")
-        low = 2 if self.pattern == "chessboard" else 3
-        for key in ("cols", "rows"):
-            if getattr(self, key) < low:
-                raise ValueError(f"{key}: must be >= {low} for a {self.pattern}")
-        if not self.square_mm > 0:
-            raise ValueError(f"square_mm: must be > 0, got {self.square_mm}")
-        if self.marker_mm is not None and not 0 < self.marker_mm < self.square_mm:
-            raise ValueError(f"marker_mm: must be in (0, square_mm), got {self.marker_mm}")
-        normalise_dictionary_name(self.dictionary)
-        if not self.blur_threshold_px > 0:
-            raise ValueError(f"blur_threshold_px: must be > 0, got {self.blur_threshold_px}")
-        if not 0 <= self.duplicate_threshold_frac < 1:
-            raise ValueError("duplicate_threshold_frac: must be in [0, 1)")
-        if self.max_views < MIN_VIEWS:
-            raise ValueError(f"max_views: must be >= {MIN_VIEWS}, got {self.max_views}")
-        if not 0 <= self.holdout_fraction <= 0.5:
-            raise ValueError(f"holdout_fraction: must be in [0, 0.5], got {self.holdout_fraction}")
-        if self.distortion_model not in _DIST_FLAGS:
-            raise ValueError(f"distortion_model: must be one of {list(_DIST_FLAGS)}")
-        if self.min_corners < 4:
-            raise ValueError(f"min_corners: must be >= 4, got {self.min_corners}")
-        if self.subpix_win_px < 2:
-            raise ValueError(f"subpix_win_px: must be >= 2, got {self.subpix_win_px}")
-        if self.video_max_frames < 1:
-            raise ValueError(f"video_max_frames: must be >= 1, got {self.video_max_frames}")
+        if self.marker_mm is not None and not self.marker_mm < self.square_mm:
+            raise ValueError(
+                f"marker_mm: must be smaller than square_mm ({self.square_mm:g}), "
+                f"got {self.marker_mm:g}"
+            )
+        try:
+            name = normalise_dictionary_name(self.dictionary)
+        except ValueError as exc:
+            raise ValueError(f"dictionary: {exc}") from None
+        if self.pattern == "charuco":
+            n_markers = self.cols * self.rows // 2
+            n_dict = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name)).bytesList.shape[0]
+            if n_markers > n_dict:
+                raise ValueError(
+                    f"dictionary: a {self.cols}x{self.rows} ChArUco board has {n_markers} markers "
+                    f"but {name} only {n_dict}"
+                )
+            inner = (self.cols - 1) * (self.rows - 1)
+            if self.min_corners > inner:
+                raise ValueError(
+                    f"min_corners: {self.min_corners} is more than the {inner} inner corners of "
+                    f"a {self.cols}x{self.rows} ChArUco board"
+                )
 
     def detector(self) -> PatternDetector:
         """The pattern detector this configuration describes."""
@@ -165,8 +180,8 @@ class ViewRecord:
     Attributes:
         name: file name (folder input) or ``frame_<index>`` (video input).
         status: ``calibration``, ``holdout`` or ``rejected``.
-        reason: why a view was rejected (``unreadable``, ``size_mismatch``, ``no_pattern``,
-            ``blurred``, ``duplicate``, ``over_cap``), else None.
+        reason: why a view was rejected (``unreadable``, ``too_small``, ``size_mismatch``,
+            ``no_pattern``, ``blurred``, ``duplicate``, ``over_cap``), else None.
         n_corners: corners found (0 without a detection).
         blur_px: pattern edge width (px), None without a detection.
         error_px: RMS reprojection error of the view (px) for calibration and hold-out views.
@@ -204,6 +219,7 @@ class IntrinsicsResult:
         std_intrinsics: one-sigma uncertainty of fx, fy, cx, cy (px) and each distortion term.
         config: the configuration used.
         source: the input path.
+        notes: one-line remarks for the user (e.g. a ChArUco border too thin).
     """
 
     camera: CameraModel
@@ -212,6 +228,7 @@ class IntrinsicsResult:
     std_intrinsics: dict[str, float]
     config: IntrinsicsConfig
     source: str
+    notes: list[str] = field(default_factory=list)
 
     def counts(self) -> dict[str, Any]:
         """Views read / with the pattern / used / held out / rejected (by reason)."""
@@ -242,6 +259,7 @@ class IntrinsicsResult:
             "distortion_coefficients": list(cam.dist),
             "std_intrinsics": {k: _round(v) for k, v in self.std_intrinsics.items()},
             "per_view": [v.as_dict() for v in self.views],
+            "notes": list(self.notes),
             "config": to_dict(self.config),
         }
 
@@ -253,26 +271,42 @@ def _round(x: float | None, digits: int = 6) -> float | None:
 # --------------------------------------------------------------------------- input views
 
 
-def _video_frames(path: Path, max_frames: int) -> tuple[int, Iterator[tuple[str, np.ndarray]]]:
+def _video_frames(
+    path: Path, max_frames: int
+) -> tuple[int, Iterator[tuple[str, np.ndarray | None]]]:
+    """(views expected, views) of a video: every ``stride``-th frame, at most ``max_frames``.
+
+    A frame that cannot be decoded is a view ``None`` (counted as unreadable) and reading goes
+    on past it; it stops at the end of the stream or after ``MAX_VIDEO_FAILURES`` failed reads
+    in a row. Decoding is quiet (:func:`dockcore.media.quiet_native_stderr`).
+    """
     cap, first = open_video(path)
     count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
     stride = max(1, math.ceil(count / max_frames)) if count > 0 else 1
     total = min(max_frames, math.ceil(count / stride)) if count > 0 else max_frames
 
-    def frames() -> Iterator[tuple[str, np.ndarray]]:
+    def read() -> np.ndarray | None:
+        with quiet_native_stderr():
+            for _ in range(stride - 1):
+                cap.grab()
+            ok, frame = cap.read()
+        return frame if ok else None
+
+    def frames() -> Iterator[tuple[str, np.ndarray | None]]:
         try:
-            index, frame, n = 0, first, 0
-            while frame is not None and n < max_frames:
-                gray = frame if frame.ndim == 2 else cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
-                yield f"frame_{index:06d}", gray
+            index, frame, n, failures = 0, first, 0, 0
+            while n < max_frames and failures < MAX_VIDEO_FAILURES:
+                if count > 0 and index >= count:
+                    break
+                if frame is None:
+                    failures += 1
+                else:
+                    failures = 0
+                    frame = frame if frame.ndim == 2 else cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
+                yield f"frame_{index:06d}", frame
                 n += 1
-                for _ in range(stride - 1):
-                    if not cap.grab():
-                        return
                 index += stride
-                ok, frame = cap.read()
-                if not ok:
-                    frame = None
+                frame = read()
         finally:
             cap.release()
 
@@ -342,6 +376,9 @@ def _inspect(
         records.append(rec)
         if gray is None:
             rec.reason = "unreadable"
+            continue
+        if min(gray.shape[:2]) < MIN_VIEW_PX:
+            rec.reason = "too_small"
             continue
         if size is None:
             size = (gray.shape[1], gray.shape[0])
@@ -432,8 +469,7 @@ def calibrate_intrinsics(
         DockError: bad input (see :func:`iter_views`), no pattern in any view, fewer than
             ``MIN_VIEWS`` usable views, or a calibration OpenCV rejects.
     """
-    cfg = cfg or IntrinsicsConfig()
-    cfg.validate()
+    cfg = validated(cfg or IntrinsicsConfig())
     detector = cfg.detector()
     total, views = iter_views(source, cfg.video_max_frames)
     records, size = _inspect(views, total, cfg, detector, progress)
@@ -446,14 +482,16 @@ def calibrate_intrinsics(
             f"no {cfg.pattern} of {cfg.cols}x{cfg.rows} "
             f"{'inner corners' if cfg.pattern == 'chessboard' else 'squares'} found in any of "
             f"{len(records)} views ({blurred} too blurred); check --pattern, --cols and --rows"
+            + "".join(f"; {note}" for note in detector.notes)
         )
     kept = _select(records, cfg)
     cal = [r for r in kept if r.status == "calibration"]
     if len(cal) < MIN_VIEWS:
         reasons = Counter(r.reason for r in records if r.status == "rejected")
-        detail = ", ".join(f"{k} {v}" for k, v in sorted(reasons.items()))
+        detail = ", ".join(f"{k} {v}" for k, v in sorted(reasons.items())) or "none"
         raise DockError(
-            f"only {len(cal)} usable views, need at least {MIN_VIEWS} (rejected: {detail})"
+            f"only {len(cal)} usable views of {len(records)}, need at least {MIN_VIEWS} "
+            f"(rejected: {detail})"
         )
     obj = [r.detection.object_m.reshape(-1, 1, 3) for r in cal]
     img = [r.detection.image_px.reshape(-1, 1, 2) for r in cal]
@@ -486,7 +524,9 @@ def calibrate_intrinsics(
     )
     std = std_in.reshape(-1)
     std_named = {k: float(std[i]) for i, k in enumerate(_STD_NAMES[: 4 + n_dist])}
-    return IntrinsicsResult(camera, holdout, records, std_named, cfg, str(source))
+    return IntrinsicsResult(
+        camera, holdout, records, std_named, cfg, str(source), list(detector.notes)
+    )
 
 
 # --------------------------------------------------------------------------- outputs

@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 
 from dockcore.errors import DockError
+from dockcore.media import quiet_native_stderr
 
 __all__ = [
     "PATTERNS",
@@ -50,7 +51,7 @@ def normalise_dictionary_name(name: str) -> str:
         key = "DICT_" + key
     names = {n.upper(): n for n in dir(cv2.aruco) if n.startswith("DICT_")}
     if key not in names:
-        raise ValueError(f"unknown ArUco dictionary '{name}' (e.g. DICT_4X4_50, DICT_5X5_100)")
+        raise ValueError(f"unknown ArUco dictionary {name!r} (e.g. DICT_4X4_50, DICT_5X5_100)")
     return names[key]
 
 
@@ -91,6 +92,10 @@ class PatternDetector:
         sb_fallback: try ``cv2.findChessboardCornersSB`` when the classic chessboard finder fails.
         min_corners: ChArUco views with fewer corners count as "pattern not found".
 
+    Attributes:
+        notes: one-line remarks about the target (a ChArUco marker border too thin for
+            reliable detection), for the caller to show.
+
     Raises:
         DockError: unknown pattern or dictionary, or a board OpenCV cannot build.
     """
@@ -109,8 +114,9 @@ class PatternDetector:
         min_corners: int = 6,
     ) -> None:
         if pattern not in PATTERNS:
-            raise DockError(f"unknown pattern '{pattern}' (use one of: {', '.join(PATTERNS)})")
+            raise DockError(f"unknown pattern {pattern!r} (use one of: {', '.join(PATTERNS)})")
         self.pattern = pattern
+        self.notes: list[str] = []
         self.cols, self.rows = int(cols), int(rows)
         self.square_m = float(square_m)
         self.subpix_win_px = int(subpix_win_px)
@@ -131,9 +137,18 @@ class PatternDetector:
             self._gap_frac = (self.square_m - marker) / (2.0 * self.square_m)
             try:
                 aruco_dict = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dict_name))
-                self._board = cv2.aruco.CharucoBoard(
-                    (self.cols, self.rows), self.square_m, marker, aruco_dict
-                )
+                cell_m = marker / (int(aruco_dict.markerSize) + 2)
+                border_m = (self.square_m - marker) / 2.0
+                if border_m < 0.7 * cell_m:  # what OpenCV would warn about on stderr
+                    self.notes.append(
+                        f"the ChArUco markers ({1e3 * marker:g} mm in {1e3 * self.square_m:g} mm "
+                        f"squares) leave a {1e3 * border_m:.3g} mm white border, less than 70 % "
+                        f"of a marker cell ({1e3 * cell_m:.3g} mm): detection may be unreliable"
+                    )
+                with quiet_native_stderr():
+                    self._board = cv2.aruco.CharucoBoard(
+                        (self.cols, self.rows), self.square_m, marker, aruco_dict
+                    )
                 self._board.setLegacyPattern(bool(legacy_charuco))
                 self._charuco = cv2.aruco.CharucoDetector(self._board)
             except cv2.error as exc:

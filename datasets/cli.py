@@ -7,24 +7,28 @@ from pathlib import Path
 
 import click
 
-from dockcore.cli import run_group
+from datasets.synth import SynthConfig, Workers
+from dockcore.cli import CONTEXT, domain_type, field_type, run_group
 
-_CTX = {"help_option_names": ["-h", "--help"]}
 
-
-@click.group(context_settings=_CTX)
+@click.group(context_settings=CONTEXT)
 def cli() -> None:
     """Datasets: labelled synthetic frames and loaders for real footage."""
 
 
-@cli.command(context_settings=_CTX)
-@click.option("--n", "n_frames", type=int, help="Number of frames [default: 100].")
+@cli.command(context_settings=CONTEXT)
+@click.option(
+    "--n",
+    "n_frames",
+    type=field_type(SynthConfig, "n_frames"),
+    help="Number of frames [default: 100]; more than a folder holds extends it, fewer is refused.",
+)
 @click.option(
     "--out",
     "out_dir",
     required=True,
     type=click.Path(file_okay=False, path_type=Path),
-    help="Dataset folder (created; an interrupted run there is resumed).",
+    help="Dataset folder (created; an interrupted run there is resumed; locked while it runs).",
 )
 @click.option(
     "--water",
@@ -33,19 +37,24 @@ def cli() -> None:
 )
 @click.option(
     "--workers",
-    type=click.IntRange(min=1),
+    type=domain_type(Workers),
     default=1,
     show_default=True,
     help="Worker processes (the output is the same for any number).",
 )
-@click.option("--seed", type=click.IntRange(min=0), help="Base seed [default: 0].")
+@click.option("--seed", type=field_type(SynthConfig, "seed"), help="Base seed [default: 0].")
 @click.option(
     "--camera",
     "camera_file",
     type=click.Path(dir_okay=False),
     help="Camera YAML/JSON (intrinsics + T_body_cam) [default: the reference camera].",
 )
-@click.option("--width", "width_px", type=int, help="Render width in px (intrinsics scaled).")
+@click.option(
+    "--width",
+    "width_px",
+    type=field_type(SynthConfig, "width_px"),
+    help="Render width in px, 16-8192 (intrinsics scaled; 0: the camera's).",
+)
 @click.option(
     "--markers",
     "marker_set_path",
@@ -69,7 +78,7 @@ def synth(
     Writes images/, labels.jsonl (T_cam_ds, marker corners and visibility, water per frame),
     camera.yaml/.json, markerset.toml, dataset.json, config.toml and provenance.json.
     """
-    from datasets.synth import SynthConfig, generate
+    from datasets.synth import generate
     from dockcore.config import load_config
 
     cfg = load_config(

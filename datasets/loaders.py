@@ -29,6 +29,7 @@ import numpy as np
 from calibration.camera import CameraModel, load_camera
 from calibration.frames import R_from_quat_wxyz, R_from_rpy, make_T
 from dockcore.errors import DockError
+from dockcore.io import read_text
 from markers.markerset import MarkerSet, load_marker_set
 from perception.groundtruth import FrameTruth, load_dataset
 from perception.video import FrameSource, open_frames, read_image
@@ -161,12 +162,7 @@ def load_poses_csv(path: str | os.PathLike[str]) -> np.ndarray:
             non-numeric value or no rows.
     """
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise DockError(f"poses file not found: {path}") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DockError(f"cannot read poses file {path}: {exc}") from None
+    text = read_text(path, "poses file")
     reader = csv.DictReader(text.splitlines())
     header = [h.strip() for h in reader.fieldnames or []]
     reader.fieldnames = header

@@ -20,12 +20,18 @@ Determinism: frame k draws everything (pose, random water, sensor noise) from
 ``(config, k)``, so any number of worker processes gives byte-identical files. (A
 ``SeedSequence`` of the pair rather than ``seed + k``: datasets with seeds 0 and 1 share no frame.)
 
-Crash safety and resume: a frame's image is written (atomic rename) before its label, which goes
-to its own file ``.partial/<k>.json`` (atomic rename). A frame counts as done when its image and
-its label (a partial file or a line of an existing ``labels.jsonl``) both exist; a rerun renders
-only the missing frames, then ``labels.jsonl`` is assembled atomically in frame order, the
-partial files removed, and ``dataset.json`` written last (its presence marks a complete dataset;
-it is removed when a run starts). A rerun with another config (other than ``n_frames``) is refused.
+Crash safety and resume: the output folder is claimed (:func:`dockcore.outdir.claim_output_dir`:
+locked while a run writes it, so a second run into it stops at once; refused when another tool
+made it; temporary files of killed runs removed). A frame's image is written (atomic rename)
+before its label, which goes to its own file ``.partial/<k>.json`` (atomic rename). A frame
+counts as done when its image is a complete PNG of the right size (its chunks and checksums are
+read, so an empty, truncated or corrupted file is rendered again) and its label (a partial file
+or a line of an existing ``labels.jsonl``) is there; a rerun renders only the other frames, then
+``labels.jsonl`` is assembled atomically in frame order, the partial files removed, and
+``dataset.json`` written last (its presence marks a complete dataset; it is removed when a run
+starts). A rerun with another config (other than ``n_frames``) is refused, and so is a smaller
+``n_frames`` than the folder holds (it would delete frames); a larger one extends the dataset.
+Worker processes end with the run, however it ends (:func:`dockcore.procs.die_with_parent`).
 
 Example:
     >>> cfg = SynthConfig(n_frames=200, water="coastal")
@@ -43,10 +49,11 @@ import os
 import re
 import shutil
 import time
+import zlib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import cv2
 import numpy as np
@@ -55,9 +62,12 @@ from scipy.spatial.transform import Rotation
 
 from calibration.camera import REFERENCE_T_BODYFRD_CAMCV, CameraModel, load_camera, save_camera
 from calibration.frames import R_from_rpy, check_T, inv_T, make_T
-from dockcore.config import from_dict, to_dict
-from dockcore.errors import DockError
-from dockcore.io import atomic_path, atomic_write_bytes, atomic_write_json, ensure_writable_dir
+from dockcore.config import from_dict, to_dict, validated
+from dockcore.domains import Fraction, Interval, Seed, check, split_annotated
+from dockcore.errors import ConfigError, DockError
+from dockcore.io import atomic_path, atomic_write_bytes, atomic_write_json
+from dockcore.outdir import claim_output_dir
+from dockcore.procs import die_with_parent
 from dockcore.provenance import write_provenance
 from markers.markerset import MarkerSet, save_marker_set
 from perception.groundtruth import (
@@ -76,6 +86,7 @@ __all__ = [
     "PoseSamplingConfig",
     "SynthConfig",
     "SynthResult",
+    "Workers",
     "frame_rng",
     "generate",
     "resolve_camera",
@@ -85,9 +96,24 @@ __all__ = [
 #: Image and partial-label names of frame k.
 IMAGE_NAME = "{:06d}.png"
 _IMAGE_RE = re.compile(r"^(\d{6})\.png$")
+_PARTIAL_RE = re.compile(r"^(\d{6})\.json$")
 _PARTIAL = ".partial"
 _STATE = ".synth.json"
 _MAX_DRAWS = 200
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+#: Farthest a given pose may be from the world origin (m): any tank is much smaller.
+_MAX_POSITION_M = 1e4
+
+#: Worker processes of a run (each holds a renderer: a few hundred MB).
+Workers = Annotated[int, Interval(ge=1, le=64)]
+#: Frames of a dataset: a million full-size frames are about 600 GB.
+_Frames = Annotated[int, Interval(ge=1, le=10**6)]
+#: A distance of the pose sampler (m).
+_Distance_m = Annotated[float, Interval(ge=0, le=100)]
+#: A camera-to-DS range of aimed frames (m).
+_Range_m = Annotated[float, Interval(gt=0, le=100)]
+#: A tilt from straight down (deg).
+_Tilt_deg = Annotated[float, Interval(ge=0, lt=90)]
 
 
 @dataclass(frozen=True)
@@ -109,36 +135,53 @@ class PoseSamplingConfig:
         tank_margin_m: the AUV origin stays this far inside the tank walls (m).
     """
 
-    aimed_fraction: float = 0.8
-    aimed_range_m: tuple[float, float] = (1.0, 6.0)
-    aimed_tilt_max_deg: float = 25.0
-    aimed_image_margin: float = 0.1
-    uniform_range_m: tuple[float, float, float] = (6.0, 3.0, 1.4)
-    uniform_height_m: float = 3.3
-    uniform_tilt_max_deg: float = 5.0
-    min_depth_m: float = 0.3
-    min_height_m: float = 0.3
-    tank_margin_m: float = 0.8
+    aimed_fraction: Fraction = 0.8
+    aimed_range_m: tuple[_Range_m, _Range_m] = (1.0, 6.0)
+    aimed_tilt_max_deg: _Tilt_deg = 25.0
+    aimed_image_margin: Annotated[float, Interval(ge=0, lt=0.5)] = 0.1
+    uniform_range_m: tuple[_Distance_m, _Distance_m, _Distance_m] = (6.0, 3.0, 1.4)
+    uniform_height_m: _Distance_m = 3.3
+    uniform_tilt_max_deg: _Tilt_deg = 5.0
+    min_depth_m: _Distance_m = 0.3
+    min_height_m: _Distance_m = 0.3
+    tank_margin_m: _Distance_m = 0.8
 
     def validate(self) -> None:
-        """Raise ValueError naming the first invalid field."""
-        if not 0.0 <= self.aimed_fraction <= 1.0:
-            raise ValueError(f"aimed_fraction: must be in [0, 1], got {self.aimed_fraction}")
+        """Raise ValueError naming the first invalid field (comparisons fail on NaN)."""
         lo, hi = self.aimed_range_m
         if not 0.0 < lo <= hi:
             raise ValueError(f"aimed_range_m: need 0 < lo <= hi, got {self.aimed_range_m}")
-        for name in ("aimed_tilt_max_deg", "uniform_tilt_max_deg"):
-            if not 0.0 <= getattr(self, name) < 90.0:
-                raise ValueError(f"{name}: must be in [0, 90), got {getattr(self, name)}")
-        if not 0.0 <= self.aimed_image_margin < 0.5:
+
+    def check_tank(self, ds: DockingStationConfig) -> None:
+        """Raise ValueError when no pose can satisfy the limits in the tank of ``ds`` (the
+        sampler would give up after its draws and keep a pose outside them)."""
+        floor_m = ds.tank_depth_m - ds.floor_thickness_m  # water above the DS floor
+        half_m = min(ds.tank_length_m, ds.tank_width_m) / 2
+        if not self.min_depth_m + self.min_height_m < floor_m:
             raise ValueError(
-                f"aimed_image_margin: must be in [0, 0.5), got {self.aimed_image_margin}"
+                f"min_depth_m: with min_height_m, must be < {floor_m:g} m (the water above the "
+                f"DS floor), got {self.min_depth_m:g} + {self.min_height_m:g}"
             )
-        if min(self.uniform_range_m) < 0.0:
-            raise ValueError(f"uniform_range_m: must be >= 0, got {self.uniform_range_m}")
-        for name in ("min_depth_m", "min_height_m", "tank_margin_m"):
-            if getattr(self, name) < 0.0:
-                raise ValueError(f"{name}: must be >= 0, got {getattr(self, name)}")
+        if not self.tank_margin_m < half_m:
+            raise ValueError(
+                f"tank_margin_m: must be < {half_m:g} m (half the tank's width), "
+                f"got {self.tank_margin_m:g}"
+            )
+        if not self.uniform_height_m < floor_m:
+            raise ValueError(
+                f"uniform_height_m: must be < {floor_m:g} m (the water above the DS floor), "
+                f"got {self.uniform_height_m:g}"
+            )
+        reach_m = math.hypot(  # the farthest a camera in the tank gets from the DS origin
+            ds.tank_length_m / 2 - self.tank_margin_m,
+            ds.tank_width_m / 2 - self.tank_margin_m,
+            floor_m - self.min_depth_m,
+        )
+        if self.aimed_fraction > 0 and not self.aimed_range_m[0] < reach_m:
+            raise ValueError(
+                f"aimed_range_m: the shortest range must be < {reach_m:.1f} m (no camera in the "
+                f"tank is farther from the DS), got {self.aimed_range_m[0]:g}"
+            )
 
 
 @dataclass(frozen=True)
@@ -146,15 +189,15 @@ class SynthConfig:
     """A synthetic labelled dataset.
 
     Attributes:
-        n_frames: number of frames (>= 1).
-        seed: base seed (>= 0); frame k uses ``SeedSequence([seed, k])``.
+        n_frames: number of frames (1 ... 10^6).
+        seed: base seed (0 ... 2^32 - 1); frame k uses ``SeedSequence([seed, k])``.
         water: a water preset name (``sim.water.PRESETS``), "random" (a fresh
             :class:`WaterRandomisation` draw per frame) or "none" (the clean render).
         water_randomisation: ranges of the per-frame draw when ``water = "random"``.
         camera_file: camera YAML/JSON (intrinsics and ``T_body_cam``; a file without
             ``T_body_cam`` gets the reference extrinsics); None: the reference downward camera.
-        width_px: render width (px; the height keeps the aspect ratio, intrinsics scaled);
-            0 keeps the camera's size.
+        width_px: render width (px, 16 ... 8192; the height keeps the aspect ratio,
+            intrinsics scaled); 0 keeps the camera's size.
         marker_set_path: marker set file (with render meshes); None: the default DS set.
         occlusion_tol_m: a marker corner is occluded when the rendered surface along its ray is
             nearer than the corner by more than this (m).
@@ -162,31 +205,30 @@ class SynthConfig:
         render: renderer and lamp.
     """
 
-    n_frames: int = 100
-    seed: int = 0
+    n_frames: _Frames = 100
+    seed: Seed = 0
     water: str = "random"
     water_randomisation: WaterRandomisation = field(default_factory=WaterRandomisation)
     camera_file: str | None = None
-    width_px: int = 0
+    width_px: Annotated[int, Interval(ge=0, le=8192)] = 0
     marker_set_path: str | None = None
-    occlusion_tol_m: float = 0.03
+    occlusion_tol_m: Annotated[float, Interval(ge=0, le=10)] = 0.03
     poses: PoseSamplingConfig = field(default_factory=PoseSamplingConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
 
     def validate(self) -> None:
         """Raise ValueError naming the first invalid field."""
-        if isinstance(self.n_frames, bool) or self.n_frames < 1:
-            raise ValueError(f"n_frames: must be >= 1, got {self.n_frames}")
-        if self.seed < 0:
-            raise ValueError(f"seed: must be >= 0, got {self.seed}")
         if self.water not in (*PRESETS, "random", "none"):
             raise ValueError(
-                f"water: unknown preset {self.water!r}; known: {', '.join(PRESETS)}, random, none"
+                f"water: unknown preset {self.water[:100]!r}; known: {', '.join(PRESETS)}, "
+                "random, none"
             )
-        if self.width_px < 0 or 0 < self.width_px < 16:
+        if not (self.width_px == 0 or self.width_px >= 16):
             raise ValueError(f"width_px: must be 0 or >= 16, got {self.width_px}")
-        if self.occlusion_tol_m < 0.0:
-            raise ValueError(f"occlusion_tol_m: must be >= 0, got {self.occlusion_tol_m}")
+        try:
+            self.poses.check_tank(_ds_config(self))
+        except ValueError as exc:
+            raise ValueError(f"poses.{exc}") from None
 
 
 @dataclass(frozen=True)
@@ -484,6 +526,7 @@ def _changed_keys(a: Any, b: Any, prefix: str = "") -> list[str]:
 
 
 def _check_resume(out_dir: Path, state: dict[str, Any]) -> None:
+    """Refuse a folder holding frames of another config (or of no known config)."""
     path = out_dir / _STATE
     if not path.is_file():
         ours = (out_dir / "labels.jsonl", out_dir / _PARTIAL)
@@ -495,8 +538,9 @@ def _check_resume(out_dir: Path, state: dict[str, Any]) -> None:
         return
     try:
         old = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, json.JSONDecodeError) as exc:
-        raise DockError(f"{path}: unreadable ({exc}); use a new --out") from None
+    except (OSError, ValueError) as exc:
+        reason = " ".join(str(exc).split())
+        raise DockError(f"{path}: unreadable ({reason}); use a new --out") from None
     new = json.loads(json.dumps(state))
     if old != new:
         changed = _changed_keys(old, new)
@@ -507,25 +551,115 @@ def _check_resume(out_dir: Path, state: dict[str, Any]) -> None:
         )
 
 
-def _prepare(out_dir: Path, cfg: SynthConfig, camera: CameraModel, T_body_cam: np.ndarray) -> None:
+def _indices(folder: Path, pattern: re.Pattern[str]) -> list[int]:
+    """Frame indices of the files in ``folder`` whose names match ``pattern`` (group 1)."""
+    try:
+        names = os.listdir(folder)
+    except OSError:
+        return []
+    return [int(m.group(1)) for m in map(pattern.match, names) if m]
+
+
+def _check_no_frames_beyond(out_dir: Path, n: int) -> None:
+    """Refuse to shrink a dataset: ``n`` frames into a folder holding frames >= n would delete
+    them (images, partial labels or lines of ``labels.jsonl``)."""
+    held = [
+        *_indices(out_dir / "images", _IMAGE_RE),
+        *_indices(out_dir / _PARTIAL, _PARTIAL_RE),
+        *_read_jsonl_lenient(out_dir / "labels.jsonl"),
+    ]
+    last = max(held, default=-1)
+    if last >= n:
+        raise DockError(
+            f"{out_dir} holds frames up to {last} of this dataset: {n} frames would delete "
+            f"frames {n}-{last}; ask for {last + 1} or more to resume or extend it, or use "
+            "another --out"
+        )
+
+
+def _check_folder(out_dir: Path, state: dict[str, Any], n: int) -> None:
+    """Everything that must hold before a run writes into ``out_dir`` (read only)."""
+    if out_dir.is_dir():
+        _check_resume(out_dir, state)
+        _check_no_frames_beyond(out_dir, n)
+
+
+def _prepare(
+    out_dir: Path,
+    cfg: SynthConfig,
+    camera: CameraModel,
+    T_body_cam: np.ndarray,
+    marker_set: MarkerSet,
+) -> None:
     """Camera file, marker set copy (without render meshes), provenance."""
     save_camera(out_dir / "camera.yaml", camera, T_body_cam)
-    ms = resolve_marker_set(_ds_config(cfg))
     plain = MarkerSet(
-        tuple(dataclasses.replace(m, render_mesh=None) for m in ms.markers), dict(ms.geometry)
+        tuple(dataclasses.replace(m, render_mesh=None) for m in marker_set.markers),
+        dict(marker_set.geometry),
     )
     save_marker_set(out_dir / "markerset.toml", plain)
     write_provenance(out_dir, {"synth": cfg})
 
 
-def _done_frames(out_dir: Path, n: int, old_lines: dict[int, str]) -> set[int]:
+def _png_ok(path: Path, size_px: tuple[int, int]) -> bool:
+    """True when ``path`` is a whole PNG image of ``size_px`` (width, height).
+
+    Reads the chunk structure and checks every chunk's CRC, the IHDR size and the final IEND,
+    without decoding pixels (about 1 ms per MB): an empty, truncated or corrupted file, or an
+    image of another size, is False.
+    """
+    try:
+        data = memoryview(path.read_bytes())
+    except OSError:
+        return False
+    if bytes(data[:8]) != _PNG_SIGNATURE:
+        return False
+    pos = 8
+    while pos + 12 <= len(data):
+        length = int.from_bytes(data[pos : pos + 4], "big")
+        kind = bytes(data[pos + 4 : pos + 8])
+        end = pos + 12 + length
+        if end > len(data):
+            return False
+        if zlib.crc32(data[pos + 4 : end - 4]) != int.from_bytes(data[end - 4 : end], "big"):
+            return False
+        if pos == 8:
+            if kind != b"IHDR" or length < 8:
+                return False
+            width = int.from_bytes(data[pos + 8 : pos + 12], "big")
+            height = int.from_bytes(data[pos + 12 : pos + 16], "big")
+            if (width, height) != size_px:
+                return False
+        if kind == b"IEND":
+            return end == len(data)
+        pos = end
+    return False
+
+
+def _partial_ok(path: Path, k: int) -> bool:
+    """True when ``path`` holds frame k's label: one line of JSON naming the frame."""
+    try:
+        text = path.read_text(encoding="utf-8")
+        obj = json.loads(text)
+    except (OSError, ValueError):
+        return False
+    one_line = text.endswith("\n") and text.count("\n") == 1
+    return one_line and isinstance(obj, dict) and obj.get("frame") == k
+
+
+def _done_frames(
+    out_dir: Path, n: int, old_lines: dict[int, str], size_px: tuple[int, int]
+) -> set[int]:
+    """Frames < n whose image and label are both whole (a bad partial label is removed, so
+    the frame's line of labels.jsonl, if any, counts instead)."""
     images = out_dir / "images"
     partial = out_dir / _PARTIAL
     done = set()
     for k in range(n):
-        if not (images / IMAGE_NAME.format(k)).is_file():
-            continue
-        if k in old_lines or (partial / f"{k:06d}.json").is_file():
+        label = partial / f"{k:06d}.json"
+        if label.exists() and not _partial_ok(label, k):
+            label.unlink()
+        if (k in old_lines or label.is_file()) and _png_ok(images / IMAGE_NAME.format(k), size_px):
             done.add(k)
     return done
 
@@ -538,10 +672,6 @@ def _assemble(out_dir: Path, n: int, old_lines: dict[int, str]) -> None:
             p = partial / f"{k:06d}.json"
             fh.write(p.read_text(encoding="utf-8") if p.is_file() else old_lines[k])
     shutil.rmtree(partial, ignore_errors=True)
-    for p in (out_dir / "images").iterdir():  # frames beyond n from an earlier, longer run
-        match = _IMAGE_RE.match(p.name)
-        if match and int(match.group(1)) >= n:
-            p.unlink()
 
 
 def _render_all(
@@ -559,14 +689,33 @@ def _render_all(
         for k in todo:
             on_frame(renderer.write(out_dir, k))
         return
-    # 'spawn': SAPIEN/Vulkan must not be forked after initialisation
+    # 'spawn': SAPIEN/Vulkan must not be forked after initialisation. Each worker dies with
+    # this process, even when it is killed with SIGKILL (no renderer is left running).
     ctx = mp.get_context("spawn")
     cfg_dict = to_dict(cfg)
     pose_list = None if poses is None else np.asarray(poses).tolist()
     tasks = [(cfg_dict, str(out_dir), pose_list, k) for k in todo]
-    with ctx.Pool(min(workers, len(todo))) as pool:
+    pool = ctx.Pool(min(workers, len(todo)), initializer=die_with_parent, initargs=(os.getpid(),))
+    with pool:
         for k in pool.imap_unordered(_worker_frame, tasks, chunksize=1):
             on_frame(k)
+
+
+def _checked_poses(poses: ArrayLike | None, n: int) -> np.ndarray | None:
+    """(n, 4, 4) float64 vehicle poses, each a valid transform, or None."""
+    if poses is None:
+        return None
+    pose_arr = np.asarray(poses, np.float64)
+    if pose_arr.shape != (n, 4, 4):
+        raise DockError(f"poses: expected ({n}, 4, 4), got {pose_arr.shape}")
+    for k, T in enumerate(pose_arr):
+        check_T(T, f"poses[{k}]")
+        if not np.all(np.abs(T[:3, 3]) <= _MAX_POSITION_M):
+            raise DockError(
+                f"poses[{k}]: position {T[:3, 3].tolist()} m is more than "
+                f"{_MAX_POSITION_M:g} m from the tank centre"
+            )
+    return pose_arr
 
 
 def generate(
@@ -575,64 +724,69 @@ def generate(
     workers: int = 1,
     poses: ArrayLike | None = None,
     progress: bool | None = None,
+    tool: str = "datasets synth",
 ) -> SynthResult:
     """Render a labelled dataset into ``out_dir`` (resuming an interrupted run).
 
+    Everything is checked before anything is written: the config (as the loader checks a
+    file), ``workers``, the poses, the camera and marker set files, and the folder (another
+    tool's output, another config, or more frames than ``cfg.n_frames`` are refused). The
+    folder is then claimed for ``tool`` until the run ends (module docstring).
+
     Args:
         out_dir: the dataset folder (created).
-        cfg: the dataset config (validated).
-        workers: worker processes (1 renders in this process). The output does not depend on it.
+        cfg: the dataset config.
+        workers: worker processes (1 ... 64; 1 renders in this process). The output does not
+            depend on it.
         poses: optional (N, 4, 4) vehicle poses ``T_world_body`` (body FRD in world NED, the DS
             on the tank floor at the centre, see ``default_T_worldned_ds``); N must equal
             ``cfg.n_frames``.
         progress: show a tqdm bar (None: only on a terminal).
+        tool: the command claiming the folder (``"datasets synth"``, ``"sim render"``).
 
     Returns:
         A :class:`SynthResult`.
 
     Raises:
-        DockError: an unwritable folder, a folder holding another dataset, bad poses, or a bad
-            camera / marker set file.
-        ValueError: an invalid config.
+        DockError: an unwritable folder, a folder in use or holding something else, bad
+            poses, or a bad camera / marker set file; :class:`dockcore.errors.ConfigError`
+            (a DockError) for an invalid config or ``workers``.
     """
     from tqdm import tqdm
 
     t0 = time.perf_counter()
-    cfg.validate()
-    if workers < 1:
-        raise DockError(f"workers: must be >= 1, got {workers}")
-    pose_arr = None
-    if poses is not None:
-        pose_arr = np.asarray(poses, np.float64)
-        if pose_arr.shape != (cfg.n_frames, 4, 4):
-            raise DockError(f"poses: expected ({cfg.n_frames}, 4, 4), got {pose_arr.shape}")
-        for k, T in enumerate(pose_arr):
-            check_T(T, f"poses[{k}]")
-    out = ensure_writable_dir(out_dir)
-    state = _state(cfg, pose_arr)
-    _check_resume(out, state)
+    cfg = validated(cfg)
+    reason = check(workers, int, split_annotated(Workers)[1], "workers")
+    if reason:
+        raise ConfigError(reason)
+    pose_arr = _checked_poses(poses, cfg.n_frames)
     camera, T_body_cam = resolve_camera(cfg)
-    (out / "dataset.json").unlink(missing_ok=True)  # incomplete until written again
-    atomic_write_json(out / _STATE, state)
-    (out / "images").mkdir(exist_ok=True)
-    (out / _PARTIAL).mkdir(exist_ok=True)
-    _prepare(out, cfg, camera, T_body_cam)
-
+    marker_set = resolve_marker_set(_ds_config(cfg))
+    state = _state(cfg, pose_arr)
     n = cfg.n_frames
-    old_lines = _read_jsonl_lenient(out / "labels.jsonl")
-    done = _done_frames(out, n, old_lines)
-    todo = [k for k in range(n) if k not in done]
-    rendered: list[int] = []
-    disable = None if progress is None else not progress  # None: tqdm shows it on a tty only
-    with tqdm(total=n, initial=len(done), unit="frame", desc="synth", disable=disable) as bar:
+    _check_folder(Path(out_dir), state, n)
+    with claim_output_dir(out_dir, tool) as out:
+        _check_folder(out, state, n)  # again, now that no other run can change it
+        (out / "dataset.json").unlink(missing_ok=True)  # incomplete until written again
+        atomic_write_json(out / _STATE, state)
+        (out / "images").mkdir(exist_ok=True)
+        (out / _PARTIAL).mkdir(exist_ok=True)
+        _prepare(out, cfg, camera, T_body_cam, marker_set)
 
-        def on_frame(k: int) -> None:
-            rendered.append(k)
-            bar.update(1)
+        old_lines = _read_jsonl_lenient(out / "labels.jsonl")
+        done = _done_frames(out, n, old_lines, (camera.width_px, camera.height_px))
+        todo = [k for k in range(n) if k not in done]
+        rendered: list[int] = []
+        disable = None if progress is None else not progress  # None: tqdm shows it on a tty
+        with tqdm(total=n, initial=len(done), unit="frame", desc="synth", disable=disable) as bar:
 
-        _render_all(out, cfg, todo, workers, pose_arr, on_frame)
-    _assemble(out, n, old_lines)
-    write_dataset_json(
-        out, n, config=to_dict(cfg), generator="datasets synth", seed=cfg.seed, water=cfg.water
-    )
+            def on_frame(k: int) -> None:
+                rendered.append(k)
+                bar.update(1)
+
+            _render_all(out, cfg, todo, workers, pose_arr, on_frame)
+        _assemble(out, n, old_lines)
+        write_dataset_json(
+            out, n, config=to_dict(cfg), generator=tool, seed=cfg.seed, water=cfg.water
+        )
     return SynthResult(out, n, tuple(sorted(rendered)), time.perf_counter() - t0)

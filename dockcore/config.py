@@ -19,6 +19,7 @@ Example:
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import os
 import re
@@ -34,6 +35,7 @@ import tomli_w
 from dockcore.domains import check as check_domain
 from dockcore.domains import split_annotated
 from dockcore.errors import ConfigError
+from dockcore.io import read_text
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -48,20 +50,7 @@ def read_toml(path: str | os.PathLike[str], what: str = "config file") -> dict[s
     """Read a UTF-8 TOML file (a byte-order mark is accepted); a missing, unreadable, non-UTF-8
     or malformed file raises a one-line :class:`ConfigError` that calls it ``what``."""
     path = Path(path)
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise ConfigError(f"{what} not found: {path}") from None
-    except IsADirectoryError:
-        raise ConfigError(f"{what} is a folder, not a file: {path}") from None
-    except OSError as exc:
-        raise ConfigError(f"cannot read {what} {path}: {exc.strerror or exc}") from None
-    try:
-        text = data.decode("utf-8-sig")
-    except UnicodeDecodeError as exc:
-        raise ConfigError(
-            f"{what} {path} is not UTF-8 text (byte {exc.start}: {data[exc.start]:#04x})"
-        ) from None
+    text = read_text(path, what)
     try:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
@@ -186,6 +175,51 @@ def _validate(obj: Any, prefix: str = "") -> None:
 def from_dict(cls: type[C], data: Mapping[str, Any]) -> C:
     """Build ``cls`` from a (possibly partial, possibly nested) mapping of overrides."""
     return _build(cls, data)
+
+
+@functools.cache
+def _numeric_fields(cls: type) -> tuple[tuple[str, tuple[Any, ...]], ...]:
+    """``(name, element types)`` of the numeric fields of dataclass ``cls``: one type for a
+    scalar, one per element for a fixed tuple, ``(type, ...)`` for a tuple of any length;
+    ``None`` dropped from optional fields."""
+    hints = typing.get_type_hints(cls, include_extras=True)
+    out = []
+    for f in dataclasses.fields(cls):
+        tp = hints[f.name]
+        if typing.get_origin(tp) in (typing.Union, types.UnionType):
+            args = [a for a in typing.get_args(tp) if a is not type(None)]
+            tp = args[0] if len(args) == 1 else tp
+        if typing.get_origin(tp) is tuple:
+            out.append((f.name, typing.get_args(tp)))
+        elif split_annotated(tp)[0] in (int, float):
+            out.append((f.name, (tp,)))
+    return tuple(out)
+
+
+def check_fields(cfg: Any) -> None:
+    """Raise ValueError naming the first numeric field of ``cfg`` outside its declared domain.
+
+    The loader's check (:func:`dockcore.config.validated`) for a flat config built in Python,
+    without its round trip through a dict: for configs checked on every frame.
+    """
+    for name, types_ in _numeric_fields(type(cfg)):
+        value = getattr(cfg, name)
+        if value is None:
+            continue
+        if len(types_) == 1 and not isinstance(value, (tuple, list)):
+            items, keys = [value], [name]
+        elif len(types_) == 2 and types_[1] is Ellipsis and isinstance(value, (tuple, list)):
+            items, keys = list(value), [f"{name}[{i}]" for i in range(len(value))]
+            types_ = (types_[0],) * len(items)
+        else:
+            if not isinstance(value, (tuple, list)) or len(value) != len(types_):
+                raise ValueError(f"{name}: expected {len(types_)} values, got {value!r}")
+            items, keys = list(value), [f"{name}[{i}]" for i in range(len(value))]
+        for item, tp, key in zip(items, types_, keys, strict=True):
+            base, meta = split_annotated(tp)
+            reason = check_domain(item, base, meta, key) if meta else None
+            if reason:
+                raise ValueError(reason)
 
 
 def validated(cfg: C) -> C:

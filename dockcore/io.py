@@ -143,3 +143,29 @@ def ensure_writable_dir(path: str | os.PathLike[str]) -> Path:
     except OSError as exc:
         raise DockError(f"cannot write to output folder {path}: {exc.strerror or exc}") from None
     return path
+
+
+def read_text(path: str | os.PathLike[str], what: str = "file") -> str:
+    """A user's UTF-8 text file (a byte-order mark is accepted), as text.
+
+    Raises:
+        ConfigError: one line calling the file ``what``: missing, a folder, unreadable, or not
+            UTF-8 (naming the first bad byte).
+    """
+    from dockcore.errors import ConfigError
+
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise ConfigError(f"{what} not found: {path}") from None
+    except IsADirectoryError:
+        raise ConfigError(f"{what} is a folder, not a file: {path}") from None
+    except OSError as exc:
+        raise ConfigError(f"cannot read {what} {path}: {exc.strerror or exc}") from None
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(
+            f"{what} {path} is not UTF-8 text (byte {exc.start}: {data[exc.start]:#04x})"
+        ) from None

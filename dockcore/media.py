@@ -40,6 +40,13 @@ __all__ = [
     "read_image",
 ]
 
+# FFmpeg (behind cv2.VideoCapture) logs decoding errors of damaged videos from its decoder
+# threads, outside any quiet_native_stderr() block: silence its log (read once, when OpenCV first
+# opens a video; a user's OPENCV_FFMPEG_LOGLEVEL or OPENCV_FFMPEG_DEBUG wins). The readers report
+# damaged frames as corrupt frames instead.
+if "OPENCV_FFMPEG_DEBUG" not in os.environ:
+    os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
+
 #: Video container suffix -> OpenCV FourCC of the codec written into it.
 VIDEO_FOURCC: dict[str, str] = {".mp4": "mp4v", ".avi": "MJPG"}
 

@@ -11,7 +11,8 @@ claims it first with :func:`claim_output_dir`:
   as the command runs, so a second process writing the same folder stops at once with a line
   naming the holder. The kernel releases the lock when its process dies, even by SIGKILL.
 * **no leftovers**: temporary files of processes that were killed are removed
-  (:func:`dockcore.io.clean_stale_temps`).
+  (:func:`dockcore.io.clean_stale_temps`); a folder made for a command that then fails before
+  writing anything is removed again.
 
 Example:
     >>> with claim_output_dir("runs/a", "rl train") as run:
@@ -64,6 +65,15 @@ def _holder(path: Path) -> str:
         return "another process"
 
 
+def _refuse_foreign(folder: Path, tool: str) -> None:
+    owner = folder_owner(folder) if folder.is_dir() else None
+    if owner is not None and owner != tool:
+        raise DockError(
+            f"{folder} holds the output of `{owner}`; `{tool}` will not write into it: "
+            "use another --out"
+        )
+
+
 @contextlib.contextmanager
 def claim_output_dir(path: str | os.PathLike[str], tool: str) -> Iterator[Path]:
     """Create (if needed), lock and claim ``path`` for ``tool`` while the block runs.
@@ -81,6 +91,9 @@ def claim_output_dir(path: str | os.PathLike[str], tool: str) -> Iterator[Path]:
     """
     from filelock import FileLock, Timeout
 
+    absolute = Path(path).absolute()
+    made = [p for p in (absolute, *absolute.parents) if not p.exists()]  # innermost first
+    _refuse_foreign(absolute, tool)  # before the lock: nothing is created in their folder
     folder = ensure_writable_dir(path)
     lock = FileLock(str(folder / LOCK_FILE), timeout=0)
     try:
@@ -92,13 +105,9 @@ def claim_output_dir(path: str | os.PathLike[str], tool: str) -> Iterator[Path]:
         ) from None
     except OSError as exc:
         raise DockError(f"cannot lock output folder {folder}: {exc.strerror or exc}") from None
+    failed = False
     try:
-        owner = folder_owner(folder)
-        if owner is not None and owner != tool:
-            raise DockError(
-                f"{folder} holds the output of `{owner}`; `{tool}` will not write into it: "
-                "use another --out"
-            )
+        _refuse_foreign(folder, tool)  # again under the lock
         atomic_write_json(
             folder / OWNER_FILE,
             {
@@ -109,5 +118,22 @@ def claim_output_dir(path: str | os.PathLike[str], tool: str) -> Iterator[Path]:
         )
         clean_stale_temps(folder)
         yield folder
+    except BaseException:
+        failed = True
+        raise
     finally:
         lock.release()
+        if failed:
+            _remove_if_untouched(folder, made)
+
+
+def _remove_if_untouched(folder: Path, made: list[Path]) -> None:
+    """Remove the folders a failed claim made, if the run wrote nothing into them."""
+    if not made:
+        return
+    with contextlib.suppress(OSError):
+        if {p.name for p in folder.iterdir()} <= {OWNER_FILE, LOCK_FILE}:
+            for name in (OWNER_FILE, LOCK_FILE):
+                (folder / name).unlink(missing_ok=True)
+            for d in made:  # innermost first; each is empty by now
+                d.rmdir()

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from dockcore.cli import run_group
+from dockcore.cli import CONTEXT, DomainType, field_type, run_group
 from dockcore.config import load_config
 from dockcore.errors import DockError
 from markers.config import MarkerConfig
@@ -14,32 +14,53 @@ from markers.dictionary import DICTIONARY_NAMES, bits_per_side, dictionary_size
 
 
 def _parse_ids(text: str | None) -> tuple[int, ...] | None:
+    """``"13, 14,15"`` -> ``(13, 14, 15)``; the IDs' range is checked with the config."""
     if text is None:
         return None
     try:
-        return tuple(int(t) for t in text.replace(" ", "").split(",") if t)
+        return tuple(int(t, 10) for t in text.replace(" ", "").split(",") if t)
     except ValueError:
         raise DockError(f"--ids must be comma-separated integers, got '{text}'") from None
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+def _mm(name: str) -> DomainType:
+    """The click type of the option that overrides ``MarkerConfig.<name>`` (its domain)."""
+    return field_type(MarkerConfig, name)
+
+
+@click.group(context_settings=CONTEXT)
 def cli() -> None:
     """3D Binary Markers: printable parts, flat sheets, the marker set file."""
 
 
-@cli.command()
+@cli.command(context_settings=CONTEXT)
 @click.option("--ids", help="Comma-separated marker IDs [default: the DS set 13,14,15,28,34].")
 @click.option("--dictionary", help="OpenCV dictionary, e.g. DICT_4X4_50, DICT_APRILTAG_36h11.")
-@click.option("--size-mm", type=float, help="Insert (tag) side in mm [default: 100].")
-@click.option("--relief-depth-mm", type=float, help="Depth of the openings seen from above [5].")
-@click.option("--insert-thickness-mm", type=float, help="White insert thickness [5].")
-@click.option("--clearance-mm", type=float, help="Fit clearance insert/enclosure [0.1].")
+@click.option("--size-mm", type=_mm("size_mm"), help="Insert (tag) side in mm [default: 100].")
 @click.option(
-    "--enclosure-mm", "enclosure_side_mm", type=float, help="Black column side [1.26 x size]."
+    "--relief-depth-mm",
+    type=_mm("relief_depth_mm"),
+    help="Depth of the openings seen from above [5].",
 )
-@click.option("--enclosure-height-mm", type=float, help="Black column height [98].")
-@click.option("--base-mm", "base_side_mm", type=float, help="Base plate side [1.62 x size].")
-@click.option("--base-height-mm", type=float, help="Base plate thickness [10].")
+@click.option(
+    "--insert-thickness-mm", type=_mm("insert_thickness_mm"), help="White insert thickness [5]."
+)
+@click.option(
+    "--clearance-mm", type=_mm("clearance_mm"), help="Fit clearance insert/enclosure [0.1]."
+)
+@click.option(
+    "--enclosure-mm",
+    "enclosure_side_mm",
+    type=_mm("enclosure_side_mm"),
+    help="Black column side [1.26 x size].",
+)
+@click.option(
+    "--enclosure-height-mm", type=_mm("enclosure_height_mm"), help="Black column height [98]."
+)
+@click.option(
+    "--base-mm", "base_side_mm", type=_mm("base_side_mm"), help="Base plate side [1.62 x size]."
+)
+@click.option("--base-height-mm", type=_mm("base_height_mm"), help="Base plate thickness [10].")
 @click.option("--paper", type=click.Choice(["A4", "A3", "letter"]), help="Sheet paper size [A4].")
 @click.option(
     "--config",
@@ -100,7 +121,7 @@ def generate(
     )
 
 
-@cli.command()
+@cli.command(context_settings=CONTEXT)
 def dictionaries() -> None:
     """List the marker dictionaries OpenCV offers, with bits and marker count."""
     for name in DICTIONARY_NAMES:

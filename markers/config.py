@@ -4,6 +4,28 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Annotated
+
+from dockcore.domains import Interval
+from dockcore.errors import DockError
+
+#: Largest ID of any OpenCV predefined dictionary (``DICT_APRILTAG_36h10`` holds 2320 markers);
+#: the dictionary a set uses narrows it further (:func:`markers.dictionary.check_ids`).
+MAX_MARKER_ID = 2319
+
+#: A marker ID (any dictionary).
+MarkerId = Annotated[int, Interval(ge=0, le=MAX_MARKER_ID)]
+#: The side of a marker (m) in a marker set file or for single-marker poses: up to 1 m, as
+#: ``MarkerConfig.size_mm``.
+MarkerSideM = Annotated[float, Interval(gt=0.0, le=1.0)]
+#: A coordinate of a marker on the docking station (m): a DS is a few metres across.
+DsCoordM = Annotated[float, Interval(ge=-100.0, le=100.0)]
+#: An in-plane rotation (deg).
+YawDeg = Annotated[float, Interval(ge=-360.0, le=360.0)]
+#: A side of a printed part (mm): up to 2 m (a 3D printer's bed is far smaller).
+PartSideMm = Annotated[float, Interval(gt=0.0, le=2000.0)]
+#: A height or thickness of a printed part (mm): at least one 0.2 mm layer, at most 1 m.
+PartHeightMm = Annotated[float, Interval(ge=0.2, le=1000.0)]
 
 #: The docking-station marker set of the reference system (reference.md, section 4).
 DS_MARKER_IDS: tuple[int, ...] = (13, 14, 15, 28, 34)
@@ -30,36 +52,43 @@ class MarkerConfig:
 
     Attributes:
         dictionary: OpenCV dictionary name (``DICT_4X4_50``; any ``cv2.aruco.DICT_*``).
-        ids: marker IDs to generate (default: the docking-station set 13, 14, 15, 28, 34).
-        size_mm: side of the tag = side of the white insert (mm); the detector's marker side.
-        insert_thickness_mm: thickness of the white insert (mm).
+        ids: marker IDs to generate (default: the docking-station set 13, 14, 15, 28, 34), each
+            in the dictionary, none twice.
+        size_mm: side of the tag = side of the white insert (mm, 5 ... 1000); the detector's
+            marker side. The flat sheet must fit the paper (about 200 mm on A4).
+        insert_thickness_mm: thickness of the white insert (mm, 0.2 ... 100).
         relief_depth_mm: depth of the openings seen from above, insert top to the black surface
-            below (mm). Equal to the insert thickness (default) the openings show the pocket
-            floor; smaller, black bosses rise inside the openings to that depth.
-        clearance_mm: gap between insert and enclosure in the seat and around bosses (mm);
-            openings are also widened by half of it so that diagonal cells never share an edge.
-        enclosure_side_mm: side of the black column (mm); ``None``: 1.26 x ``size_mm`` (126 mm).
-        enclosure_height_mm: height of the column above the base (mm).
-        base_side_mm: side of the base plate (mm); ``None``: 1.62 x ``size_mm`` (162 mm).
-        base_height_mm: thickness of the base plate (mm).
+            below (mm, 0.2 ... insert thickness). Equal to the insert thickness (default) the
+            openings show the pocket floor; smaller, black bosses rise inside the openings to
+            that depth.
+        clearance_mm: gap between insert and enclosure in the seat and around bosses (mm, 0.01
+            ... a quarter of a tag cell); openings are also widened by half of it so that
+            diagonal cells never share an edge.
+        enclosure_side_mm: side of the black column (mm, up to 2000, leaving a wall of >= 1 mm
+            around the insert); ``None``: 1.26 x ``size_mm`` (126 mm).
+        enclosure_height_mm: height of the column above the base (mm, 0.2 ... 1000, more than
+            the insert thickness).
+        base_side_mm: side of the base plate (mm, enclosure side ... 2000); ``None``: 1.62 x
+            ``size_mm`` (162 mm).
+        base_height_mm: thickness of the base plate (mm, 0.2 ... 1000).
         paper: paper size of the flat printable sheet: ``A4``, ``A3`` or ``letter``.
         layout: marker pose on the DS by ID (a string key): ``[x_m, y_m, z_m, yaw_deg]`` of the
-            marker's face centre in the DS frame, face up. IDs not listed are placed on a grid on
-            the DS floor.
+            marker's face centre in the DS frame (m, each within +-100), face up, yaw in
+            [-360, 360] deg. IDs not listed are placed on a grid on the DS floor.
     """
 
     dictionary: str = "DICT_4X4_50"
-    ids: tuple[int, ...] = DS_MARKER_IDS
-    size_mm: float = 100.0
-    insert_thickness_mm: float = 5.0
-    relief_depth_mm: float = 5.0
-    clearance_mm: float = 0.1
-    enclosure_side_mm: float | None = None
-    enclosure_height_mm: float = 98.0
-    base_side_mm: float | None = None
-    base_height_mm: float = 10.0
+    ids: tuple[MarkerId, ...] = DS_MARKER_IDS
+    size_mm: Annotated[float, Interval(ge=5.0, le=1000.0)] = 100.0
+    insert_thickness_mm: Annotated[float, Interval(ge=0.2, le=100.0)] = 5.0
+    relief_depth_mm: Annotated[float, Interval(ge=0.2, le=100.0)] = 5.0
+    clearance_mm: Annotated[float, Interval(ge=0.01, le=10.0)] = 0.1
+    enclosure_side_mm: PartSideMm | None = None
+    enclosure_height_mm: PartHeightMm = 98.0
+    base_side_mm: PartSideMm | None = None
+    base_height_mm: PartHeightMm = 10.0
     paper: str = "A4"
-    layout: dict[str, tuple[float, float, float, float]] = field(
+    layout: dict[str, tuple[DsCoordM, DsCoordM, DsCoordM, YawDeg]] = field(
         default_factory=lambda: dict(REFERENCE_DS_LAYOUT)
     )
 
@@ -79,37 +108,49 @@ class MarkerConfig:
         return self.size_mm / 1000.0
 
     def validate(self) -> None:
-        """Raise ValueError (naming the field) on an impossible geometry."""
-        for name in (
-            "size_mm",
-            "insert_thickness_mm",
-            "relief_depth_mm",
-            "clearance_mm",
-            "enclosure_height_mm",
-            "base_height_mm",
-        ):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v > 0):
-                raise ValueError(f"{name}: must be > 0, got {v}")
-        if self.relief_depth_mm > self.insert_thickness_mm:
+        """Raise ValueError (naming the field) on an impossible geometry or marker set.
+
+        Each field's own range is its declared domain (checked by the loader and
+        :func:`dockcore.config.validated`); this checks the fields against each other.
+        """
+        from markers.dictionary import bits_per_side, check_ids, normalise_dictionary_name
+
+        try:
+            name = normalise_dictionary_name(self.dictionary)
+        except DockError as exc:
+            raise ValueError(f"dictionary: {exc}") from None
+        try:
+            check_ids(name, self.ids)
+        except DockError as exc:
+            raise ValueError(f"ids: {exc}") from None
+        if not self.relief_depth_mm <= self.insert_thickness_mm:
             raise ValueError(
-                f"relief_depth_mm: must be <= insert_thickness_mm ({self.insert_thickness_mm}), "
-                f"got {self.relief_depth_mm}"
+                f"relief_depth_mm: must be <= insert_thickness_mm ({self.insert_thickness_mm:g}), "
+                f"got {self.relief_depth_mm:g}"
+            )
+        cell_mm = self.size_mm / (bits_per_side(name) + 2)
+        if not self.clearance_mm <= cell_mm / 4:
+            raise ValueError(
+                f"clearance_mm: {self.clearance_mm:g} mm would close the openings of "
+                f"{cell_mm:.2f} mm cells (at most a quarter of a cell: {cell_mm / 4:.2f} mm)"
             )
         wall = (self.enclosure_side - self.size_mm) / 2 - self.clearance_mm
-        if wall < 1.0:
+        if not wall >= 1.0:  # NaN-proof
             raise ValueError(
                 f"enclosure_side_mm: {self.enclosure_side:g} leaves a {wall:.2f} mm wall around a "
                 f"{self.size_mm:g} mm insert (need >= 1 mm)"
             )
-        if self.base_side < self.enclosure_side:
-            raise ValueError(f"base_side_mm: must be >= enclosure side {self.enclosure_side:g}")
-        if self.insert_thickness_mm >= self.enclosure_height_mm:
+        if not self.base_side >= self.enclosure_side:
+            raise ValueError(
+                f"base_side_mm: must be >= the enclosure side {self.enclosure_side:g}, "
+                f"got {self.base_side:g}"
+            )
+        if not self.insert_thickness_mm < self.enclosure_height_mm:
             raise ValueError("enclosure_height_mm: must exceed insert_thickness_mm")
         if self.paper not in ("A4", "A3", "letter"):
             raise ValueError(f"paper: must be A4, A3 or letter, got {self.paper!r}")
         for key, pose in self.layout.items():
-            if not key.isdigit():
-                raise ValueError(f"layout: keys are marker IDs, got {key!r}")
+            if not (key.isascii() and key.isdigit() and str(int(key)) == key):
+                raise ValueError(f"layout: keys are marker IDs such as '13', got {key!r}")
             if len(pose) != 4 or not all(math.isfinite(float(v)) for v in pose):
                 raise ValueError(f"layout.{key}: expected [x_m, y_m, z_m, yaw_deg]")

@@ -24,7 +24,7 @@ def normalise_dictionary_name(name: str) -> str:
     canonical = {n.upper(): n for n in DICTIONARY_NAMES}.get(key)
     if canonical is None:
         raise DockError(
-            f"unknown marker dictionary '{name}' (try one of: "
+            f"unknown marker dictionary {name!r} (try one of: "
             f"DICT_4X4_50, DICT_5X5_100, DICT_ARUCO_ORIGINAL, DICT_APRILTAG_36h11; "
             f"`markers dictionaries` lists all)"
         )

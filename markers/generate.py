@@ -10,10 +10,12 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from dockcore.io import atomic_path, atomic_write_bytes, ensure_writable_dir
+from dockcore.config import validated
+from dockcore.io import atomic_path, atomic_write_bytes
+from dockcore.outdir import claim_output_dir
 from dockcore.provenance import write_provenance
 from markers.config import MarkerConfig
-from markers.dictionary import check_ids, marker_cells, normalise_dictionary_name
+from markers.dictionary import marker_cells, normalise_dictionary_name
 from markers.geometry import (
     ENCLOSURE_RGBA,
     INSERT_RGBA,
@@ -23,9 +25,15 @@ from markers.geometry import (
     render_scene,
 )
 from markers.markerset import marker_set_from_config, save_marker_set
-from markers.sheet import SheetEntry, write_sheet
+from markers.sheet import SheetEntry, render_sheet
 
 MARKER_SET_NAME = "markerset.toml"
+
+#: The tool name that claims ``markers generate``'s output folder.
+TOOL = "markers generate"
+
+#: Largest side of a preview's top view (px): large parts are rasterised more coarsely.
+PREVIEW_MAX_PX = 2000
 
 
 @dataclass(frozen=True)
@@ -53,7 +61,7 @@ def write_preview(path: Path, solids: MarkerSolids, cfg: MarkerConfig) -> Path:
     half = cfg.base_side / 2 * 1.05
     top = rasterise_top_view(
         [(solids.enclosure, ENCLOSURE_RGBA[0]), (solids.insert, INSERT_RGBA[0])],
-        px_per_mm=4.0,
+        px_per_mm=min(4.0, PREVIEW_MAX_PX / (2 * half)),
         half_extent_mm=half,
         background=110,
     )
@@ -67,8 +75,9 @@ def write_preview(path: Path, solids: MarkerSolids, cfg: MarkerConfig) -> Path:
     polys, colours = [], []
     for mesh, rgba in ((solids.enclosure, ENCLOSURE_RGBA), (solids.insert, INSERT_RGBA)):
         # small faces: matplotlib sorts whole faces by depth, large ones show through each other
+        # (relative to the whole part, so a small tag on a large base stays a few 1000 faces)
         v, f = trimesh.remesh.subdivide_to_size(
-            mesh.vertices, mesh.faces, max_edge=cfg.size_mm / 12
+            mesh.vertices, mesh.faces, max_edge=max(cfg.size_mm, cfg.base_side / 1.62) / 12
         )
         normals = trimesh.Trimesh(v, f, process=False).face_normals
         light = np.clip(0.35 + 0.65 * np.abs(normals @ np.array([0.3, -0.4, 0.87])), 0, 1)
@@ -100,50 +109,57 @@ def generate(
 ) -> GenerateResult:
     """Write everything for the markers of ``cfg`` into ``out_dir``.
 
-    All inputs are validated and every solid is built before the first file is written; each file
-    is written atomically, the marker set file last. Per ID: ``<stem>_insert.stl`` (white part),
+    The config is validated (:func:`dockcore.config.validated`), every solid is built and the
+    sheet rendered before the output folder is claimed (:func:`dockcore.outdir.claim_output_dir`:
+    a folder of another tool is refused) and the first file is written; each file is written
+    atomically, the marker set file last. Per ID: ``<stem>_insert.stl`` (white part),
     ``<stem>_enclosure.stl`` (black part), ``<stem>.glb`` (render mesh, metres, with materials),
     ``<stem>_preview.png``; then ``sheet.pdf`` / ``sheet.svg``, ``markerset.toml``,
     ``config.toml`` and ``provenance.json``.
+
+    Raises:
+        ConfigError: an invalid config (one line naming the field).
+        DockError: the markers do not fit on the paper, or the folder cannot be claimed.
     """
     say = progress or (lambda _msg: None)
+    cfg = validated(cfg)
     dictionary = normalise_dictionary_name(cfg.dictionary)
-    ids = check_ids(dictionary, cfg.ids)
-    out = ensure_writable_dir(out_dir).resolve()
+    ids = cfg.ids
     solids = {i: build_solids(cfg, i) for i in ids}
     mesh_names = {i: f"{file_stem(dictionary, i)}.glb" for i in ids}
     ms = marker_set_from_config(cfg, mesh_names)
-
-    written: list[Path] = []
-    for i in ids:
-        stem = file_stem(dictionary, i)
-        s = solids[i]
-        for part, mesh in (("insert", s.insert), ("enclosure", s.enclosure)):
-            written.append(
-                atomic_write_bytes(out / f"{stem}_{part}.stl", mesh.export(file_type="stl"))
-            )
-        written.append(
-            atomic_write_bytes(out / mesh_names[i], render_scene(s).export(file_type="glb"))
-        )
-        written.append(write_preview(out / f"{stem}_preview.png", s, cfg))
-        say(f"marker {i}: {stem}_insert.stl, {stem}_enclosure.stl, {stem}.glb, {stem}_preview.png")
-
     entries = [
         SheetEntry(i, marker_cells(dictionary, i), f"{dictionary} id {i}  {cfg.size_mm:g} mm")
         for i in ids
     ]
-    sheets = write_sheet(
-        entries,
-        cfg.size_mm,
-        out / "sheet.pdf",
-        out / "sheet.svg",
-        paper=cfg.paper,
-        title=f"3D Binary Marker flat test tags ({dictionary})",
+    title = f"3D Binary Marker flat test tags ({dictionary})"
+    sheet_files = render_sheet(
+        entries, cfg.size_mm, Path("sheet.pdf"), Path("sheet.svg"), paper=cfg.paper, title=title
     )
-    written.extend(sheets)
-    say(f"flat sheet: {', '.join(p.name for p in sheets)}")
-    written.append(save_marker_set(out / MARKER_SET_NAME, ms))
-    write_provenance(out, {"marker": cfg})
-    written.extend([out / "config.toml", out / "provenance.json"])
+
+    with claim_output_dir(out_dir, TOOL) as claimed:
+        out = claimed.resolve()
+        written: list[Path] = []
+        for i in ids:
+            stem = file_stem(dictionary, i)
+            s = solids[i]
+            for part, mesh in (("insert", s.insert), ("enclosure", s.enclosure)):
+                written.append(
+                    atomic_write_bytes(out / f"{stem}_{part}.stl", mesh.export(file_type="stl"))
+                )
+            written.append(
+                atomic_write_bytes(out / mesh_names[i], render_scene(s).export(file_type="glb"))
+            )
+            written.append(write_preview(out / f"{stem}_preview.png", s, cfg))
+            say(
+                f"marker {i}: {stem}_insert.stl, {stem}_enclosure.stl, {stem}.glb, "
+                f"{stem}_preview.png"
+            )
+        sheets = [atomic_write_bytes(out / path, data) for path, data in sheet_files]
+        written.extend(sheets)
+        say(f"flat sheet: {', '.join(p.name for p in sheets)}")
+        written.append(save_marker_set(out / MARKER_SET_NAME, ms))
+        write_provenance(out, {"marker": cfg})
+        written.extend([out / "config.toml", out / "provenance.json"])
     say(f"marker set: {out / MARKER_SET_NAME}")
     return GenerateResult(out, out / MARKER_SET_NAME, tuple(written))

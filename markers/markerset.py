@@ -29,10 +29,11 @@ import numpy as np
 import tomli_w
 
 from calibration.frames import check_T, make_T, transform_points
-from dockcore.config import read_toml
+from dockcore.config import read_toml, validated
+from dockcore.domains import check, split_annotated
 from dockcore.errors import ConfigError, DockError
-from dockcore.io import atomic_write_text
-from markers.config import MarkerConfig
+from dockcore.io import atomic_write_text, read_text
+from markers.config import MarkerConfig, MarkerSideM
 from markers.dictionary import check_ids, normalise_dictionary_name
 
 FORMAT = "uwdock.markerset"
@@ -148,9 +149,13 @@ def marker_set_from_config(
 
     IDs in ``cfg.layout`` take that pose; others are placed face up on a grid on the DS floor
     (z = -0.26 m, the reference floor markers' height), spaced 1.5 enclosure sides apart.
+
+    Raises:
+        ConfigError: an invalid config (:func:`dockcore.config.validated`).
     """
+    cfg = validated(cfg)
     dictionary = normalise_dictionary_name(cfg.dictionary)
-    ids = check_ids(dictionary, cfg.ids)
+    ids = cfg.ids
     pitch_m = 1.5 * max(cfg.base_side, cfg.enclosure_side) / 1000.0
     unplaced = [i for i in ids if str(i) not in cfg.layout]
     cols = max(1, math.ceil(math.sqrt(len(unplaced))))
@@ -207,61 +212,154 @@ def _fail(path: Path, msg: str) -> ConfigError:
     return ConfigError(f"invalid marker set {path}: {msg}")
 
 
+#: Keys of the file, of a ``[[markers]]`` entry and of the ``[geometry]`` table.
+_FILE_KEYS = ("format", "version", "geometry", "markers")
+_MARKER_KEYS = ("id", "dictionary", "side_m", "corners_marker_m", "T_ds_marker", "render_mesh")
+_GEOMETRY_KEYS = (
+    "size_mm",
+    "insert_thickness_mm",
+    "relief_depth_mm",
+    "clearance_mm",
+    "enclosure_side_mm",
+    "enclosure_height_mm",
+    "base_side_mm",
+    "base_height_mm",
+)
+#: Largest distance of a marker from the DS origin along each axis (m) and part dimension (mm)
+#: a marker set may state (the domains of ``MarkerConfig``; sides: ``MarkerSideM``).
+MAX_OFFSET_M = 100.0
+_MAX_PART_MM = 2000.0
+
+
+def _unknown_key(table: dict, allowed: tuple[str, ...], where: str) -> str | None:
+    """The first key of ``table`` outside ``allowed`` as a one-line complaint, else None."""
+    unknown = sorted(str(k) for k in table if k not in allowed)
+    if not unknown:
+        return None
+    return f"{where}unknown key '{unknown[0]}' (valid keys: {', '.join(allowed)})"
+
+
+def _real(value: object) -> bool:
+    """A finite int or float that is not a bool."""
+    return (
+        isinstance(value, (int, float))
+        and not isinstance(value, bool)
+        and math.isfinite(float(value))
+    )
+
+
+def _matrix(value: object, shape: tuple[int, int], where: str) -> np.ndarray:
+    """A nested list of finite numbers of ``shape`` as float64 (ValueError naming ``where``)."""
+    rows = value if isinstance(value, list) else None
+    if (
+        rows is None
+        or len(rows) != shape[0]
+        or not all(isinstance(r, list) and len(r) == shape[1] for r in rows)
+    ):
+        raise ValueError(f"{where} must be a {shape[0]}x{shape[1]} list of numbers")
+    bad = [v for r in rows for v in r if not _real(v)]
+    if bad:
+        raise ValueError(f"{where} must hold finite numbers, got {bad[0]!r}")
+    return np.array(rows, dtype=np.float64)
+
+
+def _marker_spec(e: object, where: str) -> MarkerSpec:
+    """One ``[[markers]]`` entry, validated (ValueError or DockError naming ``where``)."""
+    if not isinstance(e, dict):
+        raise ValueError(f"{where} must be a table")
+    complaint = _unknown_key(e, _MARKER_KEYS, f"{where}: ")
+    if complaint:
+        raise ValueError(complaint)
+    for key in ("id", "dictionary", "side_m", "T_ds_marker"):
+        if key not in e:
+            raise ValueError(f"{where}: missing key '{key}'")
+    marker_id = e["id"]
+    if isinstance(marker_id, bool) or not isinstance(marker_id, int):
+        raise ValueError(f"{where}.id must be an integer, got {marker_id!r}")
+    if not isinstance(e["dictionary"], str):
+        raise ValueError(f"{where}.dictionary must be a string, got {e['dictionary']!r}")
+    dictionary = normalise_dictionary_name(e["dictionary"])
+    check_ids(dictionary, [marker_id])
+    reason = check(e["side_m"], *split_annotated(MarkerSideM), f"{where}.side_m")
+    if reason:
+        raise ValueError(f"{reason} (m)")
+    side_m = float(e["side_m"])
+    T = check_T(_matrix(e["T_ds_marker"], (4, 4), f"{where}.T_ds_marker"), f"{where}.T_ds_marker")
+    if np.abs(T[:3, 3]).max() > MAX_OFFSET_M:
+        raise ValueError(
+            f"{where}.T_ds_marker: the marker lies {np.abs(T[:3, 3]).max():g} m from the DS "
+            f"origin (at most {MAX_OFFSET_M:g} m)"
+        )
+    if "corners_marker_m" in e:
+        corners = _matrix(e["corners_marker_m"], (4, 3), f"{where}.corners_marker_m")
+        if not np.allclose(corners, corners_marker_m(side_m), atol=1e-9):
+            raise ValueError(f"{where}.corners_marker_m disagree with side_m={side_m:g}")
+    mesh = e.get("render_mesh")
+    if mesh is not None and not (isinstance(mesh, str) and mesh):
+        raise ValueError(f"{where}.render_mesh must be a file name, got {mesh!r}")
+    return MarkerSpec(marker_id, dictionary, side_m, T, mesh)
+
+
+def _geometry(value: object) -> dict:
+    """The optional ``[geometry]`` table: known keys, finite dimensions in (0, 2000] mm."""
+    if not isinstance(value, dict):
+        raise ValueError("geometry must be a table")
+    complaint = _unknown_key(value, _GEOMETRY_KEYS, "geometry: ")
+    if complaint:
+        raise ValueError(complaint)
+    for key, v in value.items():
+        if not (_real(v) and 0 < v <= _MAX_PART_MM):
+            raise ValueError(
+                f"geometry.{key} must be a number in (0, {_MAX_PART_MM:g}] mm, got {v!r}"
+            )
+    return dict(value)
+
+
+def _read_marker_file(path: Path) -> object:
+    """The parsed TOML or JSON of a marker set file (ConfigError: missing, not UTF-8, malformed)."""
+    if path.suffix.lower() != ".json":
+        return read_toml(path, what="marker set file")
+    text = read_text(path, "marker set file")
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise _fail(path, f"malformed JSON ({exc})") from None
+
+
 def load_marker_set(path: str | os.PathLike[str]) -> MarkerSet:
-    """Read and validate a marker set file (TOML or JSON).
+    """Read and validate a marker set file (TOML or JSON, UTF-8).
+
+    Every key is checked: an unknown key, a wrong type (``id = 13.7`` or ``id = true``), a
+    non-finite, zero or negative side, corners or pose is an error, as are an ID outside its
+    dictionary, a duplicate ID, corners inconsistent with the side and an unknown version.
 
     Raises:
-        ConfigError: one line naming the file and what is wrong (missing key, bad pose, ID outside
-            its dictionary, duplicate ID, corners inconsistent with the side, unknown version).
+        ConfigError: one line naming the file and what is wrong (and the key).
     """
     path = Path(path)
-    if path.suffix.lower() == ".json":
-        try:
-            data = json.loads(path.read_text())
-        except FileNotFoundError:
-            raise ConfigError(f"marker set file not found: {path}") from None
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise _fail(path, f"malformed JSON ({exc})") from None
-    else:
-        data = read_toml(path)
+    data = _read_marker_file(path)
+    if not isinstance(data, dict):
+        raise _fail(path, "the top level must be a table")
+    complaint = _unknown_key(data, _FILE_KEYS, "")
+    if complaint:
+        raise _fail(path, complaint)
     if data.get("format") != FORMAT:
         raise _fail(path, f"'format' must be '{FORMAT}'")
-    if data.get("version") != VERSION:
-        raise _fail(
-            path, f"unsupported version {data.get('version')!r} (this toolkit reads {VERSION})"
-        )
+    version = data.get("version")
+    if isinstance(version, bool) or version != VERSION:
+        raise _fail(path, f"unsupported version {version!r} (this toolkit reads {VERSION})")
     entries = data.get("markers")
     if not isinstance(entries, list) or not entries:
         raise _fail(path, "no [[markers]] entries")
-    specs = []
-    for k, e in enumerate(entries):
-        where = f"markers[{k}]"
-        try:
-            marker_id = int(e["id"])
-            dictionary = normalise_dictionary_name(str(e["dictionary"]))
-            side_m = float(e["side_m"])
-            T = check_T(np.asarray(e["T_ds_marker"], dtype=np.float64), f"{where}.T_ds_marker")
-        except KeyError as exc:
-            raise _fail(path, f"{where}: missing key {exc}") from None
-        except (TypeError, ValueError, DockError) as exc:
-            raise _fail(path, f"{where}: {exc}") from None
-        if not (math.isfinite(side_m) and side_m > 0):
-            raise _fail(path, f"{where}.side_m must be > 0, got {side_m}")
-        try:
-            check_ids(dictionary, [marker_id])
-        except DockError as exc:
-            raise _fail(path, f"{where}: {exc}") from None
-        if "corners_marker_m" in e:
-            corners = np.asarray(e["corners_marker_m"], dtype=np.float64)
-            if corners.shape != (4, 3) or not np.allclose(
-                corners, corners_marker_m(side_m), atol=1e-9
-            ):
-                raise _fail(path, f"{where}.corners_marker_m disagree with side_m={side_m}")
-        specs.append(MarkerSpec(marker_id, dictionary, side_m, T, e.get("render_mesh")))
+    try:
+        geometry = _geometry(data.get("geometry", {}))
+        specs = [_marker_spec(e, f"markers[{k}]") for k, e in enumerate(entries)]
+    except (ValueError, DockError) as exc:
+        raise _fail(path, str(exc)) from None
     ids = [s.marker_id for s in specs]
     dup = sorted({i for i in ids if ids.count(i) > 1})
     if dup:
         raise _fail(path, f"marker ID {dup[0]} appears twice")
     if len({s.dictionary for s in specs}) > 1:
         raise _fail(path, "markers use different dictionaries")
-    return MarkerSet(tuple(specs), dict(data.get("geometry", {})), path.resolve())
+    return MarkerSet(tuple(specs), geometry, path.resolve())

@@ -24,6 +24,7 @@ import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 import numpy as np
@@ -111,7 +112,19 @@ class _Layout:
         )
 
 
-def write_sheet(
+def write_sheet(*args: Any, **kwargs: Any) -> list[Path]:
+    """Write a true-scale printable sheet of flat markers as PDF and/or SVG.
+
+    All pages are rendered in memory first (:func:`render_sheet`, same arguments and errors),
+    then each file is written atomically, so an error while rendering leaves no file behind.
+
+    Returns:
+        Every path written: the PDF first, then the SVG pages in order.
+    """
+    return [atomic_write_bytes(path, data) for path, data in render_sheet(*args, **kwargs)]
+
+
+def render_sheet(
     entries: Sequence[SheetEntry],
     marker_size_mm: float,
     pdf_path: Path | None,
@@ -119,11 +132,8 @@ def write_sheet(
     *,
     paper: str = "A4",
     title: str = "",
-) -> list[Path]:
-    """Write a true-scale printable sheet of flat markers as PDF and/or SVG.
-
-    All pages are rendered in memory first, then each file is written atomically, so an error
-    while rendering leaves no file behind.
+) -> list[tuple[Path, bytes]]:
+    """Render a true-scale printable sheet of flat markers as PDF and/or SVG, in memory.
 
     Args:
         entries: markers to draw, in order (row-major over the pages).
@@ -134,7 +144,7 @@ def write_sheet(
         title: printed at the top of every page.
 
     Returns:
-        Every path written: the PDF first, then the SVG pages in order.
+        ``(path, file contents)`` of every file: the PDF first, then the SVG pages in order.
 
     Raises:
         DockError: unknown paper, no entries, or one marker (with quiet zone, cut marks and
@@ -185,7 +195,7 @@ def write_sheet(
                 (svg_page_path(Path(svg_path), k), _render_svg(fig, paper_w_mm, paper_h_mm))
                 for k, fig in enumerate(figures, start=1)
             ]
-    return [atomic_write_bytes(path, data) for path, data in outputs]
+    return outputs
 
 
 def svg_page_path(svg_path: Path, page_no: int) -> Path:

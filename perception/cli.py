@@ -9,14 +9,13 @@ from typing import Any
 
 import click
 
-from dockcore.cli import run_group
+from dockcore.cli import CONTEXT, domain_type, run_group
 from dockcore.config import load_config
 from dockcore.errors import DockError
+from markers.config import MarkerSideM
 
-_CTX = {"help_option_names": ["-h", "--help"]}
 
-
-@click.group(context_settings=_CTX)
+@click.group(context_settings=CONTEXT)
 def cli() -> None:
     """Perception: 3DBM detection and docking-station pose from the marker board."""
 
@@ -52,7 +51,9 @@ def _marker_options(fn):
             "--dictionary", help="Detect single markers of this dictionary (no board pose)."
         ),
         click.option(
-            "--marker-size-m", type=float, help="Single-marker side (m): enables their poses."
+            "--marker-size-m",
+            type=domain_type(MarkerSideM),
+            help="Single-marker side (m, at most 1): enables their poses.",
         ),
         click.option("--pipeline", help="Preprocessing pipeline [default]; see `pipelines`."),
         click.option(
@@ -86,7 +87,7 @@ def _out_option(**kwargs: Any):
     )
 
 
-@cli.command(context_settings=_CTX)
+@cli.command(context_settings=CONTEXT)
 @click.argument("input_path", metavar="INPUT", type=click.Path(path_type=Path))
 @_marker_options
 @_camera_option("Camera file [default: the reference camera scaled to the frames].")
@@ -163,7 +164,7 @@ def _print_summary(report: dict[str, Any], out_dir: Path) -> None:
     click.echo(f"wrote {out_dir / 'report.json'} and {len(report['plots'])} plots")
 
 
-@cli.command(name="eval", context_settings=_CTX)
+@cli.command(name="eval", context_settings=CONTEXT)
 @click.argument("input_path", metavar="INPUT", type=click.Path(path_type=Path))
 @_marker_options
 @_camera_option("Camera file (required unless INPUT is a labelled dataset folder).")
@@ -242,7 +243,7 @@ def eval_cmd(
         _print_summary(report, Path(out_dir))
 
 
-@cli.command(context_settings=_CTX)
+@cli.command(context_settings=CONTEXT)
 def pipelines() -> None:
     """List the preprocessing pipelines."""
     from perception.detector import list_pipelines

@@ -13,18 +13,25 @@ corners (-s/2, s/2), (s/2, s/2), (s/2, -s/2), (-s/2, -s/2)); pixel coordinates f
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
-from typing import Any
+from typing import Annotated, Any
 
 import cv2
 import numpy as np
 
-from dockcore.errors import ConfigError, DockError
+from dockcore.config import validated
+from dockcore.domains import Interval
+from dockcore.errors import DockError
+from markers.config import MarkerId
 from markers.dictionary import dictionary_size, get_dictionary, normalise_dictionary_name
 from perception.preprocess import PIPELINES, Pipeline, as_uint8, get_pipeline
 
 __all__ = ["CORNER_REFINEMENTS", "Detection", "Detector", "DetectorConfig", "list_pipelines"]
+
+#: An ArUco adaptive-threshold window side (px, odd; OpenCV makes an even one odd).
+ThreshWindowPx = Annotated[int, Interval(ge=3, le=999)]
+#: Most adaptive-threshold windows one detection may run (each is a pass over the image).
+MAX_THRESHOLD_WINDOWS = 64
 
 #: Corner refinement names -> OpenCV constants.
 CORNER_REFINEMENTS: dict[str, int] = {
@@ -48,10 +55,11 @@ class DetectorConfig:
         ids: allow-list of marker IDs; detections of other IDs are dropped. None keeps all.
         pipeline: preprocessing pipeline name (see :func:`perception.preprocess.get_pipeline`).
         adaptive_thresh_constant: ArUco ``adaptiveThreshConstant`` (grey levels of the candidate
-            image subtracted from the local mean). Lower finds lower-contrast markers and more
-            noise (slower). None: pipeline preset.
+            image subtracted from the local mean, -255 ... 255). Lower finds lower-contrast
+            markers and more noise (slower). None: pipeline preset.
         adaptive_thresh_win_sizes_px: (min, max, step) of ArUco's adaptive threshold windows
-            (px, odd, min >= 3). None: pipeline preset.
+            (px, odd, 3 ... 999; step >= 1; at most ``MAX_THRESHOLD_WINDOWS`` windows). None:
+            pipeline preset.
         corner_refinement: "none", "subpix" (~0.2 px corners), "contour" or "apriltag".
             None: pipeline preset.
         detect_inverted: also decode photometric negatives of the candidate image (OpenCV's
@@ -60,43 +68,45 @@ class DetectorConfig:
     """
 
     dictionary: str = "DICT_4X4_50"
-    ids: tuple[int, ...] | None = None
+    ids: tuple[MarkerId, ...] | None = None
     pipeline: str = "default"
-    adaptive_thresh_constant: float | None = None
-    adaptive_thresh_win_sizes_px: tuple[int, int, int] | None = None
+    adaptive_thresh_constant: Annotated[float, Interval(ge=-255.0, le=255.0)] | None = None
+    adaptive_thresh_win_sizes_px: (
+        tuple[ThreshWindowPx, ThreshWindowPx, Annotated[int, Interval(ge=1, le=999)]] | None
+    ) = None
     corner_refinement: str | None = None
     detect_inverted: bool | None = None
 
     def validate(self) -> None:
-        """Raise ValueError (a :class:`ConfigError`) naming the first bad field."""
+        """Raise ValueError naming the first bad field (names, IDs, the window sequence; each
+        field's own range is its declared domain)."""
         try:
             name = normalise_dictionary_name(self.dictionary)
+        except DockError as exc:
+            raise ValueError(f"dictionary: {exc}") from None
+        try:
             get_pipeline(self.pipeline)
         except DockError as exc:
-            raise ConfigError(str(exc)) from None
+            raise ValueError(f"pipeline: {exc}") from None
         if self.ids is not None:
             n = dictionary_size(name)
             bad = [i for i in self.ids if not 0 <= int(i) < n]
             if bad:
-                raise ConfigError(f"ids: {bad[0]} is outside {name} (valid IDs: 0..{n - 1})")
-        c = self.adaptive_thresh_constant
-        if c is not None and not math.isfinite(c):
-            raise ConfigError(f"adaptive_thresh_constant: must be finite, got {c}")
+                raise ValueError(f"ids: {bad[0]} is outside {name} (valid IDs: 0..{n - 1})")
         w = self.adaptive_thresh_win_sizes_px
         if w is not None:
-            if len(w) != 3:
-                raise ConfigError(
-                    f"adaptive_thresh_win_sizes_px: expected (min, max, step), got {w}"
-                )
             lo, hi, step = (int(v) for v in w)
-            if lo < 3 or hi < lo or step < 1:
-                raise ConfigError(
-                    f"adaptive_thresh_win_sizes_px: need min >= 3, max >= min, step >= 1, got {w}"
+            if hi < lo:
+                raise ValueError(f"adaptive_thresh_win_sizes_px: need max >= min, got {w}")
+            if (hi - lo) // step + 1 > MAX_THRESHOLD_WINDOWS:
+                raise ValueError(
+                    f"adaptive_thresh_win_sizes_px: {w} gives {(hi - lo) // step + 1} threshold "
+                    f"windows (at most {MAX_THRESHOLD_WINDOWS}: each is a pass over the image)"
                 )
         r = self.corner_refinement
         if r is not None and r not in CORNER_REFINEMENTS:
-            raise ConfigError(
-                f"corner_refinement: '{r}' is not one of {', '.join(CORNER_REFINEMENTS)}"
+            raise ValueError(
+                f"corner_refinement: {r!r} is not one of {', '.join(CORNER_REFINEMENTS)}"
             )
 
 
@@ -144,8 +154,7 @@ class Detector:
     """
 
     def __init__(self, cfg: DetectorConfig | None = None) -> None:
-        cfg = DetectorConfig() if cfg is None else cfg
-        cfg.validate()
+        cfg = validated(DetectorConfig() if cfg is None else cfg)
         self.cfg = cfg
         self.pipeline = get_pipeline(cfg.pipeline)
         self.dictionary_name = normalise_dictionary_name(cfg.dictionary)

@@ -10,8 +10,13 @@
 Every pipeline runs on the same decoded frames in one pass. Pose error is measured on
 ``T_cam_ds``: translation error = distance between the estimated and true DS origin in the
 camera frame (m); rotation error = geodesic angle between the two rotations (deg). Frames are
-timed on detection + pose (``ms``), not decoding or drawing. Files are written atomically: a
-failure part-way leaves earlier complete files (and older versions of the others) intact.
+timed on detection + pose (``ms``), not decoding or drawing.
+
+The config, markers, camera and input are checked before the output folder is claimed
+(:func:`dockcore.outdir.claim_output_dir`: locked while the command runs, refused when another
+tool made it, temporary files of killed runs removed). Files are written atomically: a failure
+part-way leaves earlier complete files (and older versions of the others) intact, and a folder
+made for a run that fails before writing anything is removed again.
 """
 
 from __future__ import annotations
@@ -19,7 +24,6 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
-import math
 import os
 import time
 from collections.abc import Callable, Iterable, Sequence
@@ -31,17 +35,13 @@ import numpy as np
 
 from calibration.camera import CameraModel, reference_camera
 from calibration.frames import pos_quat_from_T
-from dockcore.config import to_dict
+from dockcore.config import to_dict, validated
+from dockcore.domains import check, split_annotated
 from dockcore.errors import DockError
-from dockcore.io import (
-    atomic_path,
-    atomic_write_bytes,
-    atomic_write_json,
-    atomic_write_text,
-    ensure_writable_dir,
-)
+from dockcore.io import atomic_path, atomic_write_bytes, atomic_write_json, atomic_write_text
+from dockcore.outdir import claim_output_dir
 from dockcore.provenance import provenance, write_provenance
-from markers.config import MarkerConfig
+from markers.config import MarkerConfig, MarkerSideM
 from markers.dictionary import normalise_dictionary_name
 from markers.markerset import load_marker_set, marker_set_from_config
 from perception.detector import Detection, Detector, DetectorConfig
@@ -134,8 +134,10 @@ def resolve_markers(
     """
     if markers_path is not None and (dictionary is not None or marker_size_m is not None):
         raise DockError("--markers cannot be combined with --dictionary / --marker-size-m")
-    if marker_size_m is not None and not (math.isfinite(marker_size_m) and marker_size_m > 0):
-        raise DockError(f"--marker-size-m must be > 0, got {marker_size_m}")
+    if marker_size_m is not None:
+        reason = check(marker_size_m, *split_annotated(MarkerSideM), "--marker-size-m")
+        if reason:
+            raise DockError(reason)
     if dictionary is not None or marker_size_m is not None:
         name = normalise_dictionary_name(dictionary or "DICT_4X4_50")
         what = f"single markers of {name}" + (
@@ -240,8 +242,7 @@ class FrameProcessor:
     ) -> None:
         cfg = dataclasses.replace(detector_cfg, dictionary=setup.dictionary, ids=setup.ids)
         self.detector = Detector(cfg)
-        board_cfg.validate()
-        self.board_cfg = board_cfg
+        self.board_cfg = validated(board_cfg)
         self.setup = setup
 
     def process(self, image: np.ndarray, camera: CameraModel) -> FrameResult:
@@ -397,18 +398,43 @@ def run_detect(
         ``markers_detected_total``) and ``outputs`` (paths written).
 
     Raises:
-        DockError: bad input, config or camera, or no decodable frame at all.
+        ConfigError: an invalid config (one line naming the field).
+        DockError: bad input or camera, no decodable frame at all, or an output folder that
+            belongs to another tool or is in use (:func:`dockcore.outdir.claim_output_dir`;
+            claimed after the config, markers and input are checked).
     """
-    cfg = cfg or PerceptionConfig()
-    cfg.report.validate()
-    out = ensure_writable_dir(out_dir)
+    cfg = validated(cfg or PerceptionConfig())
     proc = FrameProcessor(setup, cfg.detector, cfg.board)
     source = open_frames(input_path)
+    try:
+        with claim_output_dir(out_dir, "perception detect") as out:
+            counts, outputs = _detect_frames(
+                source, out, setup, proc, cfg, camera, annotate_frames, progress, note
+            )
+            extra = {"input": str(input_path), "markers": setup.description, "counts": counts}
+            write_provenance(out, {"perception": cfg}, extra)
+    finally:
+        source.close()
+    return {**counts, "corrupt_frames": source.corrupt, "outputs": [str(p) for p in outputs]}
+
+
+def _detect_frames(
+    source: FrameSource,
+    out: Path,
+    setup: MarkerSetup,
+    proc: FrameProcessor,
+    cfg: PerceptionConfig,
+    camera: CameraModel | None,
+    annotate_frames: bool,
+    progress: bool | None,
+    note: Note,
+) -> tuple[dict[str, int], list[Path]]:
+    """The frame loop of :func:`run_detect` in a claimed folder: (counts, paths written)."""
     resolver = CameraResolver(camera, note)
     video = None
     if annotate_frames and source.kind == "video":
         video = AnnotatedVideoWriter(out / "annotated.mp4", source.fps or 10.0)
-    counts = dict.fromkeys(
+    counts: dict[str, int] = dict.fromkeys(
         ("frames", "frames_with_detection", "frames_with_pose", "markers_detected_total"), 0
     )
     outputs: list[Path] = []
@@ -434,7 +460,7 @@ def run_detect(
                     fj.write(json.dumps(row, separators=(",", ":")) + "\n")
                     writer.writerow(detection_csv_row(row))
             if counts["frames"] == 0:
-                raise DockError(f"no decodable frame in {input_path} ({source.corrupt} corrupt)")
+                raise DockError(f"no decodable frame in {source.path} ({source.corrupt} corrupt)")
         if video is not None:
             closed = video.close()
             if closed is not None:
@@ -443,10 +469,9 @@ def run_detect(
         if video is not None:
             video.abort()
         raise
-    outputs += [jsonl, table]
-    extra = {"input": str(input_path), "markers": setup.description, "counts": counts}
-    write_provenance(out, {"perception": cfg}, extra)
-    return {**counts, "corrupt_frames": source.corrupt, "outputs": [str(p) for p in outputs]}
+    for warning in source.warnings:
+        note(warning)
+    return counts, [*outputs, jsonl, table]
 
 
 def _emit(video, out: Path, name: str, drawn: np.ndarray, outputs: list[Path]):
@@ -545,11 +570,13 @@ def run_eval(
         The report (also written as ``report.json``).
 
     Raises:
-        DockError: bad input, config, camera or pipeline; no decodable frame; ground truth
-            that matches no frame.
+        ConfigError: an invalid config (one line naming the field).
+        DockError: bad input, camera or pipeline; no decodable frame; ground truth that
+            matches no frame; an output folder that belongs to another tool or is in use
+            (claimed after the config, pipelines and input are checked; a folder made for a
+            run that fails is removed again).
     """
-    cfg = cfg or PerceptionConfig()
-    cfg.report.validate()
+    cfg = validated(cfg or PerceptionConfig())
     names = list(dict.fromkeys(pipelines))
     if not names:
         raise DockError("no pipeline to evaluate")
@@ -557,8 +584,31 @@ def run_eval(
         p: FrameProcessor(setup, dataclasses.replace(cfg.detector, pipeline=p), cfg.board)
         for p in names
     }
-    out = ensure_writable_dir(out_dir)
     source = open_frames(input_path)
+    try:
+        with claim_output_dir(out_dir, "perception eval") as out:
+            return _evaluate(
+                source, out, setup, camera, cfg, procs, truth, truth_source, progress, note
+            )
+    finally:
+        source.close()
+
+
+def _evaluate(
+    source: FrameSource,
+    out: Path,
+    setup: MarkerSetup,
+    camera: CameraModel,
+    cfg: PerceptionConfig,
+    procs: dict[str, FrameProcessor],
+    truth: dict[int, FrameTruth] | None,
+    truth_source: str | None,
+    progress: bool | None,
+    note: Note,
+) -> dict[str, Any]:
+    """The frame loop and the report of :func:`run_eval`, in a claimed folder."""
+    names = list(procs)
+    input_path = source.path
     lookup = _truth_lookup(truth, source.kind)
     resolver = CameraResolver(camera, note)
     records: dict[str, list[EvalRecord]] = {p: [] for p in names}
@@ -576,6 +626,8 @@ def run_eval(
             if p == names[0] and cfg.report.contact_sheet_frames:
                 drawn = _draw(image, res, cam, setup, cfg.report, name) if thumbs.wants() else None
                 thumbs.offer(index, name, drawn)
+    for warning in source.warnings:
+        note(warning)
     main = records[names[0]]
     if not any(not r.corrupt for r in main):
         raise DockError(f"no decodable frame in {input_path} ({source.corrupt} corrupt)")

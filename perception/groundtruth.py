@@ -39,8 +39,11 @@ with :func:`write_dataset_json` and :func:`write_labels`; read by :func:`load_da
     0,0.12,-0.05,2.31,0.0,0.7071,0.7071,0.0
 
     One row per frame: ``T_cam_ds`` as the DS origin in the camera frame (m) and its
-    orientation as a (w, x, y, z) quaternion (normalised on load). ``frame`` is the video frame
-    index, or the position of the image in the sorted folder.
+    orientation as a unit (w, x, y, z) quaternion. A quaternion whose norm differs from 1 by
+    more than ``QUAT_NORM_TOL`` is an error (normalising it would hide a wrong or swapped
+    column: a 3 deg error became 17 deg); one within it is normalised. ``frame`` is the video
+    frame index, or the position of the image in the sorted folder. UTF-8 (a byte-order mark
+    is accepted).
 
 :func:`load_ground_truth` reads either (a folder, ``labels.jsonl`` or ``.csv``) into
 ``{frame index: FrameTruth}``; every problem is a one-line :class:`DockError` naming the file
@@ -50,6 +53,7 @@ and the line.
 from __future__ import annotations
 
 import csv
+import io
 import json
 import math
 import os
@@ -64,12 +68,13 @@ from numpy.typing import ArrayLike
 from calibration.camera import CameraModel
 from calibration.frames import R_from_quat_wxyz, pos_quat_from_T, transform_points
 from dockcore.errors import DockError
-from dockcore.io import atomic_path, atomic_write_json
+from dockcore.io import atomic_path, atomic_write_json, read_text
 
 __all__ = [
     "CSV_COLUMNS",
     "DATASET_FORMAT",
     "DATASET_VERSION",
+    "QUAT_NORM_TOL",
     "FrameTruth",
     "LabelledDataset",
     "MarkerTruth",
@@ -91,6 +96,12 @@ DATASET_FORMAT = "uwdock.dataset"
 DATASET_VERSION = 1
 #: Required columns of the pose CSV, in this order of meaning (extra columns are ignored).
 CSV_COLUMNS: tuple[str, ...] = ("frame", "x_m", "y_m", "z_m", "qw", "qx", "qy", "qz")
+
+#: Largest accepted | |q| - 1 | of a pose CSV quaternion. A unit quaternion written with d
+#: decimals per component is off by at most 2 * 0.5e-d (the rounding errors of 4 components,
+#: norm <= 2 * half a unit): 1e-3 accepts every CSV written with 3 or more decimals (4-6 are
+#: usual: <= 1e-4) and refuses a quaternion that is not one (a mistyped or swapped component).
+QUAT_NORM_TOL = 1e-3
 
 
 # --------------------------------------------------------------------------- records
@@ -397,12 +408,7 @@ def load_labels(path: str | os.PathLike[str]) -> dict[int, FrameTruth]:
             a duplicated frame index, or no frame at all.
     """
     path = Path(path)
-    try:
-        lines = path.read_text(encoding="utf-8").splitlines()
-    except FileNotFoundError:
-        raise DockError(f"ground-truth labels not found: {path}") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DockError(f"cannot read ground-truth labels {path}: {exc}") from None
+    lines = read_text(path, "ground-truth labels").splitlines()
     out: dict[int, FrameTruth] = {}
     for lineno, line in enumerate(lines, start=1):
         if not line.strip():
@@ -427,12 +433,7 @@ def load_pose_csv(path: str | os.PathLike[str]) -> dict[int, FrameTruth]:
             the message names the file and line.
     """
     path = Path(path)
-    try:
-        fh = path.open(newline="", encoding="utf-8")
-    except FileNotFoundError:
-        raise DockError(f"ground-truth CSV not found: {path}") from None
-    except OSError as exc:
-        raise DockError(f"cannot read ground-truth CSV {path}: {exc.strerror or exc}") from None
+    fh = io.StringIO(read_text(path, "ground-truth CSV"), newline="")
     out: dict[int, FrameTruth] = {}
     with fh:
         try:
@@ -450,8 +451,6 @@ def load_pose_csv(path: str | os.PathLike[str]) -> dict[int, FrameTruth]:
                 if not any((v or "").strip() for v in row.values() if isinstance(v, str)):
                     continue
                 _add(out, _csv_row(row, where), where)
-        except UnicodeDecodeError as exc:
-            raise DockError(f"{path}: not a text CSV ({exc.reason})") from None
         except csv.Error as exc:
             raise DockError(f"{path}: malformed CSV ({exc})") from None
     if not out:
@@ -474,8 +473,12 @@ def _csv_row(row: Mapping[str, Any], where: str) -> FrameTruth:
     if frame < 0 or frame != int(frame):
         raise DockError(f"{where}: frame must be an integer >= 0, got {row.get('frame')!r}")
     q = np.array(values[4:8])
-    if np.linalg.norm(q) < 1e-6:
-        raise DockError(f"{where}: quaternion (qw, qx, qy, qz) has zero norm")
+    norm = float(np.linalg.norm(q))
+    if not abs(norm - 1.0) <= QUAT_NORM_TOL:
+        raise DockError(
+            f"{where}: quaternion (qw, qx, qy, qz) = ({', '.join(f'{v:g}' for v in q)}) has "
+            f"norm {norm:.6g}, not 1 (within {QUAT_NORM_TOL:g}): a wrong or swapped column?"
+        )
     T = np.eye(4)
     T[:3, :3] = R_from_quat_wxyz(q)
     T[:3, 3] = values[1:4]
@@ -528,7 +531,7 @@ def load_dataset(root: str | os.PathLike[str]) -> LabelledDataset:
     if not manifest_path.is_file():
         raise DockError(f"not a labelled dataset folder (no dataset.json): {root}")
     try:
-        manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
+        manifest = json.loads(manifest_path.read_text(encoding="utf-8-sig"))
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise DockError(f"{manifest_path}: malformed JSON ({exc})") from None
     if not isinstance(manifest, dict) or manifest.get("format") != DATASET_FORMAT:

@@ -19,10 +19,11 @@ values, or None for none); a ``CameraModel`` gives them as ``.K`` and ``.dist_co
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Annotated, Any
 
 import cv2
 import numpy as np
@@ -36,7 +37,10 @@ from calibration.frames import (
     rotation_angle_deg,
     transform_points,
 )
-from dockcore.errors import ConfigError, DockError
+from dockcore.config import validated
+from dockcore.domains import Ge, Interval, Positive
+from dockcore.errors import DockError
+from markers.config import MAX_MARKER_ID
 from markers.markerset import corners_marker_m
 
 __all__ = [
@@ -273,45 +277,43 @@ class BoardPoseConfig:
         outlier_threshold_px: outlier rejection runs while some marker's RMS corner
             reprojection error exceeds this (px). The board is then re-solved without each
             marker in turn; the marker whose removal leaves the most consistent board is
-            dropped if, against that pose, its own error exceeds this threshold...
-        outlier_ratio: ...and this many times the RMS error of the remaining markers (-).
+            dropped if, against that pose, its own error exceeds this threshold (> 0)...
+        outlier_ratio: ...and this many times the RMS error of the remaining markers (-, >= 1:
+            a marker no worse than the rest is never the outlier).
             (Leave-one-out, because a joint least-squares fit spreads one bad marker's error
             over the good ones: a 20 px shift shows as ~13 px on it and ~5 px on the rest.)
-        min_markers: fewest markers to return a pose (1 uses IPPE_SQUARE on a lone marker).
+        min_markers: fewest markers to return a pose (1 uses IPPE_SQUARE on a lone marker;
+            1 ... 2320, the largest dictionary).
         min_markers_for_rejection: outlier rejection runs only with at least this many markers
             (>= 3: with two, neither can be blamed; default 4, because three markers minus one
             leave 8 points for 6 unknowns, which fit anything and reject clean markers at 1 px
             corner noise).
-        max_rms_px: no pose (None) when the final RMS reprojection error exceeds this (px).
-        sigma_floor_px: lower bound on the corner noise used for the covariance (px), so that
-            noise-free input does not claim a zero covariance.
+        max_rms_px: no pose (None) when the final RMS reprojection error exceeds this (px, > 0).
+        sigma_floor_px: lower bound on the corner noise used for the covariance (px, 0 ... 100),
+            so that noise-free input does not claim a zero covariance.
     """
 
     method: str = "sqpnp"
     lm_refine: bool = True
-    outlier_threshold_px: float = 2.0
-    outlier_ratio: float = 4.0
-    min_markers: int = 1
-    min_markers_for_rejection: int = 4
-    max_rms_px: float = 10.0
-    sigma_floor_px: float = 0.05
+    outlier_threshold_px: Positive = 2.0
+    outlier_ratio: Annotated[float, Ge(1.0)] = 4.0
+    min_markers: Annotated[int, Interval(ge=1, le=MAX_MARKER_ID + 1)] = 1
+    min_markers_for_rejection: Annotated[int, Interval(ge=3, le=MAX_MARKER_ID + 1)] = 4
+    max_rms_px: Positive = 10.0
+    sigma_floor_px: Annotated[float, Interval(ge=0.0, le=100.0)] = 0.05
 
     def validate(self) -> None:
-        """Raise ValueError (a :class:`ConfigError`) naming the first bad field."""
+        """Raise ValueError naming the field of an unknown ``method`` (each numeric field's
+        range is its declared domain)."""
         if self.method not in _PNP_FLAGS:
-            raise ConfigError(f"method: '{self.method}' is not one of {', '.join(_PNP_FLAGS)}")
-        for name in ("outlier_threshold_px", "outlier_ratio", "max_rms_px"):
-            v = getattr(self, name)
-            if not v > 0:
-                raise ConfigError(f"{name}: must be > 0, got {v}")
-        if self.sigma_floor_px < 0:
-            raise ConfigError(f"sigma_floor_px: must be >= 0, got {self.sigma_floor_px}")
-        if self.min_markers < 1:
-            raise ConfigError(f"min_markers: must be >= 1, got {self.min_markers}")
-        if self.min_markers_for_rejection < 3:
-            raise ConfigError(
-                f"min_markers_for_rejection: must be >= 3, got {self.min_markers_for_rejection}"
-            )
+            raise ValueError(f"method: {self.method!r} is not one of {', '.join(_PNP_FLAGS)}")
+
+
+@functools.lru_cache(maxsize=64)
+def _checked(cfg: BoardPoseConfig) -> BoardPoseConfig:
+    """``cfg`` through :func:`dockcore.config.validated`, once per distinct config (the board
+    is solved on every frame)."""
+    return validated(cfg)
 
 
 @dataclass(frozen=True)
@@ -517,8 +519,7 @@ def solve_board(
         A :class:`BoardPose`, or None with fewer than ``cfg.min_markers`` usable markers, no
         solution in front of the camera, or a final RMS error above ``cfg.max_rms_px``.
     """
-    cfg = BoardPoseConfig() if cfg is None else cfg
-    cfg.validate()
+    cfg = _checked(BoardPoseConfig() if cfg is None else cfg)
     K, dist = _intrinsics(K, dist)
     prior = None if T_cam_ds_prior is None else check_T(T_cam_ds_prior, "T_cam_ds_prior")
     obs = _match(detections, object_points)

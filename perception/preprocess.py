@@ -61,6 +61,7 @@ import numpy as np
 from dockcore.errors import DockError
 
 __all__ = [
+    "MIN_IMAGE_PX",
     "PIPELINES",
     "NoiseAwareStretch",
     "Pipeline",
@@ -69,6 +70,10 @@ __all__ = [
     "get_pipeline",
     "to_grey",
 ]
+
+
+#: Smallest image side (px) the detector accepts: a smaller image cannot hold a marker.
+MIN_IMAGE_PX = 8
 
 
 # --------------------------------------------------------------------------- input handling
@@ -100,7 +105,7 @@ def as_uint8(image: Any) -> np.ndarray:
             image = image[:, :, :3]
     elif image.ndim != 2:
         raise DockError(f"image must be (H, W), (H, W, 3) or (H, W, 4), got shape {image.shape}")
-    if image.shape[0] < 8 or image.shape[1] < 8:
+    if image.shape[0] < MIN_IMAGE_PX or image.shape[1] < MIN_IMAGE_PX:
         raise DockError(f"image is too small to hold a marker (shape {image.shape})")
     if image.dtype == np.uint8:
         out = image
@@ -318,5 +323,5 @@ def get_pipeline(name: str) -> Pipeline:
         return PIPELINES[name]
     except KeyError:
         raise DockError(
-            f"unknown preprocessing pipeline '{name}' (valid: {', '.join(sorted(PIPELINES))})"
+            f"unknown preprocessing pipeline {name!r} (valid: {', '.join(sorted(PIPELINES))})"
         ) from None

@@ -19,11 +19,12 @@ import os
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
 
 from calibration.frames import rotation_angle_deg
+from dockcore.domains import Interval, Positive
 from dockcore.io import atomic_path
 from perception.groundtruth import FrameTruth
 
@@ -41,52 +42,38 @@ __all__ = [
 ]
 
 
+#: A binned table lists every bin between its first and last occupied one up to this many bins
+#: (then only the occupied ones).
+MAX_BINS = 1000
+
+
 @dataclass(frozen=True)
 class ReportConfig:
     """What ``perception eval`` measures and draws.
 
     Attributes:
-        range_bin_m: width of the range bins (m, > 0).
-        angle_bin_deg: width of the viewing-angle bins (deg, > 0).
+        range_bin_m: width of the range bins (m, 0.01 ... 1000).
+        angle_bin_deg: width of the viewing-angle bins (deg, 0.1 ... 180).
         static_tol_m: a ground-truth stretch is static while every pose stays within this
-            distance of the stretch's first pose (m)...
-        static_tol_deg: ...and within this rotation angle of it (deg).
+            distance of the stretch's first pose (m, > 0)...
+        static_tol_deg: ...and within this rotation angle of it (deg, (0, 180]).
         static_min_frames: shortest static stretch used for the jitter (frames, >= 2).
-        flip_threshold_deg: rotation errors above this count as gross errors / flips (deg).
-        contact_sheet_frames: annotated frames on the contact sheet (0: none).
-        thumbnail_width_px: width of each contact-sheet tile (px, >= 16).
-        axis_length_m: length of the drawn DS axes (m).
+        flip_threshold_deg: rotation errors above this count as gross errors / flips (deg,
+            (0, 180]).
+        contact_sheet_frames: annotated frames on the contact sheet (0: none; at most 64).
+        thumbnail_width_px: width of each contact-sheet tile (px, 16 ... 1024).
+        axis_length_m: length of the drawn DS axes (m, (0, 100]).
     """
 
-    range_bin_m: float = 0.5
-    angle_bin_deg: float = 10.0
-    static_tol_m: float = 0.001
-    static_tol_deg: float = 0.1
-    static_min_frames: int = 5
-    flip_threshold_deg: float = 10.0
-    contact_sheet_frames: int = 12
-    thumbnail_width_px: int = 400
-    axis_length_m: float = 0.3
-
-    def validate(self) -> None:
-        """Raise ValueError naming the first bad field."""
-        for name in (
-            "range_bin_m",
-            "angle_bin_deg",
-            "static_tol_m",
-            "static_tol_deg",
-            "flip_threshold_deg",
-            "axis_length_m",
-        ):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v > 0):
-                raise ValueError(f"{name}: must be > 0, got {v}")
-        if self.static_min_frames < 2:
-            raise ValueError(f"static_min_frames: must be >= 2, got {self.static_min_frames}")
-        if self.contact_sheet_frames < 0:
-            raise ValueError(f"contact_sheet_frames: must be >= 0, got {self.contact_sheet_frames}")
-        if self.thumbnail_width_px < 16:
-            raise ValueError(f"thumbnail_width_px: must be >= 16, got {self.thumbnail_width_px}")
+    range_bin_m: Annotated[float, Interval(ge=0.01, le=1000.0)] = 0.5
+    angle_bin_deg: Annotated[float, Interval(ge=0.1, le=180.0)] = 10.0
+    static_tol_m: Positive = 0.001
+    static_tol_deg: Annotated[float, Interval(gt=0.0, le=180.0)] = 0.1
+    static_min_frames: Annotated[int, Interval(ge=2, le=10**9)] = 5
+    flip_threshold_deg: Annotated[float, Interval(gt=0.0, le=180.0)] = 10.0
+    contact_sheet_frames: Annotated[int, Interval(ge=0, le=64)] = 12
+    thumbnail_width_px: Annotated[int, Interval(ge=16, le=1024)] = 400
+    axis_length_m: Annotated[float, Interval(gt=0.0, le=100.0)] = 0.3
 
 
 # --------------------------------------------------------------------------- statistics
@@ -203,13 +190,13 @@ def _bins(
     ok = np.isfinite(vals)
     if not ok.any():
         return []
-    lo0 = math.floor(vals[ok].min() / width)
-    hi0 = math.floor(vals[ok].max() / width)
+    keys = [math.floor(v / width) if g else None for v, g in zip(vals, ok, strict=True)]
+    occupied = sorted({k for k in keys if k is not None})
+    if occupied[-1] - occupied[0] < MAX_BINS:  # every bin from the first to the last
+        occupied = list(range(occupied[0], occupied[-1] + 1))
     out = []
-    for k in range(lo0, hi0 + 1):
-        members = [
-            r for r, v, g in zip(recs, vals, ok, strict=True) if g and k == math.floor(v / width)
-        ]
+    for k in occupied:  # (a sparse run, e.g. one outlying range, lists the occupied bins only)
+        members = [r for r, key in zip(recs, keys, strict=True) if key == k]
         n = len(members)
         entry = {
             "lo": round(k * width, 9),

@@ -12,8 +12,15 @@ Inputs:
     * an image file (``IMAGE_SUFFIXES``): one frame, index 0, named after the file;
     * a folder: its image files sorted by name, frame index = position in that order (this is
       the index a ground-truth CSV refers to); other files are ignored;
-    * anything else is opened with ``cv2.VideoCapture``: frame index = decode order, names
+    * a Motion-JPEG AVI with an index: frame k is the k-th indexed frame, decoded on its own
+      (:mod:`perception.avi`), so damage to one frame cannot shift the others;
+    * anything else is opened with ``cv2.VideoCapture``: frame index = stream position (from
+      the decoded frames' timestamps when they are consistent, else decode order), names
       ``frame_000000`` ...
+
+Frames that cannot be decoded, or that the decoder skipped, are yielded as None at their index
+and counted (:attr:`FrameSource.corrupt`); a video ending early is padded to its container's
+frame count with such frames, with a warning (:attr:`FrameSource.warnings`).
 
 Annotations (:func:`annotate`): marker outlines, IDs, a dot on the TL corner, the DS board axes
 when a pose was solved (x red, y green, z blue), small axes on single-marker poses; line widths
@@ -38,14 +45,9 @@ import numpy as np
 from calibration.camera import CameraModel
 from dockcore.errors import DockError
 from dockcore.io import atomic_write_bytes
-from dockcore.media import (
-    IMAGE_SUFFIXES,
-    AtomicVideoWriter,
-    open_video,
-    quiet_native_stderr,
-    read_image,
-)
-from perception.preprocess import as_uint8
+from dockcore.media import IMAGE_SUFFIXES, AtomicVideoWriter, quiet_native_stderr, read_image
+from perception.avi import AviIndex, mjpeg_avi_index
+from perception.preprocess import MIN_IMAGE_PX, as_uint8
 
 __all__ = [
     "IMAGE_SUFFIXES",
@@ -62,6 +64,10 @@ __all__ = [
 #: A video read gives up after this many consecutive undecodable frames.
 MAX_CONSECUTIVE_VIDEO_FAILURES = 25
 
+#: A decoded frame's timestamp is trusted to place it when the first two frames lie one frame
+#: interval apart within this fraction of an interval (constant frame rate, sane timestamps).
+_PTS_TOLERANCE = 0.25
+
 Frame = tuple[int, str, "np.ndarray | None"]
 
 
@@ -69,12 +75,20 @@ Frame = tuple[int, str, "np.ndarray | None"]
 class FrameSource:
     """An opened input. Iterate it once for ``(index, name, image | None)``.
 
+    A frame that cannot be used is yielded as None at its index and counted in
+    :attr:`corrupt`: an image file that cannot be decoded or is smaller than
+    ``MIN_IMAGE_PX`` on a side (it cannot hold a marker), a video frame the decoder rejects,
+    and a video frame the decoder skipped without saying so (found from the timestamps of the
+    frames around it, or at the end when fewer frames than the container lists were decoded).
+
     Attributes:
         path: the input as given.
         kind: "image", "folder" or "video".
         total: number of frames expected (a video's container count may be wrong or 0), or None.
         fps: a video's frame rate (Hz) when the container states one, else None.
         corrupt: frames that could not be decoded so far (yielded as None).
+        warnings: one-line remarks about the input found while reading it (frames too small,
+            frames missing from a video), for the caller to show.
     """
 
     path: Path
@@ -82,55 +96,169 @@ class FrameSource:
     total: int | None
     fps: float | None = None
     corrupt: int = 0
+    warnings: list[str] = field(default_factory=list)
     _files: list[Path] = field(default_factory=list, repr=False)
     _cap: cv2.VideoCapture | None = field(default=None, repr=False)
     _first: np.ndarray | None = field(default=None, repr=False)
+    _leading: int = field(default=0, repr=False)
+    _avi: AviIndex | None = field(default=None, repr=False)
 
     def __iter__(self) -> Iterator[Frame]:
         if self.kind == "video":
-            yield from self._video()
+            yield from (self._indexed() if self._avi is not None else self._video())
             return
+        small: list[str] = []
         for index, file in enumerate(self._files):
             image = read_image(file)
+            if image is not None and min(image.shape[:2]) < MIN_IMAGE_PX:
+                small.append(f"{file.name} ({image.shape[1]}x{image.shape[0]} px)")
+                image = None
             if image is None:
                 self.corrupt += 1
             yield index, file.name, image
+        if small:
+            self.warnings.append(
+                f"{len(small)} image(s) smaller than {MIN_IMAGE_PX} px on a side counted as "
+                f"corrupt: {', '.join(small[:5])}{' ...' if len(small) > 5 else ''}"
+            )
+
+    def close(self) -> None:
+        """Release a video that was opened but not (fully) iterated; safe to call twice."""
+        if self._cap is not None:
+            self._cap.release()
+            self._cap, self._first = None, None
+        self._avi = None
+
+    def _indexed(self) -> Iterator[Frame]:
+        """A Motion-JPEG AVI frame by frame through its index (:mod:`perception.avi`): frame k
+        is the k-th indexed frame, None when its data cannot be decoded."""
+        index, self._avi = self._avi, None
+        with index.path.open("rb") as fh:
+            for k in range(len(index.frames)):
+                image = index.decode(fh, k)
+                if image is None:
+                    self.corrupt += 1
+                yield k, f"frame_{k:06d}", image
 
     def _video(self) -> Iterator[Frame]:
-        """Decode order. A failed read is a corrupt frame only if a later read succeeds (then
-        the failed ones are yielded as None); failures up to the end of the stream, the
-        container's frame count or ``MAX_CONSECUTIVE_VIDEO_FAILURES`` in a row end it."""
+        """Frames in stream order, each at its true index.
+
+        A failed read is a corrupt frame. When the container states a frame rate and the first
+        two frames' timestamps lie one interval apart, each decoded frame is placed by its
+        timestamp, so frames the decoder skipped silently are yielded as None where they were.
+        Reading ends at the end of the stream, at the container's frame count or after
+        ``MAX_CONSECUTIVE_VIDEO_FAILURES`` failed reads in a row; frames the container lists
+        beyond the last decoded one are yielded as None then (with a warning).
+        """
         cap, frame = self._cap, self._first
         self._cap, self._first = None, None
         if cap is None:
             raise DockError(f"video {self.path} can only be iterated once")
-        index, pending = 0, 0
+        next_index, failures = 0, self._leading
+        clock = _FrameClock(self.fps, self.total, cap.get(cv2.CAP_PROP_POS_MSEC), failures)
         try:
             while True:
                 if frame is not None:
-                    for _ in range(pending):
+                    index = clock.index(cap.get(cv2.CAP_PROP_POS_MSEC), next_index + failures)
+                    for k in range(next_index, index):  # failed reads and skipped frames
                         self.corrupt += 1
-                        yield index, f"frame_{index:06d}", None
-                        index += 1
-                    pending = 0
+                        yield k, f"frame_{k:06d}", None
                     yield index, f"frame_{index:06d}", frame
-                    index += 1
+                    next_index, failures = index + 1, 0
                 else:
-                    pending += 1
-                    if pending >= MAX_CONSECUTIVE_VIDEO_FAILURES or (
-                        self.total is not None and index + pending >= self.total
+                    failures += 1
+                    if failures >= MAX_CONSECUTIVE_VIDEO_FAILURES or (
+                        self.total is not None and next_index + failures >= self.total
                     ):
-                        return
+                        break
                 with quiet_native_stderr():
                     ok, frame = cap.read()
                 if not ok:
                     frame = None
         finally:
             cap.release()
+        if self.total is not None and next_index < self.total:
+            missing = self.total - next_index
+            self.warnings.append(
+                f"video {self.path.name}: the container lists {self.total} frames but only "
+                f"{next_index} could be read; the last {missing} are counted as corrupt (if frames "
+                "were lost inside the video, the indices after them are shifted)"
+            )
+            for k in range(next_index, self.total):
+                self.corrupt += 1
+                yield k, f"frame_{k:06d}", None
+
+
+class _FrameClock:
+    """Frame index of a decoded video frame from its timestamp (``CAP_PROP_POS_MSEC``).
+
+    The timestamps are trusted once two frames decoded one after the other lie one frame
+    interval apart (within ``_PTS_TOLERANCE``): a constant frame rate and sane timestamps. A
+    frame is never placed before ``at_least`` (the frames read so far) nor at or beyond the
+    container's frame count.
+
+    Args:
+        fps: the container's frame rate (Hz), or None (no timestamps used).
+        total: the container's frame count, or None.
+        first_ms: timestamp of the first decoded frame (ms).
+        first_index: index of the first decoded frame (the failed reads before it).
+    """
+
+    def __init__(
+        self, fps: float | None, total: int | None, first_ms: float, first_index: int = 0
+    ) -> None:
+        self.fps, self.total, self.t0, self.k0 = fps, total, first_ms, first_index
+        self.trusted: bool | None = None if fps else False  # None: not decided yet
+        self.last = (first_index, first_ms)  # (index, timestamp) of the last decoded frame
+
+    def index(self, t_ms: float, at_least: int) -> int:
+        """The index of the frame just decoded (timestamp ``t_ms``): ``at_least`` unless the
+        trusted timestamps place it later."""
+        if self.trusted is None and at_least == self.last[0] + 1:
+            self.trusted = abs((t_ms - self.last[1]) * self.fps / 1000.0 - 1.0) < _PTS_TOLERANCE
+        k = at_least
+        if self.trusted:
+            est = round(self.k0 + (t_ms - self.t0) * self.fps / 1000.0)
+            if at_least < est and (self.total is None or est < self.total):
+                k = est
+        self.last = (k, t_ms)
+        return k
+
+
+def _open_indexed_avi(path: Path) -> FrameSource | None:
+    """A Motion-JPEG AVI read through its index (:mod:`perception.avi`), or None when the file
+    is not one or none of its first frames decodes (then ``cv2.VideoCapture`` reads it)."""
+    index = mjpeg_avi_index(path)
+    if index is None:
+        return None
+    with path.open("rb") as fh:
+        n = min(len(index.frames), MAX_CONSECUTIVE_VIDEO_FAILURES)
+        if all(index.decode(fh, k) is None for k in range(n)):
+            return None
+    return FrameSource(path, "video", len(index.frames), index.fps, _avi=index)
 
 
 def _open_video(path: Path) -> FrameSource:
-    cap, first = open_video(path)
+    """Open a video and decode its first decodable frame (quietly).
+
+    Unlike :func:`dockcore.media.open_video`, a corrupt first frame does not refuse the whole
+    video: up to ``MAX_CONSECUTIVE_VIDEO_FAILURES`` leading frames may fail (they are yielded
+    as corrupt frames 0, 1, ...).
+
+    Raises:
+        DockError: not a video, or no decodable frame among the first ones.
+    """
+    with quiet_native_stderr():
+        cap = cv2.VideoCapture(str(path))
+        ok, first, leading = False, None, 0
+        while cap.isOpened() and leading < MAX_CONSECUTIVE_VIDEO_FAILURES:
+            ok, first = cap.read()
+            if ok and first is not None:
+                break
+            leading += 1
+    if not ok or first is None:
+        cap.release()
+        raise DockError(f"cannot read video {path} (not a video, or no decodable frame)")
     count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
     fps = float(cap.get(cv2.CAP_PROP_FPS))
     return FrameSource(
@@ -140,6 +268,7 @@ def _open_video(path: Path) -> FrameSource:
         fps if np.isfinite(fps) and fps > 0 else None,
         _cap=cap,
         _first=first,
+        _leading=leading,
     )
 
 
@@ -166,7 +295,7 @@ def open_frames(path: str | os.PathLike[str]) -> FrameSource:
         if read_image(path) is None:
             raise DockError(f"cannot read image {path} (corrupt or not an image)")
         return FrameSource(path, "image", 1, _files=[path])
-    return _open_video(path)
+    return _open_indexed_avi(path) or _open_video(path)
 
 
 class AnnotatedVideoWriter(AtomicVideoWriter):
@@ -218,10 +347,11 @@ def _text(img: np.ndarray, text: str, org: tuple[int, int], scale: float, colour
 
 def _axes(img, camera: CameraModel, T: np.ndarray, length_m: float, thickness: int) -> None:
     rvec = cv2.Rodrigues(np.ascontiguousarray(T[:3, :3]))[0]
-    try:
-        cv2.drawFrameAxes(
-            img, camera.K, camera.dist_coeffs, rvec, T[:3, 3].copy(), length_m, thickness
-        )
+    try:  # quiet: OpenCV warns on stderr when an axis ends outside the image
+        with quiet_native_stderr():
+            cv2.drawFrameAxes(
+                img, camera.K, camera.dist_coeffs, rvec, T[:3, 3].copy(), length_m, thickness
+            )
     except cv2.error:  # axes projecting far outside the image: nothing useful to draw
         pass
 

@@ -141,6 +141,20 @@ class EnvConfig:
             raise ValueError("spawn_auv_height_m: the AUV would spawn above the water surface")
         if self.obs_source == "error-model" and not self.error_model_path:
             raise ValueError("error_model_path: required for obs_source 'error-model'")
+        from sim.vehicle import Hydrodynamics
+
+        # the physics substep must keep the damping stable for every vehicle the env may draw
+        limit_s = Hydrodynamics(self.vehicle).stable_substep_s()
+        if self.randomise_vehicle:
+            r = self.vehicle_randomisation
+            shrink = 1 - max(r.mass_rel, r.inertia_rel, r.added_mass_rel)
+            limit_s *= shrink / (1 + r.damping_rel)
+        if not 1.0 / self.physics_hz < limit_s:
+            raise ValueError(
+                f"vehicle.linear_damping: too stiff for physics_hz {self.physics_hz:g} (the "
+                f"vehicle's damping and mass need a substep < {limit_s:.3g} s, randomised draws "
+                "included): lower the damping, raise the mass or physics_hz"
+            )
         from sim.water import PRESET_ORDER
 
         if self.water_preset not in PRESET_ORDER:

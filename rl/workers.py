@@ -13,6 +13,7 @@ What this adds to SB3's ``SubprocVecEnv``:
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 import signal
 import tempfile
@@ -104,10 +105,17 @@ class EnvWorkers:
             _make_env_fn(env_cfg, seed + i, i, str(Path(self._dir.name) / f"env{i}.err"), parent)
             for i in range(n_envs)
         ]
+        before = set(multiprocessing.active_children())
         try:
             self.venv = SubprocVecEnv(fns, start_method="fork" if os.name == "posix" else "spawn")
         except (EOFError, ConnectionError, BrokenPipeError) as exc:
+            # the half-built VecEnv is gone: find its workers among this process's children
+            self._orphans = [p for p in multiprocessing.active_children() if p not in before]
             self.raise_worker_error(exc)
+
+    def _processes(self) -> list:
+        venv = getattr(self, "venv", None)
+        return list(getattr(venv, "processes", []) or []) + list(getattr(self, "_orphans", []))
 
     def worker_errors(self) -> list[str]:
         """The reasons written by failed workers so far."""
@@ -123,6 +131,11 @@ class EnvWorkers:
     def raise_worker_error(self, exc: BaseException) -> None:
         """Raise a :class:`WorkerError` with the workers' reasons (``exc``: what the parent
         saw, used when no worker left a reason)."""
+        import time
+
+        deadline = time.monotonic() + 3.0  # let the other failing workers write their reason
+        for p in self._processes():
+            p.join(timeout=max(0.0, deadline - time.monotonic()))
         reasons = self.worker_errors()
         self.close(force=True)
         what = "; ".join(reasons) if reasons else f"a worker process died ({_reason(exc)})"
@@ -131,7 +144,7 @@ class EnvWorkers:
     def close(self, force: bool = False) -> None:
         """Close the envs; with ``force`` (or if they do not answer), terminate the workers."""
         venv = getattr(self, "venv", None)
-        procs = list(getattr(venv, "processes", []) or [])
+        procs = self._processes()
         if venv is not None and not force:
             try:
                 venv.close()

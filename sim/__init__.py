@@ -13,4 +13,5 @@ Modules:
     render:          the headless downward camera and ground-truth marker projection.
     water:           underwater image formation (attenuation, backscatter, blur, noise, JPEG).
     episode:         a video of a docking episode (``sim episode``).
+    domains:         value domains shared by these modules' configs (``dockcore.domains``).
 """

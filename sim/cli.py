@@ -12,13 +12,18 @@ from pathlib import Path
 
 import click
 
-from dockcore.cli import run_group
+from datasets.synth import SynthConfig, Workers
+from dockcore.cli import CONTEXT, domain_type, field_type, run_group
+from dockcore.domains import Seed
 from dockcore.errors import DockError
+from rl.config import EnvConfig
+from sim.episode import EpisodeVideoConfig
 
-_CTX = {"help_option_names": ["-h", "--help"]}
+#: ``sim episode``'s values of EnvConfig fields that neither a flag nor ``--config`` sets.
+_EPISODE_DEFAULTS = {"episode_s": 30.0, "camera_width_px": 484}
 
 
-@click.group(context_settings=_CTX)
+@click.group(context_settings=CONTEXT)
 def cli() -> None:
     """Simulation: SAPIEN AUV and docking-station physics, underwater camera rendering."""
 
@@ -33,7 +38,7 @@ def _water_choice(water: str | None, allow_random: bool) -> str:
     return name
 
 
-@cli.command(context_settings=_CTX)
+@cli.command(context_settings=CONTEXT)
 @click.option(
     "--out",
     "out_dir",
@@ -41,7 +46,12 @@ def _water_choice(water: str | None, allow_random: bool) -> str:
     type=click.Path(file_okay=False, path_type=Path),
     help="Output folder (images/, labels.jsonl, camera, marker set, dataset.json).",
 )
-@click.option("--n", "n_frames", type=int, help="Random poses to render [default: 8].")
+@click.option(
+    "--n",
+    "n_frames",
+    type=field_type(SynthConfig, "n_frames"),
+    help="Random poses to render [default: 8].",
+)
 @click.option(
     "--poses",
     "poses_csv",
@@ -50,11 +60,17 @@ def _water_choice(water: str | None, allow_random: bool) -> str:
     "roll_deg,pitch_deg,yaw_deg (DS origin at 0,0,4.98).",
 )
 @click.option("--water", help="Water preset, 'random' or 'none' [default: none].")
-@click.option("--width", "width_px", type=int, default=0, help="Render width in px [camera's].")
-@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
+@click.option(
+    "--width",
+    "width_px",
+    type=field_type(SynthConfig, "width_px"),
+    default=0,
+    help="Render width in px, 16-8192 [0: the camera's].",
+)
+@click.option("--seed", type=field_type(SynthConfig, "seed"), default=0, show_default=True)
 @click.option("--camera", "camera_file", type=click.Path(dir_okay=False), help="Camera file.")
 @click.option("--markers", "marker_set_path", type=click.Path(dir_okay=False), help="Marker set.")
-@click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True)
+@click.option("--workers", type=domain_type(Workers), default=1, show_default=True)
 @click.option("--quiet", is_flag=True, help="No progress bar; print only the folder.")
 def render(
     out_dir, n_frames, poses_csv, water, width_px, seed, camera_file, marker_set_path, workers,
@@ -62,25 +78,32 @@ def render(
 ) -> None:  # fmt: skip
     """Render images (+ labels.jsonl in the dataset format) for given or random poses."""
     from datasets.loaders import load_poses_csv
-    from datasets.synth import SynthConfig, generate
+    from datasets.synth import generate
+    from dockcore.config import from_dict
 
     if n_frames is not None and poses_csv is not None:
         raise DockError("give either --n or --poses, not both")
     poses = load_poses_csv(poses_csv) if poses_csv is not None else None
     n = len(poses) if poses is not None else (8 if n_frames is None else n_frames)
-    try:
-        cfg = SynthConfig(
-            n_frames=n,
-            seed=seed,
-            water=_water_choice(water, allow_random=True),
-            camera_file=camera_file,
-            width_px=width_px,
-            marker_set_path=marker_set_path,
-        )
-        cfg.validate()
-    except ValueError as exc:
-        raise DockError(str(exc)) from None
-    result = generate(out_dir, cfg, workers=workers, poses=poses, progress=False if quiet else None)
+    cfg = from_dict(
+        SynthConfig,
+        {
+            "n_frames": n,
+            "seed": seed,
+            "water": _water_choice(water, allow_random=True),
+            "camera_file": camera_file,
+            "width_px": width_px,
+            "marker_set_path": marker_set_path,
+        },
+    )
+    result = generate(
+        out_dir,
+        cfg,
+        workers=workers,
+        poses=poses,
+        progress=False if quiet else None,
+        tool="sim render",
+    )
     if quiet:
         click.echo(str(result.out_dir))
     else:
@@ -90,7 +113,7 @@ def render(
         )
 
 
-@cli.command(context_settings=_CTX)
+@cli.command(context_settings=CONTEXT)
 @click.option(
     "--out",
     "out_dir",
@@ -99,27 +122,27 @@ def render(
     help="Output folder (episode.mp4, summary.json, config.toml, provenance.json).",
 )
 @click.option("--controller", type=click.Choice(["pid"]), default="pid", show_default=True)
-@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
+@click.option(
+    "--seed", type=domain_type(Seed), default=0, show_default=True, help="Env reset seed."
+)
 @click.option("--water", help="Water of the downward view: a preset or 'none' [coastal].")
 @click.option(
     "--seconds",
-    type=click.FloatRange(min=0.0, min_open=True),
-    default=30.0,
-    show_default=True,
-    help="Episode length (s); it ends earlier on docking.",
+    type=field_type(EnvConfig, "episode_s"),
+    help="Episode length (s); it ends earlier on docking [default: the --config's episode_s, "
+    f"else {_EPISODE_DEFAULTS['episode_s']:g}].",
 )
 @click.option(
     "--width",
     "width_px",
-    type=click.IntRange(min=16),
-    default=484,
-    show_default=True,
-    help="Downward camera render width (px).",
+    type=field_type(EnvConfig, "camera_width_px"),
+    help="Downward camera render width (px) [default: the --config's camera_width_px, else "
+    f"{_EPISODE_DEFAULTS['camera_width_px']}].",
 )
 @click.option(
     "--outside-width",
     "outside_width_px",
-    type=click.IntRange(min=16),
+    type=field_type(EpisodeVideoConfig, "outside_width_px"),
     default=480,
     show_default=True,
     help="Outside view width (px; 4:3).",
@@ -138,49 +161,55 @@ def episode(
     downward camera (with water) and an outside view, plus summary.json."""
     from tqdm import tqdm
 
-    from dockcore.config import load_config
-    from dockcore.io import atomic_write_json, ensure_writable_dir
+    from dockcore.config import config_data, from_dict, load_config
+    from dockcore.io import atomic_write_json
+    from dockcore.outdir import claim_output_dir
     from dockcore.provenance import write_provenance
     from rl.baselines import PIDController
-    from rl.config import EnvConfig
     from rl.env import DockingEnv
-    from sim.episode import EpisodeVideoConfig, record_episode
+    from sim.episode import record_episode
     from sim.water import PRESETS
 
     water_name = _water_choice(water or "coastal", allow_random=False)
-    env_cfg = load_config(
-        EnvConfig,
-        config_path,
-        overrides={"episode_s": float(seconds), "camera_width_px": width_px},
-        section="env",
+    given = config_data(config_path, section="env") if config_path is not None else {}
+    flags = {"episode_s": seconds, "camera_width_px": width_px}
+    overrides = {  # a flag, else the file's value (None: not overridden), else our default
+        key: flags[key] if flags[key] is not None or key in given else default
+        for key, default in _EPISODE_DEFAULTS.items()
+    }
+    env_cfg = load_config(EnvConfig, config_path, overrides=overrides, section="env")
+    outside_height_px = max(16, round(outside_width_px * 3 / 4))
+    video_cfg = from_dict(
+        EpisodeVideoConfig,
+        {
+            "outside_width_px": outside_width_px,
+            "outside_height_px": outside_height_px,
+            "panel_height_px": outside_height_px,
+        },
     )
-    video_cfg = EpisodeVideoConfig(
-        outside_width_px=outside_width_px,
-        outside_height_px=max(16, round(outside_width_px * 3 / 4)),
-        panel_height_px=max(16, round(outside_width_px * 3 / 4)),
-    )
-    video_cfg.validate()
-    out = ensure_writable_dir(out_dir)
-    env = DockingEnv(env_cfg, render_mode="rgb_array")
-    policy = PIDController.for_env(env_cfg)
-    steps = round(env_cfg.episode_s * env_cfg.control_hz)
+    env = DockingEnv(env_cfg, render_mode="rgb_array")  # may still refuse the config
     try:
-        with tqdm(total=steps, unit="step", desc="episode", disable=True if quiet else None) as bar:
-            summary = record_episode(
-                env,
-                policy,
-                out,
-                seed=seed,
-                water=None if water_name == "none" else PRESETS[water_name],
-                water_name=water_name,
-                cfg=video_cfg,
-                on_step=lambda _k: bar.update(1),
-            )
+        with claim_output_dir(out_dir, "sim episode") as out:
+            policy = PIDController.for_env(env_cfg)
+            steps = round(env_cfg.episode_s * env_cfg.control_hz)
+            disable = True if quiet else None
+            with tqdm(total=steps, unit="step", desc="episode", disable=disable) as bar:
+                summary = record_episode(
+                    env,
+                    policy,
+                    out,
+                    seed=seed,
+                    water=None if water_name == "none" else PRESETS[water_name],
+                    water_name=water_name,
+                    cfg=video_cfg,
+                    on_step=lambda _k: bar.update(1),
+                )
+            summary["controller"] = controller
+            atomic_write_json(out / "summary.json", summary)
+            extra = {"summary": summary}
+            write_provenance(out, {"env": env_cfg, "video": video_cfg}, extra=extra)
     finally:
         env.close()
-    summary["controller"] = controller
-    atomic_write_json(out / "summary.json", summary)
-    write_provenance(out, {"env": env_cfg, "video": video_cfg}, extra={"summary": summary})
     if quiet:
         click.echo(str(out / summary["video"]))
         return

@@ -35,6 +35,7 @@ import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
 import sapien
@@ -42,10 +43,13 @@ from numpy.typing import ArrayLike
 from scipy.spatial import ConvexHull
 
 from calibration.frames import T_WORLDZUP_WORLDNED, check_T, make_T, pos_quat_from_T
-from dockcore.config import to_dict
+from dockcore.config import to_dict, validated
+from dockcore.domains import Interval
 from dockcore.errors import DockError
+from dockcore.io import TEMP_MARK, clean_stale_temps, temp_prefix
 from markers.config import MarkerConfig
 from markers.markerset import MarkerSet, load_marker_set
+from sim.domains import RGB, Friction, TankSide_m
 
 __all__ = [
     "DockingStation",
@@ -58,7 +62,10 @@ __all__ = [
     "sapien_pose",
 ]
 
-RGB = tuple[float, float, float]
+#: A dimension of the docking station (m).
+_DsLength = Annotated[float, Interval(gt=0, le=50)]
+#: A coordinate in the DS frame (m).
+_DsCoord = Annotated[float, Interval(ge=-50, le=50)]
 
 
 @dataclass(frozen=True)
@@ -108,55 +115,47 @@ class DockingStationConfig:
         restitution: restitution (0 = no bounce).
     """
 
-    cage_length_x_m: float = 1.94
-    cage_width_y_m: float = 2.28
-    cage_height_m: float = 1.64
-    frame_tube_m: float = 0.06
-    floor_thickness_m: float = 0.02
-    x_guide_x_m: float = 0.57
-    x_guide_half_span_y_m: float = 0.85
-    x_guide_peak_height_m: float = 1.277
-    x_guide_notch_height_m: float = 1.081
-    x_guide_notch_y_m: float = 0.425
-    x_guide_thickness_m: float = 0.02
-    y_guide_y_m: tuple[float, ...] = (-0.65, 0.65)
-    y_guide_thickness_m: float = 0.03
-    y_guide_support_height_m: float = 0.38
-    y_guide_support_half_width_m: float = 0.15
-    y_guide_post_inner_x_m: float = 0.50
-    y_guide_post_width_m: float = 0.05
-    y_guide_post_height_m: float = 1.22
+    cage_length_x_m: _DsLength = 1.94
+    cage_width_y_m: _DsLength = 2.28
+    cage_height_m: _DsLength = 1.64
+    frame_tube_m: _DsLength = 0.06
+    floor_thickness_m: _DsLength = 0.02
+    x_guide_x_m: _DsLength = 0.57
+    x_guide_half_span_y_m: _DsLength = 0.85
+    x_guide_peak_height_m: _DsLength = 1.277
+    x_guide_notch_height_m: _DsLength = 1.081
+    x_guide_notch_y_m: _DsLength = 0.425
+    x_guide_thickness_m: _DsLength = 0.02
+    y_guide_y_m: tuple[_DsCoord, ...] = (-0.65, 0.65)
+    y_guide_thickness_m: _DsLength = 0.03
+    y_guide_support_height_m: _DsLength = 0.38
+    y_guide_support_half_width_m: _DsLength = 0.15
+    y_guide_post_inner_x_m: _DsLength = 0.50
+    y_guide_post_width_m: _DsLength = 0.05
+    y_guide_post_height_m: _DsLength = 1.22
     entry_guides: bool = True
-    entry_guide_length_m: float = 0.25
-    entry_guide_angle_deg: float = 40.0
+    entry_guide_length_m: _DsLength = 0.25
+    entry_guide_angle_deg: Annotated[float, Interval(ge=0, lt=90)] = 40.0
     marker_set_path: str | None = None
     marker_supports: bool = True
-    bracket_min_height_m: float = 0.8
+    bracket_min_height_m: Annotated[float, Interval(ge=0, le=50)] = 0.8
     frame_rgb: RGB = (0.78, 0.66, 0.22)
     guide_rgb: RGB = (0.55, 0.56, 0.58)
-    tank_length_m: float = 19.0
-    tank_width_m: float = 9.0
-    tank_depth_m: float = 5.0
-    tank_wall_thickness_m: float = 0.2
+    tank_length_m: TankSide_m = 19.0
+    tank_width_m: TankSide_m = 9.0
+    tank_depth_m: TankSide_m = 5.0
+    tank_wall_thickness_m: Annotated[float, Interval(gt=0, le=10)] = 0.2
     tank_floor_rgb: RGB = (0.58, 0.52, 0.40)
     tank_wall_rgb: RGB = (0.50, 0.53, 0.56)
-    static_friction: float = 0.6
-    dynamic_friction: float = 0.5
-    restitution: float = 0.0
+    static_friction: Friction = 0.6
+    dynamic_friction: Friction = 0.5
+    restitution: Annotated[float, Interval(ge=0, le=1)] = 0.0
 
     def validate(self) -> None:
-        """Raise ValueError naming the first inconsistent field."""
-        positive = (
-            "cage_length_x_m cage_width_y_m cage_height_m frame_tube_m floor_thickness_m "
-            "x_guide_x_m x_guide_half_span_y_m x_guide_notch_height_m x_guide_notch_y_m "
-            "x_guide_thickness_m y_guide_thickness_m y_guide_support_height_m "
-            "y_guide_support_half_width_m y_guide_post_width_m y_guide_post_height_m "
-            "entry_guide_length_m tank_length_m tank_width_m tank_depth_m tank_wall_thickness_m"
-        ).split()
-        for name in positive:
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v > 0):
-                raise ValueError(f"{name}: must be > 0, got {v!r}")
+        """Raise ValueError naming the first inconsistent field (comparisons fail on NaN; each
+        field's own range is its declared domain, checked by the loader and by
+        :func:`dockcore.config.validated` in :func:`build_docking_station` and
+        :func:`build_tank`)."""
         if not self.x_guide_notch_y_m < self.x_guide_half_span_y_m:
             raise ValueError("x_guide_notch_y_m: must be < x_guide_half_span_y_m")
         if not self.x_guide_notch_height_m < self.x_guide_peak_height_m:
@@ -165,17 +164,21 @@ class DockingStationConfig:
             raise ValueError("x_guide_x_m: the X-guides must be inside the cage")
         if not self.y_guide_post_inner_x_m > self.y_guide_support_half_width_m:
             raise ValueError("y_guide_post_inner_x_m: posts must be outside the central support")
-        if not 0.0 <= self.entry_guide_angle_deg < 90.0:
-            raise ValueError("entry_guide_angle_deg: must be in [0, 90)")
-        if self.cage_length_x_m >= self.tank_length_m or self.cage_width_y_m >= self.tank_width_m:
+        if not len(self.y_guide_y_m) <= 16:
+            raise ValueError(f"y_guide_y_m: at most 16 cradles, got {len(self.y_guide_y_m)}")
+        if not self.frame_tube_m < min(self.cage_length_x_m, self.cage_width_y_m) / 2:
+            raise ValueError("frame_tube_m: must be < half the cage's length and width")
+        if not self.frame_tube_m < self.cage_height_m:
+            raise ValueError("frame_tube_m: must be < cage_height_m")
+        if not (
+            self.cage_length_x_m < self.tank_length_m and self.cage_width_y_m < self.tank_width_m
+        ):
             raise ValueError("tank_length_m / tank_width_m: the DS must fit in the tank")
-        for name in ("frame_rgb", "guide_rgb", "tank_floor_rgb", "tank_wall_rgb"):
-            rgb = getattr(self, name)
-            if len(rgb) != 3 or not all(0.0 <= float(c) <= 1.0 for c in rgb):
-                raise ValueError(f"{name}: expected 3 values in [0, 1], got {rgb!r}")
-        for name in ("static_friction", "dynamic_friction", "restitution"):
-            if not getattr(self, name) >= 0.0:
-                raise ValueError(f"{name}: must be >= 0")
+        if not self.cage_height_m + self.floor_thickness_m < self.tank_depth_m:
+            raise ValueError(
+                f"tank_depth_m: the DS ({self.cage_height_m + self.floor_thickness_m:g} m high) "
+                f"must fit below the water surface, got {self.tank_depth_m:g} m"
+            )
 
     def x_guide_profile(self) -> tuple[np.ndarray, np.ndarray]:
         """Top edge of an X-guide plate: (y_m (5,), height_m (5,)) from -y to +y."""
@@ -250,7 +253,8 @@ def default_marker_set(cache_dir: str | os.PathLike[str] | None = None) -> Marke
     """The reference marker set (``MarkerConfig()`` defaults) with its render meshes.
 
     Generated once with :func:`markers.generate.generate` (deterministic, offline, ~3 s) into
-    ``<cache>/markers-<hash of the config>/`` and loaded from there afterwards. The cache is
+    ``<cache>/markers-<hash of the config>/`` (through a temporary folder renamed when complete;
+    those of killed processes are removed) and loaded from there afterwards. The cache is
     ``cache_dir``, else ``$UWDOCK_CACHE_DIR``, else ``$XDG_CACHE_HOME/uwdock`` or
     ``~/.cache/uwdock``.
     """
@@ -262,7 +266,8 @@ def default_marker_set(cache_dir: str | os.PathLike[str] | None = None) -> Marke
     final = root / f"markers-{digest}"
     if not (final / MARKER_SET_NAME).is_file():
         root.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=".markers-", dir=root))
+        clean_stale_temps(root, recursive=False)  # folders of generations that were killed
+        tmp = Path(tempfile.mkdtemp(prefix=temp_prefix("markers"), suffix=TEMP_MARK, dir=root))
         try:
             generate(cfg, tmp)
             try:
@@ -529,8 +534,7 @@ def build_docking_station(
         ValueError: invalid ``cfg`` or pose.
         DockError / ConfigError: unreadable marker set or a marker without render mesh.
     """
-    cfg = cfg or DockingStationConfig()
-    cfg.validate()
+    cfg = validated(cfg or DockingStationConfig())
     ms = resolve_marker_set(cfg, marker_set, cache_dir)
     T = default_T_worldned_ds(cfg) if T_worldned_ds is None else check_T(T_worldned_ds, "T_ds")
     body = _StaticBody(_physx_material(cfg), visual=visual)
@@ -561,8 +565,7 @@ def build_tank(
     Returns:
         The static tank entity (frame = world_ned).
     """
-    cfg = cfg or DockingStationConfig()
-    cfg.validate()
+    cfg = validated(cfg or DockingStationConfig())
     body = _StaticBody(_physx_material(cfg), visual=visual)
     floor, wall = _render_material(cfg.tank_floor_rgb, 0.95), _render_material(cfg.tank_wall_rgb)
     hx, hy, d, t = (

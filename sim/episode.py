@@ -29,7 +29,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Annotated, Any, Protocol
 
 import cv2
 import numpy as np
@@ -37,10 +37,13 @@ import sapien
 
 from calibration.camera import CameraModel
 from calibration.frames import inv_T, make_T, transform_points
+from dockcore.config import validated
+from dockcore.domains import Interval
 from dockcore.errors import DockError
 from dockcore.media import AtomicVideoWriter
+from sim.domains import RGB
 from sim.render import CameraRig, RenderConfig
-from sim.water import WaterConfig, apply_water, preset
+from sim.water import PRESETS, WaterConfig, apply_water, preset
 
 __all__ = [
     "EpisodeVideoConfig",
@@ -49,6 +52,12 @@ __all__ = [
     "look_at",
     "record_episode",
 ]
+
+
+#: A side of a view of the video (px): 4096 x 4096 renders fit in memory and in an MP4.
+VideoSide_px = Annotated[int, Interval(ge=16, le=4096)]
+#: A coordinate of the outside camera relative to the DS (m).
+_Offset_m = Annotated[float, Interval(ge=-1000, le=1000)]
 
 
 @dataclass(frozen=True)
@@ -72,27 +81,30 @@ class EpisodeVideoConfig:
         overlay: draw the text lines and the vehicle axes.
     """
 
-    outside_width_px: int = 480
-    outside_height_px: int = 360
-    outside_hfov_deg: float = 70.0
-    outside_offset_m: tuple[float, float, float] = (-6.0, -3.5, -4.3)
-    outside_sun_intensity: float = 1.5
+    outside_width_px: VideoSide_px = 480
+    outside_height_px: VideoSide_px = 360
+    outside_hfov_deg: Annotated[float, Interval(gt=0, lt=170)] = 70.0
+    outside_offset_m: tuple[_Offset_m, _Offset_m, _Offset_m] = (-6.0, -3.5, -4.3)
+    outside_sun_intensity: Annotated[float, Interval(ge=0, le=100)] = 1.5
     outside_haze: str | None = "clear_tank"
-    outside_haze_scale: float = 0.35
-    panel_height_px: int = 360
-    vehicle_rgb: tuple[float, float, float] = (0.95, 0.45, 0.08)
+    outside_haze_scale: Annotated[float, Interval(ge=0, le=10)] = 0.35
+    panel_height_px: VideoSide_px = 360
+    vehicle_rgb: RGB = (0.95, 0.45, 0.08)
     overlay: bool = True
 
     def validate(self) -> None:
-        """Raise ValueError naming the first invalid field."""
+        """Raise ValueError naming the first invalid field (comparisons fail on NaN)."""
         for name in ("outside_width_px", "outside_height_px", "panel_height_px"):
-            if getattr(self, name) < 16:
+            if not getattr(self, name) >= 16:
                 raise ValueError(f"{name}: must be >= 16, got {getattr(self, name)}")
         if not 0.0 < self.outside_hfov_deg < 170.0:
             raise ValueError(f"outside_hfov_deg: must be in (0, 170), got {self.outside_hfov_deg}")
-        if self.outside_haze is not None:
-            preset(self.outside_haze)
-        if self.outside_haze_scale < 0.0:
+        if self.outside_haze is not None and self.outside_haze not in PRESETS:
+            raise ValueError(
+                f"outside_haze: unknown water preset {self.outside_haze[:100]!r}; known: "
+                f"{', '.join(PRESETS)}"
+            )
+        if not self.outside_haze_scale >= 0.0:
             raise ValueError(f"outside_haze_scale: must be >= 0, got {self.outside_haze_scale}")
 
 
@@ -286,8 +298,9 @@ def record_episode(
         detected (``info["detected"]``), video name, fps.
         One video frame per control step plus the initial one.
     """
-    cfg = cfg or EpisodeVideoConfig()
-    cfg.validate()
+    cfg = validated(cfg or EpisodeVideoConfig())
+    if water is not None:
+        water = validated(water)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 1]))

@@ -56,6 +56,7 @@ from calibration.frames import (
     ned_pose_to_zup,
     pos_quat_from_T,
 )
+from dockcore.errors import ConfigError
 from sim.fastpath import (
     StaticObstacles,
     body_params,
@@ -191,6 +192,13 @@ class VehicleBody:
         self.config = config
         self.nominal_config = nominal_config if nominal_config is not None else config
         self.hydro = Hydrodynamics(config)
+        limit_s = self.hydro.stable_substep_s()
+        if not self.dt_s < limit_s:
+            raise ConfigError(
+                f"linear_damping: too stiff for the physics substep of {self.dt_s:.3g} s "
+                f"(this vehicle's damping and mass need a substep < {limit_s:.3g} s): lower "
+                "the damping, raise the mass or the physics rate"
+            )
         self._P = hydro_params(self.hydro)
         self.thrusters = ThrusterArray(config.thrusters)
         self.allocator = ThrusterArray(self.nominal_config.thrusters)

@@ -24,6 +24,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
 
 import cv2
 import numpy as np
@@ -32,6 +33,9 @@ from numpy.typing import ArrayLike
 
 from calibration.camera import REFERENCE_T_BODYFRD_CAMCV, CameraModel, reference_camera
 from calibration.frames import T_CAMCV_CAMSAPIEN, check_T, inv_T, transform_points
+from dockcore.config import validated
+from dockcore.domains import Interval
+from dockcore.errors import DockError
 from markers.markerset import MarkerSet
 from sim.docking_station import (
     DockingStation,
@@ -40,6 +44,7 @@ from sim.docking_station import (
     build_tank,
     sapien_pose,
 )
+from sim.domains import RGB, BodyCoord_m
 
 __all__ = [
     "CameraRig",
@@ -52,13 +57,43 @@ __all__ = [
 ]
 
 
+#: Ambient light (SAPIEN radiance units: 1 lights a white surface fully).
+_Ambient = Annotated[float, Interval(ge=0, le=10)]
+
+#: SAPIEN's own shaders this module reads pictures from (``Color`` and a position buffer).
+SHADERS: tuple[str, ...] = ("minimal", "default")
+
+
+def shader_dir(shader: str) -> str:
+    """The folder of a rasterisation shader: one of :data:`SHADERS` (shipped with SAPIEN) or
+    the path of a shader folder (holding ``gbuffer.vert``).
+
+    Raises:
+        ValueError: one line ``shader: ...`` naming the choices.
+    """
+    if shader in SHADERS:
+        return str(Path(sapien.__file__).parent / "vulkan_shader" / shader)
+    try:
+        found = bool(shader) and (Path(shader) / "gbuffer.vert").is_file()
+    except (OSError, ValueError):  # a name too long for the file system, a NUL byte
+        found = False
+    if not found:
+        raise ValueError(
+            f"shader: must be {' or '.join(SHADERS)} or a shader folder holding gbuffer.vert, "
+            f"got {shader[:200]!r}"
+        )
+    return shader
+
+
 @dataclass(frozen=True)
 class RenderConfig:
     """Renderer and lighting settings.
 
     Attributes:
         shader: SAPIEN camera shader: ``minimal`` (fast forward shading, ~2.5x faster on the CPU,
-            range quantised to 1 mm), ``default`` (SAPIEN's deferred PBR) or a shader folder path.
+            range quantised to 1 mm), ``default`` (SAPIEN's deferred PBR) or the path of a
+            shader folder (with ``gbuffer.vert``; one SAPIEN cannot use is an error when the
+            camera is built).
         near_m: near clipping distance (m).
         far_m: far clipping distance (m); farther surfaces count as "no hit".
         ambient_rgb: ambient light (SAPIEN units: adds ``ambient * albedo`` to the radiance).
@@ -72,20 +107,22 @@ class RenderConfig:
     """
 
     shader: str = "minimal"
-    near_m: float = 0.05
-    far_m: float = 60.0
-    ambient_rgb: tuple[float, float, float] = (0.18, 0.18, 0.18)
+    near_m: Annotated[float, Interval(ge=0.001, le=100)] = 0.05
+    far_m: Annotated[float, Interval(gt=0, le=10_000)] = 60.0
+    ambient_rgb: tuple[_Ambient, _Ambient, _Ambient] = (0.18, 0.18, 0.18)
     lamp: bool = True
-    lamp_intensity: float = 14.0
-    lamp_rgb: tuple[float, float, float] = (1.0, 0.97, 0.92)
-    lamp_offset_camcv_m: tuple[float, float, float] = (0.0, -0.10, 0.0)
-    lamp_fov_deg: float | None = None
+    lamp_intensity: Annotated[float, Interval(ge=0, le=10_000)] = 14.0
+    lamp_rgb: RGB = (1.0, 0.97, 0.92)
+    lamp_offset_camcv_m: tuple[BodyCoord_m, BodyCoord_m, BodyCoord_m] = (0.0, -0.10, 0.0)
+    lamp_fov_deg: Annotated[float, Interval(gt=0, lt=180)] | None = None
 
     def validate(self) -> None:
-        """Raise ValueError naming the first invalid field."""
+        """Raise ValueError naming the first invalid field (comparisons fail on NaN)."""
+        shader_dir(self.shader)
         if not 0.0 < self.near_m < self.far_m:
             raise ValueError(f"near_m, far_m: need 0 < near < far, got {self.near_m}, {self.far_m}")
-        if self.lamp_intensity < 0.0 or min(self.ambient_rgb) < 0.0 or min(self.lamp_rgb) < 0.0:
+        values = (self.lamp_intensity, *self.ambient_rgb, *self.lamp_rgb)
+        if not all(v >= 0.0 for v in values):
             raise ValueError("lamp_intensity, ambient_rgb, lamp_rgb: must be >= 0")
         if self.lamp_fov_deg is not None and not 0.0 < self.lamp_fov_deg < 180.0:
             raise ValueError(f"lamp_fov_deg: must be in (0, 180), got {self.lamp_fov_deg}")
@@ -112,15 +149,6 @@ class RenderResult:
     camera: CameraModel
 
 
-def _shader_dir(shader: str) -> str:
-    path = Path(shader)
-    if not path.is_dir():
-        path = Path(sapien.__file__).parent / "vulkan_shader" / shader
-    if not (path / "gbuffer.vert").is_file():
-        raise ValueError(f"shader: no rasterisation shader folder {shader!r}")
-    return str(path)
-
-
 class CameraRig:
     """A SAPIEN camera (plus lamp) that follows a vehicle pose.
 
@@ -140,17 +168,19 @@ class CameraRig:
         cfg: RenderConfig | None = None,
         name: str = "downward_camera",
     ) -> None:
-        self.cfg = cfg or RenderConfig()
-        self.cfg.validate()
+        self.cfg = validated(cfg or RenderConfig())
         self.camera = camera_model or reference_camera()
         self.camera.validate()
         T_bc = REFERENCE_T_BODYFRD_CAMCV if T_bodyfrd_camcv is None else T_bodyfrd_camcv
         self.T_bodyfrd_camcv = check_T(T_bc, "T_bodyfrd_camcv")
         self.scene = scene
         cam = self.camera
-        self._component = sapien.render.RenderCameraComponent(
-            cam.width_px, cam.height_px, _shader_dir(self.cfg.shader)
-        )
+        try:  # SAPIEN parses the shader here and when the camera joins the scene
+            self._component = sapien.render.RenderCameraComponent(
+                cam.width_px, cam.height_px, shader_dir(self.cfg.shader)
+            )
+        except RuntimeError as exc:
+            raise _camera_error(self.cfg.shader, exc) from None
         self._component.set_perspective_parameters(
             self.cfg.near_m,
             self.cfg.far_m,
@@ -167,7 +197,10 @@ class CameraRig:
         if self.cfg.lamp:
             self.lamp = self._make_lamp()
             self.entity.add_component(self.lamp)
-        scene.add_entity(self.entity)
+        try:
+            scene.add_entity(self.entity)
+        except RuntimeError as exc:
+            raise _camera_error(self.cfg.shader, exc) from None
         self._maps = _distortion_maps(cam) if np.any(cam.dist_coeffs != 0.0) else None
         self._minimal: bool | None = None  # known after the first picture (names segfault before)
         v, u = np.mgrid[0 : cam.height_px, 0 : cam.width_px].astype(np.float64)
@@ -257,6 +290,12 @@ class CameraRig:
             return depth, hit
         pos = comp.get_picture("Position")  # float32 (x, y, z, depth buffer value in [0, 1])
         return -pos[:, :, 2], pos[:, :, 3] < 1.0
+
+
+def _camera_error(shader: str, exc: RuntimeError) -> DockError:
+    """One line for a camera SAPIEN refused (e.g. a shader folder it cannot compile)."""
+    reason = " ".join(str(exc).split())[:300] or type(exc).__name__
+    return DockError(f"cannot set up a camera with the shader {shader!r}: {reason}")
 
 
 def _distortion_maps(cam: CameraModel) -> tuple[np.ndarray, np.ndarray]:
@@ -421,8 +460,7 @@ def make_render_scene(
     Returns:
         The :class:`RenderScene`.
     """
-    render_cfg = render_cfg or RenderConfig()
-    render_cfg.validate()
+    render_cfg = validated(render_cfg or RenderConfig())
     scene = scene if scene is not None else sapien.Scene()
     scene.ambient_light = list(render_cfg.ambient_rgb)
     tank = build_tank(scene, ds_cfg, surface_lid=surface_lid)

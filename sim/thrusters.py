@@ -30,9 +30,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from typing import Annotated
 
 import numpy as np
 from numpy.typing import ArrayLike
+
+from dockcore.domains import Interval
+from sim.domains import BodyCoord_m, RelativeRange, validate_each
 
 __all__ = [
     "DEFAULT_THRUSTERS",
@@ -41,6 +45,11 @@ __all__ = [
     "ThrusterConfig",
     "ThrusterRandomisation",
 ]
+
+#: A component of a thrust direction (-); the axis is normalised on use.
+_AxisComponent = Annotated[float, Interval(ge=-1, le=1)]
+#: A wrench-axis weight of the least-squares allocation (-).
+_Weight = Annotated[float, Interval(ge=0, le=1e6)]
 
 
 @dataclass(frozen=True)
@@ -56,19 +65,19 @@ class ThrusterConfig:
     """
 
     name: str
-    position_m: tuple[float, float, float]
-    axis: tuple[float, float, float]
-    max_thrust_n: float = 140.0
-    time_constant_s: float = 0.2
+    position_m: tuple[BodyCoord_m, BodyCoord_m, BodyCoord_m]
+    axis: tuple[_AxisComponent, _AxisComponent, _AxisComponent]
+    max_thrust_n: Annotated[float, Interval(gt=0, le=1e5)] = 140.0
+    time_constant_s: Annotated[float, Interval(ge=0, le=100)] = 0.2
 
     def validate(self) -> None:
         """Raise ValueError on a zero axis or a non-positive limit or time constant."""
-        if float(np.linalg.norm(self.axis)) < 1e-9:
-            raise ValueError(f"thruster {self.name}: axis must be non-zero")
-        if self.max_thrust_n <= 0:
-            raise ValueError(f"thruster {self.name}: max_thrust_n must be > 0")
-        if self.time_constant_s < 0:
-            raise ValueError(f"thruster {self.name}: time_constant_s must be >= 0")
+        if not float(np.linalg.norm(self.axis)) >= 1e-9:  # also NaN
+            raise ValueError(f"axis: must be non-zero (thruster {self.name})")
+        if not self.max_thrust_n > 0:
+            raise ValueError(f"max_thrust_n: must be > 0 (thruster {self.name})")
+        if not self.time_constant_s >= 0:
+            raise ValueError(f"time_constant_s: must be >= 0 (thruster {self.name})")
 
 
 #: The five thrusters of the reference vehicle (reference.md section 3), body FRD.
@@ -93,7 +102,7 @@ class ThrusterArrayConfig:
     """
 
     thrusters: tuple[ThrusterConfig, ...] = DEFAULT_THRUSTERS
-    allocation_weights: tuple[float, float, float, float, float, float] = (
+    allocation_weights: tuple[_Weight, _Weight, _Weight, _Weight, _Weight, _Weight] = (
         1.0,
         1.0,
         1.0,
@@ -104,12 +113,12 @@ class ThrusterArrayConfig:
 
     def validate(self) -> None:
         """Raise ValueError on an empty array, a negative weight or a bad thruster."""
-        if not self.thrusters:
-            raise ValueError("thrusters: at least one thruster is needed")
-        if len(self.allocation_weights) != 6 or min(self.allocation_weights) < 0:
-            raise ValueError("allocation_weights: six values >= 0 expected")
-        for t in self.thrusters:
-            t.validate()
+        if not 1 <= len(self.thrusters) <= 32:
+            raise ValueError(f"thrusters: 1 to 32 thrusters, got {len(self.thrusters)}")
+        weights = self.allocation_weights
+        if len(weights) != 6 or not all(w >= 0 for w in weights) or not max(weights) > 0:
+            raise ValueError("allocation_weights: six values >= 0, at least one > 0, expected")
+        validate_each("thrusters", self.thrusters)
 
 
 @dataclass(frozen=True)
@@ -123,16 +132,17 @@ class ThrusterRandomisation:
         time_constant_rel: each time constant is scaled by 1 + U(-rel, rel).
     """
 
-    position_m: float = 0.01
-    axis_deg: float = 2.0
-    max_thrust_rel: float = 0.05
-    time_constant_rel: float = 0.2
+    position_m: Annotated[float, Interval(ge=0, le=1)] = 0.01
+    axis_deg: Annotated[float, Interval(ge=0, le=90)] = 2.0
+    max_thrust_rel: RelativeRange = 0.05
+    time_constant_rel: RelativeRange = 0.2
 
     def validate(self) -> None:
         """Raise ValueError on a negative range or a relative range >= 1."""
-        if min(self.position_m, self.axis_deg, self.max_thrust_rel, self.time_constant_rel) < 0:
+        ranges = (self.position_m, self.axis_deg, self.max_thrust_rel, self.time_constant_rel)
+        if not all(r >= 0 for r in ranges):  # also NaN
             raise ValueError("thruster randomisation ranges must be >= 0")
-        if self.max_thrust_rel >= 1 or self.time_constant_rel >= 1:
+        if not (self.max_thrust_rel < 1 and self.time_constant_rel < 1):
             raise ValueError("relative thruster randomisation ranges must be < 1")
 
     def sample(self, base: ThrusterArrayConfig, rng: np.random.Generator) -> ThrusterArrayConfig:

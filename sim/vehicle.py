@@ -24,12 +24,14 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from calibration.frames import check_R
+from dockcore.domains import Interval
+from sim.domains import BodyCoord_m, Friction, RelativeRange, validate_each
 from sim.thrusters import ThrusterArrayConfig, ThrusterRandomisation
 
 __all__ = [
@@ -46,6 +48,21 @@ __all__ = [
 
 Vec3 = tuple[float, float, float]
 Vec6 = tuple[float, float, float, float, float, float]
+
+#: A point in body FRD (m).
+_BodyPoint = tuple[BodyCoord_m, BodyCoord_m, BodyCoord_m]
+#: A half-extent or radius of a hull shape (m).
+_ShapeSize = Annotated[float, Interval(ge=0, le=10)]
+#: A moment of inertia (kg m^2).
+_Inertia = Annotated[float, Interval(ge=0.01, le=1e5)]
+#: A diagonal added-mass or damping coefficient (kg, kg m^2, N s/m, N m s/rad, ...).
+_Coefficient = Annotated[float, Interval(ge=0, le=1e5)]
+_Coefficients6 = tuple[
+    _Coefficient, _Coefficient, _Coefficient, _Coefficient, _Coefficient, _Coefficient
+]
+#: A water velocity component (m/s); the fastest tidal races run at about 5 m/s.
+_CurrentSpeed = Annotated[float, Interval(ge=-10, le=10)]
+_CurrentRange = tuple[_CurrentSpeed, _CurrentSpeed]
 
 
 def _skew(a: np.ndarray) -> np.ndarray:
@@ -66,15 +83,15 @@ class CollisionShape:
     """
 
     kind: Literal["box", "capsule"]
-    center_m: Vec3
-    size_m: Vec3
+    center_m: _BodyPoint
+    size_m: tuple[_ShapeSize, _ShapeSize, _ShapeSize]
     axis: Literal["x", "y", "z"] = "x"
 
     def validate(self) -> None:
         """Raise ValueError on non-positive sizes."""
         n = 3 if self.kind == "box" else 2
-        if min(self.size_m[:n]) <= 0:
-            raise ValueError(f"collision shape size_m must be > 0, got {self.size_m}")
+        if not all(v > 0 for v in self.size_m[:n]):  # also NaN
+            raise ValueError(f"size_m: the first {n} values must be > 0, got {self.size_m}")
 
 
 #: Three hulls (bottom, port top, starboard top), two frame plates and the four docking pegs
@@ -107,16 +124,16 @@ class ImuConfig:
         depth_noise_std_m: white noise on the depth (m).
     """
 
-    accel_noise_std_mps2: float = 0.05
-    accel_bias_std_mps2: float = 0.02
-    gyro_noise_std_radps: float = 0.002
-    gyro_bias_std_radps: float = 0.0005
-    velocity_noise_std_mps: float = 0.01
-    depth_noise_std_m: float = 0.02
+    accel_noise_std_mps2: Annotated[float, Interval(ge=0, le=10)] = 0.05
+    accel_bias_std_mps2: Annotated[float, Interval(ge=0, le=10)] = 0.02
+    gyro_noise_std_radps: Annotated[float, Interval(ge=0, le=1)] = 0.002
+    gyro_bias_std_radps: Annotated[float, Interval(ge=0, le=1)] = 0.0005
+    velocity_noise_std_mps: Annotated[float, Interval(ge=0, le=1)] = 0.01
+    depth_noise_std_m: Annotated[float, Interval(ge=0, le=5)] = 0.02
 
     def validate(self) -> None:
         """Raise ValueError on a negative standard deviation."""
-        if min(vars(self).values()) < 0:
+        if not all(v >= 0 for v in vars(self).values()):  # also NaN
             raise ValueError("imu noise standard deviations must be >= 0")
 
 
@@ -147,33 +164,35 @@ class VehicleConfig:
         imu: navigation sensor noise.
     """
 
-    mass_kg: float = 150.0
-    inertia_kgm2: Vec3 = (14.0, 25.0, 22.0)
-    cg_m: Vec3 = (0.0, 0.0, 0.11)
-    cb_m: Vec3 = (0.0, 0.0, -0.18)
-    net_buoyancy_kg: float = 3.0
-    added_mass: Vec6 = (49.0, 49.0, 49.0, 4.0, 8.0, 6.0)
-    linear_damping: Vec6 = (20.0, 20.0, 20.0, 130.0, 130.0, 130.0)
-    quadratic_damping: Vec6 = (148.0, 148.0, 148.0, 180.0, 180.0, 180.0)
-    gravity_mps2: float = 9.81
+    mass_kg: Annotated[float, Interval(ge=1, le=1e4)] = 150.0
+    inertia_kgm2: tuple[_Inertia, _Inertia, _Inertia] = (14.0, 25.0, 22.0)
+    cg_m: _BodyPoint = (0.0, 0.0, 0.11)
+    cb_m: _BodyPoint = (0.0, 0.0, -0.18)
+    net_buoyancy_kg: Annotated[float, Interval(ge=-1e4, le=1e4)] = 3.0
+    added_mass: _Coefficients6 = (49.0, 49.0, 49.0, 4.0, 8.0, 6.0)
+    linear_damping: _Coefficients6 = (20.0, 20.0, 20.0, 130.0, 130.0, 130.0)
+    quadratic_damping: _Coefficients6 = (148.0, 148.0, 148.0, 180.0, 180.0, 180.0)
+    gravity_mps2: Annotated[float, Interval(gt=0, le=100)] = 9.81
     collision: tuple[CollisionShape, ...] = DEFAULT_COLLISION
-    friction: float = 0.3
+    friction: Friction = 0.3
     thrusters: ThrusterArrayConfig = field(default_factory=ThrusterArrayConfig)
     imu: ImuConfig = field(default_factory=ImuConfig)
 
     def validate(self) -> None:
-        """Raise ValueError on a non-physical parameter."""
-        if self.mass_kg <= 0 or min(self.inertia_kgm2) <= 0:
+        """Raise ValueError on a non-physical parameter (comparisons written so NaN fails)."""
+        if not (self.mass_kg > 0 and all(v > 0 for v in self.inertia_kgm2)):
             raise ValueError("mass_kg and inertia_kgm2 must be > 0")
-        if self.mass_kg + self.net_buoyancy_kg < 0:
+        if not self.mass_kg + self.net_buoyancy_kg >= 0:
             raise ValueError("net_buoyancy_kg: buoyancy must be >= 0")
         for name in ("added_mass", "linear_damping", "quadratic_damping"):
-            if len(getattr(self, name)) != 6 or min(getattr(self, name)) < 0:
+            values = getattr(self, name)
+            if len(values) != 6 or not all(v >= 0 for v in values):
                 raise ValueError(f"{name}: six values >= 0 expected")
-        if self.gravity_mps2 <= 0 or self.friction < 0:
+        if not (self.gravity_mps2 > 0 and self.friction >= 0):
             raise ValueError("gravity_mps2 must be > 0 and friction >= 0")
-        for shape in self.collision:
-            shape.validate()
+        if not 1 <= len(self.collision) <= 64:
+            raise ValueError(f"collision: 1 to 64 shapes, got {len(self.collision)}")
+        validate_each("collision", self.collision)
 
     @property
     def weight_n(self) -> float:
@@ -211,36 +230,42 @@ class VehicleRandomisation:
         thrusters: thruster placement, axis, limit and lag perturbation.
     """
 
-    mass_rel: float = 0.05
-    inertia_rel: float = 0.15
-    added_mass_rel: float = 0.25
-    damping_rel: float = 0.25
-    cg_offset_m: float = 0.01
-    cb_offset_m: float = 0.01
-    net_buoyancy_kg: float = 2.0
+    mass_rel: RelativeRange = 0.05
+    inertia_rel: RelativeRange = 0.15
+    added_mass_rel: RelativeRange = 0.25
+    damping_rel: RelativeRange = 0.25
+    cg_offset_m: Annotated[float, Interval(ge=0, le=1)] = 0.01
+    cb_offset_m: Annotated[float, Interval(ge=0, le=1)] = 0.01
+    net_buoyancy_kg: Annotated[float, Interval(ge=0, le=1e3)] = 2.0
     thrusters: ThrusterRandomisation = field(default_factory=ThrusterRandomisation)
 
     def validate(self) -> None:
         """Raise ValueError on a negative range or a relative range >= 1."""
         rels = (self.mass_rel, self.inertia_rel, self.added_mass_rel, self.damping_rel)
-        if min(rels) < 0 or max(rels) >= 1:
+        if not all(0 <= r < 1 for r in rels):  # also NaN
             raise ValueError("relative randomisation ranges must lie in [0, 1)")
-        if min(self.cg_offset_m, self.cb_offset_m, self.net_buoyancy_kg) < 0:
+        if not all(v >= 0 for v in (self.cg_offset_m, self.cb_offset_m, self.net_buoyancy_kg)):
             raise ValueError("randomisation offsets must be >= 0")
 
     def sample(self, base: VehicleConfig, rng: np.random.Generator) -> VehicleConfig:
-        """Draw one vehicle: ``base`` with every randomised parameter perturbed."""
+        """Draw one vehicle: ``base`` with every randomised parameter perturbed.
+
+        The net buoyancy is kept >= ``-mass_kg`` (buoyancy >= 0), so any draw is a valid
+        vehicle whatever the ranges."""
+        mass_kg = base.mass_kg * (1.0 + rng.uniform(-self.mass_rel, self.mass_rel))
         return replace(
             base,
-            mass_kg=base.mass_kg * (1.0 + rng.uniform(-self.mass_rel, self.mass_rel)),
+            mass_kg=mass_kg,
             inertia_kgm2=_scaled(base.inertia_kgm2, self.inertia_rel, rng),
             added_mass=_scaled(base.added_mass, self.added_mass_rel, rng),
             linear_damping=_scaled(base.linear_damping, self.damping_rel, rng),
             quadratic_damping=_scaled(base.quadratic_damping, self.damping_rel, rng),
             cg_m=_shifted(base.cg_m, self.cg_offset_m, rng),
             cb_m=_shifted(base.cb_m, self.cb_offset_m, rng),
-            net_buoyancy_kg=base.net_buoyancy_kg
-            + rng.uniform(-self.net_buoyancy_kg, self.net_buoyancy_kg),
+            net_buoyancy_kg=max(
+                base.net_buoyancy_kg + rng.uniform(-self.net_buoyancy_kg, self.net_buoyancy_kg),
+                -mass_kg,
+            ),
             thrusters=self.thrusters.sample(base.thrusters, rng),
         )
 
@@ -278,6 +303,18 @@ class Hydrodynamics:
         self.M_inv = np.linalg.inv(self.M)
         self._dl = np.asarray(config.linear_damping, dtype=float)
         self._dq = np.asarray(config.quadratic_damping, dtype=float)
+
+    def stable_substep_s(self) -> float:
+        """Longest integration substep (s) for which the linear damping stays stable.
+
+        The damping force is evaluated from the current velocity (semi-implicit Euler), which
+        is stable on axis i while ``dt * linear_damping[i] / M[i, i] < 2`` (``M[i, i]``: rigid
+        plus added mass or inertia about the origin); a longer substep makes the velocity
+        oscillate with growing amplitude until it overflows. ``inf`` without damping.
+        """
+        dl = np.asarray(self.config.linear_damping, dtype=float)
+        with np.errstate(divide="ignore"):
+            return float(np.min(2.0 * np.diag(self.M) / dl))
 
     # ----------------------------------------------------------------- reference (NumPy)
 
@@ -391,24 +428,24 @@ class CurrentConfig:
     """
 
     mode: Literal["constant", "random", "varying"] = "random"
-    velocity_ned_mps: Vec3 = (0.0, 0.0, 0.0)
-    range_x_mps: tuple[float, float] = (-0.2, 0.2)
-    range_y_mps: tuple[float, float] = (-0.2, 0.2)
-    range_z_mps: tuple[float, float] = (0.0, 0.0)
-    drift_std_mps: float = 0.05
-    drift_time_constant_s: float = 30.0
-    drift_knot_interval_s: float = 1.0
-    max_speed_mps: float = 0.5
+    velocity_ned_mps: tuple[_CurrentSpeed, _CurrentSpeed, _CurrentSpeed] = (0.0, 0.0, 0.0)
+    range_x_mps: _CurrentRange = (-0.2, 0.2)
+    range_y_mps: _CurrentRange = (-0.2, 0.2)
+    range_z_mps: _CurrentRange = (0.0, 0.0)
+    drift_std_mps: Annotated[float, Interval(ge=0, le=10)] = 0.05
+    drift_time_constant_s: Annotated[float, Interval(gt=0, le=1e6)] = 30.0
+    drift_knot_interval_s: Annotated[float, Interval(ge=0.01, le=3600)] = 1.0
+    max_speed_mps: Annotated[float, Interval(gt=0, le=20)] = 0.5
 
     def validate(self) -> None:
         """Raise ValueError on an inverted range or a non-positive time scale."""
         for name in ("range_x_mps", "range_y_mps", "range_z_mps"):
             lo, hi = getattr(self, name)
-            if lo > hi:
+            if not lo <= hi:  # also NaN
                 raise ValueError(f"{name}: lo must be <= hi, got ({lo}, {hi})")
-        if self.drift_time_constant_s <= 0 or self.drift_knot_interval_s <= 0:
+        if not (self.drift_time_constant_s > 0 and self.drift_knot_interval_s > 0):
             raise ValueError("drift time constant and knot interval must be > 0")
-        if self.drift_std_mps < 0 or self.max_speed_mps <= 0:
+        if not (self.drift_std_mps >= 0 and self.max_speed_mps > 0):
             raise ValueError("drift_std_mps must be >= 0 and max_speed_mps > 0")
 
 

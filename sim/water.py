@@ -49,9 +49,14 @@ import functools
 import math
 import threading
 from dataclasses import dataclass
+from typing import Annotated
 
 import cv2
 import numpy as np
+
+from dockcore.config import check_fields
+from dockcore.domains import Fraction, Interval
+from sim.domains import RGB as ColourRGB
 
 __all__ = [
     "JERLOV_BEAM_C_RGB",
@@ -93,19 +98,38 @@ JERLOV_BEAM_C_RGB: dict[str, RGB] = {
 #: Range (m) standing in for "nothing hit" (r = inf) in the exponentials.
 _FAR_M = 1.0e4
 
+#: Largest attenuation or backscatter coefficient (1/m): the most turbid Jerlov type (9C) has
+#: 5.6/m in blue; at 100/m nothing beyond 5 cm is seen.
+_BETA_MAX = 100.0
+#: An attenuation or backscatter coefficient (1/m).
+_Beta = Annotated[float, Interval(ge=0, le=_BETA_MAX)]
+#: Photo-electrons at white: below 1 the shot noise swamps the image; sensors collect 1e3-1e5.
+_Photons = Annotated[float, Interval(ge=1, le=1e9)]
+#: A JPEG quality.
+_JpegQuality = Annotated[int, Interval(ge=1, le=100)]
+#: A vignetting strength (-): 1 would black out the corners.
+_Vignetting = Annotated[float, Interval(ge=0, lt=1)]
+#: Standard deviation of the read noise (linear units, white = 1).
+_ReadNoise = Annotated[float, Interval(ge=0, le=1)]
+#: A random scale factor on a water parameter (-).
+_Scale = Annotated[float, Interval(ge=0, le=10)]
+
 
 @dataclass(frozen=True)
 class WaterConfig:
     """Water and camera-sensor effects applied to a rendered frame.
 
     Attributes:
-        beta_D_rgb: direct-signal attenuation coefficient per channel R, G, B (1/m), >= 0.
-        beta_B_rgb: backscatter coefficient per channel (1/m), >= 0.
+        beta_D_rgb: direct-signal attenuation coefficient per channel R, G, B (1/m), in
+            [0, 100].
+        beta_B_rgb: backscatter coefficient per channel (1/m), in [0, 100].
         B_inf_rgb: veiling light (backscatter at infinite range), linear RGB in [0, 1].
         blur_sigma_per_m: forward-scatter blur: Gaussian sigma per metre of range as a fraction
-            of the image width (1/m); 0.001 gives ~1 px per metre at 968 px. 0 disables the blur.
+            of the image width (1/m), in [0, 0.1]; 0.001 gives ~1 px per metre at 968 px. 0
+            disables the blur.
         blur_max_range_m: range (m) beyond which the blur stops growing (also bounds the cost).
-        blur_levels: number of pre-blurred levels blended by range (>= 2; the first is unblurred).
+        blur_levels: number of pre-blurred levels blended by range (2-16; the first is
+            unblurred).
         artificial_light: the scene is lit by a lamp beside the camera: the direct signal is
             attenuated over the lamp -> object -> camera path (2 r) instead of r.
         light_falloff_exponent: extra geometric falloff ``min(1, (r_ref / r) ** p)`` of the direct
@@ -115,53 +139,33 @@ class WaterConfig:
         vignetting: vignetting strength s in [0, 1): brightness ``1 - s * rho**2`` with rho the
             normalised distance from the image centre (1 at the corners).
         photons_at_white: photo-electrons collected at linear value 1.0 (sets the Poisson shot
-            noise, variance I / photons_at_white); None disables all noise.
+            noise, variance I / photons_at_white), in [1, 1e9]; None disables all noise.
         read_noise: standard deviation of the Gaussian read noise in linear units (0-1).
         gamma: display gamma of the input and output images (2.2 for SAPIEN's colour output,
-            1.0 for linear images), > 0.
+            1.0 for linear images), in [0.2, 5].
         jpeg_quality: JPEG quality 1-100 applied last (encode + decode), or None for no JPEG.
     """
 
-    beta_D_rgb: RGB = JERLOV_KD_RGB["3C"]
-    beta_B_rgb: RGB = JERLOV_BEAM_C_RGB["3C"]
-    B_inf_rgb: RGB = (0.0, 0.31, 0.24)
-    blur_sigma_per_m: float = 0.0003
-    blur_max_range_m: float = 8.0
-    blur_levels: int = 2
+    beta_D_rgb: tuple[_Beta, _Beta, _Beta] = JERLOV_KD_RGB["3C"]
+    beta_B_rgb: tuple[_Beta, _Beta, _Beta] = JERLOV_BEAM_C_RGB["3C"]
+    B_inf_rgb: ColourRGB = (0.0, 0.31, 0.24)
+    blur_sigma_per_m: Annotated[float, Interval(ge=0, le=0.1)] = 0.0003
+    blur_max_range_m: Annotated[float, Interval(gt=0, le=1000)] = 8.0
+    blur_levels: Annotated[int, Interval(ge=2, le=16)] = 2
     artificial_light: bool = True
-    light_falloff_exponent: float = 0.0
-    light_ref_range_m: float = 1.0
-    vignetting: float = 0.2
-    photons_at_white: float | None = 2000.0
-    read_noise: float = 0.003
-    gamma: float = 2.2
-    jpeg_quality: int | None = None
+    light_falloff_exponent: Annotated[float, Interval(ge=0, le=10)] = 0.0
+    light_ref_range_m: Annotated[float, Interval(gt=0, le=1000)] = 1.0
+    vignetting: _Vignetting = 0.2
+    photons_at_white: _Photons | None = 2000.0
+    read_noise: _ReadNoise = 0.003
+    gamma: Annotated[float, Interval(ge=0.2, le=5)] = 2.2
+    jpeg_quality: _JpegQuality | None = None
 
     def validate(self) -> None:
-        """Raise ValueError naming the first invalid field."""
-        for name in ("beta_D_rgb", "beta_B_rgb", "B_inf_rgb"):
-            v = getattr(self, name)
-            if len(v) != 3 or not all(math.isfinite(float(x)) and float(x) >= 0.0 for x in v):
-                raise ValueError(f"{name}: expected 3 finite values >= 0, got {v!r}")
-        if any(float(x) > 1.0 for x in self.B_inf_rgb):
-            raise ValueError(f"B_inf_rgb: values must be <= 1, got {self.B_inf_rgb!r}")
-        _check(self.blur_sigma_per_m >= 0.0, "blur_sigma_per_m", ">= 0", self.blur_sigma_per_m)
-        _check(self.blur_max_range_m > 0.0, "blur_max_range_m", "> 0", self.blur_max_range_m)
-        _check(self.blur_levels >= 2, "blur_levels", ">= 2", self.blur_levels)
-        _check(
-            self.light_falloff_exponent >= 0.0,
-            "light_falloff_exponent",
-            ">= 0",
-            self.light_falloff_exponent,
-        )
-        _check(self.light_ref_range_m > 0.0, "light_ref_range_m", "> 0", self.light_ref_range_m)
-        _check(0.0 <= self.vignetting < 1.0, "vignetting", "in [0, 1)", self.vignetting)
-        if self.photons_at_white is not None:
-            _check(self.photons_at_white > 0.0, "photons_at_white", "> 0", self.photons_at_white)
-        _check(self.read_noise >= 0.0, "read_noise", ">= 0", self.read_noise)
-        _check(self.gamma > 0.0, "gamma", "> 0", self.gamma)
-        if self.jpeg_quality is not None:
-            _check(1 <= self.jpeg_quality <= 100, "jpeg_quality", "in [1, 100]", self.jpeg_quality)
+        """Raise ValueError naming the first field outside its declared domain (NaN and
+        infinity included). The fields are independent, so that is all there is to check; it
+        runs on every frame (:func:`apply_water`), for configs built in Python too."""
+        check_fields(self)
 
     @property
     def noise_enabled(self) -> bool:
@@ -218,6 +222,9 @@ PRESETS: dict[str, WaterConfig] = {
 #: Preset names ordered by turbidity (clearest first).
 PRESET_ORDER: tuple[str, ...] = ("clear_tank", "coastal", "turbid", "very_turbid")
 
+#: A turbidity on the scale of ``PRESET_ORDER`` (0 = clear_tank ... 3 = very_turbid).
+_Turbidity = Annotated[float, Interval(ge=0, le=len(PRESET_ORDER) - 1)]
+
 
 # ----------------------------------------------------------------------------- randomisation
 
@@ -243,24 +250,22 @@ class WaterRandomisation:
         artificial_light_probability: probability that the lamp model is on.
     """
 
-    turbidity_range: tuple[float, float] = (0.0, 2.0)
-    beta_log_sigma: float = 0.15
-    B_inf_scale_range: tuple[float, float] = (0.6, 1.4)
-    blur_scale_range: tuple[float, float] = (0.5, 1.5)
-    vignetting_range: tuple[float, float] = (0.0, 0.35)
-    photons_at_white_range: tuple[float, float] = (500.0, 5000.0)
-    read_noise_range: tuple[float, float] = (0.001, 0.006)
-    jpeg_probability: float = 0.5
-    jpeg_quality_range: tuple[int, int] = (60, 95)
-    artificial_light_probability: float = 1.0
+    turbidity_range: tuple[_Turbidity, _Turbidity] = (0.0, 2.0)
+    beta_log_sigma: Annotated[float, Interval(ge=0, le=2)] = 0.15
+    B_inf_scale_range: tuple[_Scale, _Scale] = (0.6, 1.4)
+    blur_scale_range: tuple[_Scale, _Scale] = (0.5, 1.5)
+    vignetting_range: tuple[_Vignetting, _Vignetting] = (0.0, 0.35)
+    photons_at_white_range: tuple[_Photons, _Photons] = (500.0, 5000.0)
+    read_noise_range: tuple[_ReadNoise, _ReadNoise] = (0.001, 0.006)
+    jpeg_probability: Fraction = 0.5
+    jpeg_quality_range: tuple[_JpegQuality, _JpegQuality] = (60, 95)
+    artificial_light_probability: Fraction = 1.0
 
     def validate(self) -> None:
-        """Raise ValueError naming the first invalid field."""
-        lo, hi = self.turbidity_range
-        top = len(PRESET_ORDER) - 1
-        _check(0.0 <= lo <= hi <= top, "turbidity_range", f"within [0, {top}]", (lo, hi))
-        _check(self.beta_log_sigma >= 0.0, "beta_log_sigma", ">= 0", self.beta_log_sigma)
+        """Raise ValueError naming the first field outside its domain or range with lo > hi."""
+        check_fields(self)
         for name in (
+            "turbidity_range",
             "B_inf_scale_range",
             "blur_scale_range",
             "vignetting_range",
@@ -268,15 +273,8 @@ class WaterRandomisation:
             "read_noise_range",
             "jpeg_quality_range",
         ):
-            a, b = getattr(self, name)
-            _check(0.0 <= a <= b, name, "(lo, hi) with 0 <= lo <= hi", (a, b))
-        _check(self.vignetting_range[1] < 1.0, "vignetting_range", "< 1", self.vignetting_range)
-        lo_photons = self.photons_at_white_range[0]
-        _check(lo_photons > 0, "photons_at_white_range", "> 0 at the low end", lo_photons)
-        q0, q1 = self.jpeg_quality_range
-        _check(1 <= q0 <= q1 <= 100, "jpeg_quality_range", "within [1, 100]", (q0, q1))
-        for name in ("jpeg_probability", "artificial_light_probability"):
-            _check(0.0 <= getattr(self, name) <= 1.0, name, "in [0, 1]", getattr(self, name))
+            lo, hi = getattr(self, name)
+            _check(lo <= hi, name, "(lo, hi) with lo <= hi", (lo, hi))
 
     def sample(self, rng: np.random.Generator) -> WaterConfig:
         """Draw one water configuration (validated) from ``rng``."""
@@ -290,13 +288,13 @@ class WaterRandomisation:
                 (1 - a) * np.log(np.maximum(v0, 1e-6)) + a * np.log(np.maximum(v1, 1e-6))
             )
             jitter = np.exp(rng.normal(0.0, self.beta_log_sigma, 3))
-            return _rgb(mixed * jitter)
+            return _rgb(np.minimum(mixed * jitter, _BETA_MAX))  # a 10-sigma draw stays valid
 
         B_inf = (1 - a) * np.asarray(p0.B_inf_rgb) + a * np.asarray(p1.B_inf_rgb)
         B_inf = np.clip(B_inf * rng.uniform(*self.B_inf_scale_range), 0.0, 1.0)
         blur = ((1 - a) * p0.blur_sigma_per_m + a * p1.blur_sigma_per_m) * rng.uniform(
             *self.blur_scale_range
-        )
+        )  # <= 0.001 * 10, inside the domain
         photons = math.exp(rng.uniform(*np.log(self.photons_at_white_range)))
         jpeg = (
             int(rng.integers(self.jpeg_quality_range[0], self.jpeg_quality_range[1] + 1))

@@ -29,7 +29,8 @@ from calibration.extrinsics import (
 from calibration.frames import R_from_rpy, rotation_angle_deg
 from calibration.intrinsics import IntrinsicsConfig, calibrate_intrinsics
 from calibration.patterns import PatternDetector
-from dockcore.errors import DockError
+from dockcore.config import validated
+from dockcore.errors import ConfigError, DockError
 
 W_PX, H_PX = 640, 480
 K_TRUE = np.array([[800.0, 0.0, 319.5], [0.0, 800.0, 239.5], [0.0, 0.0, 1.0]])
@@ -241,14 +242,19 @@ def test_max_views_caps_and_holdout_is_seeded(cb_folder):
 
 
 def test_config_validation_names_the_field():
-    with pytest.raises(ValueError, match="pattern"):
-        IntrinsicsConfig(pattern="circles").validate()
-    with pytest.raises(ValueError, match="dictionary"):
-        IntrinsicsConfig(pattern="charuco", dictionary="DICT_9X9_1").validate()
-    with pytest.raises(ValueError, match="marker_mm"):
-        IntrinsicsConfig(pattern="charuco", square_mm=20, marker_mm=25).validate()
-    with pytest.raises(ValueError, match="holdout_fraction"):
-        IntrinsicsConfig(holdout_fraction=0.9).validate()
+    for cfg, match in [
+        (IntrinsicsConfig(pattern="circles"), "^pattern"),
+        (IntrinsicsConfig(pattern="charuco", dictionary="DICT_9X9_1"), "dictionary"),
+        (IntrinsicsConfig(pattern="charuco", square_mm=20, marker_mm=25), "^marker_mm"),
+        (IntrinsicsConfig(holdout_fraction=0.9), r"^holdout_fraction: .*\[0, 0.5\], got 0.9"),
+        (IntrinsicsConfig(pattern="charuco", cols=12, rows=12), "72 markers but DICT_4X4_50"),
+        (IntrinsicsConfig(pattern="charuco", cols=4, rows=4, min_corners=10), "^min_corners"),
+        (IntrinsicsConfig(max_views=3), "^max_views"),
+    ]:
+        with pytest.raises(ConfigError, match=match):
+            validated(cfg)
+        with pytest.raises(ConfigError, match=match):
+            calibrate_intrinsics("no-such-folder", cfg)  # the config is checked first
     with pytest.raises(DockError, match="pattern"):
         PatternDetector("circles", 4, 4, 0.01)
 
@@ -346,7 +352,8 @@ def test_cli_bad_inputs_fail_with_one_line(run_cli, rays, tmp_path):
     msg = _one_line_error(run_cli(run, "intrinsics", few, *CB_ARGS, "--cols", 11, "--out", out))
     assert "no chessboard of 11x6 inner corners found in any of 3 views" in msg
     msg = _one_line_error(run_cli(run, "intrinsics", few, *CB_ARGS, "--out", out))
-    assert "only 3 usable views, need at least 4" in msg
+    # every view is usable, none rejected: the message says so (it once ended "rejected: )")
+    assert msg.endswith("only 3 usable views of 3, need at least 4 (rejected: none)"), msg
     msg = _one_line_error(run_cli(run, "intrinsics", few, "--pattern", "circles", "--out", out))
     assert "pattern" in msg and "circles" in msg
     msg = _one_line_error(

@@ -199,10 +199,10 @@ def test_resume_renders_only_missing_frames(tiny, tmp_path):
     # (c) another config in the same folder is refused
     with pytest.raises(DockError, match=r"another config \(differs in seed\)"):
         generate(out, SynthConfig(n_frames=6, seed=12, water="random", width_px=160))
-    # (d) fewer frames: labels and images shrink to n
-    generate(out, SynthConfig(n_frames=4, seed=11, water="random", width_px=160), progress=False)
-    assert sorted(p.name for p in (out / "images").iterdir()) == [f"{k:06d}.png" for k in range(4)]
-    assert (out / "labels.jsonl").read_text().splitlines(keepends=True) == lines[:4]
+    # (d) fewer frames would delete some: refused, nothing touched (tests/test_hostile_datasets)
+    with pytest.raises(DockError, match="would delete frames 4-5"):
+        generate(out, SynthConfig(n_frames=4, seed=11, water="random", width_px=160))
+    assert _tree(out) == ref
 
 
 @pytest.mark.render

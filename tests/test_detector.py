@@ -13,6 +13,7 @@ import cv2
 import numpy as np
 import pytest
 
+from dockcore.config import validated
 from dockcore.errors import ConfigError, DockError
 from perception.detector import Detection, Detector, DetectorConfig, list_pipelines
 from perception.preprocess import (
@@ -292,8 +293,8 @@ def test_unknown_names_are_one_line_errors():
     with pytest.raises(DockError, match="reference_3dbm") as exc:
         get_pipeline("nope")
     assert "nope" in str(exc.value) and "default" in str(exc.value)
-    with pytest.raises(ConfigError, match="pipeline"):
-        DetectorConfig(pipeline="nope").validate()
+    with pytest.raises(ConfigError, match=r"^pipeline: "):
+        validated(DetectorConfig(pipeline="nope"))
     assert set(list_pipelines()) == set(PIPELINES)
 
 
@@ -302,13 +303,18 @@ def test_unknown_names_are_one_line_errors():
     [
         (DetectorConfig(ids=(13, 50)), "ids: 50"),
         (DetectorConfig(corner_refinement="magic"), "corner_refinement"),
-        (DetectorConfig(adaptive_thresh_win_sizes_px=(1, 23, 10)), "win_sizes"),
+        (DetectorConfig(adaptive_thresh_win_sizes_px=(1, 23, 10)), "win_sizes_px\\[0\\]"),
+        (DetectorConfig(adaptive_thresh_win_sizes_px=(23, 3, 10)), "need max >= min"),
+        (DetectorConfig(adaptive_thresh_win_sizes_px=(3, 999, 1)), "997 threshold windows"),
         (DetectorConfig(adaptive_thresh_constant=float("nan")), "adaptive_thresh_constant"),
+        (DetectorConfig(dictionary="DICT_5X5_77"), "^dictionary: "),
     ],
 )
 def test_config_validation(cfg, match):
-    with pytest.raises(ValueError, match=match):
-        cfg.validate()
+    with pytest.raises(ConfigError, match=match):
+        validated(cfg)
+    with pytest.raises(ConfigError, match=match):
+        Detector(cfg)
 
 
 @pytest.mark.parametrize(

@@ -48,6 +48,8 @@ _BIG = "[1, 1000000000]"
         ("[ppo]\nn_steps = -1\n", "ppo.n_steps: must be an integer in [1, 1000000], got -1"),
         ("seed = -1\n", "seed: must be an integer in [0, 4294967295], got -1"),
         ("[imitation]\nteacher = 'mpc'\n", "imitation.teacher: must be one of ['pid', 'none']"),
+        ("[env.vehicle]\nmass_kg = 1.0\nlinear_damping = [1e5, 1e5, 1e5, 1e5, 1e5, 1e5]\n",
+         "env.vehicle.linear_damping: too stiff for physics_hz 300"),
     ],
 )  # fmt: skip
 def test_absurd_training_configs_are_one_line(run_cli, tmp_path, toml, message):
@@ -171,6 +173,7 @@ def test_nan_policy_is_refused_by_eval_export_and_init_policy(run_cli, tmp_path)
     _refused(res, run, message)
 
 
+@pytest.mark.filterwarnings("ignore:invalid value encountered in sqrt:RuntimeWarning")
 def test_policy_with_finite_weights_but_nan_outputs(run_cli, tmp_path):
     """Broken normalisation (negative variance): NaN actions. Export refuses; eval stops at the
     first such action with one line."""

@@ -135,7 +135,7 @@ def test_solids_are_watertight_and_fit(relief_depth_mm):
 
 
 def test_geometry_config_is_validated():
-    with pytest.raises(ConfigError, match="size_mm: must be > 0"):
+    with pytest.raises(ConfigError, match=r"size_mm: must be a finite number in \[5, 1000\]"):
         load_config(MarkerConfig, overrides={"size_mm": 0})
     with pytest.raises(ConfigError, match="relief_depth_mm"):
         load_config(MarkerConfig, overrides={"relief_depth_mm": 9.0})
@@ -218,7 +218,9 @@ def test_generate_writes_every_file(generated):
             assert (generated / f"{stem}{suffix}").stat().st_size > 0
     for name in ("sheet.pdf", "sheet.svg", "markerset.toml", "config.toml", "provenance.json"):
         assert (generated / name).is_file()
-    assert not list(generated.glob("*.tmp")) and not list(generated.glob(".*"))
+    hidden = {p.name for p in generated.glob(".*")}
+    assert hidden <= {".uwdock.lock", ".uwdock-owner.json"}, hidden  # the folder's claim only
+    assert json.loads((generated / ".uwdock-owner.json").read_text())["tool"] == "markers generate"
     prov = json.loads((generated / "provenance.json").read_text())
     assert prov["config"]["marker"]["ids"] == list(DS_MARKER_IDS)
     assert "numpy" in prov["packages"] and "commit" in prov["git"]
@@ -290,8 +292,10 @@ def test_cli_help_lists_commands(run_cli):
     "args,message",
     [
         (["--ids", "13,50"], "marker ID 50 is outside dictionary DICT_4X4_50"),
-        (["--size-mm", "0"], "size_mm: must be > 0"),
-        (["--size-mm", "-3"], "size_mm: must be > 0"),
+        (["--size-mm", "0"], "'--size-mm': must be a finite number in [5, 1000], got 0"),
+        (["--size-mm", "-3"], "'--size-mm': must be a finite number in [5, 1000], got -3"),
+        (["--enclosure-mm", "nan"], "'--enclosure-mm': must be a finite number in (0, 2000]"),
+        (["--clearance-mm", "6"], "clearance_mm: 6 mm would close the openings"),
         (["--ids", "13,x"], "--ids must be comma-separated integers"),
         (["--dictionary", "DICT_NOPE"], "unknown marker dictionary"),
     ],
@@ -299,9 +303,10 @@ def test_cli_help_lists_commands(run_cli):
 def test_cli_bad_input_one_line_error_and_no_files(run_cli, tmp_path, args, message):
     out = tmp_path / "o"
     res = run_cli(cli.main, "generate", *args, "--out", out)
-    assert res.code != 0
+    assert res.code == 2 and res.out == ""
     assert message in res.err and res.err.count("\n") == 1, res.err
-    assert not out.exists() or not any(out.iterdir())
+    assert res.err.startswith("error: ") and "Traceback" not in res.err
+    assert not out.exists()
 
 
 def test_cli_unwritable_output(run_cli, tmp_path):
@@ -345,10 +350,10 @@ def test_failure_midway_leaves_only_complete_files(tmp_path, monkeypatch):
     def boom(*_a, **_k):
         raise DockError("disk full (simulated)")
 
-    monkeypatch.setattr(gen, "write_sheet", boom)
+    monkeypatch.setattr(gen, "save_marker_set", boom)
     with pytest.raises(DockError):
         generate(MarkerConfig(ids=(13,)), tmp_path)
     assert not (tmp_path / "markerset.toml").exists()
-    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+    assert not list(tmp_path.glob("*.uwtmp*"))
     # what was written is complete
     assert trimesh.load_mesh(tmp_path / "3dbm_DICT_4X4_50_13_insert.stl").is_watertight

@@ -492,7 +492,7 @@ def test_bad_inputs_fail_with_one_line(run_cli, scene, tmp_path, case):
     res = run_cli(main, *args)
     _one_line_error(res)
     assert match in res.err, res.err
-    assert not (tmp_path / "o" / "report.json").exists()
+    assert res.code == 2 and not (tmp_path / "o").exists()  # nothing written, not even the folder
 
 
 def test_ground_truth_that_matches_no_frame_is_an_error(run_cli, scene, tmp_path):

@@ -1,0 +1,63 @@
+"""Helpers of the hostile-input tests of ``sim`` and ``datasets``: the one-line error check, a
+dataset folder as bytes, and a command group run as a real process of its own."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def assert_refused(res, out: Path | None = None) -> str:
+    """``res`` (a :class:`tests.conftest.CliResult`) stopped with exit status 2 and exactly one
+    stderr line ``error: ...`` (no traceback); ``out``, when given, was not created. Returns
+    the line."""
+    lines = res.err.splitlines()
+    assert res.code == 2, (res.code, res.err)
+    assert len(lines) == 1 and lines[0].startswith("error: "), res.err
+    assert "Traceback" not in res.err
+    if out is not None:
+        assert not out.exists(), f"{out} was created: {sorted(p.name for p in out.iterdir())}"
+    return lines[0]
+
+
+def tree(root: Path) -> dict[str, bytes]:
+    """Every file under ``root`` (hidden ones too) by relative path -> its bytes, but for the
+    empty lock file, which a claim that was refused may leave (``dockcore.outdir``)."""
+    return {
+        str(p.relative_to(root)): p.read_bytes()
+        for p in sorted(root.rglob("*"))
+        if p.is_file() and p.name != ".uwdock.lock"
+    }
+
+
+def dataset(root: Path) -> dict[str, bytes]:
+    """A dataset's images (every file in images/, hidden ones too) and labels.jsonl."""
+    files = {f"images/{p.name}": p.read_bytes() for p in sorted((root / "images").iterdir())}
+    return files | {"labels.jsonl": (root / "labels.jsonl").read_bytes()}
+
+
+def group_process(group: str, *args: object, **popen: object) -> subprocess.Popen:
+    """Start ``<group> <args>`` (e.g. ``datasets synth ...``) as a process of its own running
+    this source tree, its output piped."""
+    code = f"import sys; sys.argv[0] = {group!r}; from {group}.cli import main; main()"
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    return subprocess.Popen(
+        [sys.executable, "-c", code, *map(str, args)],
+        cwd=ROOT,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        **popen,
+    )
+
+
+def dead_pid() -> int:
+    """The pid of a process that has ended (and been reaped)."""
+    code = "import os; print(os.getpid())"
+    proc = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True)
+    return int(proc.stdout)
