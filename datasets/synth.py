@@ -701,6 +701,29 @@ def _render_all(
             on_frame(k)
 
 
+def _check_cameras_in_water(
+    poses: np.ndarray, T_body_cam: np.ndarray, ds_cfg: DockingStationConfig
+) -> None:
+    """Refuse a given pose whose camera is not under water inside the tank: the renderer models
+    the underwater view only, so a camera above the surface (or in a wall) would be labelled
+    as seeing markers it could not see."""
+    length_m, width_m, depth_m = ds_cfg.tank_length_m, ds_cfg.tank_width_m, ds_cfg.tank_depth_m
+    for k, T_world_body in enumerate(poses):
+        x, y, z = (T_world_body @ T_body_cam)[:3, 3]
+        where = None
+        if z <= 0.0:
+            where = f"{-z:.3g} m above the water surface"
+        elif z >= depth_m:
+            where = f"below the tank floor ({depth_m:g} m deep)"
+        elif abs(x) >= length_m / 2 or abs(y) >= width_m / 2:
+            where = f"outside the {length_m:g} x {width_m:g} m tank"
+        if where:
+            raise DockError(
+                f"poses[{k}]: the camera (world NED {x:.3g}, {y:.3g}, {z:.3g} m) is {where}: "
+                "only underwater views inside the tank are rendered"
+            )
+
+
 def _checked_poses(poses: ArrayLike | None, n: int) -> np.ndarray | None:
     """(n, 4, 4) float64 vehicle poses, each a valid transform, or None."""
     if poses is None:
@@ -761,7 +784,10 @@ def generate(
         raise ConfigError(reason)
     pose_arr = _checked_poses(poses, cfg.n_frames)
     camera, T_body_cam = resolve_camera(cfg)
-    marker_set = resolve_marker_set(_ds_config(cfg))
+    ds_cfg = _ds_config(cfg)
+    if pose_arr is not None:
+        _check_cameras_in_water(pose_arr, T_body_cam, ds_cfg)
+    marker_set = resolve_marker_set(ds_cfg)
     state = _state(cfg, pose_arr)
     n = cfg.n_frames
     _check_folder(Path(out_dir), state, n)

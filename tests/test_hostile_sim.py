@@ -251,3 +251,20 @@ def test_randomisation_draws_at_the_edges_of_their_domains_stay_valid():
     )  # fmt: skip
     for _ in range(200):
         Hydrodynamics(vehicle.sample(VehicleConfig(), rng))  # validates the draw
+
+
+@pytest.mark.parametrize(
+    "row,where",
+    [
+        ("0,0,-1.0,0,0,0", "0.55 m above the water surface"),
+        ("0,0,6.0,0,0,0", "below the tank floor (5 m deep)"),
+        ("12,0,2.0,0,0,0", "outside the 19 x 9 m tank"),
+    ],
+)
+def test_given_poses_must_put_the_camera_under_water(run_cli, tmp_path, row, where):
+    """A camera above the water used to be rendered and its markers labelled visible."""
+    poses = tmp_path / "poses.csv"
+    poses.write_text(f"x_m,y_m,z_m,roll_deg,pitch_deg,yaw_deg\n0,0,2.0,0,0,0\n{row}\n")
+    out = tmp_path / "r"
+    line = assert_refused(run_cli(sim_cli.main, "render", "--poses", poses, "--out", out), out)
+    assert line.startswith("error: poses[1]: the camera (world NED") and where in line
