@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+import os
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -174,6 +176,19 @@ def _episode(
     return row, tr
 
 
+#: The progress queue of an evaluation worker process (set by :func:`_init_worker`).
+_PROGRESS = None
+
+
+def _init_worker(parent_pid: int, queue) -> None:
+    """Evaluation worker set-up: die with the evaluation (any signal), report progress."""
+    from dockcore.procs import die_with_parent
+
+    global _PROGRESS
+    die_with_parent(parent_pid)
+    _PROGRESS = queue
+
+
 def _worker(
     policy_spec: str,
     env_cfg: EnvConfig,
@@ -183,19 +198,12 @@ def _worker(
     record: bool,
     video_episodes: tuple[int, ...],
     video_dir: str | None,
-    queue,
 ):
-    import os
-
     from rl.report import load_controller
 
-    parent = os.getppid()
-
     def tick(done: int, total: int) -> None:
-        if os.getppid() != parent:  # the evaluation was killed: do not run on as an orphan
-            raise SystemExit(1)
-        if queue is not None:
-            queue.put(1)
+        if _PROGRESS is not None:
+            _PROGRESS.put(1)
 
     ctrl, vecnorm, _ = load_controller(policy_spec, env_cfg)
     res = run_episodes(
@@ -245,10 +253,15 @@ def run_episodes_parallel(
             video_dir=video_dir,
         )
     ctx = mp.get_context("spawn")
-    manager = ctx.Manager()
-    queue = manager.Queue() if progress is not None else None
+    # a plain queue handed over at process start (no Manager process that could outlive us)
+    queue = ctx.SimpleQueue() if progress is not None else None
     chunks = [list(range(w, n_episodes, workers)) for w in range(workers)]
-    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+    with ProcessPoolExecutor(
+        max_workers=workers,
+        mp_context=ctx,
+        initializer=_init_worker,
+        initargs=(os.getpid(), queue),
+    ) as pool:
         futs = [
             pool.submit(
                 _worker,
@@ -260,21 +273,21 @@ def run_episodes_parallel(
                 record,
                 tuple(v for v in video_episodes if v in c),
                 video_dir,
-                queue,
             )
             for c in chunks
             if c
         ]
         done = 0
-        while queue is not None and done < n_episodes and not all(f.done() for f in futs):
-            try:
-                queue.get(timeout=0.5)
+        while queue is not None and done < n_episodes:
+            if not queue.empty():
+                queue.get()
                 done += 1
                 progress(done, n_episodes)
-            except Exception:
-                continue
+            elif all(f.done() for f in futs):
+                break  # a failed worker: its exception comes from result() below
+            else:
+                time.sleep(0.05)
         parts = [f.result() for f in futs]
-    manager.shutdown()
     pairs = sorted(
         ((r, t) for rows, traces in parts for r, t in zip(rows, traces, strict=True)),
         key=lambda p: p[0]["episode"],

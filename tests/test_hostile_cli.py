@@ -146,3 +146,9 @@ def test_hostile_numeric_options_stop_with_one_line(tmp_path_factory, data):
     assert "Traceback" not in err
     assert param.opts[0] in err, err
     assert list(tmp.iterdir()) == [], f"{args} wrote {list(tmp.iterdir())}"
+
+
+@pytest.mark.parametrize("group", GROUPS)
+def test_a_bare_group_prints_its_help_not_an_error(group):
+    code, out, err = _invoke(group, [])
+    assert code == 2 and out.startswith("Usage:") and err == ""

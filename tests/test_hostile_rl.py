@@ -210,3 +210,34 @@ def _short_env(tmp_path: Path) -> Path:
     env = tmp_path / "short.toml"
     env.write_text("episode_s = 2.0\n")
     return env
+
+
+def test_a_killed_evaluation_leaves_no_worker_processes(tmp_path):
+    """SIGKILL to `rl eval --workers 2`: its workers (and the queue's helpers) die with it."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    import psutil
+
+    cmd = [sys.executable, "-c", "from rl.cli import main; main()", "eval", "--policy", "pid",
+           "--obs", "proxy", "--episodes", "40", "--workers", "2", "--videos", "",
+           "--out", str(tmp_path / "e")]  # fmt: skip
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and not (tmp_path / "e" / ".uwdock-owner.json").exists():
+            time.sleep(0.1)
+        time.sleep(2.0)  # the workers are running episodes
+        children = psutil.Process(proc.pid).children(recursive=True)
+        assert len(children) >= 2
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    deadline = time.monotonic() + 5
+    alive = children
+    while alive and time.monotonic() < deadline:
+        alive = [c for c in alive if c.is_running() and c.status() != psutil.STATUS_ZOMBIE]
+        time.sleep(0.1)
+    assert not alive, [c.cmdline()[-1][:60] for c in alive]

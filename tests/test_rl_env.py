@@ -428,3 +428,16 @@ def test_filming_an_episode_does_not_change_it():
     assert filmed.traces[0].frames  # the camera view was filmed
     assert filmed.episodes[0]["return"] == plain.episodes[0]["return"]
     assert filmed.episodes[0]["final_e_xy_m"] == plain.episodes[0]["final_e_xy_m"]
+
+
+def test_parallel_evaluation_equals_one_process():
+    from rl.evaluate import run_episodes_parallel
+
+    cfg = replace(EnvConfig(), episode_s=2.0)
+    ticks = []
+    one = run_episodes_parallel("pid", cfg, 4, seed=3, workers=1, record=False)
+    two = run_episodes_parallel(
+        "pid", cfg, 4, seed=3, workers=2, record=False, progress=lambda k, n: ticks.append(k)
+    )
+    assert two.episodes == one.episodes and two.summary == one.summary
+    assert ticks == [1, 2, 3, 4]
