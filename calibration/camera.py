@@ -101,9 +101,8 @@ class CameraModel:
         """Raise ValueError (one line naming the field) if a value is out of range."""
         for key in ("width_px", "height_px"):
             value = getattr(self, key)
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-                raise ValueError(f"{key}: must be an integer in [1, {MAX_IMAGE_PX}], got {value!r}")
-            if not 1 <= value <= MAX_IMAGE_PX:
+            integer = isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+            if not (integer and 1 <= value <= MAX_IMAGE_PX):
                 raise ValueError(f"{key}: must be an integer in [1, {MAX_IMAGE_PX}], got {value!r}")
         for key in ("fx_px", "fy_px", "cx_px", "cy_px"):
             value = getattr(self, key)

@@ -21,10 +21,8 @@ ImageSidePx = Annotated[int, Interval(ge=16, le=20000)]
 
 
 def _cfg(name: str) -> DomainType:
-    """The click type of the option that overrides ``IntrinsicsConfig.<name>`` (its domain)."""
-    from calibration.intrinsics import IntrinsicsConfig
-
-    return field_type(IntrinsicsConfig, name)
+    """The type of an option overriding ``IntrinsicsConfig.<name>`` (imported when first used)."""
+    return field_type("calibration.intrinsics:IntrinsicsConfig", name)
 
 
 @click.group(context_settings=CONTEXT)

@@ -40,7 +40,13 @@ from dockcore.config import to_dict, validated
 from dockcore.domains import Interval, Seed
 from dockcore.errors import DockError
 from dockcore.io import atomic_path, atomic_write_json
-from dockcore.media import IMAGE_SUFFIXES, open_video, quiet_native_stderr, read_image
+from dockcore.media import (
+    IMAGE_SUFFIXES,
+    MAX_CONSECUTIVE_VIDEO_FAILURES,
+    open_video,
+    quiet_native_stderr,
+    read_image,
+)
 from dockcore.provenance import provenance
 
 __all__ = [
@@ -56,8 +62,6 @@ __all__ = [
 
 #: Fewest calibration views (held-out views excluded) a calibration accepts.
 MIN_VIEWS = 4
-#: A video read stops after this many failed reads in a row (the end of a damaged stream).
-MAX_VIDEO_FAILURES = 25
 #: Views smaller than this on a side (px) are rejected as ``too_small`` (no target fits).
 MIN_VIEW_PX = 16
 #: Most views one calibration keeps (``max_views``): ``cv2.calibrateCamera`` grows with them.
@@ -277,10 +281,11 @@ def _video_frames(
     """(views expected, views) of a video: every ``stride``-th frame, at most ``max_frames``.
 
     A frame that cannot be decoded is a view ``None`` (counted as unreadable) and reading goes
-    on past it; it stops at the end of the stream or after ``MAX_VIDEO_FAILURES`` failed reads
-    in a row. Decoding is quiet (:func:`dockcore.media.quiet_native_stderr`).
+    on past it; it stops at the end of the stream or after
+    ``dockcore.media.MAX_CONSECUTIVE_VIDEO_FAILURES`` failed reads in a row; corrupt leading
+    frames are skipped. Decoding is quiet (:func:`dockcore.media.quiet_native_stderr`).
     """
-    cap, first = open_video(path)
+    cap, first, leading = open_video(path)
     count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
     stride = max(1, math.ceil(count / max_frames)) if count > 0 else 1
     total = min(max_frames, math.ceil(count / stride)) if count > 0 else max_frames
@@ -294,8 +299,8 @@ def _video_frames(
 
     def frames() -> Iterator[tuple[str, np.ndarray | None]]:
         try:
-            index, frame, n, failures = 0, first, 0, 0
-            while n < max_frames and failures < MAX_VIDEO_FAILURES:
+            index, frame, n, failures = leading, first, 0, 0
+            while n < max_frames and failures < MAX_CONSECUTIVE_VIDEO_FAILURES:
                 if count > 0 and index >= count:
                     break
                 if frame is None:

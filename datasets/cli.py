@@ -7,8 +7,10 @@ from pathlib import Path
 
 import click
 
-from datasets.synth import SynthConfig, Workers
 from dockcore.cli import CONTEXT, domain_type, field_type, run_group
+
+#: Configs whose fields the options override (imported when an option is first used).
+_SYNTH = "datasets.synth:SynthConfig"
 
 
 @click.group(context_settings=CONTEXT)
@@ -20,7 +22,7 @@ def cli() -> None:
 @click.option(
     "--n",
     "n_frames",
-    type=field_type(SynthConfig, "n_frames"),
+    type=field_type(_SYNTH, "n_frames"),
     help="Number of frames [default: 100]; more than a folder holds extends it, fewer is refused.",
 )
 @click.option(
@@ -37,12 +39,12 @@ def cli() -> None:
 )
 @click.option(
     "--workers",
-    type=domain_type(Workers),
+    type=domain_type("datasets.synth:Workers"),
     default=1,
     show_default=True,
     help="Worker processes (the output is the same for any number).",
 )
-@click.option("--seed", type=field_type(SynthConfig, "seed"), help="Base seed [default: 0].")
+@click.option("--seed", type=field_type(_SYNTH, "seed"), help="Base seed [default: 0].")
 @click.option(
     "--camera",
     "camera_file",
@@ -52,7 +54,7 @@ def cli() -> None:
 @click.option(
     "--width",
     "width_px",
-    type=field_type(SynthConfig, "width_px"),
+    type=field_type(_SYNTH, "width_px"),
     help="Render width in px, 16-8192 (intrinsics scaled; 0: the camera's).",
 )
 @click.option(
@@ -78,7 +80,7 @@ def synth(
     Writes images/, labels.jsonl (T_cam_ds, marker corners and visibility, water per frame),
     camera.yaml/.json, markerset.toml, dataset.json, config.toml and provenance.json.
     """
-    from datasets.synth import generate
+    from datasets.synth import SynthConfig, generate
     from dockcore.config import load_config
 
     cfg = load_config(

@@ -62,7 +62,7 @@ from scipy.spatial.transform import Rotation
 
 from calibration.camera import REFERENCE_T_BODYFRD_CAMCV, CameraModel, load_camera, save_camera
 from calibration.frames import R_from_rpy, check_T, inv_T, make_T
-from dockcore.config import from_dict, to_dict, validated
+from dockcore.config import changed_keys, from_dict, to_dict, validated
 from dockcore.domains import Fraction, Interval, Seed, check, split_annotated
 from dockcore.errors import ConfigError, DockError
 from dockcore.io import atomic_path, atomic_write_bytes, atomic_write_json
@@ -101,8 +101,6 @@ _PARTIAL = ".partial"
 _STATE = ".synth.json"
 _MAX_DRAWS = 200
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-#: Farthest a given pose may be from the world origin (m): any tank is much smaller.
-_MAX_POSITION_M = 1e4
 
 #: Worker processes of a run (each holds a renderer: a few hundred MB).
 Workers = Annotated[int, Interval(ge=1, le=64)]
@@ -514,17 +512,6 @@ def _state(cfg: SynthConfig, poses: np.ndarray | None) -> dict[str, Any]:
     return {"config": {**to_dict(cfg), "n_frames": None}, "poses_sha1": digest}
 
 
-def _changed_keys(a: Any, b: Any, prefix: str = "") -> list[str]:
-    """Dotted keys whose values differ between two JSON objects (``config.`` prefix dropped)."""
-    if isinstance(a, dict) and isinstance(b, dict):
-        out = []
-        for k in sorted(set(a) | set(b), key=str):
-            out += _changed_keys(a.get(k), b.get(k), f"{prefix}{k}.")
-        return out
-    key = prefix.rstrip(".").removeprefix("config.")
-    return [] if a == b else [key.replace("poses_sha1", "poses")]
-
-
 def _check_resume(out_dir: Path, state: dict[str, Any]) -> None:
     """Refuse a folder holding frames of another config (or of no known config)."""
     path = out_dir / _STATE
@@ -543,7 +530,9 @@ def _check_resume(out_dir: Path, state: dict[str, Any]) -> None:
         raise DockError(f"{path}: unreadable ({reason}); use a new --out") from None
     new = json.loads(json.dumps(state))
     if old != new:
-        changed = _changed_keys(old, new)
+        changed = [
+            k.removeprefix("config.").replace("poses_sha1", "poses") for k in changed_keys(old, new)
+        ]
         raise DockError(
             f"{out_dir} holds a dataset made with another config (differs in "
             f"{', '.join(changed[:4]) or 'format'}); use a new --out (or the same settings "
@@ -560,13 +549,13 @@ def _indices(folder: Path, pattern: re.Pattern[str]) -> list[int]:
     return [int(m.group(1)) for m in map(pattern.match, names) if m]
 
 
-def _check_no_frames_beyond(out_dir: Path, n: int) -> None:
+def _check_no_frames_beyond(out_dir: Path, n: int, old_lines: dict[int, str]) -> None:
     """Refuse to shrink a dataset: ``n`` frames into a folder holding frames >= n would delete
-    them (images, partial labels or lines of ``labels.jsonl``)."""
+    them (images, partial labels or ``old_lines``, those of ``labels.jsonl``)."""
     held = [
         *_indices(out_dir / "images", _IMAGE_RE),
         *_indices(out_dir / _PARTIAL, _PARTIAL_RE),
-        *_read_jsonl_lenient(out_dir / "labels.jsonl"),
+        *old_lines,
     ]
     last = max(held, default=-1)
     if last >= n:
@@ -577,11 +566,15 @@ def _check_no_frames_beyond(out_dir: Path, n: int) -> None:
         )
 
 
-def _check_folder(out_dir: Path, state: dict[str, Any], n: int) -> None:
-    """Everything that must hold before a run writes into ``out_dir`` (read only)."""
-    if out_dir.is_dir():
-        _check_resume(out_dir, state)
-        _check_no_frames_beyond(out_dir, n)
+def _check_folder(out_dir: Path, state: dict[str, Any], n: int) -> dict[int, str]:
+    """Everything that must hold before a run writes into ``out_dir`` (read only); returns the
+    lines of its ``labels.jsonl`` by frame (empty without one)."""
+    if not out_dir.is_dir():
+        return {}
+    _check_resume(out_dir, state)
+    old_lines = _read_jsonl_lenient(out_dir / "labels.jsonl")
+    _check_no_frames_beyond(out_dir, n, old_lines)
+    return old_lines
 
 
 def _prepare(
@@ -657,9 +650,10 @@ def _done_frames(
     done = set()
     for k in range(n):
         label = partial / f"{k:06d}.json"
-        if label.exists() and not _partial_ok(label, k):
-            label.unlink()
-        if (k in old_lines or label.is_file()) and _png_ok(images / IMAGE_NAME.format(k), size_px):
+        has_label = _partial_ok(label, k)
+        if not has_label:
+            label.unlink(missing_ok=True)
+        if (has_label or k in old_lines) and _png_ok(images / IMAGE_NAME.format(k), size_px):
             done.add(k)
     return done
 
@@ -725,19 +719,18 @@ def _check_cameras_in_water(
 
 
 def _checked_poses(poses: ArrayLike | None, n: int) -> np.ndarray | None:
-    """(n, 4, 4) float64 vehicle poses, each a valid transform, or None."""
+    """(n, 4, 4) float64 vehicle poses, each a valid transform, or None (where the camera
+    is, :func:`_check_cameras_in_water`)."""
     if poses is None:
         return None
     pose_arr = np.asarray(poses, np.float64)
     if pose_arr.shape != (n, 4, 4):
         raise DockError(f"poses: expected ({n}, 4, 4), got {pose_arr.shape}")
     for k, T in enumerate(pose_arr):
-        check_T(T, f"poses[{k}]")
-        if not np.all(np.abs(T[:3, 3]) <= _MAX_POSITION_M):
-            raise DockError(
-                f"poses[{k}]: position {T[:3, 3].tolist()} m is more than "
-                f"{_MAX_POSITION_M:g} m from the tank centre"
-            )
+        try:
+            check_T(T, f"poses[{k}]")
+        except ValueError as exc:  # a non-finite or non-rigid matrix: the user's input
+            raise DockError(str(exc)) from None
     return pose_arr
 
 
@@ -792,14 +785,13 @@ def generate(
     n = cfg.n_frames
     _check_folder(Path(out_dir), state, n)
     with claim_output_dir(out_dir, tool) as out:
-        _check_folder(out, state, n)  # again, now that no other run can change it
+        old_lines = _check_folder(out, state, n)  # again, now that no other run can change it
         (out / "dataset.json").unlink(missing_ok=True)  # incomplete until written again
         atomic_write_json(out / _STATE, state)
         (out / "images").mkdir(exist_ok=True)
         (out / _PARTIAL).mkdir(exist_ok=True)
         _prepare(out, cfg, camera, T_body_cam, marker_set)
 
-        old_lines = _read_jsonl_lenient(out / "labels.jsonl")
         done = _done_frames(out, n, old_lines, (camera.width_px, camera.height_px))
         todo = [k for k in range(n) if k not in done]
         rendered: list[int] = []

@@ -15,6 +15,7 @@ they override, ``type=field_type(MarkerConfig, "size_mm")``.
 from __future__ import annotations
 
 import errno
+import functools
 import os
 import signal
 import sys
@@ -33,20 +34,46 @@ from dockcore.errors import DockError
 CONTEXT = {"help_option_names": ["-h", "--help"]}
 
 
+def _lookup(ref: str) -> Any:
+    """``"package.module:Name"`` -> the object (imported on first use)."""
+    import importlib
+
+    module, _, name = ref.partition(":")
+    return getattr(importlib.import_module(module), name)
+
+
 class DomainType(click.ParamType):
     """A click type for an int or float option with a declared domain (finite, bounds).
 
     ``"nan"``, ``"inf"``, ``"1e999"``, ``"1.5"`` for an integer, or a value outside the bounds is
     click's one-line usage error naming the option, before the command runs.
+
+    Args:
+        tp: ``Annotated[int | float, <domain>]``, or a zero-argument callable returning it: the
+            type is then resolved when first needed, so a command group can declare options of
+            heavy modules (the simulator's configs) without importing them at start-up.
     """
 
+    name = "number"
+
     def __init__(self, tp: Any) -> None:
+        self._tp = tp
+
+    @functools.cached_property
+    def _spec(self) -> tuple[type, tuple[Any, ...]]:
+        tp = self._tp() if callable(self._tp) and domain_of(self._tp) is None else self._tp
         base, meta = split_annotated(tp)
         if base not in (int, float) or domain_of(tp) is None:
             raise TypeError(f"DomainType needs Annotated[int|float, <domain>], got {tp!r}")
-        self.base: type = base
-        self.meta = meta
-        self.name = "integer" if base is int else "float"
+        return base, meta
+
+    @property
+    def base(self) -> type:
+        return self._spec[0]
+
+    @property
+    def meta(self) -> tuple[Any, ...]:
+        return self._spec[1]
 
     def get_metavar(self, param: click.Parameter, ctx: click.Context | None = None) -> str:
         return "INTEGER" if self.base is int else "FLOAT"
@@ -70,18 +97,26 @@ class DomainType(click.ParamType):
 
 
 def domain_type(tp: Any) -> DomainType:
-    """The click type of an option whose values are ``tp`` (an annotated int or float)."""
-    return DomainType(tp)
+    """The click type of an option whose values are ``tp`` (an annotated int or float, or
+    ``"package.module:Alias"`` naming one, imported when first needed)."""
+    return DomainType((lambda: _lookup(tp)) if isinstance(tp, str) else tp)
 
 
-def field_type(cls: type, name: str) -> DomainType:
+def field_type(cls: type | str, name: str) -> DomainType:
     """The click type of an option that overrides config field ``cls.name`` (same domain).
 
-    A field ``float | None`` gives the type of its number (an unset option stays None)."""
-    tp = typing.get_type_hints(cls, include_extras=True)[name]
-    if typing.get_origin(tp) in (typing.Union, types.UnionType):
-        tp = next(a for a in typing.get_args(tp) if a is not type(None))
-    return DomainType(tp)
+    ``cls`` may be ``"package.module:Class"``: imported when the option is first used, not when
+    the command group is. A field ``float | None`` gives the type of its number (an unset
+    option stays None)."""
+
+    def resolve() -> Any:
+        owner = _lookup(cls) if isinstance(cls, str) else cls
+        tp = typing.get_type_hints(owner, include_extras=True)[name]
+        if typing.get_origin(tp) in (typing.Union, types.UnionType):
+            tp = next(a for a in typing.get_args(tp) if a is not type(None))
+        return tp
+
+    return DomainType(resolve)
 
 
 class _Interrupted(KeyboardInterrupt):

@@ -178,10 +178,10 @@ def from_dict(cls: type[C], data: Mapping[str, Any]) -> C:
 
 
 @functools.cache
-def _numeric_fields(cls: type) -> tuple[tuple[str, tuple[Any, ...]], ...]:
-    """``(name, element types)`` of the numeric fields of dataclass ``cls``: one type for a
-    scalar, one per element for a fixed tuple, ``(type, ...)`` for a tuple of any length;
-    ``None`` dropped from optional fields."""
+def _numeric_fields(cls: type) -> tuple[tuple[str, bool, tuple[tuple[type, tuple], ...]], ...]:
+    """``(name, variadic, ((base, domain), ...))`` of the numeric fields of dataclass ``cls``,
+    resolved once: one element for a scalar, one per element for a fixed tuple, one for every
+    element of a ``tuple[T, ...]`` (``variadic``); ``None`` dropped from optional fields."""
     hints = typing.get_type_hints(cls, include_extras=True)
     out = []
     for f in dataclasses.fields(cls):
@@ -190,9 +190,13 @@ def _numeric_fields(cls: type) -> tuple[tuple[str, tuple[Any, ...]], ...]:
             args = [a for a in typing.get_args(tp) if a is not type(None)]
             tp = args[0] if len(args) == 1 else tp
         if typing.get_origin(tp) is tuple:
-            out.append((f.name, typing.get_args(tp)))
+            args = typing.get_args(tp)
+            variadic = len(args) == 2 and args[1] is Ellipsis
+            elems = tuple(split_annotated(a) for a in (args[:1] if variadic else args))
+            if all(base in (int, float) for base, _ in elems):
+                out.append((f.name, variadic, elems))
         elif split_annotated(tp)[0] in (int, float):
-            out.append((f.name, (tp,)))
+            out.append((f.name, False, (split_annotated(tp),)))
     return tuple(out)
 
 
@@ -202,21 +206,20 @@ def check_fields(cfg: Any) -> None:
     The loader's check (:func:`dockcore.config.validated`) for a flat config built in Python,
     without its round trip through a dict: for configs checked on every frame.
     """
-    for name, types_ in _numeric_fields(type(cfg)):
+    for name, variadic, elems in _numeric_fields(type(cfg)):
         value = getattr(cfg, name)
         if value is None:
             continue
-        if len(types_) == 1 and not isinstance(value, (tuple, list)):
-            items, keys = [value], [name]
-        elif len(types_) == 2 and types_[1] is Ellipsis and isinstance(value, (tuple, list)):
-            items, keys = list(value), [f"{name}[{i}]" for i in range(len(value))]
-            types_ = (types_[0],) * len(items)
+        if not isinstance(value, (tuple, list)):
+            items = [(name, value)]
         else:
-            if not isinstance(value, (tuple, list)) or len(value) != len(types_):
-                raise ValueError(f"{name}: expected {len(types_)} values, got {value!r}")
-            items, keys = list(value), [f"{name}[{i}]" for i in range(len(value))]
-        for item, tp, key in zip(items, types_, keys, strict=True):
-            base, meta = split_annotated(tp)
+            if not variadic and len(value) != len(elems):
+                raise ValueError(f"{name}: expected {len(elems)} values, got {value!r}")
+            items = [(f"{name}[{i}]", v) for i, v in enumerate(value)]
+            elems = elems * len(value) if variadic else elems
+        if len(items) != len(elems):
+            raise ValueError(f"{name}: expected {len(elems)} values, got {value!r}")
+        for (key, item), (base, meta) in zip(items, elems, strict=True):
             reason = check_domain(item, base, meta, key) if meta else None
             if reason:
                 raise ValueError(reason)
@@ -229,6 +232,16 @@ def validated(cfg: C) -> C:
     Library entry points call it on configs built in Python (``SynthConfig(n_frames=...)``), so
     the API refuses what a TOML file or a flag would."""
     return from_dict(type(cfg), to_dict(cfg))
+
+
+def changed_keys(a: Any, b: Any, prefix: str = "") -> list[str]:
+    """Dotted keys whose values differ between two plain config dicts (:func:`to_dict`)."""
+    if isinstance(a, Mapping) and isinstance(b, Mapping):
+        out = []
+        for k in sorted(set(a) | set(b), key=str):
+            out += changed_keys(a.get(k), b.get(k), f"{prefix}{k}.")
+        return out
+    return [] if a == b else [prefix.rstrip(".")]
 
 
 def merge(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:

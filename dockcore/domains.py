@@ -20,6 +20,7 @@ value (a coordinate, an offset): declared, so a test can tell it from a forgotte
 
 from __future__ import annotations
 
+import functools
 import math
 import typing
 from typing import Annotated, Any
@@ -73,14 +74,18 @@ def split_annotated(tp: Any) -> tuple[Any, tuple[Any, ...]]:
     return tp, ()
 
 
-def _constraints(meta: tuple[Any, ...]) -> list[BaseMetadata]:
+@functools.cache
+def _constraints(meta: tuple[Any, ...]) -> tuple[BaseMetadata, ...]:
+    """The bounds in ``meta``, groups (``Interval``) flattened. Cached: ``GroupedMetadata`` is a
+    runtime-checkable Protocol, so each ``isinstance`` costs tens of microseconds, and configs
+    checked per frame (:func:`dockcore.config.check_fields`) would pay it every time."""
     out: list[BaseMetadata] = []
     for m in meta:
         if isinstance(m, GroupedMetadata):
             out.extend(_constraints(tuple(m)))
         elif isinstance(m, (Gt, Ge, Lt, Le)):
             out.append(m)
-    return out
+    return tuple(out)
 
 
 def domain_of(tp: Any) -> tuple[Any, ...] | None:

@@ -18,7 +18,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from dockcore.errors import DockError
+from dockcore.errors import ConfigError, DockError
 
 #: The mark in the name of every temporary file or folder the toolkit writes.
 TEMP_MARK = ".uwtmp"
@@ -70,40 +70,47 @@ def clean_stale_temps(folder: str | os.PathLike[str], recursive: bool = True) ->
     return removed
 
 
+def temp_sibling(path: str | os.PathLike[str], suffix: str = "", folder: bool = False) -> Path:
+    """Create a hidden temporary file (or folder) beside ``path`` and return it.
+
+    Named ``.<name>.<pid>.<random>.uwtmp<suffix>``, so :func:`clean_stale_temps` can remove it
+    once this process is gone. ``suffix`` keeps a container suffix (``".mp4"``) for writers that
+    pick the format from the name. An ``OSError`` names ``path``, not the temporary file.
+    """
+    path = Path(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        kw = {"prefix": temp_prefix(path.name), "suffix": TEMP_MARK + suffix, "dir": path.parent}
+        if folder:
+            return Path(tempfile.mkdtemp(**kw))
+        fd, tmp = tempfile.mkstemp(**kw)
+    except OSError as exc:
+        raise _name_target(exc, path) from None
+    os.close(fd)
+    return Path(tmp)
+
+
 def _name_target(exc: OSError, path: Path) -> OSError:
     """The same error, naming ``path`` instead of the hidden temporary file."""
     return type(exc)(exc.errno, exc.strerror or str(exc), str(path))
 
 
 @contextlib.contextmanager
-def atomic_path(path: str | os.PathLike[str], suffix: str = "") -> Iterator[Path]:
+def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; on success it is renamed onto ``path``.
 
     On an exception the temporary file is removed and ``path`` is left as it was; a failed
     write (disk full, read-only disk) is an ``OSError`` naming ``path``, not the temporary file.
-
-    Args:
-        path: the file to write.
-        suffix: appended to the temporary name after ``.uwtmp`` (``".mp4"``: writers that pick
-            the format from the suffix).
     """
     path = Path(path)
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(
-            prefix=temp_prefix(path.name), suffix=TEMP_MARK + suffix, dir=path.parent
-        )
-    except OSError as exc:
-        raise _name_target(exc, path) from None
-    os.close(fd)
-    tmp_path = Path(tmp)
+    tmp_path = temp_sibling(path)
     try:
         yield tmp_path
         os.chmod(tmp_path, 0o644)
         os.replace(tmp_path, path)
     except OSError as exc:
         tmp_path.unlink(missing_ok=True)
-        if exc.filename in (str(tmp_path), tmp):
+        if exc.filename == str(tmp_path):
             raise _name_target(exc, path) from None
         raise
     except BaseException:
@@ -137,9 +144,7 @@ def ensure_writable_dir(path: str | os.PathLike[str]) -> Path:
     path = Path(path)
     try:
         path.mkdir(parents=True, exist_ok=True)
-        fd, probe = tempfile.mkstemp(prefix=temp_prefix("write-probe"), suffix=TEMP_MARK, dir=path)
-        os.close(fd)
-        os.unlink(probe)
+        temp_sibling(path / "write-probe").unlink()
     except OSError as exc:
         raise DockError(f"cannot write to output folder {path}: {exc.strerror or exc}") from None
     return path
@@ -152,8 +157,6 @@ def read_text(path: str | os.PathLike[str], what: str = "file") -> str:
         ConfigError: one line calling the file ``what``: missing, a folder, unreadable, or not
             UTF-8 (naming the first bad byte).
     """
-    from dockcore.errors import ConfigError
-
     path = Path(path)
     try:
         data = path.read_bytes()

@@ -21,7 +21,6 @@ from __future__ import annotations
 import contextlib
 import os
 import sys
-import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -29,10 +28,11 @@ from typing import Any
 import numpy as np
 
 from dockcore.errors import DockError
-from dockcore.io import TEMP_MARK, temp_prefix
+from dockcore.io import temp_sibling
 
 __all__ = [
     "IMAGE_SUFFIXES",
+    "MAX_CONSECUTIVE_VIDEO_FAILURES",
     "VIDEO_FOURCC",
     "AtomicVideoWriter",
     "open_video",
@@ -49,6 +49,9 @@ if "OPENCV_FFMPEG_DEBUG" not in os.environ:
 
 #: Video container suffix -> OpenCV FourCC of the codec written into it.
 VIDEO_FOURCC: dict[str, str] = {".mp4": "mp4v", ".avi": "MJPG"}
+
+#: A video read gives up after this many consecutive undecodable frames.
+MAX_CONSECUTIVE_VIDEO_FAILURES = 25
 
 #: File suffixes read as images (case-insensitive).
 IMAGE_SUFFIXES: tuple[str, ...] = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
@@ -108,25 +111,33 @@ def read_image(path: str | os.PathLike[str], grey: bool = False) -> np.ndarray |
     return img
 
 
-def open_video(path: str | os.PathLike[str]) -> tuple[Any, np.ndarray]:
-    """Open a video file with ``cv2.VideoCapture`` and decode its first frame (quietly).
+def open_video(path: str | os.PathLike[str]) -> tuple[Any, np.ndarray, int]:
+    """Open a video file with ``cv2.VideoCapture`` and decode its first decodable frame
+    (quietly); up to :data:`MAX_CONSECUTIVE_VIDEO_FAILURES` corrupt leading frames are skipped.
 
     Returns:
-        ``(capture, first_frame)``: the open capture, positioned after the first frame (the
-        caller releases it), and that frame as decoded ((H, W, 3) BGR, usually uint8).
+        ``(capture, first_frame, leading)``: the open capture, positioned after that frame (the
+        caller releases it), the frame as decoded ((H, W, 3) BGR, usually uint8), and how many
+        frames before it could not be decoded.
 
     Raises:
-        DockError: one line when the file is not a video or holds no decodable frame.
+        DockError: one line when the file is not a video or holds no decodable frame among the
+            first ones.
     """
     import cv2
 
     with quiet_native_stderr():
         cap = cv2.VideoCapture(str(path))
-        ok, first = cap.read() if cap.isOpened() else (False, None)
+        ok, first, leading = False, None, 0
+        while cap.isOpened() and leading < MAX_CONSECUTIVE_VIDEO_FAILURES:
+            ok, first = cap.read()
+            if ok and first is not None:
+                break
+            leading += 1
     if not ok or first is None:
         cap.release()
         raise DockError(f"cannot read video {path} (not a video, or no decodable frame)")
-    return cap, first
+    return cap, first, leading
 
 
 class AtomicVideoWriter:
@@ -172,15 +183,7 @@ class AtomicVideoWriter:
         import cv2
 
         suffix = self.path.suffix
-        try:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            fd, tmp = tempfile.mkstemp(
-                prefix=temp_prefix(self.path.name), suffix=TEMP_MARK + suffix, dir=self.path.parent
-            )
-        except OSError as exc:
-            raise type(exc)(exc.errno, exc.strerror, str(self.path)) from None
-        os.close(fd)
-        self._tmp = Path(tmp)
+        self._tmp = temp_sibling(self.path, suffix)
         fourcc = cv2.VideoWriter_fourcc(*VIDEO_FOURCC[suffix.lower()])
         with quiet_native_stderr():
             writer = cv2.VideoWriter(str(self._tmp), fourcc, self.fps, size_px)

@@ -30,10 +30,10 @@ import tomli_w
 
 from calibration.frames import check_T, make_T, transform_points
 from dockcore.config import read_toml, validated
-from dockcore.domains import check, split_annotated
+from dockcore.domains import Finite, check, describe, split_annotated
 from dockcore.errors import ConfigError, DockError
 from dockcore.io import atomic_write_text, read_text
-from markers.config import MarkerConfig, MarkerSideM
+from markers.config import MAX_DS_COORD_M, MarkerConfig, MarkerSideM, PartSideMm
 from markers.dictionary import check_ids, normalise_dictionary_name
 
 FORMAT = "uwdock.markerset"
@@ -181,16 +181,8 @@ def marker_set_from_config(
                 (mesh_names or {}).get(marker_id),
             )
         )
-    geometry = {
-        "size_mm": cfg.size_mm,
-        "insert_thickness_mm": cfg.insert_thickness_mm,
-        "relief_depth_mm": cfg.relief_depth_mm,
-        "clearance_mm": cfg.clearance_mm,
-        "enclosure_side_mm": cfg.enclosure_side,
-        "enclosure_height_mm": cfg.enclosure_height_mm,
-        "base_side_mm": cfg.base_side,
-        "base_height_mm": cfg.base_height_mm,
-    }
+    resolved = {"enclosure_side_mm": cfg.enclosure_side, "base_side_mm": cfg.base_side}
+    geometry = {k: resolved.get(k, getattr(cfg, k)) for k in _GEOMETRY_KEYS}
     return MarkerSet(tuple(specs), geometry)
 
 
@@ -225,10 +217,12 @@ _GEOMETRY_KEYS = (
     "base_side_mm",
     "base_height_mm",
 )
-#: Largest distance of a marker from the DS origin along each axis (m) and part dimension (mm)
-#: a marker set may state (the domains of ``MarkerConfig``; sides: ``MarkerSideM``).
-MAX_OFFSET_M = 100.0
-_MAX_PART_MM = 2000.0
+#: Largest distance of a marker from the DS origin along each axis (m) a marker set may state
+#: (the domain of ``MarkerConfig.layout``).
+MAX_OFFSET_M = MAX_DS_COORD_M
+#: Domains of a matrix element and of a ``[geometry]`` dimension (mm).
+_FINITE = split_annotated(Finite)
+_PART_MM = split_annotated(PartSideMm)
 
 
 def _unknown_key(table: dict, allowed: tuple[str, ...], where: str) -> str | None:
@@ -237,15 +231,6 @@ def _unknown_key(table: dict, allowed: tuple[str, ...], where: str) -> str | Non
     if not unknown:
         return None
     return f"{where}unknown key '{unknown[0]}' (valid keys: {', '.join(allowed)})"
-
-
-def _real(value: object) -> bool:
-    """A finite int or float that is not a bool."""
-    return (
-        isinstance(value, (int, float))
-        and not isinstance(value, bool)
-        and math.isfinite(float(value))
-    )
 
 
 def _matrix(value: object, shape: tuple[int, int], where: str) -> np.ndarray:
@@ -257,7 +242,7 @@ def _matrix(value: object, shape: tuple[int, int], where: str) -> np.ndarray:
         or not all(isinstance(r, list) and len(r) == shape[1] for r in rows)
     ):
         raise ValueError(f"{where} must be a {shape[0]}x{shape[1]} list of numbers")
-    bad = [v for r in rows for v in r if not _real(v)]
+    bad = [v for r in rows for v in r if check(v, *_FINITE, where)]
     if bad:
         raise ValueError(f"{where} must hold finite numbers, got {bad[0]!r}")
     return np.array(rows, dtype=np.float64)
@@ -308,10 +293,8 @@ def _geometry(value: object) -> dict:
     if complaint:
         raise ValueError(complaint)
     for key, v in value.items():
-        if not (_real(v) and 0 < v <= _MAX_PART_MM):
-            raise ValueError(
-                f"geometry.{key} must be a number in (0, {_MAX_PART_MM:g}] mm, got {v!r}"
-            )
+        if check(v, *_PART_MM, key):
+            raise ValueError(f"geometry.{key} must be {describe(_PART_MM[1])} mm, got {v!r}")
     return dict(value)
 
 

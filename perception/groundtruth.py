@@ -531,8 +531,8 @@ def load_dataset(root: str | os.PathLike[str]) -> LabelledDataset:
     if not manifest_path.is_file():
         raise DockError(f"not a labelled dataset folder (no dataset.json): {root}")
     try:
-        manifest = json.loads(manifest_path.read_text(encoding="utf-8-sig"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        manifest = json.loads(read_text(manifest_path, "dataset manifest"))
+    except json.JSONDecodeError as exc:
         raise DockError(f"{manifest_path}: malformed JSON ({exc})") from None
     if not isinstance(manifest, dict) or manifest.get("format") != DATASET_FORMAT:
         raise DockError(f"{manifest_path}: 'format' must be '{DATASET_FORMAT}'")

@@ -190,13 +190,16 @@ def _bins(
     ok = np.isfinite(vals)
     if not ok.any():
         return []
-    keys = [math.floor(v / width) if g else None for v, g in zip(vals, ok, strict=True)]
-    occupied = sorted({k for k in keys if k is not None})
+    groups: dict[int, list[EvalRecord]] = {}
+    for r, v, g in zip(recs, vals, ok, strict=True):
+        if g:
+            groups.setdefault(math.floor(v / width), []).append(r)
+    occupied = sorted(groups)
     if occupied[-1] - occupied[0] < MAX_BINS:  # every bin from the first to the last
         occupied = list(range(occupied[0], occupied[-1] + 1))
     out = []
     for k in occupied:  # (a sparse run, e.g. one outlying range, lists the occupied bins only)
-        members = [r for r, key in zip(recs, keys, strict=True) if key == k]
+        members = groups.get(k, [])
         n = len(members)
         entry = {
             "lo": round(k * width, 9),

@@ -45,7 +45,14 @@ import numpy as np
 from calibration.camera import CameraModel
 from dockcore.errors import DockError
 from dockcore.io import atomic_write_bytes
-from dockcore.media import IMAGE_SUFFIXES, AtomicVideoWriter, quiet_native_stderr, read_image
+from dockcore.media import (
+    IMAGE_SUFFIXES,
+    MAX_CONSECUTIVE_VIDEO_FAILURES,
+    AtomicVideoWriter,
+    open_video,
+    quiet_native_stderr,
+    read_image,
+)
 from perception.avi import AviIndex, mjpeg_avi_index
 from perception.preprocess import MIN_IMAGE_PX, as_uint8
 
@@ -61,8 +68,6 @@ __all__ = [
     "write_contact_sheet",
 ]
 
-#: A video read gives up after this many consecutive undecodable frames.
-MAX_CONSECUTIVE_VIDEO_FAILURES = 25
 
 #: A decoded frame's timestamp is trusted to place it when the first two frames lie one frame
 #: interval apart within this fraction of an interval (constant frame rate, sane timestamps).
@@ -239,26 +244,9 @@ def _open_indexed_avi(path: Path) -> FrameSource | None:
 
 
 def _open_video(path: Path) -> FrameSource:
-    """Open a video and decode its first decodable frame (quietly).
-
-    Unlike :func:`dockcore.media.open_video`, a corrupt first frame does not refuse the whole
-    video: up to ``MAX_CONSECUTIVE_VIDEO_FAILURES`` leading frames may fail (they are yielded
-    as corrupt frames 0, 1, ...).
-
-    Raises:
-        DockError: not a video, or no decodable frame among the first ones.
-    """
-    with quiet_native_stderr():
-        cap = cv2.VideoCapture(str(path))
-        ok, first, leading = False, None, 0
-        while cap.isOpened() and leading < MAX_CONSECUTIVE_VIDEO_FAILURES:
-            ok, first = cap.read()
-            if ok and first is not None:
-                break
-            leading += 1
-    if not ok or first is None:
-        cap.release()
-        raise DockError(f"cannot read video {path} (not a video, or no decodable frame)")
+    """A video through :func:`dockcore.media.open_video`: corrupt leading frames are yielded
+    as corrupt frames 0, 1, ... (DockError: not a video, or no decodable frame)."""
+    cap, first, leading = open_video(path)
     count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
     fps = float(cap.get(cv2.CAP_PROP_FPS))
     return FrameSource(

@@ -26,11 +26,11 @@ import hashlib
 import io
 import json
 import os
+import pickle
 import random
 import re
 import shutil
 import sys
-import tempfile
 import zipfile
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 
 from dockcore.errors import DockError
-from dockcore.io import TEMP_MARK, temp_prefix
+from dockcore.io import TEMP_MARK, temp_sibling
 
 FORMAT = "uwdock.checkpoint"
 VERSION = 1
@@ -125,8 +125,6 @@ def pickle_bytes(obj: Any) -> bytes:
     """``obj`` pickled without the memo ("fast" mode), so the bytes depend on its content only,
     not on which parts happen to share objects (a loaded and a live ``VecNormalize`` differ
     there). For acyclic objects (normalisation statistics, replay buffers)."""
-    import pickle
-
     buf = io.BytesIO()
     pickler = pickle.Pickler(buf, protocol=4)
     pickler.fast = True
@@ -209,7 +207,7 @@ def write_unit(
     """
     checkpoints.mkdir(parents=True, exist_ok=True)
     name = unit_name(step)
-    tmp = Path(tempfile.mkdtemp(prefix=temp_prefix(name), suffix=TEMP_MARK, dir=checkpoints))
+    tmp = temp_sibling(checkpoints / name, folder=True)
     try:
         body = {**files, STATE: (json.dumps(state, indent=1, sort_keys=True) + "\n").encode()}
         entries = {}

@@ -11,9 +11,9 @@ from dockcore.cli import CONTEXT, domain_type, field_type, run_group
 from dockcore.config import config_data, from_dict, load_config, merge, replace, to_dict
 from dockcore.domains import Count, Interval, Seed
 from dockcore.errors import DockError
-from rl.error_model import ErrorModelConfig
-from rl.train import TrainConfig
 
+#: The config whose fields the options override (imported when an option is first used).
+_TRAIN = "rl.train:TrainConfig"
 OBS_CHOICES = click.Choice(["proxy", "error-model", "camera"])
 
 
@@ -37,9 +37,9 @@ def cli() -> None:
     help="Fitted error model file (for --obs error-model).",
 )
 @click.option("--algo", type=click.Choice(["ppo", "sac"]), help="Algorithm [ppo].")
-@click.option("--steps", type=field_type(TrainConfig, "total_steps"), help="Total env steps.")
-@click.option("--envs", type=field_type(TrainConfig, "n_envs"), help="Parallel environments.")
-@click.option("--seed", type=field_type(TrainConfig, "seed"), help="Base seed.")
+@click.option("--steps", type=field_type(_TRAIN, "total_steps"), help="Total env steps.")
+@click.option("--envs", type=field_type(_TRAIN, "n_envs"), help="Parallel environments.")
+@click.option("--seed", type=field_type(_TRAIN, "seed"), help="Base seed.")
 @click.option(
     "--init-policy", type=click.Path(path_type=Path), help="Start from this policy (fine-tuning)."
 )
@@ -69,7 +69,7 @@ def train(
     Killed at any moment, `--resume` goes on from the newest complete checkpoint and gives the
     same checkpoints, evaluation history and best/ as a run never stopped.
     """
-    from rl.train import run_config
+    from rl.train import TrainConfig, run_config
     from rl.train import train as run
 
     env_over = {"obs_source": obs, "error_model_path": str(error_model) if error_model else None}
@@ -223,11 +223,13 @@ def export(policy, out_path) -> None:
     help="Error model file (JSON) to write.",
 )
 @click.option(
-    "--range-bin-m", type=field_type(ErrorModelConfig, "range_bin_m"), help="Range bin width [0.5]."
+    "--range-bin-m",
+    type=field_type("rl.error_model:ErrorModelConfig", "range_bin_m"),
+    help="Range bin width [0.5].",
 )
 def fit_error_model_cmd(dataset, out_path, range_bin_m) -> None:
     """Fit the image-derived error model from a labelled dataset (`datasets synth`)."""
-    from rl.error_model import fit_error_model, save_error_model
+    from rl.error_model import ErrorModelConfig, fit_error_model, save_error_model
 
     cfg = load_config(ErrorModelConfig, overrides={"range_bin_m": range_bin_m})
     model = fit_error_model(dataset, cfg)

@@ -25,7 +25,7 @@ from dockcore.errors import DockError
 from rl.config import EnvConfig
 from rl.estimator import DSPoseFilter
 from rl.obs_sources import ObservationSource, ProxySource, StepContext
-from rl.observation import OBS_BOUND, frame_dim, observation_frame
+from rl.observation import OBS_BOUND, observation_frame, observation_size
 from rl.rewards import DockingReward
 from rl.task import docking_errors, ds_visible, paper_success, pegs_seated
 from rl.world import DockingWorld
@@ -65,9 +65,8 @@ class DockingEnv(gym.Env):
         self.filter = DSPoseFilter(est_cfg)
         self.reward_fn = DockingReward(c.reward)
         self._limits = c.action_limits
-        dim = frame_dim(c)
         self.observation_space = gym.spaces.Box(
-            -OBS_BOUND, OBS_BOUND, shape=(dim * c.obs_frames,), dtype=np.float32
+            -OBS_BOUND, OBS_BOUND, shape=(observation_size(c),), dtype=np.float32
         )
         self.action_space = gym.spaces.Box(-1.0, 1.0, shape=(6,), dtype=np.float32)
         self._frames: list[np.ndarray] = []
@@ -184,9 +183,10 @@ class DockingEnv(gym.Env):
             res = self.world.render()
             if res is None:
                 return None
-            from sim.water import apply_water, preset
+            from sim.water import PRESETS, apply_water
 
-            img = apply_water(res.rgb, res.range_m, preset(self.cfg.water_preset), self._film_rng)
+            water = PRESETS[self.cfg.water_preset]  # a preset name EnvConfig has checked
+            img = apply_water(res.rgb, res.range_m, water, self._film_rng)
             dets = []
         out = np.ascontiguousarray(img.copy())
         for d in dets:

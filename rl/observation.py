@@ -31,6 +31,11 @@ def frame_dim(cfg: EnvConfig) -> int:
     return BASE_OBS_DIM + (6 if cfg.obs_last_action else 0) + (2 if cfg.obs_uncertainty else 0)
 
 
+def observation_size(cfg: EnvConfig) -> int:
+    """Length of the whole observation for ``cfg`` (``obs_frames`` frames)."""
+    return frame_dim(cfg) * cfg.obs_frames
+
+
 def observation_frame(
     cfg: EnvConfig,
     T_world_body: np.ndarray,

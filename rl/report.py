@@ -66,9 +66,9 @@ def load_controller(policy: str, env_cfg: EnvConfig):
         return PIDController.for_env(env_cfg), None, "pid"
     path = Path(policy)
     from rl.export import OnnxPolicy, check_obs_dim, load_policy
-    from rl.observation import frame_dim
+    from rl.observation import observation_size
 
-    env_dim = frame_dim(env_cfg) * env_cfg.obs_frames
+    env_dim = observation_size(env_cfg)
     if path.suffix == ".onnx":
         onnx = OnnxPolicy(path)
         if onnx.obs_dim is not None:

@@ -26,7 +26,7 @@ from rl.camera_source import measure_from_image
 from rl.config import EnvConfig
 from rl.estimator import DSPoseFilter
 from rl.export import OnnxPolicy
-from rl.observation import frame_dim, observation_frame
+from rl.observation import observation_frame, observation_size
 
 
 @dataclass(frozen=True)
@@ -146,7 +146,7 @@ class DockingRunner:
     def step(self, image: np.ndarray | None, odom: Odometry) -> np.ndarray:
         """One 5 Hz tick: returns the body wrench (6,) [N, N m] to send to the allocator."""
         obs = self.observe(image, odom)
-        if obs.shape[0] != frame_dim(self.cfg) * self.cfg.obs_frames:
+        if obs.shape[0] != observation_size(self.cfg):
             raise ValueError("observation layout does not match the environment config")
         action = np.clip(np.asarray(self.policy.act(obs), dtype=np.float64), -1.0, 1.0)
         self.prev_action = action

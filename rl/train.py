@@ -27,9 +27,9 @@ import sys
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Literal
 
-from dockcore.config import dumps_toml, load_config, to_dict, validated
+from dockcore.config import changed_keys, dumps_toml, load_config, to_dict, validated
 from dockcore.domains import Count, Fraction, Interval, Seed
 from dockcore.errors import DockError
 from dockcore.io import atomic_write_bytes, atomic_write_json, atomic_write_text
@@ -207,16 +207,6 @@ def rollout_steps(cfg: TrainConfig) -> int:
     return per_env * cfg.n_envs
 
 
-def changed_keys(a: Any, b: Any, prefix: str = "") -> list[str]:
-    """Dotted keys whose values differ between two config dicts."""
-    if isinstance(a, dict) and isinstance(b, dict):
-        out = []
-        for k in sorted(set(a) | set(b)):
-            out += changed_keys(a.get(k), b.get(k), f"{prefix}{k}.")
-        return out
-    return [] if a == b else [prefix.rstrip(".")]
-
-
 def run_config(run_dir: str | os.PathLike[str]) -> TrainConfig:
     """The ``TrainConfig`` a run folder was started with (its ``config.toml``).
 
@@ -294,10 +284,10 @@ def train(
     init = None
     if init_policy:
         from rl.export import check_obs_dim, load_policy
-        from rl.observation import frame_dim
+        from rl.observation import observation_size
 
         init = load_policy(init_policy)  # refuses damaged or non-finite policies
-        env_dim = frame_dim(cfg.env) * cfg.env.obs_frames
+        env_dim = observation_size(cfg.env)
         check_obs_dim(int(init[0].observation_space.shape[0]), env_dim, init_policy)
     with claim_output_dir(run_dir, "rl train") as run:
         ckpts = run / "checkpoints"
@@ -413,7 +403,7 @@ def _run(cfg: TrainConfig, run: Path, unit, init, progress: bool, note) -> Path:
             atomic_write_bytes(run / "vecnormalize.pkl", pickle_bytes(vecnorm))
         atomic_write_json(run / "DONE", {"steps": int(model.num_timesteps)})
         return final
-    except (EOFError, ConnectionError, BrokenPipeError) as exc:
+    except (EOFError, ConnectionError) as exc:  # a worker died (BrokenPipe included)
         workers.raise_worker_error(exc)
         raise  # unreachable: raise_worker_error raises
     except KeyboardInterrupt:

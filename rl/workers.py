@@ -108,7 +108,7 @@ class EnvWorkers:
         before = set(multiprocessing.active_children())
         try:
             self.venv = SubprocVecEnv(fns, start_method="fork" if os.name == "posix" else "spawn")
-        except (EOFError, ConnectionError, BrokenPipeError) as exc:
+        except (EOFError, ConnectionError) as exc:
             # the half-built VecEnv is gone: find its workers among this process's children
             self._orphans = [p for p in multiprocessing.active_children() if p not in before]
             self.raise_worker_error(exc)

@@ -12,12 +12,15 @@ from pathlib import Path
 
 import click
 
-from datasets.synth import SynthConfig, Workers
 from dockcore.cli import CONTEXT, domain_type, field_type, run_group
 from dockcore.domains import Seed
 from dockcore.errors import DockError
-from rl.config import EnvConfig
-from sim.episode import EpisodeVideoConfig
+
+#: Configs whose fields the options override (imported when an option is first used).
+_SYNTH = "datasets.synth:SynthConfig"
+_ENV = "rl.config:EnvConfig"
+_VIDEO = "sim.episode:EpisodeVideoConfig"
+
 
 #: ``sim episode``'s values of EnvConfig fields that neither a flag nor ``--config`` sets.
 _EPISODE_DEFAULTS = {"episode_s": 30.0, "camera_width_px": 484}
@@ -49,7 +52,7 @@ def _water_choice(water: str | None, allow_random: bool) -> str:
 @click.option(
     "--n",
     "n_frames",
-    type=field_type(SynthConfig, "n_frames"),
+    type=field_type(_SYNTH, "n_frames"),
     help="Random poses to render [default: 8].",
 )
 @click.option(
@@ -63,14 +66,14 @@ def _water_choice(water: str | None, allow_random: bool) -> str:
 @click.option(
     "--width",
     "width_px",
-    type=field_type(SynthConfig, "width_px"),
+    type=field_type(_SYNTH, "width_px"),
     default=0,
     help="Render width in px, 16-8192 [0: the camera's].",
 )
-@click.option("--seed", type=field_type(SynthConfig, "seed"), default=0, show_default=True)
+@click.option("--seed", type=field_type(_SYNTH, "seed"), default=0, show_default=True)
 @click.option("--camera", "camera_file", type=click.Path(dir_okay=False), help="Camera file.")
 @click.option("--markers", "marker_set_path", type=click.Path(dir_okay=False), help="Marker set.")
-@click.option("--workers", type=domain_type(Workers), default=1, show_default=True)
+@click.option("--workers", type=domain_type("datasets.synth:Workers"), default=1, show_default=True)
 @click.option("--quiet", is_flag=True, help="No progress bar; print only the folder.")
 def render(
     out_dir, n_frames, poses_csv, water, width_px, seed, camera_file, marker_set_path, workers,
@@ -78,23 +81,19 @@ def render(
 ) -> None:  # fmt: skip
     """Render images (+ labels.jsonl in the dataset format) for given or random poses."""
     from datasets.loaders import load_poses_csv
-    from datasets.synth import generate
-    from dockcore.config import from_dict
+    from datasets.synth import SynthConfig, generate
 
     if n_frames is not None and poses_csv is not None:
         raise DockError("give either --n or --poses, not both")
     poses = load_poses_csv(poses_csv) if poses_csv is not None else None
     n = len(poses) if poses is not None else (8 if n_frames is None else n_frames)
-    cfg = from_dict(
-        SynthConfig,
-        {
-            "n_frames": n,
-            "seed": seed,
-            "water": _water_choice(water, allow_random=True),
-            "camera_file": camera_file,
-            "width_px": width_px,
-            "marker_set_path": marker_set_path,
-        },
+    cfg = SynthConfig(  # checked by generate() before it writes anything
+        n_frames=n,
+        seed=seed,
+        water=_water_choice(water, allow_random=True),
+        camera_file=camera_file,
+        width_px=width_px,
+        marker_set_path=marker_set_path,
     )
     result = generate(
         out_dir,
@@ -128,21 +127,21 @@ def render(
 @click.option("--water", help="Water of the downward view: a preset or 'none' [coastal].")
 @click.option(
     "--seconds",
-    type=field_type(EnvConfig, "episode_s"),
+    type=field_type(_ENV, "episode_s"),
     help="Episode length (s); it ends earlier on docking [default: the --config's episode_s, "
     f"else {_EPISODE_DEFAULTS['episode_s']:g}].",
 )
 @click.option(
     "--width",
     "width_px",
-    type=field_type(EnvConfig, "camera_width_px"),
+    type=field_type(_ENV, "camera_width_px"),
     help="Downward camera render width (px) [default: the --config's camera_width_px, else "
     f"{_EPISODE_DEFAULTS['camera_width_px']}].",
 )
 @click.option(
     "--outside-width",
     "outside_width_px",
-    type=field_type(EpisodeVideoConfig, "outside_width_px"),
+    type=field_type(_VIDEO, "outside_width_px"),
     default=480,
     show_default=True,
     help="Outside view width (px; 4:3).",
@@ -161,23 +160,21 @@ def episode(
     downward camera (with water) and an outside view, plus summary.json."""
     from tqdm import tqdm
 
-    from dockcore.config import config_data, from_dict, load_config
+    from dockcore.config import config_data, from_dict, merge
     from dockcore.io import atomic_write_json
     from dockcore.outdir import claim_output_dir
     from dockcore.provenance import write_provenance
     from rl.baselines import PIDController
+    from rl.config import EnvConfig
     from rl.env import DockingEnv
-    from sim.episode import record_episode
+    from sim.episode import EpisodeVideoConfig, record_episode
     from sim.water import PRESETS
 
     water_name = _water_choice(water or "coastal", allow_random=False)
     given = config_data(config_path, section="env") if config_path is not None else {}
     flags = {"episode_s": seconds, "camera_width_px": width_px}
-    overrides = {  # a flag, else the file's value (None: not overridden), else our default
-        key: flags[key] if flags[key] is not None or key in given else default
-        for key, default in _EPISODE_DEFAULTS.items()
-    }
-    env_cfg = load_config(EnvConfig, config_path, overrides=overrides, section="env")
+    data = merge(merge(_EPISODE_DEFAULTS, given), {k: v for k, v in flags.items() if v is not None})
+    env_cfg = from_dict(EnvConfig, data)  # a flag, else the file's value, else our default
     outside_height_px = max(16, round(outside_width_px * 3 / 4))
     video_cfg = from_dict(
         EpisodeVideoConfig,

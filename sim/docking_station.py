@@ -31,7 +31,6 @@ import json
 import math
 import os
 import shutil
-import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,7 +45,7 @@ from calibration.frames import T_WORLDZUP_WORLDNED, check_T, make_T, pos_quat_fr
 from dockcore.config import to_dict, validated
 from dockcore.domains import Interval
 from dockcore.errors import DockError
-from dockcore.io import TEMP_MARK, clean_stale_temps, temp_prefix
+from dockcore.io import clean_stale_temps, temp_sibling
 from markers.config import MarkerConfig
 from markers.markerset import MarkerSet, load_marker_set
 from sim.domains import RGB, Friction, TankSide_m
@@ -265,9 +264,8 @@ def default_marker_set(cache_dir: str | os.PathLike[str] | None = None) -> Marke
     root = Path(cache_dir) if cache_dir is not None else _cache_root()
     final = root / f"markers-{digest}"
     if not (final / MARKER_SET_NAME).is_file():
-        root.mkdir(parents=True, exist_ok=True)
         clean_stale_temps(root, recursive=False)  # folders of generations that were killed
-        tmp = Path(tempfile.mkdtemp(prefix=temp_prefix("markers"), suffix=TEMP_MARK, dir=root))
+        tmp = temp_sibling(final, folder=True)  # creates root
         try:
             generate(cfg, tmp)
             try:

@@ -37,7 +37,7 @@ import sapien
 
 from calibration.camera import CameraModel
 from calibration.frames import inv_T, make_T, transform_points
-from dockcore.config import validated
+from dockcore.config import check_fields, validated
 from dockcore.domains import Interval
 from dockcore.errors import DockError
 from dockcore.media import AtomicVideoWriter
@@ -93,19 +93,14 @@ class EpisodeVideoConfig:
     overlay: bool = True
 
     def validate(self) -> None:
-        """Raise ValueError naming the first invalid field (comparisons fail on NaN)."""
-        for name in ("outside_width_px", "outside_height_px", "panel_height_px"):
-            if not getattr(self, name) >= 16:
-                raise ValueError(f"{name}: must be >= 16, got {getattr(self, name)}")
-        if not 0.0 < self.outside_hfov_deg < 170.0:
-            raise ValueError(f"outside_hfov_deg: must be in (0, 170), got {self.outside_hfov_deg}")
+        """Raise ValueError naming the first field outside its declared domain (NaN included)
+        or an unknown ``outside_haze``."""
+        check_fields(self)
         if self.outside_haze is not None and self.outside_haze not in PRESETS:
             raise ValueError(
                 f"outside_haze: unknown water preset {self.outside_haze[:100]!r}; known: "
                 f"{', '.join(PRESETS)}"
             )
-        if not self.outside_haze_scale >= 0.0:
-            raise ValueError(f"outside_haze_scale: must be >= 0, got {self.outside_haze_scale}")
 
 
 class Policy(Protocol):

@@ -33,7 +33,7 @@ from numpy.typing import ArrayLike
 
 from calibration.camera import REFERENCE_T_BODYFRD_CAMCV, CameraModel, reference_camera
 from calibration.frames import T_CAMCV_CAMSAPIEN, check_T, inv_T, transform_points
-from dockcore.config import validated
+from dockcore.config import check_fields, validated
 from dockcore.domains import Interval
 from dockcore.errors import DockError
 from markers.markerset import MarkerSet
@@ -117,15 +117,12 @@ class RenderConfig:
     lamp_fov_deg: Annotated[float, Interval(gt=0, lt=180)] | None = None
 
     def validate(self) -> None:
-        """Raise ValueError naming the first invalid field (comparisons fail on NaN)."""
+        """Raise ValueError naming the first invalid field: one outside its declared domain
+        (NaN included), an unusable shader, or ``near_m >= far_m``."""
+        check_fields(self)
         shader_dir(self.shader)
-        if not 0.0 < self.near_m < self.far_m:
-            raise ValueError(f"near_m, far_m: need 0 < near < far, got {self.near_m}, {self.far_m}")
-        values = (self.lamp_intensity, *self.ambient_rgb, *self.lamp_rgb)
-        if not all(v >= 0.0 for v in values):
-            raise ValueError("lamp_intensity, ambient_rgb, lamp_rgb: must be >= 0")
-        if self.lamp_fov_deg is not None and not 0.0 < self.lamp_fov_deg < 180.0:
-            raise ValueError(f"lamp_fov_deg: must be in (0, 180), got {self.lamp_fov_deg}")
+        if not self.near_m < self.far_m:
+            raise ValueError(f"near_m, far_m: need near < far, got {self.near_m}, {self.far_m}")
 
 
 @dataclass(frozen=True)

@@ -30,6 +30,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from calibration.frames import check_R
+from dockcore.config import check_fields
 from dockcore.domains import Interval
 from sim.domains import BodyCoord_m, Friction, RelativeRange, validate_each
 from sim.thrusters import ThrusterArrayConfig, ThrusterRandomisation
@@ -45,9 +46,6 @@ __all__ = [
     "VehicleConfig",
     "VehicleRandomisation",
 ]
-
-Vec3 = tuple[float, float, float]
-Vec6 = tuple[float, float, float, float, float, float]
 
 #: A point in body FRD (m).
 _BodyPoint = tuple[BodyCoord_m, BodyCoord_m, BodyCoord_m]
@@ -312,9 +310,8 @@ class Hydrodynamics:
         plus added mass or inertia about the origin); a longer substep makes the velocity
         oscillate with growing amplitude until it overflows. ``inf`` without damping.
         """
-        dl = np.asarray(self.config.linear_damping, dtype=float)
         with np.errstate(divide="ignore"):
-            return float(np.min(2.0 * np.diag(self.M) / dl))
+            return float(np.min(2.0 * np.diag(self.M) / self._dl))
 
     # ----------------------------------------------------------------- reference (NumPy)
 
@@ -438,15 +435,13 @@ class CurrentConfig:
     max_speed_mps: Annotated[float, Interval(gt=0, le=20)] = 0.5
 
     def validate(self) -> None:
-        """Raise ValueError on an inverted range or a non-positive time scale."""
+        """Raise ValueError on a field outside its declared domain (NaN included) or an
+        inverted range."""
+        check_fields(self)
         for name in ("range_x_mps", "range_y_mps", "range_z_mps"):
             lo, hi = getattr(self, name)
-            if not lo <= hi:  # also NaN
+            if not lo <= hi:
                 raise ValueError(f"{name}: lo must be <= hi, got ({lo}, {hi})")
-        if not (self.drift_time_constant_s > 0 and self.drift_knot_interval_s > 0):
-            raise ValueError("drift time constant and knot interval must be > 0")
-        if not (self.drift_std_mps >= 0 and self.max_speed_mps > 0):
-            raise ValueError("drift_std_mps must be >= 0 and max_speed_mps > 0")
 
 
 class Current:

@@ -133,7 +133,8 @@ def test_open_video_gives_the_first_frame_and_fails_in_one_line(tmp_path):
     with AtomicVideoWriter(path, fps=5.0) as video:
         for level in GREYS[:3]:
             video.write(_frame(level))
-    cap, first = open_video(path)
+    cap, first, leading = open_video(path)
+    assert leading == 0
     try:
         assert first.shape == (H_PX, W_PX, 3)
         assert first.mean() == pytest.approx(GREYS[0], abs=4.0)

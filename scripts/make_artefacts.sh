@@ -1,0 +1,99 @@
+#!/usr/bin/env bash
+# Rebuild the artefacts shipped in the repository, from a committed, clean tree: each records the
+# commit it was made from (provenance), so each stage refuses to run on uncommitted changes.
+# Run the stages in order and commit what each writes before the next:
+#
+#   bash scripts/make_artefacts.sh models    # rl/models/error_model_clear_tank_{480,640}.json
+#   bash scripts/make_artefacts.sh policy    # rl/policies/error_model_ppo/, docs/results/training_curve.png
+#   bash scripts/make_artefacts.sh figures   # docs/results/ (evaluation summaries and figures)
+#
+# Seeds and data: datasets `datasets synth --n 2500 --water clear_tank --seed 0` at 480 and 640 px
+# (their SHA-256 is recorded in each error model); training `configs/train_error_model_ppo.toml`
+# (seed 0); evaluations on episode seeds 1000-1099. WORK (default /tmp/uwdock-artefacts) holds
+# the datasets, the run folder and the evaluation folders; an interrupted stage resumes there.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+BIN=${VENV:-.venv}/bin
+WORK=${WORK:-/tmp/uwdock-artefacts}
+POLICY=rl/policies/error_model_ppo
+RESULTS=docs/results
+
+say() { printf '[artefacts] %s\n' "$*"; }
+die() { printf '[artefacts] error: %s\n' "$*" >&2; exit 1; }
+
+[ -x "$BIN/rl" ] || die "no $BIN/rl: run scripts/setup.sh first"
+[ -z "$(git status --porcelain --untracked-files=no)" ] \
+  || die "the tree has uncommitted changes: commit them first (artefacts record their commit)"
+mkdir -p "$WORK"
+
+models() {
+  local w
+  for w in 480 640; do
+    say "error model at $w px: 2,500 rendered frames, clear tank, seed 0"
+    "$BIN/datasets" synth --n 2500 --width "$w" --water clear_tank --seed 0 --workers 2 \
+      --out "$WORK/synth_clear_$w"
+    "$BIN/rl" fit-error-model "$WORK/synth_clear_$w" --out "rl/models/error_model_clear_tank_$w.json"
+  done
+}
+
+policy() {
+  local run=$WORK/run_error_model_ppo
+  say "training the shipped recipe (configs/train_error_model_ppo.toml) into $run"
+  if [ -f "$run/config.toml" ]; then
+    "$BIN/rl" train --out "$run" --resume
+  else
+    "$BIN/rl" train --config configs/train_error_model_ppo.toml --out "$run"
+  fi
+  say "shipping best/ (the best evaluated checkpoint) into $POLICY"
+  mkdir -p "$POLICY"
+  cp "$run/best/policy.zip" "$run/best/vecnormalize.pkl" "$POLICY/"
+  cp "$run/config.toml" "$run/provenance.json" "$run/eval_history.jsonl" "$run/imitation.json" \
+    "$POLICY/"
+  cp "$run/eval_history.png" "$RESULTS/training_curve.png"
+}
+
+evaluate() {  # evaluate NAME ARGS...: rl eval of the shipped policy into $WORK/NAME
+  local name=$1
+  shift
+  "$BIN/rl" eval --policy "$POLICY" --seed 1000 --workers 2 --out "$WORK/$name" "$@"
+}
+
+figures() {
+  say "100 camera episodes (seeds 1000-1099), the graded stress tables, and the other sources"
+  evaluate eval_camera --obs camera --episodes 100 --videos 0 --stress --stress-episodes 20
+  evaluate eval_error_model --obs error-model --episodes 100 --videos ""
+  evaluate eval_proxy --obs proxy --episodes 100 --videos ""
+  "$BIN/rl" eval --policy pid --obs error-model --episodes 100 --seed 1000 --workers 2 \
+    --videos "" --out "$WORK/eval_pid_error_model"
+  local e=$WORK/eval_camera
+  cp "$e/summary.json" "$RESULTS/camera_eval_summary.json"
+  cp "$e/trajectories_top.png" "$e/traces_ep0.png" "$e/camera_ep0_frames.jpg" "$RESULTS/"
+  "$BIN/python" - "$e/summary.json" "$RESULTS/stress_camera.json" <<'PY'
+import json, sys
+s = json.load(open(sys.argv[1]))
+keys = ("policy", "obs_source", "stress", "config", "provenance")
+out = {"seed": 1000, "episodes_per_row": 20, **{k: s[k] for k in keys}}
+json.dump(out, open(sys.argv[2], "w"), indent=2)
+PY
+  rm -f "$RESULTS"/failure_ep*
+  local k
+  k=$("$BIN/python" -c 'import csv, sys
+rows = list(csv.DictReader(open(sys.argv[1])))
+bad = [r["episode"] for r in rows if r["success_strict"] not in ("True", "1", "true")]
+print(bad[0] if bad else "")' "$e/episodes.csv")
+  if [ -n "$k" ]; then
+    say "filming the first failed camera episode ($k, seed $((1000 + k)))"
+    "$BIN/rl" eval --policy "$POLICY" --obs camera --episodes 1 --seed $((1000 + k)) --videos 0 \
+      --out "$WORK/failure_ep$k"
+    cp "$WORK/failure_ep$k/camera_ep0_frames.jpg" "$RESULTS/failure_ep${k}_frames.jpg"
+    cp "$WORK/failure_ep$k/traces_ep0.png" "$RESULTS/failure_ep${k}_traces.png"
+  fi
+}
+
+case "${1:-}" in
+  models) models ;;
+  policy) policy ;;
+  figures) figures ;;
+  *) die "usage: bash scripts/make_artefacts.sh models|policy|figures" ;;
+esac
+say "done: review and commit what changed (git status)"
