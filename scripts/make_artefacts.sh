@@ -26,14 +26,18 @@ die() { printf '[artefacts] error: %s\n' "$*" >&2; exit 1; }
   || die "the tree has uncommitted changes: commit them first (artefacts record their commit)"
 mkdir -p "$WORK"
 
+# Each stage makes everything in $WORK first and copies it into the tree last, so every step
+# runs (and records its provenance) on the clean tree.
+
 models() {
   local w
   for w in 480 640; do
     say "error model at $w px: 2,500 rendered frames, clear tank, seed 0"
     "$BIN/datasets" synth --n 2500 --width "$w" --water clear_tank --seed 0 --workers 2 \
       --out "$WORK/synth_clear_$w"
-    "$BIN/rl" fit-error-model "$WORK/synth_clear_$w" --out "rl/models/error_model_clear_tank_$w.json"
+    "$BIN/rl" fit-error-model "$WORK/synth_clear_$w" --out "$WORK/error_model_clear_tank_$w.json"
   done
+  cp "$WORK"/error_model_clear_tank_{480,640}.json rl/models/
 }
 
 policy() {
@@ -65,7 +69,16 @@ figures() {
   evaluate eval_proxy --obs proxy --episodes 100 --videos ""
   "$BIN/rl" eval --policy pid --obs error-model --episodes 100 --seed 1000 --workers 2 \
     --videos "" --out "$WORK/eval_pid_error_model"
-  local e=$WORK/eval_camera
+  local e=$WORK/eval_camera k
+  k=$("$BIN/python" -c 'import csv, sys
+rows = list(csv.DictReader(open(sys.argv[1])))
+bad = [r["episode"] for r in rows if r["success_strict"] not in ("True", "1", "true")]
+print(bad[0] if bad else "")' "$e/episodes.csv")
+  if [ -n "$k" ]; then
+    say "filming the first failed camera episode ($k, seed $((1000 + k)))"
+    "$BIN/rl" eval --policy "$POLICY" --obs camera --episodes 1 --seed $((1000 + k)) --videos 0 \
+      --out "$WORK/failure_ep$k"
+  fi
   cp "$e/summary.json" "$RESULTS/camera_eval_summary.json"
   cp "$e/trajectories_top.png" "$e/traces_ep0.png" "$e/camera_ep0_frames.jpg" "$RESULTS/"
   "$BIN/python" - "$e/summary.json" "$RESULTS/stress_camera.json" <<'PY'
@@ -76,15 +89,7 @@ out = {"seed": 1000, "episodes_per_row": 20, **{k: s[k] for k in keys}}
 json.dump(out, open(sys.argv[2], "w"), indent=2)
 PY
   rm -f "$RESULTS"/failure_ep*
-  local k
-  k=$("$BIN/python" -c 'import csv, sys
-rows = list(csv.DictReader(open(sys.argv[1])))
-bad = [r["episode"] for r in rows if r["success_strict"] not in ("True", "1", "true")]
-print(bad[0] if bad else "")' "$e/episodes.csv")
   if [ -n "$k" ]; then
-    say "filming the first failed camera episode ($k, seed $((1000 + k)))"
-    "$BIN/rl" eval --policy "$POLICY" --obs camera --episodes 1 --seed $((1000 + k)) --videos 0 \
-      --out "$WORK/failure_ep$k"
     cp "$WORK/failure_ep$k/camera_ep0_frames.jpg" "$RESULTS/failure_ep${k}_frames.jpg"
     cp "$WORK/failure_ep$k/traces_ep0.png" "$RESULTS/failure_ep${k}_traces.png"
   fi
