@@ -20,7 +20,6 @@ value (a coordinate, an offset): declared, so a test can tell it from a forgotte
 
 from __future__ import annotations
 
-import functools
 import math
 import typing
 from typing import Annotated, Any
@@ -74,18 +73,35 @@ def split_annotated(tp: Any) -> tuple[Any, tuple[Any, ...]]:
     return tp, ()
 
 
-@functools.cache
-def _constraints(meta: tuple[Any, ...]) -> tuple[BaseMetadata, ...]:
-    """The bounds in ``meta``, groups (``Interval``) flattened. Cached: ``GroupedMetadata`` is a
-    runtime-checkable Protocol, so each ``isinstance`` costs tens of microseconds, and configs
-    checked per frame (:func:`dockcore.config.check_fields`) would pay it every time."""
+def _flatten(meta: tuple[Any, ...]) -> tuple[BaseMetadata, ...]:
     out: list[BaseMetadata] = []
     for m in meta:
         if isinstance(m, GroupedMetadata):
-            out.extend(_constraints(tuple(m)))
+            out.extend(_flatten(tuple(m)))
         elif isinstance(m, (Gt, Ge, Lt, Le)):
             out.append(m)
     return tuple(out)
+
+
+#: ``ids of the metadata objects -> (the metadata, its bounds)``; the metadata is held so that
+#: its ids cannot be reused by other objects while the entry lives.
+_CONSTRAINTS: dict[tuple[int, ...], tuple[tuple[Any, ...], tuple[BaseMetadata, ...]]] = {}
+
+
+def _constraints(meta: tuple[Any, ...]) -> tuple[BaseMetadata, ...]:
+    """The bounds in ``meta``, groups (``Interval``) flattened. Cached: ``GroupedMetadata`` is a
+    runtime-checkable Protocol, so each ``isinstance`` costs tens of microseconds, and configs
+    checked per frame (:func:`dockcore.config.check_fields`) would pay it every time.
+
+    Keyed by the identity of the metadata objects, not by equality: ``Interval(le=1e9)`` equals
+    ``Interval(le=10**9)`` and hashes alike, and an equality-keyed cache would describe the
+    second with the first one's float bound (``1e+09``) depending on which was checked first.
+    """
+    key = tuple(map(id, meta))
+    hit = _CONSTRAINTS.get(key)
+    if hit is None:
+        hit = _CONSTRAINTS[key] = (meta, _flatten(meta))
+    return hit[1]
 
 
 def domain_of(tp: Any) -> tuple[Any, ...] | None:

@@ -60,6 +60,16 @@ def test_every_number_is_checked_against_its_domain(key, value, message):
     assert str(err.value) == message
 
 
+def test_equal_domains_with_int_and_float_bounds_are_described_each_their_own_way():
+    # Interval(le=1e9) == Interval(le=10**9) and they hash alike; the description must not
+    # depend on which of the two was checked first (it did: CI ran them in another order).
+    as_float = (Interval(ge=1, le=1e9),)
+    as_int = (Interval(ge=1, le=10**9),)
+    assert describe(as_float, integer=True) == "an integer in [1, 1e+09]"
+    assert describe(as_int, integer=True) == "an integer in [1, 1000000000]"
+    assert describe(as_float, integer=True) == "an integer in [1, 1e+09]"
+
+
 def test_values_inside_the_domain_load():
     cfg = from_dict(Dom, {"size_mm": 1e-9, "gamma": 1, "n": 10**9, "seed": 2**32 - 1})
     assert cfg.gamma == 1.0 and isinstance(cfg.gamma, float)
