@@ -53,6 +53,8 @@ policy() {
   cp "$run/best/policy.zip" "$run/best/vecnormalize.pkl" "$POLICY/"
   cp "$run/config.toml" "$run/provenance.json" "$run/eval_history.jsonl" "$run/imitation.json" \
     "$POLICY/"
+  rm -f "$POLICY/resume_log.jsonl"
+  [ ! -f "$run/resume_log.jsonl" ] || cp "$run/resume_log.jsonl" "$POLICY/"  # interruptions, commits
   cp "$run/eval_history.png" "$RESULTS/training_curve.png"
 }
 
