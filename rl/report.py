@@ -236,29 +236,43 @@ STRESS_THRUSTER_ERRORS_M = (0.0, 0.02, 0.05)
 def stress_tables(
     policy: str, env_cfg: EnvConfig, episodes: int, seed: int, workers: int = 1
 ) -> dict[str, list[dict[str, Any]]]:
-    """Graded stress: current speed (random direction), water preset, thruster placement."""
+    """Graded stress: current speed (random direction), water preset, thruster placement.
+
+    One progress bar over all rows, its label naming the row being run."""
+    from tqdm import tqdm
+
     from sim.thrusters import ThrusterRandomisation
     from sim.vehicle import VehicleRandomisation
 
-    def run(cfg: EnvConfig) -> dict[str, Any]:
-        res = run_episodes_parallel(policy, cfg, episodes, seed, workers=workers, record=False)
-        return _short(res.summary)
-
-    out: dict[str, list[dict[str, Any]]] = {"current": [], "water": [], "thruster": []}
+    rows: list[tuple[str, str, Any, EnvConfig]] = []
     for speed in STRESS_CURRENTS_MPS:
         cur = replace(
             env_cfg.current, mode="random", range_x_mps=(-speed, speed), range_y_mps=(-speed, speed)
         )
-        out["current"].append({"current_max_mps": speed, **run(replace(env_cfg, current=cur))})
+        rows.append(("current", "current_max_mps", speed, replace(env_cfg, current=cur)))
     if env_cfg.obs_source == "camera":
         from sim.water import PRESET_ORDER
 
         for preset in PRESET_ORDER:
-            out["water"].append({"water": preset, **run(replace(env_cfg, water_preset=preset))})
+            rows.append(("water", "water", preset, replace(env_cfg, water_preset=preset)))
     for err in STRESS_THRUSTER_ERRORS_M:
         rnd = VehicleRandomisation(thrusters=ThrusterRandomisation(position_m=err))
         cfg = replace(env_cfg, randomise_vehicle=True, vehicle_randomisation=rnd)
-        out["thruster"].append({"thruster_position_error_m": err, **run(cfg)})
+        rows.append(("thruster", "thruster_position_error_m", err, cfg))
+
+    out: dict[str, list[dict[str, Any]]] = {"current": [], "water": [], "thruster": []}
+    bar = tqdm(total=len(rows) * episodes, desc="stress", unit="ep")
+    try:
+        for table, name, value, cfg in rows:
+            bar.set_description(f"stress {table} {value}")
+            done = bar.n
+            res = run_episodes_parallel(
+                policy, cfg, episodes, seed, workers=workers, record=False,
+                progress=lambda k, n, done=done: bar.update(done + k - bar.n),
+            )  # fmt: skip
+            out[table].append({name: value, **_short(res.summary)})
+    finally:
+        bar.close()
     return out
 
 

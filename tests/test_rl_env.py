@@ -441,3 +441,28 @@ def test_parallel_evaluation_equals_one_process():
     )
     assert two.episodes == one.episodes and two.summary == one.summary
     assert ticks == [1, 2, 3, 4]
+
+
+def test_stress_tables_rows_progress_and_seeds(capsys):
+    from rl.evaluate import run_episodes_parallel
+    from rl.report import STRESS_CURRENTS_MPS, STRESS_THRUSTER_ERRORS_M, stress_tables
+
+    cfg = replace(EnvConfig(), episode_s=2.0)  # proxy source: no water rows
+    tables = stress_tables("pid", cfg, 2, seed=5, workers=1)
+    assert [r["current_max_mps"] for r in tables["current"]] == list(STRESS_CURRENTS_MPS)
+    assert tables["water"] == []
+    errs = [r["thruster_position_error_m"] for r in tables["thruster"]]
+    assert errs == list(STRESS_THRUSTER_ERRORS_M)
+    for row in tables["current"] + tables["thruster"]:
+        assert row["episodes"] == 2 and 0.0 <= row["success_rate"] <= 1.0
+    # a row is the plain evaluation of its config on the same seeds
+    calm = replace(
+        cfg,
+        current=replace(cfg.current, mode="random", range_x_mps=(0.0, 0.0), range_y_mps=(0.0, 0.0)),
+    )
+    direct = run_episodes_parallel("pid", calm, 2, seed=5, workers=1, record=False).summary
+    assert tables["current"][0]["mean_collisions"] == direct["mean_collisions"]
+    assert tables["current"][0]["success_rate"] == direct["success_rate"]
+    # one progress bar over all 7 rows x 2 episodes, naming the row it is on
+    err = capsys.readouterr().err
+    assert "14/14" in err and "stress thruster 0.05" in err
