@@ -58,19 +58,28 @@ policy() {
   cp "$run/eval_history.png" "$RESULTS/training_curve.png"
 }
 
-evaluate() {  # evaluate NAME ARGS...: rl eval of the shipped policy into $WORK/NAME
+EM=rl/models/error_model_clear_tank_480.json  # the error model the shipped policy trained on
+
+evaluate() {  # evaluate NAME ARGS...: rl eval into $WORK/NAME, unless a finished one is there
   local name=$1
   shift
-  "$BIN/rl" eval --policy "$POLICY" --seed 1000 --workers 2 --out "$WORK/$name" "$@"
+  if [ -f "$WORK/$name/summary.json" ]; then
+    say "$name: already evaluated (remove $WORK/$name to run it again)"
+    return
+  fi
+  rm -rf "${WORK:?}/$name"
+  "$BIN/rl" eval --seed 1000 --workers 2 --out "$WORK/$name" "$@"
 }
 
 figures() {
   say "100 camera episodes (seeds 1000-1099), the graded stress tables, and the other sources"
-  evaluate eval_camera --obs camera --episodes 100 --videos 0 --stress --stress-episodes 20
-  evaluate eval_error_model --obs error-model --episodes 100 --videos ""
-  evaluate eval_proxy --obs proxy --episodes 100 --videos ""
-  "$BIN/rl" eval --policy pid --obs error-model --episodes 100 --seed 1000 --workers 2 \
-    --videos "" --out "$WORK/eval_pid_error_model"
+  evaluate eval_camera --policy "$POLICY" --obs camera --episodes 100 --videos 0 \
+    --stress --stress-episodes 20
+  evaluate eval_error_model --policy "$POLICY" --obs error-model --error-model "$EM" \
+    --episodes 100 --videos ""
+  evaluate eval_proxy --policy "$POLICY" --obs proxy --episodes 100 --videos ""
+  evaluate eval_pid_error_model --policy pid --obs error-model --error-model "$EM" \
+    --episodes 100 --videos ""
   local e=$WORK/eval_camera k
   k=$("$BIN/python" -c 'import csv, sys
 rows = list(csv.DictReader(open(sys.argv[1])))
@@ -78,6 +87,7 @@ bad = [r["episode"] for r in rows if r["success_strict"] not in ("True", "1", "t
 print(bad[0] if bad else "")' "$e/episodes.csv")
   if [ -n "$k" ]; then
     say "filming the first failed camera episode ($k, seed $((1000 + k)))"
+    rm -rf "${WORK:?}/failure_ep$k"
     "$BIN/rl" eval --policy "$POLICY" --obs camera --episodes 1 --seed $((1000 + k)) --videos 0 \
       --out "$WORK/failure_ep$k"
   fi
