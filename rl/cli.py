@@ -156,15 +156,20 @@ def eval_cmd(
 ) -> None:
     """Evaluate a policy (or the PID baseline) over seeded episodes."""
     from rl.config import EnvConfig
-    from rl.report import evaluate_to_folder, policy_env_settings
+    from rl.report import evaluate_to_folder, policy_env_settings, policy_error_model
 
+    em = str(error_model) if error_model else None
+    if em is None and obs == "error-model":
+        # neither --error-model nor the --config file names one: the one the policy trained on
+        in_file = config_path is not None and "error_model_path" in config_data(config_path, "env")
+        em = None if in_file else policy_error_model(str(policy))
     env_cfg = load_config(
         EnvConfig,
         config_path,
         section="env",
         overrides={
             "obs_source": obs,
-            "error_model_path": str(error_model) if error_model else None,
+            "error_model_path": em,
             "terminate_on": terminate_on,
         },
     )

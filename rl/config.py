@@ -140,7 +140,10 @@ class EnvConfig:
         if self.spawn_auv_height_m + self.spawn_auv_range_m[2] > self.tank_size_m[2] - 0.3:
             raise ValueError("spawn_auv_height_m: the AUV would spawn above the water surface")
         if self.obs_source == "error-model" and not self.error_model_path:
-            raise ValueError("error_model_path: required for obs_source 'error-model'")
+            raise ValueError(
+                "error_model_path: required for obs_source 'error-model' (rl train/eval: "
+                "--error-model FILE, e.g. rl/models/error_model_clear_tank_480.json)"
+            )
         from sim.vehicle import Hydrodynamics
 
         # the physics substep must keep the damping stable for every vehicle the env may draw

@@ -29,10 +29,10 @@ POLICY_INTERFACE_FIELDS = (
 )
 
 
-def policy_env_settings(policy: str) -> dict[str, Any]:
-    """The interface fields of the env a policy was trained in, from the ``config.toml`` of its
-    run folder (beside ``policy.zip`` or one level up, as for ``best/``) or, for an exported
-    ``.onnx``, from the ``.json`` written beside it; {} if none."""
+def _policy_train_env(policy: str) -> dict[str, Any]:
+    """The ``[train.env]`` table of the run a policy comes from: the ``config.toml`` of its run
+    folder (beside ``policy.zip`` or one level up, as for ``best/``) or, for an exported
+    ``.onnx``, the ``.json`` written beside it; {} if none."""
     import json
 
     from dockcore.config import read_toml
@@ -47,15 +47,28 @@ def policy_env_settings(policy: str) -> dict[str, Any]:
         except (OSError, ValueError) as exc:
             raise DockError(f"cannot read {meta}: {exc}") from None
         env = data.get("env", {}) if isinstance(data, dict) else {}
-        return {k: env[k] for k in POLICY_INTERFACE_FIELDS if k in env}
+        return env if isinstance(env, dict) else {}
     folder = p if p.is_dir() else p.parent
     for cand in (folder / "config.toml", folder.parent / "config.toml"):
         if cand.is_file():
             env = read_toml(cand, what="run config").get("train", {}).get("env", {})
             if not isinstance(env, dict):
                 raise DockError(f"{cand}: [train.env] is not a table")
-            return {k: env[k] for k in POLICY_INTERFACE_FIELDS if k in env}
+            return env
     return {}
+
+
+def policy_env_settings(policy: str) -> dict[str, Any]:
+    """The interface fields (observation layout, action scaling) of the env a policy was
+    trained in (see :func:`_policy_train_env`); {} if unknown."""
+    env = _policy_train_env(policy)
+    return {k: env[k] for k in POLICY_INTERFACE_FIELDS if k in env}
+
+
+def policy_error_model(policy: str) -> str | None:
+    """The error model file the policy's run trained on, if its run config names one."""
+    path = _policy_train_env(policy).get("error_model_path")
+    return path if isinstance(path, str) and path else None
 
 
 def load_controller(policy: str, env_cfg: EnvConfig):

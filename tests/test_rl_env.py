@@ -466,3 +466,33 @@ def test_stress_tables_rows_progress_and_seeds(capsys):
     # one progress bar over all 7 rows x 2 episodes, naming the row it is on
     err = capsys.readouterr().err
     assert "14/14" in err and "stress thruster 0.05" in err
+
+
+def test_eval_error_model_defaults_to_the_one_the_policy_trained_on(run_cli, tmp_path):
+    import shutil
+
+    from rl.report import policy_error_model
+
+    shipped = "rl/policies/error_model_ppo"
+    assert policy_error_model(shipped) == "rl/models/error_model_clear_tank_480.json"
+    env_cfg = tmp_path / "env.toml"
+    env_cfg.write_text("episode_s = 1.0\n")
+    args = ["eval", "--episodes", "1", "--obs", "error-model", "--config", env_cfg, "--videos", ""]
+    res = run_cli(cli.main, *args, "--policy", shipped, "--out", tmp_path / "e")
+    assert res.code == 0, res.err
+    summary = json.loads((tmp_path / "e" / "summary.json").read_text())
+    assert summary["config"]["error_model_path"] == "rl/models/error_model_clear_tank_480.json"
+    # the --config file's error model wins over the policy's
+    other = tmp_path / "em.json"
+    shutil.copy("rl/models/error_model_clear_tank_640.json", other)
+    env_cfg.write_text(f"episode_s = 1.0\nerror_model_path = '{other}'\n")
+    res = run_cli(cli.main, *args, "--policy", shipped, "--out", tmp_path / "e2")
+    assert res.code == 0, res.err
+    summary = json.loads((tmp_path / "e2" / "summary.json").read_text())
+    assert summary["config"]["error_model_path"] == str(other)
+    # the PID has no run to take one from: one line saying which option to give
+    env_cfg.write_text("episode_s = 1.0\n")
+    res = run_cli(cli.main, *args, "--policy", "pid", "--out", tmp_path / "e3")
+    assert res.code == 2 and res.err.count("\n") == 1
+    assert "required for obs_source 'error-model'" in res.err and "--error-model FILE" in res.err
+    assert not (tmp_path / "e3").exists()
