@@ -35,6 +35,7 @@ from typing import Annotated
 import numpy as np
 from numpy.typing import ArrayLike
 
+from dockcore.config import check_fields
 from dockcore.domains import Interval
 from sim.domains import BodyCoord_m, RelativeRange, validate_each
 
@@ -71,13 +72,11 @@ class ThrusterConfig:
     time_constant_s: Annotated[float, Interval(ge=0, le=100)] = 0.2
 
     def validate(self) -> None:
-        """Raise ValueError on a zero axis or a non-positive limit or time constant."""
-        if not float(np.linalg.norm(self.axis)) >= 1e-9:  # also NaN
+        """Raise ValueError naming the first field outside its declared domain (NaN included)
+        or a zero axis."""
+        check_fields(self)
+        if not float(np.linalg.norm(self.axis)) >= 1e-9:
             raise ValueError(f"axis: must be non-zero (thruster {self.name})")
-        if not self.max_thrust_n > 0:
-            raise ValueError(f"max_thrust_n: must be > 0 (thruster {self.name})")
-        if not self.time_constant_s >= 0:
-            raise ValueError(f"time_constant_s: must be >= 0 (thruster {self.name})")
 
 
 #: The five thrusters of the reference vehicle (reference.md section 3), body FRD.
@@ -112,12 +111,14 @@ class ThrusterArrayConfig:
     )
 
     def validate(self) -> None:
-        """Raise ValueError on an empty array, a negative weight or a bad thruster."""
+        """Raise ValueError naming the first field outside its declared domain (NaN included),
+        all-zero allocation weights, or an empty array or bad thruster (:class:`ThrusterArray`
+        calls it on configs built in Python)."""
+        check_fields(self)
+        if not max(self.allocation_weights) > 0:
+            raise ValueError("allocation_weights: at least one must be > 0")
         if not 1 <= len(self.thrusters) <= 32:
             raise ValueError(f"thrusters: 1 to 32 thrusters, got {len(self.thrusters)}")
-        weights = self.allocation_weights
-        if len(weights) != 6 or not all(w >= 0 for w in weights) or not max(weights) > 0:
-            raise ValueError("allocation_weights: six values >= 0, at least one > 0, expected")
         validate_each("thrusters", self.thrusters)
 
 

@@ -177,17 +177,12 @@ class VehicleConfig:
     imu: ImuConfig = field(default_factory=ImuConfig)
 
     def validate(self) -> None:
-        """Raise ValueError on a non-physical parameter (comparisons written so NaN fails)."""
-        if not (self.mass_kg > 0 and all(v > 0 for v in self.inertia_kgm2)):
-            raise ValueError("mass_kg and inertia_kgm2 must be > 0")
+        """Raise ValueError naming the first field outside its declared domain (NaN included;
+        :class:`Hydrodynamics` calls it on configs built in Python), negative buoyancy or a bad
+        collision shape."""
+        check_fields(self)
         if not self.mass_kg + self.net_buoyancy_kg >= 0:
             raise ValueError("net_buoyancy_kg: buoyancy must be >= 0")
-        for name in ("added_mass", "linear_damping", "quadratic_damping"):
-            values = getattr(self, name)
-            if len(values) != 6 or not all(v >= 0 for v in values):
-                raise ValueError(f"{name}: six values >= 0 expected")
-        if not (self.gravity_mps2 > 0 and self.friction >= 0):
-            raise ValueError("gravity_mps2 must be > 0 and friction >= 0")
         if not 1 <= len(self.collision) <= 64:
             raise ValueError(f"collision: 1 to 64 shapes, got {len(self.collision)}")
         validate_each("collision", self.collision)
