@@ -39,15 +39,15 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from calibration.camera import CameraModel, reference_camera
-from calibration.frames import inv_T, make_T, rotation_angle_deg, transform_points
-from dockcore.bench import format_table, save_results, time_call
-from markers.config import MarkerConfig
-from markers.dictionary import get_dictionary
-from markers.markerset import marker_set_from_config
-from perception.detector import Detector, DetectorConfig
-from perception.pose import solve_board
-from perception.preprocess import PIPELINES
+from uwdock.calibration.camera import CameraModel, reference_camera
+from uwdock.calibration.frames import inv_T, make_T, rotation_angle_deg, transform_points
+from uwdock.dockcore.bench import format_table, save_results, time_call
+from uwdock.markers.config import MarkerConfig
+from uwdock.markers.dictionary import get_dictionary
+from uwdock.markers.markerset import marker_set_from_config
+from uwdock.perception.detector import Detector, DetectorConfig
+from uwdock.perception.pose import solve_board
+from uwdock.perception.preprocess import PIPELINES
 
 MARKER_SET = marker_set_from_config(MarkerConfig())
 CORNERS_DS = MARKER_SET.corners_ds()

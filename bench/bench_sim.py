@@ -41,9 +41,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from calibration.camera import reference_camera
-from calibration.frames import make_T
-from dockcore.bench import format_table, save_results, time_call
+from uwdock.calibration.camera import reference_camera
+from uwdock.calibration.frames import make_T
+from uwdock.dockcore.bench import format_table, save_results, time_call
 
 RESOLUTIONS = ((320, 240), (640, 480), (968, 732))
 LOOP_WIDTHS = (320, 480, 640, 968)
@@ -65,10 +65,10 @@ def _rate(fn, steps: int, runs: int) -> dict[str, float]:
 def bench_physics(steps: int, runs: int, seed: int) -> list[dict]:
     import inspect
 
-    from rl.config import EnvConfig
-    from rl.env import DockingEnv
-    from sim.docking_station import build_docking_station, build_tank
-    from sim.physics import VehicleBody, make_physics_scene
+    from uwdock.rl.config import EnvConfig
+    from uwdock.rl.env import DockingEnv
+    from uwdock.sim.docking_station import build_docking_station, build_tank
+    from uwdock.sim.physics import VehicleBody, make_physics_scene
 
     env = DockingEnv(EnvConfig())
     env.reset(seed=seed)
@@ -124,7 +124,7 @@ def bench_physics(steps: int, runs: int, seed: int) -> list[dict]:
 
 
 def _aimed_poses(camera, T_body_cam, T_world_ds, n: int, seed: int) -> list[np.ndarray]:
-    from datasets.synth import PoseSamplingConfig, frame_rng, sample_pose
+    from uwdock.datasets.synth import PoseSamplingConfig, frame_rng, sample_pose
 
     cfg = PoseSamplingConfig(aimed_fraction=1.0)
     draws = (sample_pose(cfg, frame_rng(seed, k), camera, T_body_cam, T_world_ds) for k in range(n))
@@ -132,8 +132,8 @@ def _aimed_poses(camera, T_body_cam, T_world_ds, n: int, seed: int) -> list[np.n
 
 
 def bench_render(n_poses: int, repeats: int, seed: int) -> list[dict]:
-    from sim.render import CameraRig, make_render_scene
-    from sim.water import PRESETS, apply_water
+    from uwdock.sim.render import CameraRig, make_render_scene
+    from uwdock.sim.water import PRESETS, apply_water
 
     base = reference_camera()
     rs = make_render_scene()
@@ -169,10 +169,10 @@ def bench_render(n_poses: int, repeats: int, seed: int) -> list[dict]:
 
 
 def bench_loop(n_poses: int, repeats: int, seed: int, physics_ms: float) -> list[dict]:
-    from perception.detector import Detector, DetectorConfig
-    from perception.pose import solve_board
-    from sim.render import CameraRig, make_render_scene
-    from sim.water import PRESETS, apply_water
+    from uwdock.perception.detector import Detector, DetectorConfig
+    from uwdock.perception.pose import solve_board
+    from uwdock.sim.render import CameraRig, make_render_scene
+    from uwdock.sim.water import PRESETS, apply_water
 
     base = reference_camera()
     rs = make_render_scene()
@@ -224,10 +224,10 @@ def bench_loop(n_poses: int, repeats: int, seed: int, physics_ms: float) -> list
 
 
 def bench_range(altitudes: np.ndarray, draws: int, seed: int, width_px: int) -> list[dict]:
-    from perception.detector import Detector, DetectorConfig
-    from sim.docking_station import DockingStationConfig
-    from sim.render import make_render_scene
-    from sim.water import PRESET_ORDER, PRESETS, apply_water
+    from uwdock.perception.detector import Detector, DetectorConfig
+    from uwdock.sim.docking_station import DockingStationConfig
+    from uwdock.sim.render import make_render_scene
+    from uwdock.sim.water import PRESET_ORDER, PRESETS, apply_water
 
     base = reference_camera()
     cam = base.scaled(width_px, round(base.height_px * width_px / base.width_px))

@@ -36,10 +36,10 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike
 
-from calibration.frames import check_T
-from dockcore.errors import DockError
-from dockcore.io import atomic_path, atomic_write_json, read_text
-from dockcore.media import quiet_native_stderr
+from uwdock.calibration.frames import check_T
+from uwdock.dockcore.errors import DockError
+from uwdock.dockcore.io import atomic_path, atomic_write_json, read_text
+from uwdock.dockcore.media import quiet_native_stderr
 
 __all__ = [
     "CAMERA_FILE_VERSION",

@@ -7,9 +7,9 @@ from typing import Annotated
 
 import click
 
-from dockcore.cli import CONTEXT, DomainType, domain_type, field_type, run_group
-from dockcore.config import load_config
-from dockcore.domains import Interval
+from uwdock.dockcore.cli import CONTEXT, DomainType, domain_type, field_type, run_group
+from uwdock.dockcore.config import load_config
+from uwdock.dockcore.domains import Interval
 
 #: ``extrinsics set --xyz-m``: the camera's position in the body frame (m; a vehicle is a few
 #: metres long).
@@ -22,7 +22,7 @@ ImageSidePx = Annotated[int, Interval(ge=16, le=20000)]
 
 def _cfg(name: str) -> DomainType:
     """The type of an option overriding ``IntrinsicsConfig.<name>`` (imported when first used)."""
-    return field_type("calibration.intrinsics:IntrinsicsConfig", name)
+    return field_type("uwdock.calibration.intrinsics:IntrinsicsConfig", name)
 
 
 @click.group(context_settings=CONTEXT)
@@ -100,7 +100,7 @@ def intrinsics(
     near-duplicates are rejected, a seeded fraction is held out and its reprojection error
     reported. Calibrate an underwater camera in water, behind its own port.
     """
-    from calibration.intrinsics import IntrinsicsConfig, calibrate_intrinsics, write_outputs
+    from uwdock.calibration.intrinsics import IntrinsicsConfig, calibrate_intrinsics, write_outputs
 
     cfg = load_config(
         IntrinsicsConfig,
@@ -158,7 +158,7 @@ def extrinsics() -> None:
 @click.option("--json", "as_json", is_flag=True, help="Print JSON.")
 def show(camera_file, as_json) -> None:
     """Print T_body_cam of CAMERA_FILE (the reference default when it has none)."""
-    from calibration.extrinsics import format_extrinsics, read_extrinsics
+    from uwdock.calibration.extrinsics import format_extrinsics, read_extrinsics
 
     T, from_file = read_extrinsics(camera_file)
     source = f"from {camera_file}" if from_file else "reference default (none in the file)"
@@ -181,7 +181,7 @@ def show(camera_file, as_json) -> None:
 )
 def set_(camera_file, xyz_m, rpy_deg) -> None:
     """Write T_body_cam into CAMERA_FILE (both twins; intrinsics unchanged)."""
-    from calibration.extrinsics import (
+    from uwdock.calibration.extrinsics import (
         T_body_cam_from_xyz_rpy,
         format_extrinsics,
         write_extrinsics,
@@ -217,8 +217,8 @@ def set_(camera_file, xyz_m, rpy_deg) -> None:
 )
 def reference_camera(out, width, height) -> None:
     """Write the reference Girona downward camera (968x732, 55 deg HFOV) with its T_body_cam."""
-    from calibration.camera import load_camera
-    from calibration.extrinsics import write_reference_camera
+    from uwdock.calibration.camera import load_camera
+    from uwdock.calibration.extrinsics import write_reference_camera
 
     yaml_path, json_path = write_reference_camera(out, width, height)
     cam, _ = load_camera(yaml_path)

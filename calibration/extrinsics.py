@@ -22,14 +22,14 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike
 
-from calibration.camera import (
+from uwdock.calibration.camera import (
     REFERENCE_T_BODYFRD_CAMCV,
     load_camera,
     reference_camera,
     save_camera,
 )
-from calibration.frames import R_from_rpy, check_T, make_T, rpy_from_R
-from dockcore.errors import DockError
+from uwdock.calibration.frames import R_from_rpy, check_T, make_T, rpy_from_R
+from uwdock.dockcore.errors import DockError
 
 __all__ = [
     "REFERENCE_RPY_DEG",

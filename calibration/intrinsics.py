@@ -25,8 +25,8 @@ from typing import Annotated, Any, Literal
 import cv2
 import numpy as np
 
-from calibration.camera import CameraModel, load_camera, save_camera
-from calibration.patterns import (
+from uwdock.calibration.camera import CameraModel, load_camera, save_camera
+from uwdock.calibration.patterns import (
     PATTERNS,
     Detection,
     PatternDetector,
@@ -36,18 +36,18 @@ from calibration.patterns import (
     spread_subset,
     view_quad_px,
 )
-from dockcore.config import to_dict, validated
-from dockcore.domains import Interval, Seed
-from dockcore.errors import DockError
-from dockcore.io import atomic_path, atomic_write_json
-from dockcore.media import (
+from uwdock.dockcore.config import to_dict, validated
+from uwdock.dockcore.domains import Interval, Seed
+from uwdock.dockcore.errors import DockError
+from uwdock.dockcore.io import atomic_path, atomic_write_json
+from uwdock.dockcore.media import (
     IMAGE_SUFFIXES,
     MAX_CONSECUTIVE_VIDEO_FAILURES,
     open_video,
     quiet_native_stderr,
     read_image,
 )
-from dockcore.provenance import provenance
+from uwdock.dockcore.provenance import provenance
 
 __all__ = [
     "IMAGE_SUFFIXES",

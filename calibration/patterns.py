@@ -20,8 +20,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from dockcore.errors import DockError
-from dockcore.media import quiet_native_stderr
+from uwdock.dockcore.errors import DockError
+from uwdock.dockcore.media import quiet_native_stderr
 
 __all__ = [
     "PATTERNS",

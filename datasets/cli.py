@@ -7,10 +7,10 @@ from pathlib import Path
 
 import click
 
-from dockcore.cli import CONTEXT, domain_type, field_type, run_group
+from uwdock.dockcore.cli import CONTEXT, domain_type, field_type, run_group
 
 #: Configs whose fields the options override (imported when an option is first used).
-_SYNTH = "datasets.synth:SynthConfig"
+_SYNTH = "uwdock.datasets.synth:SynthConfig"
 
 
 @click.group(context_settings=CONTEXT)
@@ -39,7 +39,7 @@ def cli() -> None:
 )
 @click.option(
     "--workers",
-    type=domain_type("datasets.synth:Workers"),
+    type=domain_type("uwdock.datasets.synth:Workers"),
     default=1,
     show_default=True,
     help="Worker processes (the output is the same for any number).",
@@ -80,8 +80,8 @@ def synth(
     Writes images/, labels.jsonl (T_cam_ds, marker corners and visibility, water per frame),
     camera.yaml/.json, markerset.toml, dataset.json, config.toml and provenance.json.
     """
-    from datasets.synth import SynthConfig, generate
-    from dockcore.config import load_config
+    from uwdock.datasets.synth import SynthConfig, generate
+    from uwdock.dockcore.config import load_config
 
     cfg = load_config(
         SynthConfig,

@@ -26,13 +26,13 @@ from typing import Any
 
 import numpy as np
 
-from calibration.camera import CameraModel, load_camera
-from calibration.frames import R_from_quat_wxyz, R_from_rpy, make_T
-from dockcore.errors import DockError
-from dockcore.io import read_text
-from markers.markerset import MarkerSet, load_marker_set
-from perception.groundtruth import FrameTruth, load_dataset
-from perception.video import FrameSource, open_frames, read_image
+from uwdock.calibration.camera import CameraModel, load_camera
+from uwdock.calibration.frames import R_from_quat_wxyz, R_from_rpy, make_T
+from uwdock.dockcore.errors import DockError
+from uwdock.dockcore.io import read_text
+from uwdock.markers.markerset import MarkerSet, load_marker_set
+from uwdock.perception.groundtruth import FrameTruth, load_dataset
+from uwdock.perception.video import FrameSource, open_frames, read_image
 
 __all__ = ["FootageSource", "LabelledDataset", "Sample", "load_poses_csv"]
 

@@ -60,17 +60,22 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
 
-from calibration.camera import REFERENCE_T_BODYFRD_CAMCV, CameraModel, load_camera, save_camera
-from calibration.frames import R_from_rpy, check_T, inv_T, make_T
-from dockcore.config import changed_keys, from_dict, to_dict, validated
-from dockcore.domains import Fraction, Interval, Seed, check, split_annotated
-from dockcore.errors import ConfigError, DockError
-from dockcore.io import atomic_path, atomic_write_bytes, atomic_write_json
-from dockcore.outdir import claim_output_dir
-from dockcore.procs import die_with_parent
-from dockcore.provenance import write_provenance
-from markers.markerset import MarkerSet, save_marker_set
-from perception.groundtruth import (
+from uwdock.calibration.camera import (
+    REFERENCE_T_BODYFRD_CAMCV,
+    CameraModel,
+    load_camera,
+    save_camera,
+)
+from uwdock.calibration.frames import R_from_rpy, check_T, inv_T, make_T
+from uwdock.dockcore.config import changed_keys, from_dict, to_dict, validated
+from uwdock.dockcore.domains import Fraction, Interval, Seed, check, split_annotated
+from uwdock.dockcore.errors import ConfigError, DockError
+from uwdock.dockcore.io import atomic_path, atomic_write_bytes, atomic_write_json
+from uwdock.dockcore.outdir import claim_output_dir
+from uwdock.dockcore.procs import die_with_parent
+from uwdock.dockcore.provenance import write_provenance
+from uwdock.markers.markerset import MarkerSet, save_marker_set
+from uwdock.perception.groundtruth import (
     FrameTruth,
     MarkerTruth,
     frame_truth_to_json,
@@ -78,9 +83,9 @@ from perception.groundtruth import (
     view_angle_deg,
     write_dataset_json,
 )
-from sim.docking_station import DockingStationConfig, resolve_marker_set
-from sim.render import RenderConfig
-from sim.water import PRESETS, WaterConfig, WaterRandomisation
+from uwdock.sim.docking_station import DockingStationConfig, resolve_marker_set
+from uwdock.sim.render import RenderConfig
+from uwdock.sim.water import PRESETS, WaterConfig, WaterRandomisation
 
 __all__ = [
     "PoseSamplingConfig",
@@ -347,7 +352,7 @@ def resolve_camera(cfg: SynthConfig) -> tuple[CameraModel, np.ndarray]:
         if T_body_cam is None:
             T_body_cam = np.array(REFERENCE_T_BODYFRD_CAMCV)
     else:
-        from calibration.camera import reference_camera
+        from uwdock.calibration.camera import reference_camera
 
         camera, T_body_cam = reference_camera(), np.array(REFERENCE_T_BODYFRD_CAMCV)
     if cfg.width_px and cfg.width_px != camera.width_px:
@@ -376,7 +381,7 @@ _MAX_SCENES = 3
 
 def _render_scene(cfg: SynthConfig, camera: CameraModel, T_body_cam: np.ndarray) -> Any:
     """The cached render scene for ``cfg``'s camera, marker set and renderer settings."""
-    from sim.render import make_render_scene
+    from uwdock.sim.render import make_render_scene
 
     key = json.dumps(
         [to_dict(camera), T_body_cam.tolist(), cfg.marker_set_path, to_dict(cfg.render)],
@@ -424,8 +429,8 @@ class FrameRenderer:
 
     def frame(self, k: int) -> tuple[np.ndarray, dict[str, Any]]:
         """Render frame k: (H, W, 3) uint8 BGR image and its ``labels.jsonl`` object."""
-        from sim.render import project_markers
-        from sim.water import apply_water
+        from uwdock.sim.render import project_markers
+        from uwdock.sim.water import apply_water
 
         rng = frame_rng(self.cfg.seed, k)
         T_world_body = self.pose(k, rng)

@@ -13,8 +13,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from dockcore.io import atomic_write_json
-from dockcore.provenance import provenance
+from uwdock.dockcore.io import atomic_write_json
+from uwdock.dockcore.provenance import provenance
 
 RESULTS_DIR = Path(__file__).resolve().parent.parent / "bench" / "results"
 

@@ -27,8 +27,8 @@ from typing import Any
 
 import click
 
-from dockcore.domains import check, describe, domain_of, split_annotated
-from dockcore.errors import DockError
+from uwdock.dockcore.domains import check, describe, domain_of, split_annotated
+from uwdock.dockcore.errors import DockError
 
 #: ``context_settings`` of every group and command (``-h`` as well as ``--help``).
 CONTEXT = {"help_option_names": ["-h", "--help"]}

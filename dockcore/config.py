@@ -32,10 +32,10 @@ from typing import Any, TypeVar
 
 import tomli_w
 
-from dockcore.domains import check as check_domain
-from dockcore.domains import split_annotated
-from dockcore.errors import ConfigError
-from dockcore.io import read_text
+from uwdock.dockcore.domains import check as check_domain
+from uwdock.dockcore.domains import split_annotated
+from uwdock.dockcore.errors import ConfigError
+from uwdock.dockcore.io import read_text
 
 if sys.version_info >= (3, 11):
     import tomllib

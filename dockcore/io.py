@@ -18,7 +18,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from dockcore.errors import ConfigError, DockError
+from uwdock.dockcore.errors import ConfigError, DockError
 
 #: The mark in the name of every temporary file or folder the toolkit writes.
 TEMP_MARK = ".uwtmp"

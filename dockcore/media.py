@@ -27,8 +27,8 @@ from typing import Any
 
 import numpy as np
 
-from dockcore.errors import DockError
-from dockcore.io import temp_sibling
+from uwdock.dockcore.errors import DockError
+from uwdock.dockcore.io import temp_sibling
 
 __all__ = [
     "IMAGE_SUFFIXES",

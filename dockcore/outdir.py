@@ -28,8 +28,8 @@ import os
 from collections.abc import Iterator
 from pathlib import Path
 
-from dockcore.errors import DockError
-from dockcore.io import atomic_write_json, clean_stale_temps, ensure_writable_dir
+from uwdock.dockcore.errors import DockError
+from uwdock.dockcore.io import atomic_write_json, clean_stale_temps, ensure_writable_dir
 
 OWNER_FILE = ".uwdock-owner.json"
 LOCK_FILE = ".uwdock.lock"

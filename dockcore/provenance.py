@@ -12,8 +12,8 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from dockcore.config import dumps_toml, to_dict
-from dockcore.io import atomic_write_json, atomic_write_text
+from uwdock.dockcore.config import dumps_toml, to_dict
+from uwdock.dockcore.io import atomic_write_json, atomic_write_text
 
 #: Distributions whose versions are recorded next to every output.
 TRACKED_PACKAGES = (

@@ -6,11 +6,11 @@ from pathlib import Path
 
 import click
 
-from dockcore.cli import CONTEXT, DomainType, field_type, run_group
-from dockcore.config import load_config
-from dockcore.errors import DockError
-from markers.config import MarkerConfig
-from markers.dictionary import DICTIONARY_NAMES, bits_per_side, dictionary_size
+from uwdock.dockcore.cli import CONTEXT, DomainType, field_type, run_group
+from uwdock.dockcore.config import load_config
+from uwdock.dockcore.errors import DockError
+from uwdock.markers.config import MarkerConfig
+from uwdock.markers.dictionary import DICTIONARY_NAMES, bits_per_side, dictionary_size
 
 
 def _parse_ids(text: str | None) -> tuple[int, ...] | None:
@@ -95,7 +95,7 @@ def generate(
 ) -> None:
     """Write STL parts (white insert, black enclosure), render meshes, previews, a true-scale
     PDF/SVG sheet and the marker set file for the given IDs."""
-    from markers.generate import generate as run
+    from uwdock.markers.generate import generate as run
 
     cfg = load_config(
         MarkerConfig,

@@ -5,8 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Annotated
 
-from dockcore.domains import Interval
-from dockcore.errors import DockError
+from uwdock.dockcore.domains import Interval
+from uwdock.dockcore.errors import DockError
 
 #: Largest ID of any OpenCV predefined dictionary (``DICT_APRILTAG_36h10`` holds 2320 markers);
 #: the dictionary a set uses narrows it further (:func:`markers.dictionary.check_ids`).
@@ -114,7 +114,7 @@ class MarkerConfig:
         Each field's own range is its declared domain (checked by the loader and
         :func:`dockcore.config.validated`); this checks the fields against each other.
         """
-        from markers.dictionary import bits_per_side, check_ids, normalise_dictionary_name
+        from uwdock.markers.dictionary import bits_per_side, check_ids, normalise_dictionary_name
 
         try:
             name = normalise_dictionary_name(self.dictionary)

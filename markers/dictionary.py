@@ -8,7 +8,7 @@ from functools import cache
 import cv2
 import numpy as np
 
-from dockcore.errors import DockError
+from uwdock.dockcore.errors import DockError
 
 #: Every predefined dictionary OpenCV offers, by its ``cv2.aruco`` constant name.
 DICTIONARY_NAMES: tuple[str, ...] = tuple(

@@ -10,13 +10,13 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from dockcore.config import validated
-from dockcore.io import atomic_path, atomic_write_bytes
-from dockcore.outdir import claim_output_dir
-from dockcore.provenance import write_provenance
-from markers.config import MarkerConfig
-from markers.dictionary import marker_cells, normalise_dictionary_name
-from markers.geometry import (
+from uwdock.dockcore.config import validated
+from uwdock.dockcore.io import atomic_path, atomic_write_bytes
+from uwdock.dockcore.outdir import claim_output_dir
+from uwdock.dockcore.provenance import write_provenance
+from uwdock.markers.config import MarkerConfig
+from uwdock.markers.dictionary import marker_cells, normalise_dictionary_name
+from uwdock.markers.geometry import (
     ENCLOSURE_RGBA,
     INSERT_RGBA,
     MarkerSolids,
@@ -24,8 +24,8 @@ from markers.geometry import (
     rasterise_top_view,
     render_scene,
 )
-from markers.markerset import marker_set_from_config, save_marker_set
-from markers.sheet import SheetEntry, render_sheet
+from uwdock.markers.markerset import marker_set_from_config, save_marker_set
+from uwdock.markers.sheet import SheetEntry, render_sheet
 
 MARKER_SET_NAME = "markerset.toml"
 

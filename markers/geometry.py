@@ -23,8 +23,8 @@ import manifold3d as mf
 import numpy as np
 import trimesh
 
-from markers.config import MarkerConfig
-from markers.dictionary import marker_cells
+from uwdock.markers.config import MarkerConfig
+from uwdock.markers.dictionary import marker_cells
 
 #: Colours of the two printed parts (RGBA, 0-255), also used by the render meshes.
 INSERT_RGBA = (235, 235, 230, 255)

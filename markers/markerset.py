@@ -28,13 +28,13 @@ from pathlib import Path
 import numpy as np
 import tomli_w
 
-from calibration.frames import check_T, make_T, transform_points
-from dockcore.config import read_toml, validated
-from dockcore.domains import Finite, check, describe, split_annotated
-from dockcore.errors import ConfigError, DockError
-from dockcore.io import atomic_write_text, read_text
-from markers.config import MAX_DS_COORD_M, MarkerConfig, MarkerSideM, PartSideMm
-from markers.dictionary import check_ids, normalise_dictionary_name
+from uwdock.calibration.frames import check_T, make_T, transform_points
+from uwdock.dockcore.config import read_toml, validated
+from uwdock.dockcore.domains import Finite, check, describe, split_annotated
+from uwdock.dockcore.errors import ConfigError, DockError
+from uwdock.dockcore.io import atomic_write_text, read_text
+from uwdock.markers.config import MAX_DS_COORD_M, MarkerConfig, MarkerSideM, PartSideMm
+from uwdock.markers.dictionary import check_ids, normalise_dictionary_name
 
 FORMAT = "uwdock.markerset"
 VERSION = 1

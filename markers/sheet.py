@@ -35,8 +35,8 @@ from matplotlib.patches import PathPatch
 from matplotlib.path import Path as MplPath
 from matplotlib.textpath import TextPath
 
-from dockcore.errors import DockError
-from dockcore.io import atomic_write_bytes
+from uwdock.dockcore.errors import DockError
+from uwdock.dockcore.io import atomic_write_bytes
 
 MM_PER_INCH = 25.4
 MM_PER_PT = MM_PER_INCH / 72.0

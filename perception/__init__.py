@@ -9,3 +9,11 @@
 Imports only numpy, OpenCV, ``calibration``, ``markers`` and ``dockcore``: never SAPIEN, torch,
 ``sim`` or ``rl``, so footage can be evaluated without the simulator.
 """
+
+if (
+    __name__ != "uwdock.perception"
+):  # this folder reached as a top-level name (the working directory)
+    raise ImportError(
+        "this folder is installed as uwdock.perception: import uwdock.perception "
+        "(pip install -e . from the repository puts it there)"
+    )

@@ -33,7 +33,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from dockcore.media import quiet_native_stderr
+from uwdock.dockcore.media import quiet_native_stderr
 
 __all__ = ["AviIndex", "mjpeg_avi_index"]
 

@@ -9,10 +9,10 @@ from typing import Any
 
 import click
 
-from dockcore.cli import CONTEXT, domain_type, run_group
-from dockcore.config import load_config
-from dockcore.errors import DockError
-from markers.config import MarkerSideM
+from uwdock.dockcore.cli import CONTEXT, domain_type, run_group
+from uwdock.dockcore.config import load_config
+from uwdock.dockcore.errors import DockError
+from uwdock.markers.config import MarkerSideM
 
 
 @click.group(context_settings=CONTEXT)
@@ -25,7 +25,7 @@ def _note(msg: str) -> None:
 
 
 def _config(config_path: Path | None, pipeline: str | None):
-    from perception.evaluate import PerceptionConfig
+    from uwdock.perception.evaluate import PerceptionConfig
 
     overrides: dict[str, Any] = {"detector": {"pipeline": pipeline}} if pipeline else {}
     return load_config(PerceptionConfig, config_path, overrides=overrides, section="perception")
@@ -34,7 +34,7 @@ def _config(config_path: Path | None, pipeline: str | None):
 def _camera(path: Path | None):
     if path is None:
         return None
-    from calibration.camera import load_camera
+    from uwdock.calibration.camera import load_camera
 
     return load_camera(path)[0]
 
@@ -110,7 +110,7 @@ def detect(
     Writes detections.jsonl and detections.csv (one row per frame) and annotated images, or
     annotated.mp4 for a video, into --out.
     """
-    from perception.evaluate import resolve_markers, run_detect
+    from uwdock.perception.evaluate import resolve_markers, run_detect
 
     cfg = _config(config_path, pipeline)
     setup = resolve_markers(markers_path, dictionary, marker_size_m)
@@ -157,8 +157,8 @@ def _print_summary(report: dict[str, Any], out_dir: Path) -> None:
             f"{_fmt(report['marker_recall'])}"
         )
     if report["compare"]:
-        from dockcore.bench import format_table
-        from perception.report_plots import COMPARE_COLUMNS
+        from uwdock.dockcore.bench import format_table
+        from uwdock.perception.report_plots import COMPARE_COLUMNS
 
         click.echo(format_table(report["compare"], COMPARE_COLUMNS))
     click.echo(f"wrote {out_dir / 'report.json'} and {len(report['plots'])} plots")
@@ -198,8 +198,8 @@ def eval_cmd(
     plots and a contact sheet. --compare runs several pipelines on the same frames and adds
     compare.json / compare.md.
     """
-    from perception.evaluate import resolve_markers, run_eval
-    from perception.groundtruth import is_dataset, load_dataset, load_ground_truth
+    from uwdock.perception.evaluate import resolve_markers, run_eval
+    from uwdock.perception.groundtruth import is_dataset, load_dataset, load_ground_truth
 
     cfg = _config(config_path, pipeline)
     names = [p.strip() for p in (compare or "").split(",") if p.strip()]
@@ -246,7 +246,7 @@ def eval_cmd(
 @cli.command(context_settings=CONTEXT)
 def pipelines() -> None:
     """List the preprocessing pipelines."""
-    from perception.detector import list_pipelines
+    from uwdock.perception.detector import list_pipelines
 
     for name, text in list_pipelines().items():
         click.echo(f"{name:18s} {text}")

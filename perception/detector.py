@@ -19,12 +19,12 @@ from typing import Annotated, Any
 import cv2
 import numpy as np
 
-from dockcore.config import validated
-from dockcore.domains import Interval
-from dockcore.errors import DockError
-from markers.config import MarkerId
-from markers.dictionary import dictionary_size, get_dictionary, normalise_dictionary_name
-from perception.preprocess import PIPELINES, Pipeline, as_uint8, get_pipeline
+from uwdock.dockcore.config import validated
+from uwdock.dockcore.domains import Interval
+from uwdock.dockcore.errors import DockError
+from uwdock.markers.config import MarkerId
+from uwdock.markers.dictionary import dictionary_size, get_dictionary, normalise_dictionary_name
+from uwdock.perception.preprocess import PIPELINES, Pipeline, as_uint8, get_pipeline
 
 __all__ = ["CORNER_REFINEMENTS", "Detection", "Detector", "DetectorConfig", "list_pipelines"]
 

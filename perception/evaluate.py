@@ -33,21 +33,21 @@ from typing import Any
 
 import numpy as np
 
-from calibration.camera import CameraModel, reference_camera
-from calibration.frames import pos_quat_from_T
-from dockcore.config import to_dict, validated
-from dockcore.domains import check, split_annotated
-from dockcore.errors import DockError
-from dockcore.io import atomic_path, atomic_write_bytes, atomic_write_json, atomic_write_text
-from dockcore.outdir import claim_output_dir
-from dockcore.provenance import provenance, write_provenance
-from markers.config import MarkerConfig, MarkerSideM
-from markers.dictionary import normalise_dictionary_name
-from markers.markerset import load_marker_set, marker_set_from_config
-from perception.detector import Detection, Detector, DetectorConfig
-from perception.groundtruth import FrameTruth
-from perception.pose import BoardPose, BoardPoseConfig, MarkerPose, solve_board, solve_marker
-from perception.report_plots import (
+from uwdock.calibration.camera import CameraModel, reference_camera
+from uwdock.calibration.frames import pos_quat_from_T
+from uwdock.dockcore.config import to_dict, validated
+from uwdock.dockcore.domains import check, split_annotated
+from uwdock.dockcore.errors import DockError
+from uwdock.dockcore.io import atomic_path, atomic_write_bytes, atomic_write_json, atomic_write_text
+from uwdock.dockcore.outdir import claim_output_dir
+from uwdock.dockcore.provenance import provenance, write_provenance
+from uwdock.markers.config import MarkerConfig, MarkerSideM
+from uwdock.markers.dictionary import normalise_dictionary_name
+from uwdock.markers.markerset import load_marker_set, marker_set_from_config
+from uwdock.perception.detector import Detection, Detector, DetectorConfig
+from uwdock.perception.groundtruth import FrameTruth
+from uwdock.perception.pose import BoardPose, BoardPoseConfig, MarkerPose, solve_board, solve_marker
+from uwdock.perception.report_plots import (
     COMPARE_COLUMNS,
     EvalRecord,
     ReportConfig,
@@ -58,7 +58,7 @@ from perception.report_plots import (
     plot_timeline,
     summarise,
 )
-from perception.video import (
+from uwdock.perception.video import (
     AnnotatedVideoWriter,
     FrameSource,
     ThumbnailBuffer,

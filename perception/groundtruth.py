@@ -65,10 +65,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from calibration.camera import CameraModel
-from calibration.frames import R_from_quat_wxyz, pos_quat_from_T, transform_points
-from dockcore.errors import DockError
-from dockcore.io import atomic_path, atomic_write_json, read_text
+from uwdock.calibration.camera import CameraModel
+from uwdock.calibration.frames import R_from_quat_wxyz, pos_quat_from_T, transform_points
+from uwdock.dockcore.errors import DockError
+from uwdock.dockcore.io import atomic_path, atomic_write_json, read_text
 
 __all__ = [
     "CSV_COLUMNS",

@@ -29,7 +29,7 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike
 
-from calibration.frames import (
+from uwdock.calibration.frames import (
     R_from_rpy,
     check_T,
     inv_T,
@@ -37,11 +37,11 @@ from calibration.frames import (
     rotation_angle_deg,
     transform_points,
 )
-from dockcore.config import validated
-from dockcore.domains import Ge, Interval, Positive
-from dockcore.errors import DockError
-from markers.config import MAX_MARKER_ID
-from markers.markerset import corners_marker_m
+from uwdock.dockcore.config import validated
+from uwdock.dockcore.domains import Ge, Interval, Positive
+from uwdock.dockcore.errors import DockError
+from uwdock.markers.config import MAX_MARKER_ID
+from uwdock.markers.markerset import corners_marker_m
 
 __all__ = [
     "BoardPose",

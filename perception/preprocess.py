@@ -58,7 +58,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from dockcore.errors import DockError
+from uwdock.dockcore.errors import DockError
 
 __all__ = [
     "MIN_IMAGE_PX",

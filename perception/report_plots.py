@@ -23,10 +23,10 @@ from typing import Annotated, Any
 
 import numpy as np
 
-from calibration.frames import rotation_angle_deg
-from dockcore.domains import Interval, Positive
-from dockcore.io import atomic_path
-from perception.groundtruth import FrameTruth
+from uwdock.calibration.frames import rotation_angle_deg
+from uwdock.dockcore.domains import Interval, Positive
+from uwdock.dockcore.io import atomic_path
+from uwdock.perception.groundtruth import FrameTruth
 
 __all__ = [
     "COMPARE_COLUMNS",

@@ -42,10 +42,10 @@ from typing import Any
 import cv2
 import numpy as np
 
-from calibration.camera import CameraModel
-from dockcore.errors import DockError
-from dockcore.io import atomic_write_bytes
-from dockcore.media import (
+from uwdock.calibration.camera import CameraModel
+from uwdock.dockcore.errors import DockError
+from uwdock.dockcore.io import atomic_write_bytes
+from uwdock.dockcore.media import (
     IMAGE_SUFFIXES,
     MAX_CONSECUTIVE_VIDEO_FAILURES,
     AtomicVideoWriter,
@@ -53,8 +53,8 @@ from dockcore.media import (
     quiet_native_stderr,
     read_image,
 )
-from perception.avi import AviIndex, mjpeg_avi_index
-from perception.preprocess import MIN_IMAGE_PX, as_uint8
+from uwdock.perception.avi import AviIndex, mjpeg_avi_index
+from uwdock.perception.preprocess import MIN_IMAGE_PX, as_uint8
 
 __all__ = [
     "IMAGE_SUFFIXES",

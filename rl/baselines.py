@@ -14,8 +14,8 @@ from typing import Annotated
 
 import numpy as np
 
-from dockcore.domains import Interval
-from rl.observation import POS_SCALE_M
+from uwdock.dockcore.domains import Interval
+from uwdock.rl.observation import POS_SCALE_M
 
 _Gain = Annotated[float, Interval(ge=0, le=100_000)]
 

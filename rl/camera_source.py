@@ -13,12 +13,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from calibration.frames import inv_T
-from perception.detector import Detector, DetectorConfig
-from perception.pose import BoardPoseConfig, refine_level_board, solve_board
-from rl.config import EnvConfig
-from rl.obs_sources import Measurement, StepContext
-from sim.water import apply_water, preset
+from uwdock.calibration.frames import inv_T
+from uwdock.perception.detector import Detector, DetectorConfig
+from uwdock.perception.pose import BoardPoseConfig, refine_level_board, solve_board
+from uwdock.rl.config import EnvConfig
+from uwdock.rl.obs_sources import Measurement, StepContext
+from uwdock.sim.water import apply_water, preset
 
 #: PnP's first-order covariance is optimistic (corner bias, blur): scale it by this.
 COVARIANCE_INFLATION = 4.0

@@ -39,8 +39,8 @@ from typing import Any
 
 import numpy as np
 
-from dockcore.errors import DockError
-from dockcore.io import TEMP_MARK, temp_sibling
+from uwdock.dockcore.errors import DockError
+from uwdock.dockcore.io import TEMP_MARK, temp_sibling
 
 FORMAT = "uwdock.checkpoint"
 VERSION = 1

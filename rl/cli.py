@@ -7,13 +7,13 @@ from typing import Annotated
 
 import click
 
-from dockcore.cli import CONTEXT, domain_type, field_type, run_group
-from dockcore.config import config_data, from_dict, load_config, merge, replace, to_dict
-from dockcore.domains import Count, Interval, Seed
-from dockcore.errors import DockError
+from uwdock.dockcore.cli import CONTEXT, domain_type, field_type, run_group
+from uwdock.dockcore.config import config_data, from_dict, load_config, merge, replace, to_dict
+from uwdock.dockcore.domains import Count, Interval, Seed
+from uwdock.dockcore.errors import DockError
 
 #: The config whose fields the options override (imported when an option is first used).
-_TRAIN = "rl.train:TrainConfig"
+_TRAIN = "uwdock.rl.train:TrainConfig"
 OBS_CHOICES = click.Choice(["proxy", "error-model", "camera"])
 
 
@@ -69,8 +69,8 @@ def train(
     Killed at any moment, `--resume` goes on from the newest complete checkpoint and gives the
     same checkpoints, evaluation history and best/ as a run never stopped.
     """
-    from rl.train import TrainConfig, run_config
-    from rl.train import train as run
+    from uwdock.rl.train import TrainConfig, run_config
+    from uwdock.rl.train import train as run
 
     env_over = {"obs_source": obs, "error_model_path": str(error_model) if error_model else None}
     overrides = {
@@ -155,8 +155,8 @@ def eval_cmd(
     out_dir,
 ) -> None:
     """Evaluate a policy (or the PID baseline) over seeded episodes."""
-    from rl.config import EnvConfig
-    from rl.report import evaluate_to_folder, policy_env_settings, policy_error_model
+    from uwdock.rl.config import EnvConfig
+    from uwdock.rl.report import evaluate_to_folder, policy_env_settings, policy_error_model
 
     em = str(error_model) if error_model else None
     if em is None and obs == "error-model":
@@ -213,7 +213,7 @@ def eval_cmd(
 )
 def export(policy, out_path) -> None:
     """Export a policy to ONNX (observation normalisation included)."""
-    from rl.export import export_onnx
+    from uwdock.rl.export import export_onnx
 
     click.echo(f"wrote {export_onnx(policy, out_path)}")
 
@@ -229,12 +229,12 @@ def export(policy, out_path) -> None:
 )
 @click.option(
     "--range-bin-m",
-    type=field_type("rl.error_model:ErrorModelConfig", "range_bin_m"),
+    type=field_type("uwdock.rl.error_model:ErrorModelConfig", "range_bin_m"),
     help="Range bin width [0.5].",
 )
 def fit_error_model_cmd(dataset, out_path, range_bin_m) -> None:
     """Fit the image-derived error model from a labelled dataset (`datasets synth`)."""
-    from rl.error_model import ErrorModelConfig, fit_error_model, save_error_model
+    from uwdock.rl.error_model import ErrorModelConfig, fit_error_model, save_error_model
 
     cfg = load_config(ErrorModelConfig, overrides={"range_bin_m": range_bin_m})
     model = fit_error_model(dataset, cfg)

@@ -20,15 +20,15 @@ from typing import Any, ClassVar
 import gymnasium as gym
 import numpy as np
 
-from calibration.frames import R_from_rpy, inv_T, make_T
-from dockcore.errors import DockError
-from rl.config import EnvConfig
-from rl.estimator import DSPoseFilter
-from rl.obs_sources import ObservationSource, ProxySource, StepContext
-from rl.observation import OBS_BOUND, observation_frame, observation_size
-from rl.rewards import DockingReward
-from rl.task import docking_errors, ds_visible, paper_success, pegs_seated
-from rl.world import DockingWorld
+from uwdock.calibration.frames import R_from_rpy, inv_T, make_T
+from uwdock.dockcore.errors import DockError
+from uwdock.rl.config import EnvConfig
+from uwdock.rl.estimator import DSPoseFilter
+from uwdock.rl.obs_sources import ObservationSource, ProxySource, StepContext
+from uwdock.rl.observation import OBS_BOUND, observation_frame, observation_size
+from uwdock.rl.rewards import DockingReward
+from uwdock.rl.task import docking_errors, ds_visible, paper_success, pegs_seated
+from uwdock.rl.world import DockingWorld
 
 
 class SimulationError(DockError):
@@ -59,7 +59,7 @@ class DockingEnv(gym.Env):
         est_cfg = c.estimator
         if c.obs_source == "proxy" and est_cfg.fuse:
             # the paper's proxy observation is memoryless: every step replaces the estimate
-            from dockcore.config import replace
+            from uwdock.dockcore.config import replace
 
             est_cfg = replace(est_cfg, fuse=False)
         self.filter = DSPoseFilter(est_cfg)
@@ -78,10 +78,10 @@ class DockingEnv(gym.Env):
         if c.obs_source == "proxy":
             return ProxySource(c.task)
         if c.obs_source == "error-model":
-            from rl.error_model import ErrorModelSource, load_error_model
+            from uwdock.rl.error_model import ErrorModelSource, load_error_model
 
             return ErrorModelSource(load_error_model(c.error_model_path), c.task, c.water_preset)
-        from rl.camera_source import CameraSource
+        from uwdock.rl.camera_source import CameraSource
 
         return CameraSource(self.world, c)
 
@@ -183,7 +183,7 @@ class DockingEnv(gym.Env):
             res = self.world.render()
             if res is None:
                 return None
-            from sim.water import PRESETS, apply_water
+            from uwdock.sim.water import PRESETS, apply_water
 
             water = PRESETS[self.cfg.water_preset]  # a preset name EnvConfig has checked
             img = apply_water(res.rgb, res.range_m, water, self._film_rng)

@@ -29,15 +29,15 @@ from typing import Annotated, Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from calibration.camera import CameraModel, load_camera
-from calibration.frames import inv_T, make_T
-from dockcore.config import to_dict
-from dockcore.domains import Interval
-from dockcore.errors import DockError
-from dockcore.io import atomic_write_json
-from dockcore.provenance import provenance
-from rl.obs_sources import Measurement, StepContext
-from rl.task import DockingTaskConfig
+from uwdock.calibration.camera import CameraModel, load_camera
+from uwdock.calibration.frames import inv_T, make_T
+from uwdock.dockcore.config import to_dict
+from uwdock.dockcore.domains import Interval
+from uwdock.dockcore.errors import DockError
+from uwdock.dockcore.io import atomic_write_json
+from uwdock.dockcore.provenance import provenance
+from uwdock.rl.obs_sources import Measurement, StepContext
+from uwdock.rl.task import DockingTaskConfig
 
 FORMAT = "uwdock.error_model"
 VERSION = 1
@@ -120,15 +120,15 @@ def fit_error_model(
     import cv2
     from tqdm import tqdm
 
-    from markers.markerset import load_marker_set
-    from perception.detector import Detector, DetectorConfig
-    from perception.groundtruth import load_dataset
-    from perception.pose import BoardPoseConfig, refine_level_board, solve_board
+    from uwdock.markers.markerset import load_marker_set
+    from uwdock.perception.detector import Detector, DetectorConfig
+    from uwdock.perception.groundtruth import load_dataset
+    from uwdock.perception.pose import BoardPoseConfig, refine_level_board, solve_board
 
     cfg = cfg or ErrorModelConfig()
     ds = load_dataset(dataset)
     camera, T_body_cam = load_camera(ds.camera_path)
-    from calibration.camera import REFERENCE_T_BODYFRD_CAMCV
+    from uwdock.calibration.camera import REFERENCE_T_BODYFRD_CAMCV
 
     T_bc = np.asarray(T_body_cam if T_body_cam is not None else REFERENCE_T_BODYFRD_CAMCV)
     ms = load_marker_set(ds.marker_set_path)
@@ -251,7 +251,7 @@ class ErrorModel:
             cy_px=float(cam["cy_px"]),
             dist=tuple(cam["dist"]),
         )
-        from calibration.camera import REFERENCE_T_BODYFRD_CAMCV
+        from uwdock.calibration.camera import REFERENCE_T_BODYFRD_CAMCV
 
         tb = cam.get("T_body_cam")
         self.T_body_cam = np.asarray(tb) if tb is not None else np.array(REFERENCE_T_BODYFRD_CAMCV)

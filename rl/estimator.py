@@ -18,8 +18,8 @@ from typing import Annotated
 
 import numpy as np
 
-from calibration.frames import R_from_rpy, make_T, rpy_from_R, wrap_angle_rad
-from dockcore.domains import Interval
+from uwdock.calibration.frames import R_from_rpy, make_T, rpy_from_R, wrap_angle_rad
+from uwdock.dockcore.domains import Interval
 
 _Sigma = Annotated[float, Interval(ge=0, le=100)]  # m
 

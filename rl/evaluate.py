@@ -11,9 +11,9 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from dockcore.errors import DockError
-from rl.config import EnvConfig
-from rl.observation import POS_SCALE_M, frame_dim
+from uwdock.dockcore.errors import DockError
+from uwdock.rl.config import EnvConfig
+from uwdock.rl.observation import POS_SCALE_M, frame_dim
 
 
 class Controller(Protocol):
@@ -97,7 +97,7 @@ def run_episodes(
         video_dir: write ``camera_ep<k>.mp4`` there (frames are not kept in the traces);
             None keeps the frames in ``EpisodeTrace.frames``.
     """
-    from rl.env import DockingEnv
+    from uwdock.rl.env import DockingEnv
 
     ctrl = _as_controller(policy, vecnorm)
     todo = list(range(n_episodes)) if episodes is None else list(episodes)
@@ -107,7 +107,7 @@ def run_episodes(
         for done_count, k in enumerate(todo, start=1):
             row, tr = _episode(env, ctrl, k, seed, record, k in video_episodes)
             if video_dir is not None and tr.frames:
-                from rl.report import write_frames_sheet, write_video
+                from uwdock.rl.report import write_frames_sheet, write_video
 
                 write_video(tr.frames, Path(video_dir) / f"camera_ep{k}.mp4")
                 dt_s = 1.0 / env_cfg.control_hz  # frames are taken after each control step
@@ -182,7 +182,7 @@ _PROGRESS = None
 
 def _init_worker(parent_pid: int, queue) -> None:
     """Evaluation worker set-up: die with the evaluation (any signal), report progress."""
-    from dockcore.procs import die_with_parent
+    from uwdock.dockcore.procs import die_with_parent
 
     global _PROGRESS
     die_with_parent(parent_pid)
@@ -199,7 +199,7 @@ def _worker(
     video_episodes: tuple[int, ...],
     video_dir: str | None,
 ):
-    from rl.report import load_controller
+    from uwdock.rl.report import load_controller
 
     def tick(done: int, total: int) -> None:
         if _PROGRESS is not None:
@@ -238,7 +238,7 @@ def run_episodes_parallel(
     from concurrent.futures import ProcessPoolExecutor
 
     if workers <= 1:
-        from rl.report import load_controller
+        from uwdock.rl.report import load_controller
 
         ctrl, vecnorm, _ = load_controller(policy_spec, env_cfg)
         return run_episodes(

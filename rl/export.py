@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from dockcore.errors import DockError
-from dockcore.io import atomic_write_bytes, atomic_write_json
+from uwdock.dockcore.errors import DockError
+from uwdock.dockcore.io import atomic_write_bytes, atomic_write_json
 
 
 def load_policy(path: str | os.PathLike[str]):
@@ -30,7 +30,7 @@ def load_policy(path: str | os.PathLike[str]):
 
     from stable_baselines3 import PPO, SAC
 
-    from rl.checkpoint import require_finite_policy
+    from uwdock.rl.checkpoint import require_finite_policy
 
     p = Path(path)
     if p.is_dir():
@@ -114,7 +114,7 @@ def export_onnx(policy_path: str | os.PathLike[str], out: str | os.PathLike[str]
     """Write ``out`` (.onnx) and ``<out>.json`` (observation layout, limits, provenance)."""
     import torch
 
-    from rl.report import policy_env_settings
+    from uwdock.rl.report import policy_env_settings
 
     model, vecnorm = load_policy(policy_path)
     actor = _actor_module(model, vecnorm)

@@ -16,8 +16,8 @@ from typing import Annotated, Literal
 
 import numpy as np
 
-from dockcore.domains import Interval
-from rl.config import EnvConfig
+from uwdock.dockcore.domains import Interval
+from uwdock.rl.config import EnvConfig
 
 
 @dataclass(frozen=True)
@@ -81,8 +81,8 @@ def warm_start(
     import torch
     from tqdm import tqdm
 
-    from rl.baselines import PIDController
-    from rl.env import DockingEnv
+    from uwdock.rl.baselines import PIDController
+    from uwdock.rl.env import DockingEnv
 
     env = DockingEnv(env_cfg)
     success_key = f"success_{env_cfg.terminate_on}"  # the condition that ends an episode

@@ -17,8 +17,8 @@ from typing import Protocol
 
 import numpy as np
 
-from calibration.frames import inv_T
-from rl.task import DockingTaskConfig, docking_errors, ds_visible
+from uwdock.calibration.frames import inv_T
+from uwdock.rl.task import DockingTaskConfig, docking_errors, ds_visible
 
 
 @dataclass(frozen=True)

@@ -16,9 +16,9 @@ import math
 
 import numpy as np
 
-from rl.config import EnvConfig
-from rl.estimator import DSPoseFilter
-from rl.task import docking_errors
+from uwdock.rl.config import EnvConfig
+from uwdock.rl.estimator import DSPoseFilter
+from uwdock.rl.task import docking_errors
 
 POS_SCALE_M = 5.0
 ACC_SCALE_MPS2 = 5.0

@@ -9,14 +9,14 @@ from typing import Any
 
 import numpy as np
 
-from dockcore.config import replace, to_dict
-from dockcore.errors import DockError
-from dockcore.io import atomic_path, atomic_write_json, atomic_write_text
-from dockcore.media import AtomicVideoWriter
-from dockcore.outdir import claim_output_dir
-from dockcore.provenance import provenance
-from rl.config import EnvConfig
-from rl.evaluate import EpisodeTrace, run_episodes_parallel
+from uwdock.dockcore.config import replace, to_dict
+from uwdock.dockcore.errors import DockError
+from uwdock.dockcore.io import atomic_path, atomic_write_json, atomic_write_text
+from uwdock.dockcore.media import AtomicVideoWriter
+from uwdock.dockcore.outdir import claim_output_dir
+from uwdock.dockcore.provenance import provenance
+from uwdock.rl.config import EnvConfig
+from uwdock.rl.evaluate import EpisodeTrace, run_episodes_parallel
 
 #: EnvConfig fields that define a policy's interface (observation layout, action scaling).
 POLICY_INTERFACE_FIELDS = (
@@ -35,7 +35,7 @@ def _policy_train_env(policy: str) -> dict[str, Any]:
     ``.onnx``, the ``.json`` written beside it; {} if none."""
     import json
 
-    from dockcore.config import read_toml
+    from uwdock.dockcore.config import read_toml
 
     if policy == "pid":
         return {}
@@ -74,12 +74,12 @@ def policy_error_model(policy: str) -> str | None:
 def load_controller(policy: str, env_cfg: EnvConfig):
     """'pid', an .onnx file, or a policy.zip / run folder -> (controller, vecnorm, label)."""
     if policy == "pid":
-        from rl.baselines import PIDController
+        from uwdock.rl.baselines import PIDController
 
         return PIDController.for_env(env_cfg), None, "pid"
     path = Path(policy)
-    from rl.export import OnnxPolicy, check_obs_dim, load_policy
-    from rl.observation import observation_size
+    from uwdock.rl.export import OnnxPolicy, check_obs_dim, load_policy
+    from uwdock.rl.observation import observation_size
 
     env_dim = observation_size(env_cfg)
     if path.suffix == ".onnx":
@@ -230,7 +230,7 @@ def write_frames_sheet(
     frame k is captioned with its time ``first_s + k * dt_s``."""
     import cv2
 
-    from perception.video import write_contact_sheet
+    from uwdock.perception.video import write_contact_sheet
 
     if not frames:
         return None
@@ -254,8 +254,8 @@ def stress_tables(
     One progress bar over all rows, its label naming the row being run."""
     from tqdm import tqdm
 
-    from sim.thrusters import ThrusterRandomisation
-    from sim.vehicle import VehicleRandomisation
+    from uwdock.sim.thrusters import ThrusterRandomisation
+    from uwdock.sim.vehicle import VehicleRandomisation
 
     rows: list[tuple[str, str, Any, EnvConfig]] = []
     for speed in STRESS_CURRENTS_MPS:
@@ -264,7 +264,7 @@ def stress_tables(
         )
         rows.append(("current", "current_max_mps", speed, replace(env_cfg, current=cur)))
     if env_cfg.obs_source == "camera":
-        from sim.water import PRESET_ORDER
+        from uwdock.sim.water import PRESET_ORDER
 
         for preset in PRESET_ORDER:
             rows.append(("water", "water", preset, replace(env_cfg, water_preset=preset)))
@@ -320,7 +320,7 @@ def evaluate_to_folder(
     bad = [k for k in video_episodes if not 0 <= k < episodes]
     if bad:
         raise DockError(f"--videos: episode {bad[0]} is not among the {episodes} episodes")
-    from rl.config import check_env_files
+    from uwdock.rl.config import check_env_files
 
     check_env_files(env_cfg)
     _, _, label = load_controller(policy, env_cfg)  # fail fast on a bad policy

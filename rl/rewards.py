@@ -13,7 +13,7 @@ from typing import Annotated
 
 import numpy as np
 
-from dockcore.domains import Interval
+from uwdock.dockcore.domains import Interval
 
 _Weight = Annotated[float, Interval(ge=0, le=1000)]
 _Reward = Annotated[float, Interval(ge=0, le=1e6)]

@@ -21,12 +21,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibration.camera import REFERENCE_T_BODYFRD_CAMCV, load_camera, reference_camera
-from rl.camera_source import measure_from_image
-from rl.config import EnvConfig
-from rl.estimator import DSPoseFilter
-from rl.export import OnnxPolicy
-from rl.observation import observation_frame, observation_size
+from uwdock.calibration.camera import REFERENCE_T_BODYFRD_CAMCV, load_camera, reference_camera
+from uwdock.rl.camera_source import measure_from_image
+from uwdock.rl.config import EnvConfig
+from uwdock.rl.estimator import DSPoseFilter
+from uwdock.rl.export import OnnxPolicy
+from uwdock.rl.observation import observation_frame, observation_size
 
 
 @dataclass(frozen=True)
@@ -65,13 +65,13 @@ class DockingRunner:
         marker_set: str | os.PathLike[str] | None = None,
         env_cfg: EnvConfig | None = None,
     ) -> None:
-        from markers.config import MarkerConfig
-        from markers.markerset import load_marker_set, marker_set_from_config
-        from perception.detector import Detector, DetectorConfig
+        from uwdock.markers.config import MarkerConfig
+        from uwdock.markers.markerset import load_marker_set, marker_set_from_config
+        from uwdock.perception.detector import Detector, DetectorConfig
 
         if env_cfg is None:  # an exported policy carries its observation layout and limits
-            from dockcore.config import replace
-            from rl.report import policy_env_settings
+            from uwdock.dockcore.config import replace
+            from uwdock.rl.report import policy_env_settings
 
             exported = isinstance(policy, (str, os.PathLike))
             env_cfg = replace(EnvConfig(), **(policy_env_settings(str(policy)) if exported else {}))

@@ -22,8 +22,8 @@ from typing import Any
 
 import numpy as np
 
-from dockcore.io import atomic_write_bytes, atomic_write_text
-from rl.checkpoint import (
+from uwdock.dockcore.io import atomic_write_bytes, atomic_write_text
+from uwdock.rl.checkpoint import (
     Unit,
     model_bytes,
     pickle_bytes,
@@ -153,7 +153,7 @@ class TrainingSession:
     def evaluate(self, step: int) -> dict[str, Any]:
         """Evaluate the deterministic policy on the fixed episodes; keep it in ``best/`` when
         it scores higher (success that ends the episode, then the other, then the return)."""
-        from rl.evaluate import run_episodes
+        from uwdock.rl.evaluate import run_episodes
 
         summary = run_episodes(
             self.model,
@@ -193,7 +193,7 @@ class TrainingSession:
         text = "".join(json.dumps(r, sort_keys=True) + "\n" for r in self.history)
         atomic_write_text(path, text)
         if self.history:
-            from rl.report import plot_eval_history
+            from uwdock.rl.report import plot_eval_history
 
             plot_eval_history(path, self.run / "eval_history.png")
 

@@ -15,8 +15,8 @@ from typing import Annotated
 
 import numpy as np
 
-from calibration.frames import R_from_rpy, inv_T, make_T, rpy_from_R, wrap_angle_rad
-from dockcore.domains import Interval
+from uwdock.calibration.frames import R_from_rpy, inv_T, make_T, rpy_from_R, wrap_angle_rad
+from uwdock.dockcore.domains import Interval
 
 _Tolerance = Annotated[float, Interval(gt=0, le=10)]  # m
 _HalfAngle = Annotated[float, Interval(gt=0, lt=90)]  # deg

@@ -29,13 +29,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Literal
 
-from dockcore.config import changed_keys, dumps_toml, load_config, to_dict, validated
-from dockcore.domains import Count, Fraction, Interval, Seed
-from dockcore.errors import DockError
-from dockcore.io import atomic_write_bytes, atomic_write_json, atomic_write_text
-from dockcore.outdir import claim_output_dir
-from dockcore.provenance import write_provenance
-from rl.checkpoint import (
+from uwdock.dockcore.config import changed_keys, dumps_toml, load_config, to_dict, validated
+from uwdock.dockcore.domains import Count, Fraction, Interval, Seed
+from uwdock.dockcore.errors import DockError
+from uwdock.dockcore.io import atomic_write_bytes, atomic_write_json, atomic_write_text
+from uwdock.dockcore.outdir import claim_output_dir
+from uwdock.dockcore.provenance import write_provenance
+from uwdock.rl.checkpoint import (
     has_legacy_checkpoints,
     latest_unit,
     list_units,
@@ -43,8 +43,8 @@ from rl.checkpoint import (
     pickle_bytes,
     require_finite_policy,
 )
-from rl.config import EnvConfig, check_env_files
-from rl.imitation import ImitationConfig
+from uwdock.rl.config import EnvConfig, check_env_files
+from uwdock.rl.imitation import ImitationConfig
 
 _LearningRate = Annotated[float, Interval(gt=0, le=1)]
 _Width = Annotated[int, Interval(ge=1, le=4096)]  # units in a hidden layer
@@ -283,8 +283,8 @@ def train(
     check_env_files(cfg.env)
     init = None
     if init_policy:
-        from rl.export import check_obs_dim, load_policy
-        from rl.observation import observation_size
+        from uwdock.rl.export import check_obs_dim, load_policy
+        from uwdock.rl.observation import observation_size
 
         init = load_policy(init_policy)  # refuses damaged or non-finite policies
         env_dim = observation_size(cfg.env)
@@ -318,7 +318,7 @@ def train(
 
 
 def _log_resume(run: Path, unit, changed: list[str], cfg: TrainConfig) -> None:
-    from dockcore.provenance import git_commit
+    from uwdock.dockcore.provenance import git_commit
 
     record = {
         "resumed_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
@@ -339,9 +339,9 @@ def _run(cfg: TrainConfig, run: Path, unit, init, progress: bool, note) -> Path:
     from stable_baselines3 import PPO, SAC
     from stable_baselines3.common.vec_env import VecNormalize
 
-    from rl.callbacks import TrainingCallback
-    from rl.session import TrainingSession, load_model, load_vecnormalize
-    from rl.workers import EnvWorkers
+    from uwdock.rl.callbacks import TrainingCallback
+    from uwdock.rl.session import TrainingSession, load_model, load_vecnormalize
+    from uwdock.rl.workers import EnvWorkers
 
     torch.set_num_threads(1)
     algo_cls = PPO if cfg.algo == "ppo" else SAC
@@ -368,7 +368,7 @@ def _run(cfg: TrainConfig, run: Path, unit, init, progress: bool, note) -> Path:
             model = build_model(cfg, venv, run / "tb")
             warm = cfg.imitation.teacher != "none" and init is None
             if warm:
-                from rl.imitation import warm_start
+                from uwdock.rl.imitation import warm_start
 
                 hist = warm_start(
                     model, vecnorm, cfg.env, cfg.imitation, cfg.seed, gamma, progress=progress

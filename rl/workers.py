@@ -19,8 +19,8 @@ import signal
 import tempfile
 from pathlib import Path
 
-from dockcore.errors import DockError
-from rl.config import EnvConfig
+from uwdock.dockcore.errors import DockError
+from uwdock.rl.config import EnvConfig
 
 
 class WorkerError(DockError):
@@ -66,12 +66,12 @@ def _make_env_fn(
         if parent is not None:  # a worker process: the parent alone handles signals
             signal.signal(signal.SIGINT, signal.SIG_IGN)
             signal.signal(signal.SIGTERM, signal.SIG_DFL)
-            from dockcore.procs import die_with_parent
+            from uwdock.dockcore.procs import die_with_parent
 
             die_with_parent(parent)
         from stable_baselines3.common.monitor import Monitor
 
-        from rl.env import DockingEnv
+        from uwdock.rl.env import DockingEnv
 
         try:
             env = Monitor(DockingEnv(env_cfg), info_keywords=("success_paper", "success_strict"))

@@ -9,10 +9,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from rl.config import EnvConfig
-from sim.docking_station import DockingStationConfig, build_docking_station, build_tank
-from sim.physics import VehicleBody, make_physics_scene
-from sim.vehicle import Current
+from uwdock.rl.config import EnvConfig
+from uwdock.sim.docking_station import DockingStationConfig, build_docking_station, build_tank
+from uwdock.sim.physics import VehicleBody, make_physics_scene
+from uwdock.sim.vehicle import Current
 
 
 class DockingWorld:
@@ -29,8 +29,8 @@ class DockingWorld:
         if with_camera:
             import sapien
 
-            from calibration.camera import load_camera
-            from sim.render import make_render_scene
+            from uwdock.calibration.camera import load_camera
+            from uwdock.sim.render import make_render_scene
 
             scene = sapien.Scene()
             scene.set_timestep(1.0 / cfg.physics_hz)
@@ -38,7 +38,7 @@ class DockingWorld:
             if cfg.camera_file:
                 cam, T_body_cam = load_camera(cfg.camera_file)
             if cfg.camera_width_px:
-                from calibration.camera import reference_camera
+                from uwdock.calibration.camera import reference_camera
 
                 base = cam or reference_camera()
                 h = round(base.height_px * cfg.camera_width_px / base.width_px)

@@ -15,3 +15,9 @@ Modules:
     episode:         a video of a docking episode (``sim episode``).
     domains:         value domains shared by these modules' configs (``dockcore.domains``).
 """
+
+if __name__ != "uwdock.sim":  # this folder reached as a top-level name (the working directory)
+    raise ImportError(
+        "this folder is installed as uwdock.sim: import uwdock.sim "
+        "(pip install -e . from the repository puts it there)"
+    )

@@ -12,14 +12,14 @@ from pathlib import Path
 
 import click
 
-from dockcore.cli import CONTEXT, domain_type, field_type, run_group
-from dockcore.domains import Seed
-from dockcore.errors import DockError
+from uwdock.dockcore.cli import CONTEXT, domain_type, field_type, run_group
+from uwdock.dockcore.domains import Seed
+from uwdock.dockcore.errors import DockError
 
 #: Configs whose fields the options override (imported when an option is first used).
-_SYNTH = "datasets.synth:SynthConfig"
-_ENV = "rl.config:EnvConfig"
-_VIDEO = "sim.episode:EpisodeVideoConfig"
+_SYNTH = "uwdock.datasets.synth:SynthConfig"
+_ENV = "uwdock.rl.config:EnvConfig"
+_VIDEO = "uwdock.sim.episode:EpisodeVideoConfig"
 
 
 #: ``sim episode``'s values of EnvConfig fields that neither a flag nor ``--config`` sets.
@@ -32,7 +32,7 @@ def cli() -> None:
 
 
 def _water_choice(water: str | None, allow_random: bool) -> str:
-    from sim.water import PRESETS
+    from uwdock.sim.water import PRESETS
 
     name = water or "none"
     known = [*PRESETS, *(["random"] if allow_random else []), "none"]
@@ -73,15 +73,17 @@ def _water_choice(water: str | None, allow_random: bool) -> str:
 @click.option("--seed", type=field_type(_SYNTH, "seed"), default=0, show_default=True)
 @click.option("--camera", "camera_file", type=click.Path(dir_okay=False), help="Camera file.")
 @click.option("--markers", "marker_set_path", type=click.Path(dir_okay=False), help="Marker set.")
-@click.option("--workers", type=domain_type("datasets.synth:Workers"), default=1, show_default=True)
+@click.option(
+    "--workers", type=domain_type("uwdock.datasets.synth:Workers"), default=1, show_default=True
+)
 @click.option("--quiet", is_flag=True, help="No progress bar; print only the folder.")
 def render(
     out_dir, n_frames, poses_csv, water, width_px, seed, camera_file, marker_set_path, workers,
     quiet,
 ) -> None:  # fmt: skip
     """Render images (+ labels.jsonl in the dataset format) for given or random poses."""
-    from datasets.loaders import load_poses_csv
-    from datasets.synth import SynthConfig, generate
+    from uwdock.datasets.loaders import load_poses_csv
+    from uwdock.datasets.synth import SynthConfig, generate
 
     if n_frames is not None and poses_csv is not None:
         raise DockError("give either --n or --poses, not both")
@@ -160,15 +162,15 @@ def episode(
     downward camera (with water) and an outside view, plus summary.json."""
     from tqdm import tqdm
 
-    from dockcore.config import config_data, from_dict, merge
-    from dockcore.io import atomic_write_json
-    from dockcore.outdir import claim_output_dir
-    from dockcore.provenance import write_provenance
-    from rl.baselines import PIDController
-    from rl.config import EnvConfig
-    from rl.env import DockingEnv
-    from sim.episode import EpisodeVideoConfig, record_episode
-    from sim.water import PRESETS
+    from uwdock.dockcore.config import config_data, from_dict, merge
+    from uwdock.dockcore.io import atomic_write_json
+    from uwdock.dockcore.outdir import claim_output_dir
+    from uwdock.dockcore.provenance import write_provenance
+    from uwdock.rl.baselines import PIDController
+    from uwdock.rl.config import EnvConfig
+    from uwdock.rl.env import DockingEnv
+    from uwdock.sim.episode import EpisodeVideoConfig, record_episode
+    from uwdock.sim.water import PRESETS
 
     water_name = _water_choice(water or "coastal", allow_random=False)
     given = config_data(config_path, section="env") if config_path is not None else {}

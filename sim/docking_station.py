@@ -41,14 +41,14 @@ import sapien
 from numpy.typing import ArrayLike
 from scipy.spatial import ConvexHull
 
-from calibration.frames import T_WORLDZUP_WORLDNED, check_T, make_T, pos_quat_from_T
-from dockcore.config import to_dict, validated
-from dockcore.domains import Interval
-from dockcore.errors import DockError
-from dockcore.io import clean_stale_temps, temp_sibling
-from markers.config import MarkerConfig
-from markers.markerset import MarkerSet, load_marker_set
-from sim.domains import RGB, Friction, TankSide_m
+from uwdock.calibration.frames import T_WORLDZUP_WORLDNED, check_T, make_T, pos_quat_from_T
+from uwdock.dockcore.config import to_dict, validated
+from uwdock.dockcore.domains import Interval
+from uwdock.dockcore.errors import DockError
+from uwdock.dockcore.io import clean_stale_temps, temp_sibling
+from uwdock.markers.config import MarkerConfig
+from uwdock.markers.markerset import MarkerSet, load_marker_set
+from uwdock.sim.domains import RGB, Friction, TankSide_m
 
 __all__ = [
     "DockingStation",
@@ -257,7 +257,7 @@ def default_marker_set(cache_dir: str | os.PathLike[str] | None = None) -> Marke
     ``cache_dir``, else ``$UWDOCK_CACHE_DIR``, else ``$XDG_CACHE_HOME/uwdock`` or
     ``~/.cache/uwdock``.
     """
-    from markers.generate import MARKER_SET_NAME, generate
+    from uwdock.markers.generate import MARKER_SET_NAME, generate
 
     cfg = MarkerConfig()
     digest = hashlib.sha1(json.dumps(to_dict(cfg), sort_keys=True).encode()).hexdigest()[:12]

@@ -10,7 +10,7 @@ from __future__ import annotations
 from collections.abc import Iterable
 from typing import Annotated, Any
 
-from dockcore.domains import Fraction, Interval
+from uwdock.dockcore.domains import Fraction, Interval
 
 __all__ = [
     "RGB",

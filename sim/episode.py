@@ -35,15 +35,15 @@ import cv2
 import numpy as np
 import sapien
 
-from calibration.camera import CameraModel
-from calibration.frames import inv_T, make_T, transform_points
-from dockcore.config import check_fields, validated
-from dockcore.domains import Interval
-from dockcore.errors import DockError
-from dockcore.media import AtomicVideoWriter
-from sim.domains import RGB
-from sim.render import CameraRig, RenderConfig
-from sim.water import PRESETS, WaterConfig, apply_water, preset
+from uwdock.calibration.camera import CameraModel
+from uwdock.calibration.frames import inv_T, make_T, transform_points
+from uwdock.dockcore.config import check_fields, validated
+from uwdock.dockcore.domains import Interval
+from uwdock.dockcore.errors import DockError
+from uwdock.dockcore.media import AtomicVideoWriter
+from uwdock.sim.domains import RGB
+from uwdock.sim.render import CameraRig, RenderConfig
+from uwdock.sim.water import PRESETS, WaterConfig, apply_water, preset
 
 __all__ = [
     "EpisodeVideoConfig",

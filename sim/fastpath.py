@@ -44,10 +44,10 @@ import numpy as np
 import sapien
 from numba import njit
 
-from calibration.frames import T_from_pos_quat
+from uwdock.calibration.frames import T_from_pos_quat
 
 if TYPE_CHECKING:  # pragma: no cover
-    from sim.vehicle import Hydrodynamics
+    from uwdock.sim.vehicle import Hydrodynamics
 
 __all__ = [
     "HYDRO_PARAMS",

@@ -47,7 +47,7 @@ import numpy as np
 import sapien
 from numpy.typing import ArrayLike
 
-from calibration.frames import (
+from uwdock.calibration.frames import (
     T_BODYFLU_BODYFRD,
     T_WORLDZUP_WORLDNED,
     R_from_quat_wxyz,
@@ -56,8 +56,8 @@ from calibration.frames import (
     ned_pose_to_zup,
     pos_quat_from_T,
 )
-from dockcore.errors import ConfigError
-from sim.fastpath import (
+from uwdock.dockcore.errors import ConfigError
+from uwdock.sim.fastpath import (
     StaticObstacles,
     body_params,
     free_flight,
@@ -65,8 +65,8 @@ from sim.fastpath import (
     hydro_params,
     physx_wrench,
 )
-from sim.thrusters import ThrusterArray
-from sim.vehicle import Current, CurrentConfig, Hydrodynamics, Imu, ImuReading, VehicleConfig
+from uwdock.sim.thrusters import ThrusterArray
+from uwdock.sim.vehicle import Current, CurrentConfig, Hydrodynamics, Imu, ImuReading, VehicleConfig
 
 __all__ = [
     "FREE_FLIGHT_MARGIN_M",

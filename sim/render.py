@@ -31,20 +31,20 @@ import numpy as np
 import sapien
 from numpy.typing import ArrayLike
 
-from calibration.camera import REFERENCE_T_BODYFRD_CAMCV, CameraModel, reference_camera
-from calibration.frames import T_CAMCV_CAMSAPIEN, check_T, inv_T, transform_points
-from dockcore.config import check_fields, validated
-from dockcore.domains import Interval
-from dockcore.errors import DockError
-from markers.markerset import MarkerSet
-from sim.docking_station import (
+from uwdock.calibration.camera import REFERENCE_T_BODYFRD_CAMCV, CameraModel, reference_camera
+from uwdock.calibration.frames import T_CAMCV_CAMSAPIEN, check_T, inv_T, transform_points
+from uwdock.dockcore.config import check_fields, validated
+from uwdock.dockcore.domains import Interval
+from uwdock.dockcore.errors import DockError
+from uwdock.markers.markerset import MarkerSet
+from uwdock.sim.docking_station import (
     DockingStation,
     DockingStationConfig,
     build_docking_station,
     build_tank,
     sapien_pose,
 )
-from sim.domains import RGB, BodyCoord_m
+from uwdock.sim.domains import RGB, BodyCoord_m
 
 __all__ = [
     "CameraRig",

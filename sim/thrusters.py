@@ -35,9 +35,9 @@ from typing import Annotated
 import numpy as np
 from numpy.typing import ArrayLike
 
-from dockcore.config import check_fields
-from dockcore.domains import Interval
-from sim.domains import BodyCoord_m, RelativeRange, validate_each
+from uwdock.dockcore.config import check_fields
+from uwdock.dockcore.domains import Interval
+from uwdock.sim.domains import BodyCoord_m, RelativeRange, validate_each
 
 __all__ = [
     "DEFAULT_THRUSTERS",

@@ -29,11 +29,11 @@ from typing import Annotated, Literal
 import numpy as np
 from numpy.typing import ArrayLike
 
-from calibration.frames import check_R
-from dockcore.config import check_fields
-from dockcore.domains import Interval
-from sim.domains import BodyCoord_m, Friction, RelativeRange, validate_each
-from sim.thrusters import ThrusterArrayConfig, ThrusterRandomisation
+from uwdock.calibration.frames import check_R
+from uwdock.dockcore.config import check_fields
+from uwdock.dockcore.domains import Interval
+from uwdock.sim.domains import BodyCoord_m, Friction, RelativeRange, validate_each
+from uwdock.sim.thrusters import ThrusterArrayConfig, ThrusterRandomisation
 
 __all__ = [
     "CollisionShape",
@@ -388,7 +388,7 @@ class Hydrodynamics:
             (u..r) the body velocity, (cu, cv, cw) the current in body FRD and (X..N) the
             applied wrench; all floats.
         """
-        from sim.fastpath import hydro_accel, hydro_params  # numba; imports this module
+        from uwdock.sim.fastpath import hydro_accel, hydro_params  # numba; imports this module
 
         params = hydro_params(self)
 

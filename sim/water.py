@@ -54,9 +54,9 @@ from typing import Annotated
 import cv2
 import numpy as np
 
-from dockcore.config import check_fields
-from dockcore.domains import Fraction, Interval
-from sim.domains import RGB as ColourRGB
+from uwdock.dockcore.config import check_fields
+from uwdock.dockcore.domains import Fraction, Interval
+from uwdock.sim.domains import RGB as ColourRGB
 
 __all__ = [
     "JERLOV_BEAM_C_RGB",

@@ -17,8 +17,8 @@ from typing import Any, Literal
 
 from hypothesis import strategies as st
 
-from dockcore.config import to_dict
-from dockcore.domains import bounds, domain_of, split_annotated
+from uwdock.dockcore.config import to_dict
+from uwdock.dockcore.domains import bounds, domain_of, split_annotated
 
 
 @dataclass(frozen=True)
@@ -157,7 +157,7 @@ def _outside(leaf: Leaf) -> list[Any]:
 
 
 def _refused(leaf: Leaf, v: Any) -> bool:
-    from dockcore.domains import check
+    from uwdock.dockcore.domains import check
 
     return check(v, leaf.base, leaf.meta, "k") is not None
 

@@ -43,7 +43,7 @@ def dataset(root: Path) -> dict[str, bytes]:
 def group_process(group: str, *args: object, **popen: object) -> subprocess.Popen:
     """Start ``<group> <args>`` (e.g. ``datasets synth ...``) as a process of its own running
     this source tree, its output piped."""
-    code = f"import sys; sys.argv[0] = {group!r}; from {group}.cli import main; main()"
+    code = f"import sys; sys.argv[0] = {group!r}; from uwdock.{group}.cli import main; main()"
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     return subprocess.Popen(
         [sys.executable, "-c", code, *map(str, args)],

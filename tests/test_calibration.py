@@ -18,19 +18,24 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from calibration import cli as calibration_cli
-from calibration.camera import REFERENCE_T_BODYFRD_CAMCV, load_camera, reference_camera, save_camera
-from calibration.extrinsics import (
+from uwdock.calibration import cli as calibration_cli
+from uwdock.calibration.camera import (
+    REFERENCE_T_BODYFRD_CAMCV,
+    load_camera,
+    reference_camera,
+    save_camera,
+)
+from uwdock.calibration.extrinsics import (
     REFERENCE_RPY_DEG,
     T_body_cam_from_xyz_rpy,
     read_extrinsics,
     xyz_rpy_from_T_body_cam,
 )
-from calibration.frames import R_from_rpy, rotation_angle_deg
-from calibration.intrinsics import IntrinsicsConfig, calibrate_intrinsics
-from calibration.patterns import PatternDetector
-from dockcore.config import validated
-from dockcore.errors import ConfigError, DockError
+from uwdock.calibration.frames import R_from_rpy, rotation_angle_deg
+from uwdock.calibration.intrinsics import IntrinsicsConfig, calibrate_intrinsics
+from uwdock.calibration.patterns import PatternDetector
+from uwdock.dockcore.config import validated
+from uwdock.dockcore.errors import ConfigError, DockError
 
 W_PX, H_PX = 640, 480
 K_TRUE = np.array([[800.0, 0.0, 319.5], [0.0, 800.0, 239.5], [0.0, 0.0, 1.0]])

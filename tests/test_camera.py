@@ -9,15 +9,15 @@ import cv2
 import numpy as np
 import pytest
 
-from calibration import frames as F
-from calibration.camera import (
+from uwdock.calibration import frames as F
+from uwdock.calibration.camera import (
     REFERENCE_T_BODYFRD_CAMCV,
     CameraModel,
     load_camera,
     reference_camera,
     save_camera,
 )
-from dockcore.errors import DockError
+from uwdock.dockcore.errors import DockError
 
 
 def _calibrated() -> CameraModel:

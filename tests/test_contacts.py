@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibration.frames import R_from_rpy, make_T
-from dockcore.config import replace
-from rl.task import DockingTaskConfig, pegs_seated
-from sim.docking_station import DockingStationConfig, build_docking_station, build_tank
-from sim.physics import VehicleBody, make_physics_scene
-from sim.vehicle import VehicleConfig
+from uwdock.calibration.frames import R_from_rpy, make_T
+from uwdock.dockcore.config import replace
+from uwdock.rl.task import DockingTaskConfig, pegs_seated
+from uwdock.sim.docking_station import DockingStationConfig, build_docking_station, build_tank
+from uwdock.sim.physics import VehicleBody, make_physics_scene
+from uwdock.sim.vehicle import VehicleConfig
 
 TASK = DockingTaskConfig()
 

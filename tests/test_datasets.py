@@ -15,19 +15,19 @@ import cv2
 import numpy as np
 import pytest
 
-from calibration.camera import REFERENCE_T_BODYFRD_CAMCV, reference_camera
-from calibration.frames import inv_T, make_T, transform_points
-from datasets import cli as datasets_cli
-from datasets.loaders import load_poses_csv
-from datasets.synth import (
+from uwdock.calibration.camera import REFERENCE_T_BODYFRD_CAMCV, reference_camera
+from uwdock.calibration.frames import inv_T, make_T, transform_points
+from uwdock.datasets import cli as datasets_cli
+from uwdock.datasets.loaders import load_poses_csv
+from uwdock.datasets.synth import (
     PoseSamplingConfig,
     SynthConfig,
     frame_rng,
     generate,
     sample_pose,
 )
-from dockcore.config import from_dict
-from dockcore.errors import ConfigError, DockError
+from uwdock.dockcore.config import from_dict
+from uwdock.dockcore.errors import ConfigError, DockError
 
 CAM = reference_camera().scaled(320, 242)
 T_BC = np.array(REFERENCE_T_BODYFRD_CAMCV)
@@ -207,10 +207,10 @@ def test_resume_renders_only_missing_frames(tiny, tmp_path):
 
 @pytest.mark.render
 def test_labels_agree_with_perception(tmp_path):
-    from markers.markerset import load_marker_set
-    from perception.detector import Detector, DetectorConfig
-    from perception.groundtruth import load_dataset
-    from perception.pose import solve_board
+    from uwdock.markers.markerset import load_marker_set
+    from uwdock.perception.detector import Detector, DetectorConfig
+    from uwdock.perception.groundtruth import load_dataset
+    from uwdock.perception.pose import solve_board
 
     cfg = SynthConfig(
         n_frames=6,
@@ -226,7 +226,7 @@ def test_labels_agree_with_perception(tmp_path):
     generate(out, cfg, progress=False)
     ds = load_dataset(out)
     ms = load_marker_set(ds.marker_set_path)
-    from calibration.camera import load_camera
+    from uwdock.calibration.camera import load_camera
 
     cam, _ = load_camera(ds.camera_path)
     detector = Detector(DetectorConfig(ids=ms.ids))
@@ -254,7 +254,7 @@ def test_labels_agree_with_perception(tmp_path):
 
 @pytest.mark.render
 def test_labelled_dataset_loader(tiny, tmp_path):
-    from datasets.loaders import FootageSource, LabelledDataset
+    from uwdock.datasets.loaders import FootageSource, LabelledDataset
 
     ds = LabelledDataset(tiny)
     assert len(ds) == 6 and ds.camera.width_px == 160

@@ -13,10 +13,10 @@ import cv2
 import numpy as np
 import pytest
 
-from dockcore.config import validated
-from dockcore.errors import ConfigError, DockError
-from perception.detector import Detection, Detector, DetectorConfig, list_pipelines
-from perception.preprocess import (
+from uwdock.dockcore.config import validated
+from uwdock.dockcore.errors import ConfigError, DockError
+from uwdock.perception.detector import Detection, Detector, DetectorConfig, list_pipelines
+from uwdock.perception.preprocess import (
     PIPELINES,
     NoiseAwareStretch,
     Pipeline,

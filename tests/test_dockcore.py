@@ -8,10 +8,10 @@ from typing import Literal
 
 import pytest
 
-from dockcore.config import dumps_toml, from_dict, load_config, read_toml, replace, to_dict
-from dockcore.errors import ConfigError, DockError
-from dockcore.io import atomic_path, atomic_write_text, ensure_writable_dir
-from dockcore.provenance import write_provenance
+from uwdock.dockcore.config import dumps_toml, from_dict, load_config, read_toml, replace, to_dict
+from uwdock.dockcore.errors import ConfigError, DockError
+from uwdock.dockcore.io import atomic_path, atomic_write_text, ensure_writable_dir
+from uwdock.dockcore.provenance import write_provenance
 
 
 @dataclass(frozen=True)

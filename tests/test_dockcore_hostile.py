@@ -17,12 +17,12 @@ from typing import Annotated
 import click
 import pytest
 
-from dockcore.cli import domain_type, field_type, run_group
-from dockcore.config import from_dict, load_config, read_toml, validated
-from dockcore.domains import Count, Finite, Interval, Positive, Seed, check, describe
-from dockcore.errors import ConfigError, DockError
-from dockcore.io import TEMP_MARK, atomic_path, atomic_write_text, clean_stale_temps
-from dockcore.outdir import LOCK_FILE, OWNER_FILE, claim_output_dir, folder_owner
+from uwdock.dockcore.cli import domain_type, field_type, run_group
+from uwdock.dockcore.config import from_dict, load_config, read_toml, validated
+from uwdock.dockcore.domains import Count, Finite, Interval, Positive, Seed, check, describe
+from uwdock.dockcore.errors import ConfigError, DockError
+from uwdock.dockcore.io import TEMP_MARK, atomic_path, atomic_write_text, clean_stale_temps
+from uwdock.dockcore.outdir import LOCK_FILE, OWNER_FILE, claim_output_dir, folder_owner
 
 
 @dataclass(frozen=True)
@@ -256,7 +256,7 @@ def test_a_locked_folder_is_refused_while_its_process_lives(tmp_path):
     out = tmp_path / "ds"
     code = textwrap.dedent(f"""
         import time
-        from dockcore.outdir import claim_output_dir
+        from uwdock.dockcore.outdir import claim_output_dir
         with claim_output_dir({str(out)!r}, "datasets synth"):
             print("locked", flush=True)
             time.sleep(60)
@@ -281,7 +281,7 @@ def test_workers_die_with_their_parent(tmp_path):
     parent = textwrap.dedent(f"""
         import multiprocessing as mp, os, time
         def work(path, parent):
-            from dockcore.procs import die_with_parent
+            from uwdock.dockcore.procs import die_with_parent
             die_with_parent(parent)
             open(path, "w").write(str(os.getpid()))
             time.sleep(120)

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 import sapien
 
-from calibration.frames import R_from_rpy, make_T, rotation_angle_deg, rpy_from_R
-from dockcore.config import ConfigError, from_dict, to_dict
-from sim.physics import VehicleBody, make_physics_scene
-from sim.thrusters import ThrusterArrayConfig
-from sim.vehicle import (
+from uwdock.calibration.frames import R_from_rpy, make_T, rotation_angle_deg, rpy_from_R
+from uwdock.dockcore.config import ConfigError, from_dict, to_dict
+from uwdock.sim.physics import VehicleBody, make_physics_scene
+from uwdock.sim.thrusters import ThrusterArrayConfig
+from uwdock.sim.vehicle import (
     Current,
     CurrentConfig,
     Hydrodynamics,

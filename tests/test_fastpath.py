@@ -8,17 +8,17 @@ import numpy as np
 import pytest
 import sapien
 
-from calibration.frames import (
+from uwdock.calibration.frames import (
     R_from_rpy,
     make_T,
     ned_pose_to_zup,
     pos_quat_from_T,
     rotation_angle_deg,
 )
-from sim.docking_station import DockingStationConfig, build_tank
-from sim.fastpath import StaticObstacles, body_params, hydro_params, physx_wrench
-from sim.physics import FREE_FLIGHT_MARGIN_M, VehicleBody, make_physics_scene
-from sim.vehicle import (
+from uwdock.sim.docking_station import DockingStationConfig, build_tank
+from uwdock.sim.fastpath import StaticObstacles, body_params, hydro_params, physx_wrench
+from uwdock.sim.physics import FREE_FLIGHT_MARGIN_M, VehicleBody, make_physics_scene
+from uwdock.sim.vehicle import (
     Current,
     CurrentConfig,
     Hydrodynamics,

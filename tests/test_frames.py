@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from calibration import frames as F
+from uwdock.calibration import frames as F
 
 C45 = math.cos(math.pi / 4)
 

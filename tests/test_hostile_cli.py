@@ -15,8 +15,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from dockcore.cli import DomainType, run_group
-from dockcore.domains import bounds, check
+from uwdock.dockcore.cli import DomainType, run_group
+from uwdock.dockcore.domains import bounds, check
 
 GROUPS = ("markers", "perception", "calibration", "datasets", "sim", "rl")
 
@@ -24,7 +24,7 @@ GROUPS = ("markers", "perception", "calibration", "datasets", "sim", "rl")
 def _group(name: str) -> click.Group:
     import importlib
 
-    return importlib.import_module(f"{name}.cli").cli
+    return importlib.import_module(f"uwdock.{name}.cli").cli
 
 
 def _commands(

@@ -12,25 +12,28 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from dockcore.config import from_dict, to_dict
-from dockcore.errors import ConfigError
 from tests.hostile import hostile, inside, leaves, nested_classes, set_path
+from uwdock.dockcore.config import from_dict, to_dict
+from uwdock.dockcore.errors import ConfigError
 
-PACKAGES = ("dockcore", "markers", "perception", "calibration", "sim", "datasets", "rl")
+PACKAGES = tuple(
+    f"uwdock.{p}"
+    for p in ("dockcore", "markers", "perception", "calibration", "sim", "datasets", "rl")
+)
 
 
 def _roots() -> list[type]:
     """The configs a user loads from TOML (``--config``) or that commands build from flags."""
-    from calibration.intrinsics import IntrinsicsConfig
-    from datasets.synth import SynthConfig
-    from markers.config import MarkerConfig
-    from perception.evaluate import PerceptionConfig
-    from rl.baselines import PIDConfig
-    from rl.error_model import ErrorModelConfig
-    from rl.train import TrainConfig
-    from sim.docking_station import DockingStationConfig
-    from sim.episode import EpisodeVideoConfig
-    from sim.water import WaterConfig
+    from uwdock.calibration.intrinsics import IntrinsicsConfig
+    from uwdock.datasets.synth import SynthConfig
+    from uwdock.markers.config import MarkerConfig
+    from uwdock.perception.evaluate import PerceptionConfig
+    from uwdock.rl.baselines import PIDConfig
+    from uwdock.rl.error_model import ErrorModelConfig
+    from uwdock.rl.train import TrainConfig
+    from uwdock.sim.docking_station import DockingStationConfig
+    from uwdock.sim.episode import EpisodeVideoConfig
+    from uwdock.sim.water import WaterConfig
 
     return [
         MarkerConfig,

@@ -17,11 +17,11 @@ import numpy as np
 import psutil
 import pytest
 
-from datasets import cli as datasets_cli
-from datasets.synth import PoseSamplingConfig, SynthConfig, generate
-from dockcore.config import replace
-from dockcore.errors import ConfigError, DockError
 from tests.hostile_runs import assert_refused, dataset, dead_pid, group_process, tree
+from uwdock.datasets import cli as datasets_cli
+from uwdock.datasets.synth import PoseSamplingConfig, SynthConfig, generate
+from uwdock.dockcore.config import replace
+from uwdock.dockcore.errors import ConfigError, DockError
 
 #: The dataset of these tests (the config of tests/test_datasets.py's: one render scene).
 SMALL = SynthConfig(n_frames=6, seed=11, water="random", width_px=160)
@@ -41,7 +41,7 @@ def small(tmp_path_factory) -> Path:
 
 def _markers_copy(tmp_path: Path) -> Path:
     """A copy of the default marker set folder (with render meshes); its marker set file."""
-    from sim.docking_station import default_marker_set
+    from uwdock.sim.docking_station import default_marker_set
 
     ms = default_marker_set()
     folder = tmp_path / "markers"

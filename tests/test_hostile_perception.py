@@ -21,21 +21,21 @@ import numpy as np
 import pytest
 import tomli_w
 
-from calibration import cli as calibration_cli
-from calibration.camera import CameraModel, save_camera
-from calibration.intrinsics import IntrinsicsConfig
-from dockcore.config import validated
-from dockcore.errors import ConfigError, DockError
-from dockcore.media import AtomicVideoWriter
-from markers import cli as markers_cli
-from markers.config import MarkerConfig
-from markers.generate import generate
-from markers.markerset import load_marker_set, marker_set_from_config, save_marker_set
-from perception import cli as perception_cli
-from perception.avi import mjpeg_avi_index
-from perception.detector import DetectorConfig
-from perception.groundtruth import QUAT_NORM_TOL, load_pose_csv
-from perception.video import FrameSource, open_frames
+from uwdock.calibration import cli as calibration_cli
+from uwdock.calibration.camera import CameraModel, save_camera
+from uwdock.calibration.intrinsics import IntrinsicsConfig
+from uwdock.dockcore.config import validated
+from uwdock.dockcore.errors import ConfigError, DockError
+from uwdock.dockcore.media import AtomicVideoWriter
+from uwdock.markers import cli as markers_cli
+from uwdock.markers.config import MarkerConfig
+from uwdock.markers.generate import generate
+from uwdock.markers.markerset import load_marker_set, marker_set_from_config, save_marker_set
+from uwdock.perception import cli as perception_cli
+from uwdock.perception.avi import mjpeg_avi_index
+from uwdock.perception.detector import DetectorConfig
+from uwdock.perception.groundtruth import QUAT_NORM_TOL, load_pose_csv
+from uwdock.perception.video import FrameSource, open_frames
 
 REPO = Path(__file__).resolve().parents[1]
 CAM = CameraModel.from_hfov(64, 48, 55.0, name="tiny")
@@ -503,7 +503,7 @@ def test_a_failed_run_leaves_no_folder_behind(run_cli, tmp_path, camera_file):
 def _run_quietly(group: str, *args: object) -> subprocess.CompletedProcess:
     """A command in a fresh process (native libraries log to file descriptor 2 there)."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("OPENCV_FFMPEG_")}
-    code = f"import sys; from {group}.cli import main; sys.argv[0] = {group!r}; main()"
+    code = f"import sys; from uwdock.{group}.cli import main; sys.argv[0] = {group!r}; main()"
     return subprocess.run(
         [sys.executable, "-c", code, *map(str, args)],
         cwd=REPO,

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rl import cli
+from uwdock.rl import cli
 
 SHIPPED = Path(__file__).resolve().parent.parent / "rl" / "policies" / "error_model_ppo"
 
@@ -221,7 +221,7 @@ def test_a_killed_evaluation_leaves_no_worker_processes(tmp_path):
 
     import psutil
 
-    cmd = [sys.executable, "-c", "from rl.cli import main; main()", "eval", "--policy", "pid",
+    cmd = [sys.executable, "-c", "from uwdock.rl.cli import main; main()", "eval", "--policy", "pid",
            "--obs", "proxy", "--episodes", "40", "--workers", "2", "--videos", "",
            "--out", str(tmp_path / "e")]  # fmt: skip
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)

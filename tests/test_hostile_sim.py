@@ -13,13 +13,14 @@ import math
 import numpy as np
 import pytest
 
-from datasets import cli as datasets_cli
-from sim import cli as sim_cli
-from sim.docking_station import DockingStationConfig, build_docking_station, build_tank
-from sim.episode import EpisodeVideoConfig, record_episode
-from sim.render import CameraRig, RenderConfig, make_render_scene
-from sim.thrusters import ThrusterArray, ThrusterArrayConfig, ThrusterRandomisation
-from sim.vehicle import (
+from tests.hostile_runs import assert_refused, dead_pid, tree
+from uwdock.datasets import cli as datasets_cli
+from uwdock.sim import cli as sim_cli
+from uwdock.sim.docking_station import DockingStationConfig, build_docking_station, build_tank
+from uwdock.sim.episode import EpisodeVideoConfig, record_episode
+from uwdock.sim.render import CameraRig, RenderConfig, make_render_scene
+from uwdock.sim.thrusters import ThrusterArray, ThrusterArrayConfig, ThrusterRandomisation
+from uwdock.sim.vehicle import (
     Current,
     CurrentConfig,
     Hydrodynamics,
@@ -28,8 +29,7 @@ from sim.vehicle import (
     VehicleConfig,
     VehicleRandomisation,
 )
-from sim.water import WaterConfig, WaterRandomisation, apply_water
-from tests.hostile_runs import assert_refused, dead_pid, tree
+from uwdock.sim.water import WaterConfig, WaterRandomisation, apply_water
 
 NAN, INF = math.nan, math.inf
 #: A short, small episode (two control steps).

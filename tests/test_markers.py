@@ -11,19 +11,19 @@ import numpy as np
 import pytest
 import trimesh
 
-from dockcore.config import load_config
-from dockcore.errors import ConfigError, DockError
-from markers import cli
-from markers.config import DS_MARKER_IDS, MarkerConfig
-from markers.dictionary import (
+from uwdock.dockcore.config import load_config
+from uwdock.dockcore.errors import ConfigError, DockError
+from uwdock.markers import cli
+from uwdock.markers.config import DS_MARKER_IDS, MarkerConfig
+from uwdock.markers.dictionary import (
     check_ids,
     dictionary_size,
     marker_cells,
     normalise_dictionary_name,
 )
-from markers.generate import file_stem, generate
-from markers.geometry import build_solids, rasterise_top_view
-from markers.markerset import (
+from uwdock.markers.generate import file_stem, generate
+from uwdock.markers.geometry import build_solids, rasterise_top_view
+from uwdock.markers.markerset import (
     T_ds_marker_face_up,
     load_marker_set,
     marker_set_from_config,
@@ -345,7 +345,7 @@ def test_config_file_values_are_used_and_flags_win(run_cli, tmp_path):
 
 
 def test_failure_midway_leaves_only_complete_files(tmp_path, monkeypatch):
-    import markers.generate as gen
+    import uwdock.markers.generate as gen
 
     def boom(*_a, **_k):
         raise DockError("disk full (simulated)")

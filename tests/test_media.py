@@ -10,9 +10,9 @@ import cv2
 import numpy as np
 import pytest
 
-from dockcore.errors import DockError
-from dockcore.media import AtomicVideoWriter, open_video, quiet_native_stderr
-from perception.video import AnnotatedVideoWriter
+from uwdock.dockcore.errors import DockError
+from uwdock.dockcore.media import AtomicVideoWriter, open_video, quiet_native_stderr
+from uwdock.perception.video import AnnotatedVideoWriter
 
 W_PX, H_PX = 96, 64
 GREYS = (20, 60, 100, 140, 180, 220, 250)  # one flat grey level per frame
@@ -160,6 +160,6 @@ def test_quiet_native_stderr_silences_fd2_and_restores_it(capfd):
 
 
 def test_dockcore_media_imports_without_opencv():
-    code = "import sys; sys.modules['cv2'] = None; import dockcore.media; print('ok')"
+    code = "import sys; sys.modules['cv2'] = None; import uwdock.dockcore.media; print('ok')"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "ok"

@@ -18,19 +18,19 @@ import cv2
 import numpy as np
 import pytest
 
-from calibration.camera import CameraModel, save_camera
-from calibration.frames import inv_T, make_T, transform_points
-from markers.config import MarkerConfig
-from markers.markerset import marker_set_from_config, save_marker_set
-from perception.cli import main
-from perception.groundtruth import (
+from tests.test_detector import _marker_patch
+from uwdock.calibration.camera import CameraModel, save_camera
+from uwdock.calibration.frames import inv_T, make_T, transform_points
+from uwdock.markers.config import MarkerConfig
+from uwdock.markers.markerset import marker_set_from_config, save_marker_set
+from uwdock.perception.cli import main
+from uwdock.perception.groundtruth import (
     label_frame,
     load_ground_truth,
     write_dataset_json,
     write_labels,
     write_pose_csv,
 )
-from tests.test_detector import _marker_patch
 
 CAM = CameraModel.from_hfov(640, 480, 55.0, name="synthetic")
 MARKER_SET = marker_set_from_config(MarkerConfig())
@@ -422,7 +422,7 @@ def test_eval_without_ground_truth_reports_nulls(run_cli, scene, tmp_path):
 
 
 def test_default_pipeline_decodes_small_high_contrast_markers_on_a_bland_background():
-    from perception.detector import Detector, DetectorConfig
+    from uwdock.perception.detector import Detector, DetectorConfig
 
     det = Detector(DetectorConfig(ids=tuple(CORNERS_DS)))
     found = []

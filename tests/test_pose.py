@@ -14,11 +14,11 @@ import cv2
 import numpy as np
 import pytest
 
-from calibration.frames import inv_T, make_T, rotation_angle_deg, transform_points
-from dockcore.errors import ConfigError, DockError
-from markers.markerset import T_ds_marker_face_up, corners_marker_m
-from perception.detector import Detection
-from perception.pose import (
+from uwdock.calibration.frames import inv_T, make_T, rotation_angle_deg, transform_points
+from uwdock.dockcore.errors import ConfigError, DockError
+from uwdock.markers.markerset import T_ds_marker_face_up, corners_marker_m
+from uwdock.perception.detector import Detection
+from uwdock.perception.pose import (
     BoardPoseConfig,
     T_body_ds,
     choose_candidate,

@@ -7,11 +7,11 @@ import math
 import cv2
 import numpy as np
 
-from calibration.camera import reference_camera
-from calibration.frames import R_from_rpy, inv_T, make_T, rotation_angle_deg
-from markers.config import MarkerConfig
-from markers.markerset import marker_set_from_config
-from perception.pose import refine_level_board, solve_board
+from uwdock.calibration.camera import reference_camera
+from uwdock.calibration.frames import R_from_rpy, inv_T, make_T, rotation_angle_deg
+from uwdock.markers.config import MarkerConfig
+from uwdock.markers.markerset import marker_set_from_config
+from uwdock.perception.pose import refine_level_board, solve_board
 
 
 def test_level_refinement_beats_free_pnp_on_two_floor_markers():

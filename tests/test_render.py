@@ -14,8 +14,8 @@ import pytest
 
 sapien = pytest.importorskip("sapien")
 
-from calibration.camera import REFERENCE_T_BODYFRD_CAMCV, CameraModel, reference_camera  # noqa: E402
-from calibration.frames import (  # noqa: E402
+from uwdock.calibration.camera import REFERENCE_T_BODYFRD_CAMCV, CameraModel, reference_camera  # noqa: E402
+from uwdock.calibration.frames import (  # noqa: E402
     T_WORLDZUP_WORLDNED,
     R_from_rpy,
     inv_T,
@@ -23,9 +23,9 @@ from calibration.frames import (  # noqa: E402
     rotation_angle_deg,
     transform_points,
 )
-from sim.docking_station import sapien_pose  # noqa: E402
-from sim.render import CameraRig, RenderConfig, make_render_scene, project_markers  # noqa: E402
-from sim.water import apply_water, preset  # noqa: E402
+from uwdock.sim.docking_station import sapien_pose  # noqa: E402
+from uwdock.sim.render import CameraRig, RenderConfig, make_render_scene, project_markers  # noqa: E402
+from uwdock.sim.water import apply_water, preset  # noqa: E402
 
 pytestmark = pytest.mark.render
 

@@ -8,12 +8,12 @@ import warnings
 import numpy as np
 import pytest
 
-from dockcore.config import replace
-from rl import cli
-from rl.baselines import PIDController
-from rl.config import EnvConfig
-from rl.env import DockingEnv
-from rl.evaluate import run_episodes
+from uwdock.dockcore.config import replace
+from uwdock.rl import cli
+from uwdock.rl.baselines import PIDController
+from uwdock.rl.config import EnvConfig
+from uwdock.rl.env import DockingEnv
+from uwdock.rl.evaluate import run_episodes
 
 SHORT = replace(EnvConfig(), episode_s=3.0)
 
@@ -78,9 +78,9 @@ def test_bad_actions_raise_a_clear_error(env, bad):
 @pytest.mark.parametrize("offset_m,visible", [((0.3, 0.2, 2.5), True), ((4.0, 0.0, 2.0), False)])
 def test_proxy_noise_follows_the_paper(offset_m, visible):
     """sigma = |e|/6; N(0, (sigma/2)^2) always, plus N(0, sigma^2) when not visible."""
-    from calibration.frames import make_T
-    from rl.obs_sources import ProxySource, StepContext
-    from rl.task import DockingTaskConfig, docking_errors
+    from uwdock.calibration.frames import make_T
+    from uwdock.rl.obs_sources import ProxySource, StepContext
+    from uwdock.rl.task import DockingTaskConfig, docking_errors
 
     task = DockingTaskConfig()
     T_world_ds = np.eye(4)
@@ -187,13 +187,13 @@ def test_train_resume_eval_export_through_the_cli(run_cli, tmp_path):
     onnx_path = tmp_path / "policy.onnx"
     res = run_cli(cli.main, "export", "--policy", run / "policy.zip", "--out", onnx_path)
     assert res.code == 0, res.err
-    from rl.evaluate import SB3Controller
-    from rl.export import OnnxPolicy, load_policy
+    from uwdock.rl.evaluate import SB3Controller
+    from uwdock.rl.export import OnnxPolicy, load_policy
 
     model, vecnorm = load_policy(run / "policy.zip")
     sb3, onnx = SB3Controller(model, vecnorm), OnnxPolicy(onnx_path)
     # the exported policy carries its interface (observation layout, limits) for eval and runner
-    from rl.report import policy_env_settings
+    from uwdock.rl.report import policy_env_settings
 
     carried = policy_env_settings(str(onnx_path))
     assert carried == policy_env_settings(str(run)) and carried["obs_last_action"] is False
@@ -272,9 +272,9 @@ def test_error_model_source_requires_a_model(run_cli, tmp_path):
 def test_registered_with_gymnasium():
     import gymnasium as gym
 
-    import rl
+    import uwdock.rl
 
-    env = gym.make(rl.ENV_ID, config=SHORT)
+    env = gym.make(uwdock.rl.ENV_ID, config=SHORT)
     obs, _ = env.reset(seed=0)
     assert env.observation_space.contains(obs)
     env.close()
@@ -285,8 +285,8 @@ def test_dagger_warm_start_imitates_the_teacher(tmp_path):
     import torch
     from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
-    from rl.imitation import ImitationConfig, warm_start
-    from rl.train import PPOConfig, TrainConfig, build_model
+    from uwdock.rl.imitation import ImitationConfig, warm_start
+    from uwdock.rl.train import PPOConfig, TrainConfig, build_model
 
     cfg = replace(
         TrainConfig(),
@@ -321,7 +321,7 @@ def test_dagger_warm_start_imitates_the_teacher(tmp_path):
 def test_camera_frames_sheet_picks_evenly_spaced_captioned_frames(tmp_path):
     import cv2
 
-    from rl.report import write_frames_sheet
+    from uwdock.rl.report import write_frames_sheet
 
     frames = [np.full((48, 64, 3), 10 * k, np.uint8) for k in range(20)]
     path = write_frames_sheet(frames, tmp_path / "sheet.png", dt_s=0.2, n=8)
@@ -335,14 +335,14 @@ def test_camera_frames_sheet_picks_evenly_spaced_captioned_frames(tmp_path):
 
 
 def test_unknown_water_preset_is_refused_naming_the_key():
-    from dockcore.config import ConfigError
+    from uwdock.dockcore.config import ConfigError
 
     with pytest.raises(ConfigError, match="water_preset: unknown 'lagoon'"):
         replace(EnvConfig(), water_preset="lagoon")
 
 
 def test_eval_history_plot(tmp_path):
-    from rl.report import plot_eval_history
+    from uwdock.rl.report import plot_eval_history
 
     hist = tmp_path / "eval_history.jsonl"
     rows = [
@@ -364,9 +364,9 @@ def test_dagger_restores_the_normalisation_of_the_student_it_keeps(tmp_path, mon
     """When an earlier student scores best, it comes back with the statistics it was fitted on."""
     from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
-    import rl.env
-    from rl.imitation import ImitationConfig, warm_start
-    from rl.train import PPOConfig, TrainConfig, build_model
+    import uwdock.rl.env
+    from uwdock.rl.imitation import ImitationConfig, warm_start
+    from uwdock.rl.train import PPOConfig, TrainConfig, build_model
 
     class ScriptedSuccess(DockingEnv):
         """Only the rollouts that score the iteration-0 student (episodes 2 and 3) 'dock'."""
@@ -390,7 +390,7 @@ def test_dagger_restores_the_normalisation_of_the_student_it_keeps(tmp_path, mon
     )
     venv = VecNormalize(DummyVecEnv([lambda: DockingEnv(cfg.env)]))
     model = build_model(cfg, venv, tmp_path / "tb")
-    monkeypatch.setattr(rl.env, "DockingEnv", ScriptedSuccess)
+    monkeypatch.setattr(uwdock.rl.env, "DockingEnv", ScriptedSuccess)
     icfg = ImitationConfig(iterations=3, episodes_per_iteration=2, epochs=2)
     hist = warm_start(model, venv, cfg.env, icfg, seed=0, gamma=0.99, progress=False)
     assert hist["selected_iteration"] == [0]
@@ -431,7 +431,7 @@ def test_filming_an_episode_does_not_change_it():
 
 
 def test_parallel_evaluation_equals_one_process():
-    from rl.evaluate import run_episodes_parallel
+    from uwdock.rl.evaluate import run_episodes_parallel
 
     cfg = replace(EnvConfig(), episode_s=2.0)
     ticks = []
@@ -444,8 +444,8 @@ def test_parallel_evaluation_equals_one_process():
 
 
 def test_stress_tables_rows_progress_and_seeds(capsys):
-    from rl.evaluate import run_episodes_parallel
-    from rl.report import STRESS_CURRENTS_MPS, STRESS_THRUSTER_ERRORS_M, stress_tables
+    from uwdock.rl.evaluate import run_episodes_parallel
+    from uwdock.rl.report import STRESS_CURRENTS_MPS, STRESS_THRUSTER_ERRORS_M, stress_tables
 
     cfg = replace(EnvConfig(), episode_s=2.0)  # proxy source: no water rows
     tables = stress_tables("pid", cfg, 2, seed=5, workers=1)
@@ -471,7 +471,7 @@ def test_stress_tables_rows_progress_and_seeds(capsys):
 def test_eval_error_model_defaults_to_the_one_the_policy_trained_on(run_cli, tmp_path):
     import shutil
 
-    from rl.report import policy_error_model
+    from uwdock.rl.report import policy_error_model
 
     shipped = "rl/policies/error_model_ppo"
     assert policy_error_model(shipped) == "rl/models/error_model_clear_tank_480.json"

@@ -19,9 +19,9 @@ from pathlib import Path
 import psutil
 import pytest
 
-from dockcore.config import load_config
-from rl import cli
-from rl.train import TrainConfig, train
+from uwdock.dockcore.config import load_config
+from uwdock.rl import cli
+from uwdock.rl.train import TrainConfig, train
 
 # Two envs in worker processes, a DAgger warm start, a critic warm-up that spans a checkpoint,
 # evaluations between checkpoints: everything a resume has to restore.
@@ -48,7 +48,7 @@ _SKIP = ("tb/", "provenance.json", "resume_log.jsonl", ".uwdock", "eval_history.
 
 
 def _rl(*args: str) -> list[str]:
-    return [sys.executable, "-c", "from rl.cli import main; main()", *map(str, args)]
+    return [sys.executable, "-c", "from uwdock.rl.cli import main; main()", *map(str, args)]
 
 
 def _digest(run: Path) -> dict[str, str]:
@@ -200,12 +200,12 @@ def test_resume_keeps_the_runs_config(run_cli, tmp_path):
 
 def test_a_failing_worker_is_one_line(run_cli, tmp_path, monkeypatch):
     """An env that fails in a worker process (2 envs): one line with the worker's reason."""
-    import rl.env
+    import uwdock.rl.env
 
     def broken_init(self, *a, **kw):
-        raise rl.env.SimulationError("simulator blew up at t=0.00 s (test)")
+        raise uwdock.rl.env.SimulationError("simulator blew up at t=0.00 s (test)")
 
-    monkeypatch.setattr(rl.env.DockingEnv, "__init__", broken_init)
+    monkeypatch.setattr(uwdock.rl.env.DockingEnv, "__init__", broken_init)
     res = run_cli(cli.main, "train", "--envs", "2", "--steps", "64", "--out", tmp_path / "r")
     assert res.code == 2, res.err
     errors = [line for line in res.err.splitlines(keepends=True) if line.startswith("error")]

@@ -7,11 +7,11 @@ import json
 import numpy as np
 import pytest
 
-from calibration.camera import REFERENCE_T_BODYFRD_CAMCV, reference_camera
-from calibration.frames import inv_T, make_T
-from dockcore.config import replace, to_dict
-from rl.config import EnvConfig
-from rl.error_model import (
+from uwdock.calibration.camera import REFERENCE_T_BODYFRD_CAMCV, reference_camera
+from uwdock.calibration.frames import inv_T, make_T
+from uwdock.dockcore.config import replace, to_dict
+from uwdock.rl.config import EnvConfig
+from uwdock.rl.error_model import (
     FORMAT,
     VERSION,
     ErrorModel,
@@ -21,14 +21,14 @@ from rl.error_model import (
     load_error_model,
     pose_error,
 )
-from rl.obs_sources import StepContext
-from rl.task import DockingTaskConfig
+from uwdock.rl.obs_sources import StepContext
+from uwdock.rl.task import DockingTaskConfig
 
 
 def _synthetic_model(p_detect: float, bias: np.ndarray, sd: np.ndarray) -> dict:
     cam = reference_camera().scaled(640, 484)
-    from markers.config import MarkerConfig
-    from markers.markerset import marker_set_from_config
+    from uwdock.markers.config import MarkerConfig
+    from uwdock.markers.markerset import marker_set_from_config
 
     board = marker_set_from_config(MarkerConfig()).corners_ds()
     n_bins = 16
@@ -111,7 +111,7 @@ def test_error_model_never_detects_without_markers_in_view():
 
 
 def test_bad_error_model_files(tmp_path):
-    from dockcore.errors import DockError
+    from uwdock.dockcore.errors import DockError
 
     with pytest.raises(DockError, match="not found"):
         load_error_model(tmp_path / "nope.json")
@@ -127,7 +127,7 @@ def test_bad_error_model_files(tmp_path):
 @pytest.mark.render
 def test_fit_error_model_from_rendered_frames(tmp_path):
     """The seam: datasets synth -> perception -> fitted model, with sane close-range errors."""
-    from datasets.synth import SynthConfig, generate
+    from uwdock.datasets.synth import SynthConfig, generate
 
     generate(
         tmp_path / "ds",
@@ -151,7 +151,7 @@ def test_fit_error_model_from_rendered_frames(tmp_path):
 
 @pytest.fixture(scope="module")
 def camera_env():
-    from rl.env import DockingEnv
+    from uwdock.rl.env import DockingEnv
 
     est = replace(EnvConfig().estimator, usbl_period_s=0.0)
     cfg = replace(
@@ -186,8 +186,8 @@ def test_camera_source_measures_the_ds_from_its_render(camera_env):
 @pytest.mark.render
 def test_runner_reproduces_the_env_observation(camera_env):
     """Deployment path: the same frames and odometry give the env's observation exactly."""
-    from rl.baselines import PIDController
-    from rl.runner import DockingRunner, Odometry
+    from uwdock.rl.baselines import PIDController
+    from uwdock.rl.runner import DockingRunner, Odometry
 
     env = camera_env
     obs, _ = env.reset(seed=4)

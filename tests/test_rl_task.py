@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from calibration.frames import R_from_rpy, inv_T, make_T
-from rl.estimator import DSPoseFilter, EstimatorConfig
-from rl.rewards import DockingReward, RewardConfig
-from rl.task import DockingTaskConfig, docking_errors, ds_visible, paper_success, pegs_seated
+from uwdock.calibration.frames import R_from_rpy, inv_T, make_T
+from uwdock.rl.estimator import DSPoseFilter, EstimatorConfig
+from uwdock.rl.rewards import DockingReward, RewardConfig
+from uwdock.rl.task import DockingTaskConfig, docking_errors, ds_visible, paper_success, pegs_seated
 
 CFG = DockingTaskConfig()
 

@@ -17,8 +17,8 @@ import matplotlib.figure
 import numpy as np
 import pytest
 
-from dockcore.errors import DockError
-from markers.sheet import PAPER_SIZES_MM, SheetEntry, black_rectangles, write_sheet
+from uwdock.dockcore.errors import DockError
+from uwdock.markers.sheet import PAPER_SIZES_MM, SheetEntry, black_rectangles, write_sheet
 
 pdfium = pytest.importorskip("pypdfium2")
 

@@ -11,9 +11,9 @@ import cv2
 import numpy as np
 import pytest
 
-from calibration.camera import REFERENCE_T_BODYFRD_CAMCV
-from calibration.frames import R_from_rpy, make_T
-from sim import cli as sim_cli
+from uwdock.calibration.camera import REFERENCE_T_BODYFRD_CAMCV
+from uwdock.calibration.frames import R_from_rpy, make_T
+from uwdock.sim import cli as sim_cli
 
 T_WD = make_T(t=[0.0, 0.0, 4.98])  # default DS pose: tank floor (5 m deep) at the tank centre
 

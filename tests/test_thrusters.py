@@ -8,8 +8,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from dockcore.config import ConfigError, from_dict, to_dict
-from sim.thrusters import (
+from uwdock.dockcore.config import ConfigError, from_dict, to_dict
+from uwdock.sim.thrusters import (
     DEFAULT_THRUSTERS,
     ThrusterArray,
     ThrusterArrayConfig,

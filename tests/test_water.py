@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from sim.water import (
+from uwdock.sim.water import (
     JERLOV_BEAM_C_RGB,
     JERLOV_KD_RGB,
     PRESET_ORDER,
