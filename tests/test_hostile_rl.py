@@ -222,7 +222,8 @@ def test_a_killed_evaluation_leaves_no_worker_processes(tmp_path):
     import psutil
 
     cmd = [sys.executable, "-c", "from uwdock.rl.cli import main; main()",
-           "eval", "--policy", "pid", "--obs", "proxy", "--episodes", "40", "--workers", "2", "--videos", "",
+           "eval", "--policy", "pid", "--obs", "proxy", "--episodes", "40", "--workers", "2",
+           "--videos", "",
            "--out", str(tmp_path / "e")]  # fmt: skip
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
