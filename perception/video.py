@@ -288,7 +288,7 @@ def open_frames(path: str | os.PathLike[str]) -> FrameSource:
 
 class AnnotatedVideoWriter(AtomicVideoWriter):
     """The annotated-frame video: an :class:`dockcore.media.AtomicVideoWriter` (``.mp4`` with
-    ``mp4v`` or ``.avi`` with ``MJPG``, written to a temporary file and renamed on close) that
+    H.264 or ``.avi`` with Motion-JPEG, written to a temporary file and renamed on close) that
     resizes later frames of another size to the first one's.
 
     Args:

@@ -5,11 +5,14 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+from fractions import Fraction
 
+import av
 import cv2
 import numpy as np
 import pytest
 
+from uwdock.dockcore import media
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.media import AtomicVideoWriter, open_video, quiet_native_stderr
 from uwdock.perception.video import AnnotatedVideoWriter
@@ -50,6 +53,147 @@ def test_writer_writes_a_video_that_reads_back(tmp_path, suffix):
     cap = cv2.VideoCapture(str(path))
     assert cap.get(cv2.CAP_PROP_FPS) == pytest.approx(12.0, abs=0.01)
     cap.release()
+
+
+# colour squares (BGR) on a gradient: blue, green, red, yellow; each 24 px, far from the edges
+SQUARES_BGR = ((255, 0, 0), (0, 255, 0), (0, 0, 255), (0, 255, 255))
+
+
+def _square_origin(h: int, k: int, j: int) -> tuple[int, int]:
+    """Top-left (x, y) px of square j in frame k: on the 2-px grid that yuv420p's chroma uses
+    (a colour edge off that grid is blurred by chroma subsampling, not by the writer)."""
+    return 8 + 2 * k + 28 * j, (h // 2 - 12) // 2 * 2
+
+
+def _scene(w: int, h: int, k: int) -> np.ndarray:
+    """Frame k: a horizontal grey gradient with four coloured squares moving right by 2k px."""
+    img = np.empty((h, w, 3), np.uint8)
+    img[:] = np.linspace(30, 220, w).astype(np.uint8)[None, :, None]
+    for j, colour in enumerate(SQUARES_BGR):
+        x0, y0 = _square_origin(h, k, j)
+        img[y0 : y0 + 24, x0 : x0 + 24] = colour
+    return img
+
+
+def _decode(path) -> tuple[av.video.stream.VideoStream, list[np.ndarray]]:
+    with av.open(str(path)) as container:
+        stream = container.streams.video[0]
+        frames = [f.to_ndarray(format="bgr24") for f in container.decode(stream)]
+    return stream, frames
+
+
+def _atom_offsets(path) -> dict[str, int]:
+    """Byte offset of each top-level MP4 box (ISO BMFF: 4-byte size, 4-byte type)."""
+    data, pos, out = path.read_bytes(), 0, {}
+    while pos + 8 <= len(data):
+        size = int.from_bytes(data[pos : pos + 4], "big")
+        kind = data[pos + 4 : pos + 8].decode("latin-1")
+        if size == 1:  # 64-bit size follows
+            size = int.from_bytes(data[pos + 8 : pos + 16], "big")
+        out.setdefault(kind, pos)
+        if size < 8:
+            break
+        pos += size
+    return out
+
+
+@pytest.mark.parametrize("size_px", [(480, 364), (480, 363), (161, 63)])
+def test_mp4_is_browser_playable_h264(tmp_path, size_px):
+    """H.264, yuv420p, faststart MP4 at the given rate; pixels and colour order survive; an odd
+    width or height is padded to even by repeating the last column / row."""
+    w, h = size_px
+    path = tmp_path / "clip.mp4"
+    n = 9
+    with AtomicVideoWriter(path, fps=12.0) as video:
+        for k in range(n):
+            video.write(_scene(w, h, k))
+    even = (w + w % 2, h + h % 2)
+    assert video.size_px == (w, h) and video.encoded_size_px == even
+    stream, frames = _decode(path)
+    assert stream.codec_context.name == "h264"
+    assert stream.codec_context.pix_fmt == "yuv420p"
+    assert stream.average_rate == Fraction(12) and stream.frames == n
+    assert (stream.width, stream.height) == even
+    assert len(frames) == n
+    atoms = _atom_offsets(path)
+    assert atoms["ftyp"] == 0 and atoms["moov"] < atoms["mdat"]  # +faststart
+    for k, got in enumerate(frames):
+        want = _scene(w, h, k)
+        assert got.shape == (even[1], even[0], 3)
+        inside = got[:h, :w].astype(float)
+        error = np.abs(inside - want)
+        psnr_db = 10 * np.log10(255.0**2 / np.mean(error**2))
+        assert error.mean() < 1.5 and psnr_db > 40.0  # the whole frame
+        _, y0 = _square_origin(h, k, 0)
+        far = np.r_[0 : max(y0 - 16, 1), min(y0 + 40, h - 1) : h]  # rows a macroblock away
+        assert error[far].max() <= 6.0  # the gradient, away from the squares
+        for j, colour in enumerate(SQUARES_BGR):  # BGR in -> the same colour out
+            x0, y0 = _square_origin(h, k, j)
+            core = inside[y0 + 4 : y0 + 20, x0 + 4 : x0 + 20].reshape(-1, 3).mean(axis=0)
+            np.testing.assert_allclose(core, colour, atol=8.0)
+        if w % 2:  # the padding column repeats the last one
+            np.testing.assert_allclose(got[:h, w].astype(float), want[:, -1], atol=6.0)
+        if h % 2:
+            assert np.abs(got[h, :w].astype(float) - want[-1]).mean() < 3.0
+
+
+@pytest.mark.parametrize(
+    "fps,rate",
+    [(5.0, Fraction(5)), (29.97, Fraction(2997, 100)), (30000 / 1001, Fraction(30000, 1001))],
+)
+def test_mp4_keeps_the_frame_rate(tmp_path, fps, rate):
+    path = tmp_path / "clip.mp4"
+    with AtomicVideoWriter(path, fps=fps) as video:
+        for k in range(4):
+            video.write(_scene(64, 48, k))
+    stream, frames = _decode(path)
+    assert stream.average_rate == rate and len(frames) == 4
+    assert float(stream.duration * stream.time_base) == pytest.approx(4 / fps, abs=0.5 / fps)
+
+
+def test_failure_mid_write_leaves_nothing_and_keeps_an_earlier_file(tmp_path):
+    path = tmp_path / "clip.mp4"
+    path.write_bytes(b"earlier")
+    with pytest.raises(ValueError, match="uint8"):
+        with AtomicVideoWriter(path, fps=5.0) as video:
+            for k in range(5):
+                video.write(_scene(64, 48, k))
+            video.write(np.zeros((48, 64, 3), np.float32))  # a bad frame half-way
+    assert path.read_bytes() == b"earlier"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["clip.mp4"]
+    with pytest.raises(KeyboardInterrupt):  # an interruption is cleaned up the same way
+        with AtomicVideoWriter(tmp_path / "b.mp4", fps=5.0) as video:
+            video.write(_scene(64, 48, 0))
+            raise KeyboardInterrupt
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["clip.mp4"]
+
+
+def test_failure_while_finishing_leaves_nothing(tmp_path, monkeypatch):
+    def full_disk(self):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(media._H264, "finish", full_disk)
+    path = tmp_path / "clip.mp4"
+    with pytest.raises(OSError, match="No space"):
+        with AtomicVideoWriter(path, fps=5.0) as video:
+            for k in range(3):
+                video.write(_scene(64, 48, k))
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_missing_encoder_is_a_one_line_dock_error(tmp_path, monkeypatch):
+    real = media._H264.__init__
+
+    def no_x264(self, tmp, fps, size_px):
+        real(self, tmp, fps, size_px)
+        self.container.close()
+        raise av.codec.codec.UnknownCodecError("libx264")
+
+    monkeypatch.setattr(media._H264, "__init__", no_x264)
+    with pytest.raises(DockError) as err:
+        AtomicVideoWriter(tmp_path / "clip.mp4", fps=5.0).write(_scene(64, 48, 0))
+    assert "\n" not in str(err.value) and "cannot open a video writer" in str(err.value)
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_exception_inside_the_block_leaves_no_file(tmp_path):
