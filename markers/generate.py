@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -11,6 +12,7 @@ import numpy as np
 import trimesh
 
 from uwdock.dockcore.config import validated
+from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_path, atomic_write_bytes
 from uwdock.dockcore.outdir import claim_output_dir
 from uwdock.dockcore.provenance import write_provenance
@@ -25,6 +27,7 @@ from uwdock.markers.geometry import (
     render_scene,
 )
 from uwdock.markers.markerset import marker_set_from_config, save_marker_set
+from uwdock.markers.meshcheck import CHECK_EXTRA_HINT, check_printable, open3d_available
 from uwdock.markers.sheet import SheetEntry, render_sheet
 
 MARKER_SET_NAME = "markerset.toml"
@@ -38,11 +41,20 @@ PREVIEW_MAX_PX = 2000
 
 @dataclass(frozen=True)
 class GenerateResult:
-    """What ``generate`` wrote (absolute paths)."""
+    """What ``generate`` wrote (absolute paths), and whether the STL parts were checked.
+
+    Attributes:
+        out_dir: the output folder.
+        marker_set: the marker set file.
+        files: every file written.
+        mesh_checked: the STL parts passed :func:`markers.meshcheck.check_printable` (False:
+            the check was skipped, open3d is not installed).
+    """
 
     out_dir: Path
     marker_set: Path
     files: tuple[Path, ...]
+    mesh_checked: bool = False
 
 
 def file_stem(dictionary: str, marker_id: int) -> str:
@@ -102,10 +114,36 @@ def write_preview(path: Path, solids: MarkerSolids, cfg: MarkerConfig) -> Path:
     return path
 
 
+def check_parts(
+    stl: dict[str, bytes], say: Callable[[str], None], check_meshes: bool | None = None
+) -> bool:
+    """Run the printability check on the STL parts (file name -> bytes) when open3d is
+    installed (or ``check_meshes`` is True); say what was done. Returns whether it ran.
+
+    Raises:
+        DockError: one line naming the first part that fails.
+    """
+    if check_meshes is None:
+        check_meshes = open3d_available()
+    if not check_meshes:
+        say(f"mesh check skipped: open3d is not installed ({CHECK_EXTRA_HINT})")
+        return False
+    if not open3d_available():
+        raise DockError(f"the mesh check needs open3d: {CHECK_EXTRA_HINT}")
+    t0 = time.perf_counter()
+    reports = check_printable(stl)
+    say(
+        f"mesh check: {len(reports)} STL parts watertight, manifold, consistently oriented, "
+        f"no self-intersections ({time.perf_counter() - t0:.2f} s)"
+    )
+    return True
+
+
 def generate(
     cfg: MarkerConfig,
     out_dir: str | os.PathLike[str],
     progress: Callable[[str], None] | None = None,
+    check_meshes: bool | None = None,
 ) -> GenerateResult:
     """Write everything for the markers of ``cfg`` into ``out_dir``.
 
@@ -117,9 +155,21 @@ def generate(
     ``<stem>_preview.png``; then ``sheet.pdf`` / ``sheet.svg``, ``markerset.toml``,
     ``config.toml`` and ``provenance.json``.
 
+    Before anything is written, the STL parts are checked for printability
+    (:mod:`markers.meshcheck`: watertight, edge/vertex-manifold, no self-intersections) when
+    open3d is installed (the ``check`` extra); otherwise ``progress`` is told it was skipped.
+
+    Args:
+        cfg: the marker config.
+        out_dir: the output folder (claimed for ``markers generate``).
+        progress: called with one line per step (None: silent).
+        check_meshes: run the mesh check (True: open3d required), skip it (False), or run it
+            when open3d is installed (None).
+
     Raises:
         ConfigError: an invalid config (one line naming the field).
-        DockError: the markers do not fit on the paper, or the folder cannot be claimed.
+        DockError: the markers do not fit on the paper, a part fails the mesh check, or the
+            folder cannot be claimed.
     """
     say = progress or (lambda _msg: None)
     cfg = validated(cfg)
@@ -132,6 +182,12 @@ def generate(
         SheetEntry(i, marker_cells(dictionary, i), f"{dictionary} id {i}  {cfg.size_mm:g} mm")
         for i in ids
     ]
+    stl = {
+        f"{file_stem(dictionary, i)}_{part}.stl": mesh.export(file_type="stl")
+        for i in ids
+        for part, mesh in (("insert", solids[i].insert), ("enclosure", solids[i].enclosure))
+    }
+    checked = check_parts(stl, say, check_meshes)
     title = f"3D Binary Marker flat test tags ({dictionary})"
     sheet_files = render_sheet(
         entries, cfg.size_mm, Path("sheet.pdf"), Path("sheet.svg"), paper=cfg.paper, title=title
@@ -143,10 +199,9 @@ def generate(
         for i in ids:
             stem = file_stem(dictionary, i)
             s = solids[i]
-            for part, mesh in (("insert", s.insert), ("enclosure", s.enclosure)):
-                written.append(
-                    atomic_write_bytes(out / f"{stem}_{part}.stl", mesh.export(file_type="stl"))
-                )
+            for part in ("insert", "enclosure"):
+                name = f"{stem}_{part}.stl"
+                written.append(atomic_write_bytes(out / name, stl[name]))
             written.append(
                 atomic_write_bytes(out / mesh_names[i], render_scene(s).export(file_type="glb"))
             )
@@ -162,4 +217,4 @@ def generate(
         write_provenance(out, {"marker": cfg})
         written.extend([out / "config.toml", out / "provenance.json"])
     say(f"marker set: {out / MARKER_SET_NAME}")
-    return GenerateResult(out, out / MARKER_SET_NAME, tuple(written))
+    return GenerateResult(out, out / MARKER_SET_NAME, tuple(written), checked)

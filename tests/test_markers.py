@@ -29,6 +29,7 @@ from uwdock.markers.markerset import (
     marker_set_from_config,
     save_marker_set,
 )
+from uwdock.markers.meshcheck import check_printable, check_stl, stl_triangles
 
 PX_PER_MM = 4.0
 
@@ -357,3 +358,123 @@ def test_failure_midway_leaves_only_complete_files(tmp_path, monkeypatch):
     assert not list(tmp_path.glob("*.uwtmp*"))
     # what was written is complete
     assert trimesh.load_mesh(tmp_path / "3dbm_DICT_4X4_50_13_insert.stl").is_watertight
+
+
+# ------------------------------------------------------------------ printability (open3d)
+def _box(offset=(0.0, 0.0, 0.0)) -> trimesh.Trimesh:
+    box = trimesh.creation.box((10.0, 10.0, 10.0))
+    box.apply_translation(offset)
+    return box
+
+
+def _stl(*meshes: trimesh.Trimesh) -> bytes:
+    return trimesh.util.concatenate(list(meshes)).export(file_type="stl")
+
+
+def _without_first_face(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    mesh.update_faces(np.arange(len(mesh.faces)) != 0)
+    return mesh
+
+
+def _first_face_flipped(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    mesh.faces[0] = mesh.faces[0][::-1]
+    return mesh
+
+
+def _inverted() -> trimesh.Trimesh:
+    box = _box()
+    box.invert()
+    return box
+
+
+def test_generated_parts_pass_the_mesh_check(generated):
+    """The STL files as written (welded as a slicer welds them) are closed 2-manifold solids."""
+    for i in DS_MARKER_IDS:
+        for part in ("insert", "enclosure"):
+            path = generated / f"{file_stem('DICT_4X4_50', i)}_{part}.stl"
+            report = check_stl(path.read_bytes(), path.name)
+            assert report.ok, report.problems
+            mesh = trimesh.load_mesh(path)
+            assert report.triangles == len(mesh.faces) and report.vertices == len(mesh.vertices)
+            assert report.volume == pytest.approx(mesh.volume, rel=1e-6)
+
+
+def test_relief_bosses_and_other_dictionaries_pass_the_mesh_check():
+    for cfg, marker_id in (
+        (MarkerConfig(relief_depth_mm=2.0), 28),
+        (MarkerConfig(dictionary="DICT_APRILTAG_36h11", ids=(7,), size_mm=80.0), 7),
+    ):
+        s = build_solids(cfg, marker_id)
+        reports = check_printable(
+            {"insert.stl": _stl(s.insert), "enclosure.stl": _stl(s.enclosure)}
+        )
+        assert [r.ok for r in reports] == [True, True]
+
+
+def test_stl_welding_matches_the_box():
+    vertices, faces = stl_triangles(_stl(_box()))
+    assert vertices.shape == (8, 3) and faces.shape == (12, 3)
+    np.testing.assert_allclose(np.abs(vertices), 5.0)
+    assert check_stl(_stl(_box())).volume == pytest.approx(1000.0)
+    with pytest.raises(DockError, match="not a binary STL"):
+        stl_triangles(b"solid ascii\nendsolid\n" * 20, "a.stl")
+
+
+@pytest.mark.parametrize(
+    "make,message",
+    [
+        (lambda: _stl(_box(), _box((5.0, 5.0, 5.0))), "self-intersecting triangle pairs"),
+        (lambda: _stl(_box(), _box((10.0, 10.0, 10.0))), "1 non-manifold vertex"),
+        (lambda: _stl(_box(), _box((10.0, 10.0, 0.0))), "1 non-manifold edge"),
+        (lambda: _stl(_without_first_face(_box())), "3 open edges"),
+        (lambda: _stl(_first_face_flipped(_box())), "3 flipped edges"),
+        (lambda: _stl(_inverted()), "inside out (volume -1000)"),
+    ],
+)
+def test_mesh_check_rejects_broken_parts_in_one_line(make, message):
+    with pytest.raises(DockError) as err:
+        check_printable({"good.stl": _stl(_box()), "bad.stl": make()})
+    text = str(err.value)
+    assert text.startswith("printable part bad.stl failed the mesh check: ")
+    assert message in text and "\n" not in text
+
+
+def test_generate_refuses_a_self_intersecting_part_and_writes_nothing(
+    run_cli, tmp_path, monkeypatch
+):
+    import uwdock.markers.generate as gen
+
+    real = gen.build_solids
+
+    def overlapping(cfg, marker_id):
+        s = real(cfg, marker_id)
+        twin = s.enclosure.copy()
+        twin.apply_translation((3.0, 0.0, 0.0))  # two enclosures cutting through each other
+        return type(s)(marker_id, s.insert, trimesh.util.concatenate([s.enclosure, twin]))
+
+    monkeypatch.setattr(gen, "build_solids", overlapping)
+    out = tmp_path / "o"
+    res = run_cli(cli.main, "generate", "--ids", "13", "--out", out)
+    assert res.code == 2 and res.err.count("\n") == 1, res.err
+    assert res.err.startswith(
+        "error: printable part 3dbm_DICT_4X4_50_13_enclosure.stl failed the mesh check: "
+    )
+    assert "self-intersecting triangle pairs" in res.err
+    assert not out.exists()  # checked before the folder is claimed
+
+
+def test_generate_says_whether_the_mesh_check_ran(run_cli, tmp_path, monkeypatch):
+    import uwdock.markers.generate as gen
+
+    res = run_cli(cli.main, "generate", "--ids", "13,14", "--out", tmp_path / "a")
+    assert res.code == 0, res.err
+    assert "mesh check: 4 STL parts watertight, manifold" in res.out
+    assert generate(MarkerConfig(ids=(13,)), tmp_path / "c", check_meshes=True).mesh_checked
+    monkeypatch.setattr(gen, "open3d_available", lambda: False)
+    res = run_cli(cli.main, "generate", "--ids", "13", "--out", tmp_path / "b")
+    assert res.code == 0, res.err
+    assert "mesh check skipped: open3d is not installed (pip install 'uwdock[check]')" in res.out
+    assert (tmp_path / "b" / "3dbm_DICT_4X4_50_13_insert.stl").is_file()
+    with pytest.raises(DockError, match=r"the mesh check needs open3d: pip install"):
+        generate(MarkerConfig(ids=(13,)), tmp_path / "d", check_meshes=True)
+    assert not (tmp_path / "d").exists()
