@@ -57,12 +57,12 @@ if "OPENCV_FFMPEG_DEBUG" not in os.environ:
 #: Video container suffix -> the codec written into it (FFmpeg name).
 VIDEO_CODECS: dict[str, str] = {".mp4": "h264", ".avi": "mjpeg"}
 
-#: libx264 constant rate factor of the MP4 videos (lower: better quality, larger files; 18-23
-#: is visually lossless to good for rendered and annotated frames).
-H264_CRF = 20
+#: libx264 constant rate factor of the MP4 videos (x264's default; lower: better quality and
+#: larger files). With :data:`H264_PRESET` it gives a higher PSNR than OpenCV's MPEG-4 Part 2
+#: (``mp4v``) writer did, at about the same file size (``bench/bench_media.py``).
+H264_CRF = 23
 
-#: libx264 speed preset of the MP4 videos: ``veryfast`` writes faster than OpenCV's MPEG-4
-#: Part 2 (``mp4v``) writer did, at a smaller file for the same quality.
+#: libx264 speed preset of the MP4 videos (``ultrafast`` writes 2-3x faster, at 4-5x the size).
 H264_PRESET = "veryfast"
 
 #: A video read gives up after this many consecutive undecodable frames.

@@ -123,7 +123,7 @@ def test_mp4_is_browser_playable_h264(tmp_path, size_px):
         inside = got[:h, :w].astype(float)
         error = np.abs(inside - want)
         psnr_db = 10 * np.log10(255.0**2 / np.mean(error**2))
-        assert error.mean() < 1.5 and psnr_db > 40.0  # the whole frame
+        assert error.mean() < 2.0 and psnr_db > 36.0  # the whole frame
         _, y0 = _square_origin(h, k, 0)
         far = np.r_[0 : max(y0 - 16, 1), min(y0 + 40, h - 1) : h]  # rows a macroblock away
         assert error[far].max() <= 6.0  # the gradient, away from the squares
