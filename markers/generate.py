@@ -114,29 +114,29 @@ def write_preview(path: Path, solids: MarkerSolids, cfg: MarkerConfig) -> Path:
     return path
 
 
-def check_parts(
-    stl: dict[str, bytes], say: Callable[[str], None], check_meshes: bool | None = None
-) -> bool:
+def check_parts(stl: dict[str, bytes], check_meshes: bool | None = None) -> tuple[bool, str]:
     """Run the printability check on the STL parts (file name -> bytes) when open3d is
-    installed (or ``check_meshes`` is True); say what was done. Returns whether it ran.
+    installed (or ``check_meshes`` is True).
+
+    Returns:
+        ``(ran, line)``: whether the check ran, and one line saying what was done.
 
     Raises:
-        DockError: one line naming the first part that fails.
+        DockError: one line naming the first part that fails, or ``check_meshes`` is True and
+            open3d is missing.
     """
     if check_meshes is None:
         check_meshes = open3d_available()
     if not check_meshes:
-        say(f"mesh check skipped: open3d is not installed ({CHECK_EXTRA_HINT})")
-        return False
+        return False, f"mesh check skipped: open3d is not installed ({CHECK_EXTRA_HINT})"
     if not open3d_available():
         raise DockError(f"the mesh check needs open3d: {CHECK_EXTRA_HINT}")
     t0 = time.perf_counter()
     reports = check_printable(stl)
-    say(
+    return True, (
         f"mesh check: {len(reports)} STL parts watertight, manifold, consistently oriented, "
         f"no self-intersections ({time.perf_counter() - t0:.2f} s)"
     )
-    return True
 
 
 def generate(
@@ -187,14 +187,15 @@ def generate(
         for i in ids
         for part, mesh in (("insert", solids[i].insert), ("enclosure", solids[i].enclosure))
     }
-    checked = check_parts(stl, say, check_meshes)
     title = f"3D Binary Marker flat test tags ({dictionary})"
     sheet_files = render_sheet(
         entries, cfg.size_mm, Path("sheet.pdf"), Path("sheet.svg"), paper=cfg.paper, title=title
     )
+    checked, check_line = check_parts(stl, check_meshes)  # once every value is known to work
 
     with claim_output_dir(out_dir, TOOL) as claimed:
         out = claimed.resolve()
+        say(check_line)
         written: list[Path] = []
         for i in ids:
             stem = file_stem(dictionary, i)
