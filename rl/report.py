@@ -18,6 +18,7 @@ from uwdock.dockcore.io import atomic_path, atomic_write_json, atomic_write_text
 from uwdock.dockcore.outdir import claim_output_dir
 from uwdock.dockcore.provenance import provenance
 from uwdock.rl.config import EnvConfig, check_env_files
+from uwdock.rl.env import SOURCE_CLASSES
 from uwdock.rl.evaluate import EpisodeTrace, run_episodes_parallel
 from uwdock.rl.policy_io import load_controller
 from uwdock.sim.thrusters import ThrusterRandomisation
@@ -157,7 +158,7 @@ def stress_tables(
             env_cfg.current, mode="random", range_x_mps=(-speed, speed), range_y_mps=(-speed, speed)
         )
         rows.append(("current", "current_max_mps", speed, replace(env_cfg, current=cur)))
-    if env_cfg.obs_source == "camera":
+    if SOURCE_CLASSES[env_cfg.obs_source].needs.camera:  # the water acts on rendered frames
         for preset in PRESET_ORDER:
             rows.append(("water", "water", preset, replace(env_cfg, water_preset=preset)))
     for err in STRESS_THRUSTER_ERRORS_M:
