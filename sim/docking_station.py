@@ -47,7 +47,6 @@ from uwdock.dockcore.domains import Interval
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import clean_stale_temps, temp_sibling
 from uwdock.markers.config import MarkerConfig
-from uwdock.markers.generate import MARKER_SET_NAME, generate
 from uwdock.markers.markerset import MarkerSet, load_marker_set
 from uwdock.sim.domains import RGB, Friction, TankSide_m
 
@@ -258,6 +257,8 @@ def default_marker_set(cache_dir: str | os.PathLike[str] | None = None) -> Marke
     ``cache_dir``, else ``$UWDOCK_CACHE_DIR``, else ``$XDG_CACHE_HOME/uwdock`` or
     ``~/.cache/uwdock``.
     """
+    from uwdock.markers.generate import MARKER_SET_NAME, generate
+
     cfg = MarkerConfig()
     digest = hashlib.sha1(json.dumps(to_dict(cfg), sort_keys=True).encode()).hexdigest()[:12]
     root = Path(cache_dir) if cache_dir is not None else _cache_root()
