@@ -364,7 +364,7 @@ def test_dagger_restores_the_normalisation_of_the_student_it_keeps(tmp_path, mon
     """When an earlier student scores best, it comes back with the statistics it was fitted on."""
     from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
-    import uwdock.rl.env
+    import uwdock.rl.imitation
     from uwdock.rl.imitation import ImitationConfig, warm_start
     from uwdock.rl.train import PPOConfig, TrainConfig, build_model
 
@@ -390,7 +390,7 @@ def test_dagger_restores_the_normalisation_of_the_student_it_keeps(tmp_path, mon
     )
     venv = VecNormalize(DummyVecEnv([lambda: DockingEnv(cfg.env)]))
     model = build_model(cfg, venv, tmp_path / "tb")
-    monkeypatch.setattr(uwdock.rl.env, "DockingEnv", ScriptedSuccess)
+    monkeypatch.setattr(uwdock.rl.imitation, "DockingEnv", ScriptedSuccess)
     icfg = ImitationConfig(iterations=3, episodes_per_iteration=2, epochs=2)
     hist = warm_start(model, venv, cfg.env, icfg, seed=0, gamma=0.99, progress=False)
     assert hist["selected_iteration"] == [0]
