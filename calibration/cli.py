@@ -7,9 +7,26 @@ from typing import Annotated
 
 import click
 
-from uwdock.dockcore.cli import CONTEXT, DomainType, domain_type, field_type, run_group
+from uwdock.calibration.camera import load_camera
+from uwdock.calibration.extrinsics import (
+    T_body_cam_from_xyz_rpy,
+    format_extrinsics,
+    read_extrinsics,
+    write_extrinsics,
+    write_reference_camera,
+)
+from uwdock.calibration.intrinsics import IntrinsicsConfig, calibrate_intrinsics, write_outputs
+from uwdock.dockcore.cli import DomainType, domain_type, field_type, run_group
 from uwdock.dockcore.config import load_config
 from uwdock.dockcore.domains import Interval
+from uwdock.dockcore.options import (
+    command_group,
+    config_option,
+    json_option,
+    out_file_option,
+    quiet_option,
+    seed_option,
+)
 
 #: ``extrinsics set --xyz-m``: the camera's position in the body frame (m; a vehicle is a few
 #: metres long).
@@ -25,12 +42,12 @@ def _cfg(name: str) -> DomainType:
     return field_type("uwdock.calibration.intrinsics:IntrinsicsConfig", name)
 
 
-@click.group(context_settings=CONTEXT)
+@command_group()
 def cli() -> None:
     """Calibration: camera intrinsics and the camera-to-vehicle extrinsics."""
 
 
-@cli.command(context_settings=CONTEXT)
+@cli.command()
 @click.argument("source", type=click.Path(path_type=Path))
 @click.option("--pattern", help="Target: chessboard or charuco [chessboard].")
 @click.option(
@@ -55,27 +72,20 @@ def cli() -> None:
 @click.option(
     "--holdout-fraction", type=_cfg("holdout_fraction"), help="Fraction of views held out [0.2]."
 )
-@click.option("--seed", type=_cfg("seed"), help="Seed of the hold-out draw [0].")
+@seed_option(_cfg("seed"), "Seed of the hold-out draw [0].")
 @click.option(
     "--distortion-model",
     type=click.Choice(["k1k2", "k1k2k3", "k1k2p1p2", "k1k2p1p2k3", "rational"]),
     help="Distortion terms to fit [k1k2p1p2k3].",
 )
-@click.option(
-    "--config",
-    "config_path",
-    type=click.Path(dir_okay=False, path_type=Path),
-    help="TOML file overriding IntrinsicsConfig defaults (flags override the file).",
-)
+@config_option("TOML file overriding IntrinsicsConfig defaults (flags override the file).")
 @click.option("--name", default="camera", show_default=True, help="Camera name in the file.")
-@click.option(
-    "--out",
-    type=click.Path(dir_okay=False, path_type=Path),
+@out_file_option(
+    "Camera file (.yaml + .json twin); <stem>_report.json and <stem>_errors.png beside it.",
     default=Path("camera.yaml"),
     show_default=True,
-    help="Camera file (.yaml + .json twin); <stem>_report.json and <stem>_errors.png beside it.",
 )
-@click.option("--quiet", is_flag=True, help="Print only the camera file path; no progress bar.")
+@quiet_option("Print only the camera file path; no progress bar.")
 def intrinsics(
     source,
     pattern,
@@ -91,7 +101,7 @@ def intrinsics(
     distortion_model,
     config_path,
     name,
-    out,
+    out_path,
     quiet,
 ) -> None:
     """Calibrate K and distortion from SOURCE: a folder of images or a video of the target.
@@ -100,8 +110,6 @@ def intrinsics(
     near-duplicates are rejected, a seeded fraction is held out and its reprojection error
     reported. Calibrate an underwater camera in water, behind its own port.
     """
-    from uwdock.calibration.intrinsics import IntrinsicsConfig, calibrate_intrinsics, write_outputs
-
     cfg = load_config(
         IntrinsicsConfig,
         config_path,
@@ -123,7 +131,7 @@ def intrinsics(
     result = calibrate_intrinsics(source, cfg, name=name, progress=False if quiet else None)
     for note in result.notes:
         click.echo(f"note: {note}", err=True)
-    paths, kept_T = write_outputs(result, out)
+    paths, kept_T = write_outputs(result, out_path)
     if quiet:
         click.echo(str(paths[0]))
         return
@@ -140,11 +148,11 @@ def intrinsics(
     hold = "n/a" if result.holdout_rms_px is None else f"{result.holdout_rms_px:.4f} px"
     click.echo(f"rms {cam.rms_px:.4f} px (calibration views), hold-out {hold}")
     if kept_T:
-        click.echo(f"kept T_body_cam from the existing {out}")
+        click.echo(f"kept T_body_cam from the existing {out_path}")
     click.echo("wrote " + ", ".join(str(p) for p in paths))
 
 
-@cli.group(context_settings=CONTEXT)
+@cli.group()
 def extrinsics() -> None:
     """Show or set T_body_cam (camera cv frame in body FRD) in a camera file.
 
@@ -153,19 +161,17 @@ def extrinsics() -> None:
     """
 
 
-@extrinsics.command(context_settings=CONTEXT)
+@extrinsics.command()
 @click.argument("camera_file", type=click.Path(path_type=Path))
-@click.option("--json", "as_json", is_flag=True, help="Print JSON.")
+@json_option("Print JSON.")
 def show(camera_file, as_json) -> None:
     """Print T_body_cam of CAMERA_FILE (the reference default when it has none)."""
-    from uwdock.calibration.extrinsics import format_extrinsics, read_extrinsics
-
     T, from_file = read_extrinsics(camera_file)
     source = f"from {camera_file}" if from_file else "reference default (none in the file)"
     click.echo(format_extrinsics(T, source, as_json=as_json))
 
 
-@extrinsics.command(name="set", context_settings=CONTEXT)
+@extrinsics.command(name="set")
 @click.argument("camera_file", type=click.Path(path_type=Path))
 @click.option(
     "--xyz-m",
@@ -181,12 +187,6 @@ def show(camera_file, as_json) -> None:
 )
 def set_(camera_file, xyz_m, rpy_deg) -> None:
     """Write T_body_cam into CAMERA_FILE (both twins; intrinsics unchanged)."""
-    from uwdock.calibration.extrinsics import (
-        T_body_cam_from_xyz_rpy,
-        format_extrinsics,
-        write_extrinsics,
-    )
-
     # required, checked here rather than by click so that a bad value of either option is
     # reported before a missing one (both are parsed first)
     for name, value in (("--xyz-m", xyz_m), ("--rpy-deg", rpy_deg)):
@@ -197,13 +197,9 @@ def set_(camera_file, xyz_m, rpy_deg) -> None:
     click.echo(format_extrinsics(T, f"written to {yaml_path} and {json_path}"))
 
 
-@cli.command(name="reference-camera", context_settings=CONTEXT)
-@click.option(
-    "--out",
-    type=click.Path(dir_okay=False, path_type=Path),
-    default=Path("camera.yaml"),
-    show_default=True,
-    help="Camera file (.yaml + .json twin).",
+@cli.command(name="reference-camera")
+@out_file_option(
+    "Camera file (.yaml + .json twin).", default=Path("camera.yaml"), show_default=True
 )
 @click.option(
     "--width",
@@ -215,12 +211,9 @@ def set_(camera_file, xyz_m, rpy_deg) -> None:
     type=domain_type(ImageSidePx),
     help="Image height (px) [732]; alone keeps the aspect ratio.",
 )
-def reference_camera(out, width, height) -> None:
+def reference_camera(out_path, width, height) -> None:
     """Write the reference Girona downward camera (968x732, 55 deg HFOV) with its T_body_cam."""
-    from uwdock.calibration.camera import load_camera
-    from uwdock.calibration.extrinsics import write_reference_camera
-
-    yaml_path, json_path = write_reference_camera(out, width, height)
+    yaml_path, json_path = write_reference_camera(out_path, width, height)
     cam, _ = load_camera(yaml_path)
     click.echo(
         f"wrote {yaml_path} and {json_path}: {cam.width_px}x{cam.height_px} px, "

@@ -24,6 +24,7 @@ from typing import Annotated, Any, Literal
 
 import cv2
 import numpy as np
+from tqdm import tqdm
 
 from uwdock.calibration.camera import CameraModel, load_camera, save_camera
 from uwdock.calibration.patterns import (
@@ -368,8 +369,6 @@ def _inspect(
     progress: bool | None,
 ) -> tuple[list[ViewRecord], tuple[int, int] | None]:
     """Detect, measure blur and reject duplicates view by view (input order)."""
-    from tqdm import tqdm
-
     records: list[ViewRecord] = []
     kept_quads: list[np.ndarray] = []
     size: tuple[int, int] | None = None

@@ -7,44 +7,52 @@ from pathlib import Path
 
 import click
 
-from uwdock.dockcore.cli import CONTEXT, domain_type, field_type, run_group
+from uwdock.datasets.loaders import load_poses_csv
+from uwdock.datasets.synth import SynthConfig, generate
+from uwdock.dockcore.cli import domain_type, field_type, run_group
+from uwdock.dockcore.config import load_config
+from uwdock.dockcore.errors import DockError
+from uwdock.dockcore.options import (
+    command_group,
+    config_option,
+    json_option,
+    out_dir_option,
+    quiet_option,
+    seed_option,
+    workers_option,
+)
+from uwdock.sim.water import PRESETS
 
 #: Configs whose fields the options override (imported when an option is first used).
 _SYNTH = "uwdock.datasets.synth:SynthConfig"
 
 
-@click.group(context_settings=CONTEXT)
+@command_group()
 def cli() -> None:
     """Datasets: labelled synthetic frames and loaders for real footage."""
 
 
-@cli.command(context_settings=CONTEXT)
+@cli.command()
 @click.option(
     "--n",
     "n_frames",
     type=field_type(_SYNTH, "n_frames"),
     help="Number of frames [default: 100]; more than a folder holds extends it, fewer is refused.",
 )
-@click.option(
-    "--out",
-    "out_dir",
+@out_dir_option(
+    "Dataset folder (created; an interrupted run there is resumed; locked while it runs).",
     required=True,
-    type=click.Path(file_okay=False, path_type=Path),
-    help="Dataset folder (created; an interrupted run there is resumed; locked while it runs).",
 )
 @click.option(
     "--water",
     help="Water preset (clear_tank, coastal, turbid, very_turbid), "
     "'random' (a draw per frame) or 'none' [default: random].",
 )
-@click.option(
-    "--workers",
-    type=domain_type("uwdock.datasets.synth:Workers"),
-    default=1,
-    show_default=True,
-    help="Worker processes (the output is the same for any number).",
+@workers_option(
+    domain_type("uwdock.datasets.synth:Workers"),
+    "Worker processes (the output is the same for any number).",
 )
-@click.option("--seed", type=field_type(_SYNTH, "seed"), help="Base seed [default: 0].")
+@seed_option(field_type(_SYNTH, "seed"), "Base seed [default: 0].")
 @click.option(
     "--camera",
     "camera_file",
@@ -63,14 +71,9 @@ def cli() -> None:
     type=click.Path(dir_okay=False),
     help="Marker set file with render meshes [default: the reference DS set].",
 )
-@click.option(
-    "--config",
-    "config_path",
-    type=click.Path(dir_okay=False, path_type=Path),
-    help="TOML overriding SynthConfig (a dataset's config.toml works; flags override it).",
-)
-@click.option("--quiet", is_flag=True, help="No progress bar; print only the folder.")
-@click.option("--json", "as_json", is_flag=True, help="Print a JSON summary.")
+@config_option("TOML overriding SynthConfig (a dataset's config.toml works; flags override it).")
+@quiet_option("No progress bar; print only the folder.")
+@json_option("Print a JSON summary.")
 def synth(
     n_frames, out_dir, water, workers, seed, camera_file, width_px, marker_set_path,
     config_path, quiet, as_json,
@@ -80,9 +83,6 @@ def synth(
     Writes images/, labels.jsonl (T_cam_ds, marker corners and visibility, water per frame),
     camera.yaml/.json, markerset.toml, dataset.json, config.toml and provenance.json.
     """
-    from uwdock.datasets.synth import SynthConfig, generate
-    from uwdock.dockcore.config import load_config
-
     cfg = load_config(
         SynthConfig,
         config_path,
@@ -113,6 +113,79 @@ def synth(
         click.echo(
             f"wrote {result.frames} frames to {result.out_dir} (rendered {summary['rendered']}, "
             f"kept {summary['kept']}) in {result.seconds:.1f} s"
+        )
+
+
+def _water_choice(water: str | None, allow_random: bool) -> str:
+    name = water or "none"
+    known = [*PRESETS, *(["random"] if allow_random else []), "none"]
+    if name not in known:
+        raise DockError(f"unknown water preset {name!r}; known: {', '.join(known)}")
+    return name
+
+
+@cli.command()
+@out_dir_option(
+    "Output folder (images/, labels.jsonl, camera, marker set, dataset.json).", required=True
+)
+@click.option(
+    "--n",
+    "n_frames",
+    type=field_type(_SYNTH, "n_frames"),
+    help="Random poses to render [default: 8].",
+)
+@click.option(
+    "--poses",
+    "poses_csv",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="CSV of vehicle poses in world NED: x_m,y_m,z_m + qw,qx,qy,qz or "
+    "roll_deg,pitch_deg,yaw_deg (DS origin at 0,0,4.98).",
+)
+@click.option("--water", help="Water preset, 'random' or 'none' [default: none].")
+@click.option(
+    "--width",
+    "width_px",
+    type=field_type(_SYNTH, "width_px"),
+    default=0,
+    help="Render width in px, 16-8192 [0: the camera's].",
+)
+@seed_option(field_type(_SYNTH, "seed"), default=0, show_default=True)
+@click.option("--camera", "camera_file", type=click.Path(dir_okay=False), help="Camera file.")
+@click.option("--markers", "marker_set_path", type=click.Path(dir_okay=False), help="Marker set.")
+@workers_option(domain_type("uwdock.datasets.synth:Workers"))
+@quiet_option("No progress bar; print only the folder.")
+def render(
+    out_dir, n_frames, poses_csv, water, width_px, seed, camera_file, marker_set_path, workers,
+    quiet,
+) -> None:  # fmt: skip
+    """Render images (+ labels.jsonl in the dataset format) for given or random poses: the
+    ``synth`` engine fed with explicit vehicle poses (``--poses``) or a few random ones."""
+    if n_frames is not None and poses_csv is not None:
+        raise DockError("give either --n or --poses, not both")
+    poses = load_poses_csv(poses_csv) if poses_csv is not None else None
+    n = len(poses) if poses is not None else (8 if n_frames is None else n_frames)
+    cfg = SynthConfig(  # checked by generate() before it writes anything
+        n_frames=n,
+        seed=seed,
+        water=_water_choice(water, allow_random=True),
+        camera_file=camera_file,
+        width_px=width_px,
+        marker_set_path=marker_set_path,
+    )
+    result = generate(
+        out_dir,
+        cfg,
+        workers=workers,
+        poses=poses,
+        progress=False if quiet else None,
+        tool="datasets render",
+    )
+    if quiet:
+        click.echo(str(result.out_dir))
+    else:
+        click.echo(
+            f"rendered {len(result.rendered)} of {result.frames} frames into {result.out_dir} "
+            f"in {result.seconds:.1f} s"
         )
 
 

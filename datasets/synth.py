@@ -59,11 +59,13 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
+from tqdm import tqdm
 
 from uwdock.calibration.camera import (
     REFERENCE_T_BODYFRD_CAMCV,
     CameraModel,
     load_camera,
+    reference_camera,
     save_camera,
 )
 from uwdock.calibration.frames import R_from_rpy, check_T, inv_T, make_T
@@ -84,8 +86,8 @@ from uwdock.perception.groundtruth import (
     write_dataset_json,
 )
 from uwdock.sim.docking_station import DockingStationConfig, resolve_marker_set
-from uwdock.sim.render import RenderConfig
-from uwdock.sim.water import PRESETS, WaterConfig, WaterRandomisation
+from uwdock.sim.render import RenderConfig, make_render_scene, project_markers
+from uwdock.sim.water import PRESETS, WaterConfig, WaterRandomisation, apply_water
 
 __all__ = [
     "PoseSamplingConfig",
@@ -352,8 +354,6 @@ def resolve_camera(cfg: SynthConfig) -> tuple[CameraModel, np.ndarray]:
         if T_body_cam is None:
             T_body_cam = np.array(REFERENCE_T_BODYFRD_CAMCV)
     else:
-        from uwdock.calibration.camera import reference_camera
-
         camera, T_body_cam = reference_camera(), np.array(REFERENCE_T_BODYFRD_CAMCV)
     if cfg.width_px and cfg.width_px != camera.width_px:
         height = max(1, round(camera.height_px * cfg.width_px / camera.width_px))
@@ -381,8 +381,6 @@ _MAX_SCENES = 3
 
 def _render_scene(cfg: SynthConfig, camera: CameraModel, T_body_cam: np.ndarray) -> Any:
     """The cached render scene for ``cfg``'s camera, marker set and renderer settings."""
-    from uwdock.sim.render import make_render_scene
-
     key = json.dumps(
         [to_dict(camera), T_body_cam.tolist(), cfg.marker_set_path, to_dict(cfg.render)],
         sort_keys=True,
@@ -429,9 +427,6 @@ class FrameRenderer:
 
     def frame(self, k: int) -> tuple[np.ndarray, dict[str, Any]]:
         """Render frame k: (H, W, 3) uint8 BGR image and its ``labels.jsonl`` object."""
-        from uwdock.sim.render import project_markers
-        from uwdock.sim.water import apply_water
-
         rng = frame_rng(self.cfg.seed, k)
         T_world_body = self.pose(k, rng)
         water, water_label = _water_for_frame(self.cfg, rng)
@@ -773,8 +768,6 @@ def generate(
             poses, or a bad camera / marker set file; :class:`dockcore.errors.ConfigError`
             (a DockError) for an invalid config or ``workers``.
     """
-    from tqdm import tqdm
-
     t0 = time.perf_counter()
     cfg = validated(cfg)
     reason = check(workers, int, split_annotated(Workers)[1], "workers")

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import errno
 import functools
+import importlib
 import os
 import signal
 import sys
@@ -36,8 +37,6 @@ CONTEXT = {"help_option_names": ["-h", "--help"]}
 
 def _lookup(ref: str) -> Any:
     """``"package.module:Name"`` -> the object (imported on first use)."""
-    import importlib
-
     module, _, name = ref.partition(":")
     return getattr(importlib.import_module(module), name)
 

@@ -28,6 +28,8 @@ import os
 from collections.abc import Iterator
 from pathlib import Path
 
+from filelock import FileLock, Timeout
+
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_write_json, clean_stale_temps, ensure_writable_dir
 
@@ -89,8 +91,6 @@ def claim_output_dir(path: str | os.PathLike[str], tool: str) -> Iterator[Path]:
         DockError: one line when the folder cannot be written, is locked by another process,
             or belongs to another tool.
     """
-    from filelock import FileLock, Timeout
-
     absolute = Path(path).absolute()
     made = [p for p in (absolute, *absolute.parents) if not p.exists()]  # innermost first
     _refuse_foreign(absolute, tool)  # before the lock: nothing is created in their folder

@@ -6,11 +6,13 @@ from pathlib import Path
 
 import click
 
-from uwdock.dockcore.cli import CONTEXT, DomainType, field_type, run_group
+from uwdock.dockcore.cli import DomainType, field_type, run_group
 from uwdock.dockcore.config import load_config
 from uwdock.dockcore.errors import DockError
+from uwdock.dockcore.options import command_group, config_option, out_dir_option, quiet_option
 from uwdock.markers.config import MarkerConfig
 from uwdock.markers.dictionary import DICTIONARY_NAMES, bits_per_side, dictionary_size
+from uwdock.markers.generate import generate as run
 
 
 def _parse_ids(text: str | None) -> tuple[int, ...] | None:
@@ -28,12 +30,12 @@ def _mm(name: str) -> DomainType:
     return field_type(MarkerConfig, name)
 
 
-@click.group(context_settings=CONTEXT)
+@command_group()
 def cli() -> None:
     """3D Binary Markers: printable parts, flat sheets, the marker set file."""
 
 
-@cli.command(context_settings=CONTEXT)
+@cli.command()
 @click.option("--ids", help="Comma-separated marker IDs [default: the DS set 13,14,15,28,34].")
 @click.option("--dictionary", help="OpenCV dictionary, e.g. DICT_4X4_50, DICT_APRILTAG_36h11.")
 @click.option("--size-mm", type=_mm("size_mm"), help="Insert (tag) side in mm [default: 100].")
@@ -62,21 +64,9 @@ def cli() -> None:
 )
 @click.option("--base-height-mm", type=_mm("base_height_mm"), help="Base plate thickness [10].")
 @click.option("--paper", type=click.Choice(["A4", "A3", "letter"]), help="Sheet paper size [A4].")
-@click.option(
-    "--config",
-    "config_path",
-    type=click.Path(dir_okay=False, path_type=Path),
-    help="TOML file overriding MarkerConfig defaults (flags override the file).",
-)
-@click.option(
-    "--out",
-    "out_dir",
-    type=click.Path(file_okay=False, path_type=Path),
-    default=Path("markers_out"),
-    show_default=True,
-    help="Output folder.",
-)
-@click.option("--quiet", is_flag=True, help="Print only the marker set path.")
+@config_option("TOML file overriding MarkerConfig defaults (flags override the file).")
+@out_dir_option("Output folder.", default=Path("markers_out"), show_default=True)
+@quiet_option("Print only the marker set path.")
 def generate(
     ids,
     dictionary,
@@ -95,8 +85,6 @@ def generate(
 ) -> None:
     """Write STL parts (white insert, black enclosure), render meshes, previews, a true-scale
     PDF/SVG sheet and the marker set file for the given IDs."""
-    from uwdock.markers.generate import generate as run
-
     cfg = load_config(
         MarkerConfig,
         config_path,
@@ -121,7 +109,7 @@ def generate(
     )
 
 
-@cli.command(context_settings=CONTEXT)
+@cli.command()
 def dictionaries() -> None:
     """List the marker dictionaries OpenCV offers, with bits and marker count."""
     for name in DICTIONARY_NAMES:

@@ -7,6 +7,7 @@ from typing import Annotated
 
 from uwdock.dockcore.domains import Interval
 from uwdock.dockcore.errors import DockError
+from uwdock.markers.dictionary import bits_per_side, check_ids, normalise_dictionary_name
 
 #: Largest ID of any OpenCV predefined dictionary (``DICT_APRILTAG_36h10`` holds 2320 markers);
 #: the dictionary a set uses narrows it further (:func:`markers.dictionary.check_ids`).
@@ -114,8 +115,6 @@ class MarkerConfig:
         Each field's own range is its declared domain (checked by the loader and
         :func:`dockcore.config.validated`); this checks the fields against each other.
         """
-        from uwdock.markers.dictionary import bits_per_side, check_ids, normalise_dictionary_name
-
         try:
             name = normalise_dictionary_name(self.dictionary)
         except DockError as exc:

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import manifold3d as mf
 import numpy as np
 import trimesh
@@ -140,8 +141,6 @@ def rasterise_top_view(
     Returns:
         (N, N) uint8 image, row 0 at +y (top of the tag), column 0 at -x.
     """
-    import cv2
-
     n = round(2 * half_extent_mm * px_per_mm)
     img = np.full((n, n), background, np.uint8)
     faces = []

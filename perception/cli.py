@@ -9,13 +9,26 @@ from typing import Any
 
 import click
 
-from uwdock.dockcore.cli import CONTEXT, domain_type, run_group
+from uwdock.calibration.camera import load_camera
+from uwdock.dockcore.bench import format_table
+from uwdock.dockcore.cli import domain_type, run_group
 from uwdock.dockcore.config import load_config
 from uwdock.dockcore.errors import DockError
+from uwdock.dockcore.options import (
+    command_group,
+    config_option,
+    json_option,
+    out_dir_option,
+    quiet_option,
+)
 from uwdock.markers.config import MarkerSideM
+from uwdock.perception.detector import list_pipelines
+from uwdock.perception.evaluate import PerceptionConfig, resolve_markers, run_detect, run_eval
+from uwdock.perception.groundtruth import is_dataset, load_dataset, load_ground_truth
+from uwdock.perception.report_plots import COMPARE_COLUMNS
 
 
-@click.group(context_settings=CONTEXT)
+@command_group()
 def cli() -> None:
     """Perception: 3DBM detection and docking-station pose from the marker board."""
 
@@ -25,8 +38,6 @@ def _note(msg: str) -> None:
 
 
 def _config(config_path: Path | None, pipeline: str | None):
-    from uwdock.perception.evaluate import PerceptionConfig
-
     overrides: dict[str, Any] = {"detector": {"pipeline": pipeline}} if pipeline else {}
     return load_config(PerceptionConfig, config_path, overrides=overrides, section="perception")
 
@@ -34,7 +45,6 @@ def _config(config_path: Path | None, pipeline: str | None):
 def _camera(path: Path | None):
     if path is None:
         return None
-    from uwdock.calibration.camera import load_camera
 
     return load_camera(path)[0]
 
@@ -56,13 +66,8 @@ def _marker_options(fn):
             help="Single-marker side (m, at most 1): enables their poses.",
         ),
         click.option("--pipeline", help="Preprocessing pipeline [default]; see `pipelines`."),
-        click.option(
-            "--config",
-            "config_path",
-            type=click.Path(dir_okay=False, path_type=Path),
-            help="TOML with [detector], [board] and [report] tables (flags override it).",
-        ),
-        click.option("--quiet", is_flag=True, help="No progress bar; print only the output."),
+        config_option("TOML with [detector], [board] and [report] tables (flags override it)."),
+        quiet_option("No progress bar; print only the output."),
     ]
     for opt in reversed(opts):
         fn = opt(fn)
@@ -76,22 +81,11 @@ def _camera_option(help_text: str):
     )
 
 
-def _out_option(**kwargs: Any):
-    """``--out`` (the output folder); ``kwargs`` add ``default``/``required`` and the like."""
-    return click.option(
-        "--out",
-        "out_dir",
-        type=click.Path(file_okay=False, path_type=Path),
-        help="Output folder.",
-        **kwargs,
-    )
-
-
-@cli.command(context_settings=CONTEXT)
+@cli.command()
 @click.argument("input_path", metavar="INPUT", type=click.Path(path_type=Path))
 @_marker_options
 @_camera_option("Camera file [default: the reference camera scaled to the frames].")
-@_out_option(default=Path("perception_detect"), show_default=True)
+@out_dir_option(default=Path("perception_detect"), show_default=True)
 @click.option("--no-annotate", is_flag=True, help="Write only detections.jsonl/.csv.")
 def detect(
     input_path,
@@ -110,8 +104,6 @@ def detect(
     Writes detections.jsonl and detections.csv (one row per frame) and annotated images, or
     annotated.mp4 for a video, into --out.
     """
-    from uwdock.perception.evaluate import resolve_markers, run_detect
-
     cfg = _config(config_path, pipeline)
     setup = resolve_markers(markers_path, dictionary, marker_size_m)
     if dictionary is not None and marker_size_m is None:
@@ -157,14 +149,11 @@ def _print_summary(report: dict[str, Any], out_dir: Path) -> None:
             f"{_fmt(report['marker_recall'])}"
         )
     if report["compare"]:
-        from uwdock.dockcore.bench import format_table
-        from uwdock.perception.report_plots import COMPARE_COLUMNS
-
         click.echo(format_table(report["compare"], COMPARE_COLUMNS))
     click.echo(f"wrote {out_dir / 'report.json'} and {len(report['plots'])} plots")
 
 
-@cli.command(name="eval", context_settings=CONTEXT)
+@cli.command(name="eval")
 @click.argument("input_path", metavar="INPUT", type=click.Path(path_type=Path))
 @_marker_options
 @_camera_option("Camera file (required unless INPUT is a labelled dataset folder).")
@@ -175,8 +164,8 @@ def _print_summary(report: dict[str, Any], out_dir: Path) -> None:
     help="Labelled dataset folder, labels.jsonl or pose CSV (frame,x_m,y_m,z_m,qw,qx,qy,qz).",
 )
 @click.option("--compare", help="Comma-separated pipelines to run side by side.")
-@_out_option(required=True)
-@click.option("--json", "as_json", is_flag=True, help="Print report.json to stdout.")
+@out_dir_option(required=True)
+@json_option("Print report.json to stdout.")
 def eval_cmd(
     input_path,
     markers_path,
@@ -198,9 +187,6 @@ def eval_cmd(
     plots and a contact sheet. --compare runs several pipelines on the same frames and adds
     compare.json / compare.md.
     """
-    from uwdock.perception.evaluate import resolve_markers, run_eval
-    from uwdock.perception.groundtruth import is_dataset, load_dataset, load_ground_truth
-
     cfg = _config(config_path, pipeline)
     names = [p.strip() for p in (compare or "").split(",") if p.strip()]
     if compare is not None and not names:
@@ -243,11 +229,9 @@ def eval_cmd(
         _print_summary(report, Path(out_dir))
 
 
-@cli.command(context_settings=CONTEXT)
+@cli.command()
 def pipelines() -> None:
     """List the preprocessing pipelines."""
-    from uwdock.perception.detector import list_pipelines
-
     for name, text in list_pipelines().items():
         click.echo(f"{name:18s} {text}")
 

@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from tqdm import tqdm
 
 from uwdock.calibration.camera import CameraModel, reference_camera
 from uwdock.calibration.frames import pos_quat_from_T
@@ -353,8 +354,6 @@ def _draw(image, res: FrameResult, camera: CameraModel, setup: MarkerSetup, cfg,
 
 
 def _progress(source: FrameSource, show: bool | None, desc: str) -> Iterable:
-    from tqdm import tqdm
-
     disable = None if show is None else not show  # None: only on a terminal
     return tqdm(source, total=source.total, desc=desc, unit="frame", disable=disable, leave=False)
 

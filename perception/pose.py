@@ -28,6 +28,7 @@ from typing import Annotated, Any
 import cv2
 import numpy as np
 from numpy.typing import ArrayLike
+from scipy.optimize import least_squares
 
 from uwdock.calibration.frames import (
     R_from_rpy,
@@ -608,8 +609,6 @@ def refine_level_board(
     Returns:
         The level pose with its covariance.
     """
-    from scipy.optimize import least_squares
-
     K, dist = _intrinsics(K, dist)
     T_wc = check_T(T_world_cam, "T_world_cam")
     obs = _match(detections, object_points)

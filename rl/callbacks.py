@@ -7,12 +7,32 @@ from __future__ import annotations
 from collections import defaultdict
 
 import numpy as np
-from stable_baselines3.common.callbacks import BaseCallback
+from tqdm import tqdm
 
 
-class TrainingCallback(BaseCallback):
+def training_callback(session, total_steps: int, progress: bool = True):
+    """The run's Stable-Baselines3 callback: :class:`TrainingHooks` on SB3's ``BaseCallback``.
+
+    SB3 (and torch under it) is imported here, when training starts, so that importing
+    ``rl.train`` (``rl --help``, ``rl eval``) does not pay for it.
+
+    Args:
+        session: the run's :class:`rl.session.TrainingSession`.
+        total_steps: the run's length (for the progress bar).
+        progress: show a progress bar.
+    """
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class TrainingCallback(TrainingHooks, BaseCallback):
+        __doc__ = TrainingHooks.__doc__
+
+    return TrainingCallback(session, total_steps, progress)
+
+
+class TrainingHooks:
     """Calls ``session.boundary()`` before every rollout; freezes the actor while the critic
-    warms up; logs rollouts.
+    warms up; logs rollouts. Mixed into SB3's ``BaseCallback`` by :func:`training_callback`
+    (which provides ``model``, ``locals`` and ``logger``).
 
     Args:
         session: the run's :class:`rl.session.TrainingSession`.
@@ -41,8 +61,6 @@ class TrainingCallback(BaseCallback):
 
     def _on_training_start(self) -> None:
         if self.progress:
-            from tqdm import tqdm
-
             self._bar = tqdm(
                 total=self.total_steps,
                 initial=self.model.num_timesteps,

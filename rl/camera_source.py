@@ -17,7 +17,7 @@ from uwdock.calibration.frames import inv_T
 from uwdock.perception.detector import Detector, DetectorConfig
 from uwdock.perception.pose import BoardPoseConfig, refine_level_board, solve_board
 from uwdock.rl.config import EnvConfig
-from uwdock.rl.obs_sources import Measurement, StepContext
+from uwdock.rl.obs_sources import Measurement, SourceNeeds, StepContext
 from uwdock.sim.water import apply_water, preset
 
 #: PnP's first-order covariance is optimistic (corner bias, blur): scale it by this.
@@ -31,6 +31,7 @@ class CameraSource:
     """Measure the DS pose from the rendered camera image (module docstring)."""
 
     name = "camera"
+    needs = SourceNeeds(camera=True, fusion=True, acoustic_fixes=True)
 
     def __init__(self, world, cfg: EnvConfig) -> None:
         if world.render_scene is None:

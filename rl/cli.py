@@ -6,29 +6,53 @@ from pathlib import Path
 from typing import Annotated
 
 import click
+from tqdm import tqdm
 
-from uwdock.dockcore.cli import CONTEXT, domain_type, field_type, run_group
+from uwdock.dockcore.cli import domain_type, field_type, run_group
 from uwdock.dockcore.config import config_data, from_dict, load_config, merge, replace, to_dict
 from uwdock.dockcore.domains import Count, Interval, Seed
 from uwdock.dockcore.errors import DockError
+from uwdock.dockcore.io import atomic_write_json
+from uwdock.dockcore.options import (
+    command_group,
+    config_option,
+    out_dir_option,
+    out_file_option,
+    quiet_option,
+    seed_option,
+    workers_option,
+)
+from uwdock.dockcore.outdir import claim_output_dir
+from uwdock.dockcore.provenance import write_provenance
+from uwdock.rl.baselines import PIDController
+from uwdock.rl.config import EnvConfig
+from uwdock.rl.env import DockingEnv
+from uwdock.rl.episode import EpisodeVideoConfig, record_episode
+from uwdock.rl.error_model import ErrorModelConfig, fit_error_model, save_error_model
+from uwdock.rl.export import export_onnx
+from uwdock.rl.policy_io import policy_env_settings, policy_error_model
+from uwdock.rl.report import evaluate_to_folder
+from uwdock.rl.train import TrainConfig, run_config
+from uwdock.rl.train import train as run
+from uwdock.sim.water import PRESETS
 
 #: The config whose fields the options override (imported when an option is first used).
 _TRAIN = "uwdock.rl.train:TrainConfig"
+_ENV = "uwdock.rl.config:EnvConfig"
+_VIDEO = "uwdock.rl.episode:EpisodeVideoConfig"
+
+#: ``rl episode``'s values of EnvConfig fields that neither a flag nor ``--config`` sets.
+_EPISODE_DEFAULTS = {"episode_s": 30.0, "camera_width_px": 484}
 OBS_CHOICES = click.Choice(["proxy", "error-model", "camera"])
 
 
-@click.group(context_settings=CONTEXT)
+@command_group()
 def cli() -> None:
     """Reinforcement learning: docking env, PPO training, evaluation, export."""
 
 
-@cli.command(context_settings=CONTEXT)
-@click.option(
-    "--config",
-    "config_path",
-    type=click.Path(dir_okay=False, path_type=Path),
-    help="TOML overriding TrainConfig (env, ppo, sac tables).",
-)
+@cli.command()
+@config_option("TOML overriding TrainConfig (env, ppo, sac tables).")
 @click.option("--obs", type=OBS_CHOICES, help="Observation source [proxy].")
 @click.option(
     "--error-model",
@@ -39,7 +63,7 @@ def cli() -> None:
 @click.option("--algo", type=click.Choice(["ppo", "sac"]), help="Algorithm [ppo].")
 @click.option("--steps", type=field_type(_TRAIN, "total_steps"), help="Total env steps.")
 @click.option("--envs", type=field_type(_TRAIN, "n_envs"), help="Parallel environments.")
-@click.option("--seed", type=field_type(_TRAIN, "seed"), help="Base seed.")
+@seed_option(field_type(_TRAIN, "seed"), "Base seed.")
 @click.option(
     "--init-policy", type=click.Path(path_type=Path), help="Start from this policy (fine-tuning)."
 )
@@ -53,13 +77,7 @@ def cli() -> None:
     is_flag=True,
     help="With --resume: accept --config/flags that change the run's config (recorded).",
 )
-@click.option(
-    "--out",
-    "out_dir",
-    type=click.Path(file_okay=False, path_type=Path),
-    required=True,
-    help="Run folder.",
-)
+@out_dir_option("Run folder.", required=True)
 def train(
     config_path, obs, error_model, algo, steps, envs, seed, init_policy, resume,
     allow_config_change, out_dir,
@@ -69,9 +87,6 @@ def train(
     Killed at any moment, `--resume` goes on from the newest complete checkpoint and gives the
     same checkpoints, evaluation history and best/ as a run never stopped.
     """
-    from uwdock.rl.train import TrainConfig, run_config
-    from uwdock.rl.train import train as run
-
     env_over = {"obs_source": obs, "error_model_path": str(error_model) if error_model else None}
     overrides = {
         "algo": algo,
@@ -99,7 +114,7 @@ def train(
     click.echo(f"policy: {final}")
 
 
-@cli.command("eval", context_settings=CONTEXT)
+@cli.command("eval")
 @click.option(
     "--policy",
     required=True,
@@ -109,13 +124,8 @@ def train(
 @click.option("--episodes", type=domain_type(Count), default=100, show_default=True)
 @click.option("--obs", type=OBS_CHOICES, default="camera", show_default=True)
 @click.option("--error-model", "error_model", type=click.Path(path_type=Path))
-@click.option(
-    "--config",
-    "config_path",
-    type=click.Path(dir_okay=False, path_type=Path),
-    help="TOML overriding EnvConfig.",
-)
-@click.option("--seed", type=domain_type(Seed), default=1000, show_default=True)
+@config_option("TOML overriding EnvConfig.")
+@seed_option(domain_type(Seed), default=1000, show_default=True)
 @click.option(
     "--videos",
     default="0",
@@ -132,14 +142,11 @@ def train(
 )
 @click.option("--stress", is_flag=True, help="Also run the graded stress tables.")
 @click.option("--stress-episodes", type=domain_type(Count), default=20, show_default=True)
-@click.option(
-    "--workers",
-    type=domain_type(Annotated[int, Interval(ge=1, le=256)]),
-    default=1,
-    show_default=True,
-    help="Evaluation processes (episodes are split; results do not depend on it).",
+@workers_option(
+    domain_type(Annotated[int, Interval(ge=1, le=256)]),
+    "Evaluation processes (episodes are split; results do not depend on it).",
 )
-@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), required=True)
+@out_dir_option(None, required=True)
 def eval_cmd(
     policy,
     episodes,
@@ -155,9 +162,6 @@ def eval_cmd(
     out_dir,
 ) -> None:
     """Evaluate a policy (or the PID baseline) over seeded episodes."""
-    from uwdock.rl.config import EnvConfig
-    from uwdock.rl.report import evaluate_to_folder, policy_env_settings, policy_error_model
-
     em = str(error_model) if error_model else None
     if em is None and obs == "error-model":
         # neither --error-model nor the --config file names one: the one the policy trained on
@@ -202,31 +206,17 @@ def eval_cmd(
     )
 
 
-@cli.command(context_settings=CONTEXT)
+@cli.command()
 @click.option("--policy", required=True, type=click.Path(path_type=Path))
-@click.option(
-    "--out",
-    "out_path",
-    type=click.Path(dir_okay=False, path_type=Path),
-    required=True,
-    help="ONNX file to write.",
-)
+@out_file_option("ONNX file to write.", required=True)
 def export(policy, out_path) -> None:
     """Export a policy to ONNX (observation normalisation included)."""
-    from uwdock.rl.export import export_onnx
-
     click.echo(f"wrote {export_onnx(policy, out_path)}")
 
 
-@cli.command("fit-error-model", context_settings=CONTEXT)
+@cli.command("fit-error-model")
 @click.argument("dataset", type=click.Path(path_type=Path))
-@click.option(
-    "--out",
-    "out_path",
-    type=click.Path(dir_okay=False, path_type=Path),
-    required=True,
-    help="Error model file (JSON) to write.",
-)
+@out_file_option("Error model file (JSON) to write.", required=True)
 @click.option(
     "--range-bin-m",
     type=field_type("uwdock.rl.error_model:ErrorModelConfig", "range_bin_m"),
@@ -234,14 +224,103 @@ def export(policy, out_path) -> None:
 )
 def fit_error_model_cmd(dataset, out_path, range_bin_m) -> None:
     """Fit the image-derived error model from a labelled dataset (`datasets synth`)."""
-    from uwdock.rl.error_model import ErrorModelConfig, fit_error_model, save_error_model
-
     cfg = load_config(ErrorModelConfig, overrides={"range_bin_m": range_bin_m})
     model = fit_error_model(dataset, cfg)
     save_error_model(model, out_path)
     t = model["tables"]["all"]
     n = sum(sum(row) for row in t["frames"])
     click.echo(f"fitted on {int(n)} frames ({model['dataset']['sha256'][:12]}): {out_path}")
+
+
+def _water_choice(water: str | None, allow_random: bool) -> str:
+    name = water or "none"
+    known = [*PRESETS, *(["random"] if allow_random else []), "none"]
+    if name not in known:
+        raise DockError(f"unknown water preset {name!r}; known: {', '.join(known)}")
+    return name
+
+
+@cli.command()
+@out_dir_option(
+    "Output folder (episode.mp4, summary.json, config.toml, provenance.json).", required=True
+)
+@click.option("--controller", type=click.Choice(["pid"]), default="pid", show_default=True)
+@seed_option(domain_type(Seed), "Env reset seed.", default=0, show_default=True)
+@click.option("--water", help="Water of the downward view: a preset or 'none' [coastal].")
+@click.option(
+    "--seconds",
+    type=field_type(_ENV, "episode_s"),
+    help="Episode length (s); it ends earlier on docking [default: the --config's episode_s, "
+    f"else {_EPISODE_DEFAULTS['episode_s']:g}].",
+)
+@click.option(
+    "--width",
+    "width_px",
+    type=field_type(_ENV, "camera_width_px"),
+    help="Downward camera render width (px) [default: the --config's camera_width_px, else "
+    f"{_EPISODE_DEFAULTS['camera_width_px']}].",
+)
+@click.option(
+    "--outside-width",
+    "outside_width_px",
+    type=field_type(_VIDEO, "outside_width_px"),
+    default=480,
+    show_default=True,
+    help="Outside view width (px; 4:3).",
+)
+@config_option("TOML overriding rl.config.EnvConfig (obs_source defaults to 'proxy').")
+@quiet_option("No progress bar; print only the video path.")
+def episode(
+    out_dir, controller, seed, water, seconds, width_px, outside_width_px, config_path, quiet
+) -> None:
+    """Run the scripted PID controller in the docking env and write a side-by-side MP4 of the
+    downward camera (with water) and an outside view, plus summary.json."""
+    water_name = _water_choice(water or "coastal", allow_random=False)
+    given = config_data(config_path, section="env") if config_path is not None else {}
+    flags = {"episode_s": seconds, "camera_width_px": width_px}
+    data = merge(merge(_EPISODE_DEFAULTS, given), {k: v for k, v in flags.items() if v is not None})
+    env_cfg = from_dict(EnvConfig, data)  # a flag, else the file's value, else our default
+    outside_height_px = max(16, round(outside_width_px * 3 / 4))
+    video_cfg = from_dict(
+        EpisodeVideoConfig,
+        {
+            "outside_width_px": outside_width_px,
+            "outside_height_px": outside_height_px,
+            "panel_height_px": outside_height_px,
+        },
+    )
+    env = DockingEnv(env_cfg, render_mode="rgb_array")  # may still refuse the config
+    try:
+        with claim_output_dir(out_dir, "rl episode") as out:
+            policy = PIDController.for_env(env_cfg)
+            steps = round(env_cfg.episode_s * env_cfg.control_hz)
+            disable = True if quiet else None
+            with tqdm(total=steps, unit="step", desc="episode", disable=disable) as bar:
+                summary = record_episode(
+                    env,
+                    policy,
+                    out,
+                    seed=seed,
+                    water=None if water_name == "none" else PRESETS[water_name],
+                    water_name=water_name,
+                    cfg=video_cfg,
+                    on_step=lambda _k: bar.update(1),
+                )
+            summary["controller"] = controller
+            atomic_write_json(out / "summary.json", summary)
+            extra = {"summary": summary}
+            write_provenance(out, {"env": env_cfg, "video": video_cfg}, extra=extra)
+    finally:
+        env.close()
+    if quiet:
+        click.echo(str(out / summary["video"]))
+        return
+    result = "docked" if summary["success_paper"] else "not docked"
+    click.echo(
+        f"{summary['steps']} steps ({summary['sim_time_s']:.1f} s), {result}, final |e| "
+        f"{summary['final_distance_m']:.2f} m, return {summary['return']:.0f} -> "
+        f"{out / summary['video']}"
+    )
 
 
 def main() -> None:

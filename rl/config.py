@@ -7,11 +7,15 @@ from typing import Annotated, Literal
 
 import numpy as np
 
+from uwdock.calibration.camera import load_camera
 from uwdock.dockcore.domains import Interval
+from uwdock.markers.markerset import load_marker_set
+from uwdock.rl.error_model import load_error_model
 from uwdock.rl.estimator import EstimatorConfig
 from uwdock.rl.rewards import RewardConfig
 from uwdock.rl.task import DockingTaskConfig
-from uwdock.sim.vehicle import CurrentConfig, VehicleConfig, VehicleRandomisation
+from uwdock.sim.vehicle import CurrentConfig, Hydrodynamics, VehicleConfig, VehicleRandomisation
+from uwdock.sim.water import PRESET_ORDER
 
 ObsSourceName = Literal["proxy", "error-model", "camera"]
 
@@ -144,8 +148,6 @@ class EnvConfig:
                 "error_model_path: required for obs_source 'error-model' (rl train/eval: "
                 "--error-model FILE, e.g. rl/models/error_model_clear_tank_480.json)"
             )
-        from uwdock.sim.vehicle import Hydrodynamics
-
         # the physics substep must keep the damping stable for every vehicle the env may draw
         limit_s = Hydrodynamics(self.vehicle).stable_substep_s()
         if self.randomise_vehicle:
@@ -158,8 +160,6 @@ class EnvConfig:
                 f"vehicle's damping and mass need a substep < {limit_s:.3g} s, randomised draws "
                 "included): lower the damping, raise the mass or physics_hz"
             )
-        from uwdock.sim.water import PRESET_ORDER
-
         if self.water_preset not in PRESET_ORDER:
             raise ValueError(
                 f"water_preset: unknown {self.water_preset!r} (known: {', '.join(PRESET_ORDER)})"
@@ -171,14 +171,8 @@ def check_env_files(cfg: EnvConfig) -> None:
     missing or broken one is a one-line DockError in the calling process, before worker
     processes start or any output is written."""
     if cfg.obs_source == "error-model":
-        from uwdock.rl.error_model import load_error_model
-
         load_error_model(cfg.error_model_path)
     if cfg.camera_file:
-        from uwdock.calibration.camera import load_camera
-
         load_camera(cfg.camera_file)
     if cfg.marker_set_path:
-        from uwdock.markers.markerset import load_marker_set
-
         load_marker_set(cfg.marker_set_path)

@@ -17,18 +17,30 @@ from __future__ import annotations
 import math
 from typing import Any, ClassVar
 
+import cv2
 import gymnasium as gym
 import numpy as np
 
 from uwdock.calibration.frames import R_from_rpy, inv_T, make_T
+from uwdock.dockcore.config import replace
 from uwdock.dockcore.errors import DockError
+from uwdock.rl.camera_source import CameraSource
 from uwdock.rl.config import EnvConfig
+from uwdock.rl.error_model import ErrorModelSource, load_error_model
 from uwdock.rl.estimator import DSPoseFilter
-from uwdock.rl.obs_sources import ObservationSource, ProxySource, StepContext
+from uwdock.rl.obs_sources import ObservationSource, ProxySource, SourceNeeds, StepContext
 from uwdock.rl.observation import OBS_BOUND, observation_frame, observation_size
 from uwdock.rl.rewards import DockingReward
 from uwdock.rl.task import docking_errors, ds_visible, paper_success, pegs_seated
 from uwdock.rl.world import DockingWorld
+from uwdock.sim.water import PRESETS, apply_water
+
+#: ``EnvConfig.obs_source`` -> the source class (its ``needs`` say what the env provides it)
+SOURCE_CLASSES: dict[str, type] = {
+    "proxy": ProxySource,
+    "error-model": ErrorModelSource,
+    "camera": CameraSource,
+}
 
 
 class SimulationError(DockError):
@@ -52,15 +64,12 @@ class DockingEnv(gym.Env):
         c = self.cfg
         self.dt_s = 1.0 / c.control_hz
         self.max_steps = round(c.episode_s * c.control_hz)
-        self.world = DockingWorld(
-            c, with_camera=c.obs_source == "camera" or render_mode is not None
-        )
+        needs: SourceNeeds = SOURCE_CLASSES[c.obs_source].needs
+        self.world = DockingWorld(c, with_camera=needs.camera or render_mode is not None)
         self.source = self._make_source()
         est_cfg = c.estimator
-        if c.obs_source == "proxy" and est_cfg.fuse:
-            # the paper's proxy observation is memoryless: every step replaces the estimate
-            from uwdock.dockcore.config import replace
-
+        if not needs.fusion and est_cfg.fuse:
+            # a memoryless source (the paper's proxy): every step replaces the estimate
             est_cfg = replace(est_cfg, fuse=False)
         self.filter = DSPoseFilter(est_cfg)
         self.reward_fn = DockingReward(c.reward)
@@ -78,11 +87,7 @@ class DockingEnv(gym.Env):
         if c.obs_source == "proxy":
             return ProxySource(c.task)
         if c.obs_source == "error-model":
-            from uwdock.rl.error_model import ErrorModelSource, load_error_model
-
             return ErrorModelSource(load_error_model(c.error_model_path), c.task, c.water_preset)
-        from uwdock.rl.camera_source import CameraSource
-
         return CameraSource(self.world, c)
 
     def _spawn(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -175,16 +180,12 @@ class DockingEnv(gym.Env):
     def camera_frame(self) -> np.ndarray | None:
         """The downward camera's view now (RGB, water applied), with the detected markers
         outlined and the step's status written on it; None without a camera."""
-        import cv2
-
         img = getattr(self.source, "last_image", None)
         dets = getattr(self.source, "last_detections", [])
         if img is None:
             res = self.world.render()
             if res is None:
                 return None
-            from uwdock.sim.water import PRESETS, apply_water
-
             water = PRESETS[self.cfg.water_preset]  # a preset name EnvConfig has checked
             img = apply_water(res.rgb, res.range_m, water, self._film_rng)
             dets = []
@@ -228,9 +229,10 @@ class DockingEnv(gym.Env):
             self.filter.update(m.T_world_ds, m.cov_xyzyaw)
 
     def _usbl_fix(self, T_world_body: np.ndarray) -> None:
-        """A position-only acoustic fix every ``estimator.usbl_period_s`` (not for the proxy)."""
+        """A position-only acoustic fix every ``estimator.usbl_period_s``, for sources that
+        declare ``needs.acoustic_fixes``."""
         period = self.filter.cfg.usbl_period_s
-        if self.cfg.obs_source == "proxy" or period <= 0:
+        if not self.source.needs.acoustic_fixes or period <= 0:
             return
         if self.steps % max(1, round(period * self.cfg.control_hz)) != 0:
             return

@@ -36,7 +36,7 @@ from uwdock.dockcore.domains import Interval
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_write_json
 from uwdock.dockcore.provenance import provenance
-from uwdock.rl.obs_sources import Measurement, StepContext
+from uwdock.rl.obs_sources import Measurement, SourceNeeds, StepContext
 from uwdock.rl.task import DockingTaskConfig
 
 FORMAT = "uwdock.error_model"
@@ -303,6 +303,7 @@ class ErrorModelSource:
     """Sample camera-pipeline measurements from a fitted :class:`ErrorModel`."""
 
     name = "error-model"
+    needs = SourceNeeds(camera=False, fusion=True, acoustic_fixes=True)
 
     def __init__(self, model: ErrorModel, task: DockingTaskConfig, water: str = "all") -> None:
         self.model = model

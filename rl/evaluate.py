@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import math
+import multiprocessing as mp
 import os
 import time
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -12,8 +14,12 @@ from typing import Any, Protocol
 import numpy as np
 
 from uwdock.dockcore.errors import DockError
+from uwdock.dockcore.procs import die_with_parent
 from uwdock.rl.config import EnvConfig
+from uwdock.rl.env import DockingEnv
+from uwdock.rl.episode_media import write_frames_sheet, write_video
 from uwdock.rl.observation import POS_SCALE_M, frame_dim
+from uwdock.rl.policy_io import load_controller
 
 
 class Controller(Protocol):
@@ -97,8 +103,6 @@ def run_episodes(
         video_dir: write ``camera_ep<k>.mp4`` there (frames are not kept in the traces);
             None keeps the frames in ``EpisodeTrace.frames``.
     """
-    from uwdock.rl.env import DockingEnv
-
     ctrl = _as_controller(policy, vecnorm)
     todo = list(range(n_episodes)) if episodes is None else list(episodes)
     env = DockingEnv(env_cfg, render_mode="rgb_array" if video_episodes else None)
@@ -107,8 +111,6 @@ def run_episodes(
         for done_count, k in enumerate(todo, start=1):
             row, tr = _episode(env, ctrl, k, seed, record, k in video_episodes)
             if video_dir is not None and tr.frames:
-                from uwdock.rl.report import write_frames_sheet, write_video
-
                 write_video(tr.frames, Path(video_dir) / f"camera_ep{k}.mp4")
                 dt_s = 1.0 / env_cfg.control_hz  # frames are taken after each control step
                 sheet = Path(video_dir) / f"camera_ep{k}_frames.jpg"
@@ -182,8 +184,6 @@ _PROGRESS = None
 
 def _init_worker(parent_pid: int, queue) -> None:
     """Evaluation worker set-up: die with the evaluation (any signal), report progress."""
-    from uwdock.dockcore.procs import die_with_parent
-
     global _PROGRESS
     die_with_parent(parent_pid)
     _PROGRESS = queue
@@ -199,8 +199,6 @@ def _worker(
     video_episodes: tuple[int, ...],
     video_dir: str | None,
 ):
-    from uwdock.rl.report import load_controller
-
     def tick(done: int, total: int) -> None:
         if _PROGRESS is not None:
             _PROGRESS.put(1)
@@ -234,12 +232,7 @@ def run_episodes_parallel(
 ) -> EvalResult:
     """:func:`run_episodes` split over ``workers`` processes (each loads the policy and builds
     its own simulator); the result is the same as in one process."""
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
-
     if workers <= 1:
-        from uwdock.rl.report import load_controller
-
         ctrl, vecnorm, _ = load_controller(policy_spec, env_cfg)
         return run_episodes(
             ctrl,

@@ -8,7 +8,6 @@ mean action (PPO) or tanh(mean) (SAC) -> clip to [-1, 1].
 from __future__ import annotations
 
 import io
-import json
 import os
 import warnings
 from pathlib import Path
@@ -17,61 +16,7 @@ import numpy as np
 
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_write_bytes, atomic_write_json
-
-
-def load_policy(path: str | os.PathLike[str]):
-    """Load ``policy.zip`` (PPO or SAC) and, if beside it, ``vecnormalize.pkl``.
-
-    Raises:
-        DockError: one line for a missing, truncated or garbage policy or normalisation file,
-            or a policy whose weights or statistics hold NaN or infinity.
-    """
-    import pickle
-
-    from stable_baselines3 import PPO, SAC
-
-    from uwdock.rl.checkpoint import require_finite_policy
-
-    p = Path(path)
-    if p.is_dir():
-        p = p / "policy.zip"
-    if not p.is_file():
-        raise DockError(f"policy file not found: {p}")
-    model, reasons = None, []
-    for cls in (PPO, SAC):
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                model = cls.load(str(p), device="cpu")
-            break
-        except Exception as exc:  # SB3 raises anything from zip, pickle and torch errors
-            reasons.append(" ".join(str(exc).split())[:160] or type(exc).__name__)
-    if model is None:
-        raise DockError(f"cannot read policy {p}: not a PPO or SAC model ({reasons[0]})")
-    require_finite_policy(model, f"policy {p}")
-    vecnorm = None
-    vn = p.with_name("vecnormalize.pkl")
-    if vn.exists():
-        try:
-            with vn.open("rb") as fh:
-                vecnorm = pickle.load(fh)
-            stats = (vecnorm.obs_rms.mean, vecnorm.obs_rms.var)
-        except Exception as exc:
-            raise DockError(f"cannot read normalisation {vn}: {type(exc).__name__}") from None
-        if not all(np.all(np.isfinite(a)) for a in stats):
-            raise DockError(f"normalisation {vn} holds NaN or infinity")
-        vecnorm.training = False
-    return model, vecnorm
-
-
-def check_obs_dim(policy_dim: int, env_dim: int, policy: str) -> None:
-    """Raise DockError when a policy's observation size differs from the env's."""
-    if policy_dim != env_dim:
-        raise DockError(
-            f"policy {policy} takes {policy_dim} observation values, the env gives {env_dim}: "
-            "it was trained with another observation layout (obs_last_action, obs_uncertainty, "
-            "obs_frames); keep its run's config.toml (or the .json beside an .onnx) next to it"
-        )
+from uwdock.rl.policy_io import load_policy, policy_env_settings
 
 
 def _actor_module(model, vecnorm):
@@ -113,8 +58,6 @@ def _actor_module(model, vecnorm):
 def export_onnx(policy_path: str | os.PathLike[str], out: str | os.PathLike[str]) -> Path:
     """Write ``out`` (.onnx) and ``<out>.json`` (observation layout, limits, provenance)."""
     import torch
-
-    from uwdock.rl.report import policy_env_settings
 
     model, vecnorm = load_policy(policy_path)
     actor = _actor_module(model, vecnorm)
@@ -158,36 +101,3 @@ def _require_finite_outputs(actor, dim: int, policy: str) -> None:
         out = actor(torch.cat([torch.zeros(1, dim), probe]))
     if not bool(torch.isfinite(out).all()):
         raise DockError(f"policy {policy} outputs NaN or infinity: refusing to export it")
-
-
-class OnnxPolicy:
-    """Run an exported policy with onnxruntime: ``act(obs) -> action`` (a Controller)."""
-
-    def __init__(self, path: str | os.PathLike[str]) -> None:
-        import onnxruntime as ort
-
-        p = Path(path)
-        if not p.is_file():
-            raise DockError(f"ONNX policy not found: {p}")
-        opts = ort.SessionOptions()
-        opts.intra_op_num_threads = 1
-        opts.log_severity_level = 4
-        try:
-            self.session = ort.InferenceSession(str(p), opts, providers=["CPUExecutionProvider"])
-        except Exception as exc:
-            text = " ".join(str(exc).split())[:160]
-            raise DockError(f"cannot read ONNX policy {p}: {text or type(exc).__name__}") from None
-        shape = self.session.get_inputs()[0].shape
-        self.obs_dim = shape[-1] if isinstance(shape[-1], int) else None
-        meta = p.with_suffix(".json")
-        try:
-            self.meta = json.loads(meta.read_text(encoding="utf-8")) if meta.exists() else {}
-        except (OSError, ValueError) as exc:
-            raise DockError(f"cannot read {meta}: {exc}") from None
-
-    def reset(self) -> None:
-        pass
-
-    def act(self, obs: np.ndarray) -> np.ndarray:
-        x = np.asarray(obs, dtype=np.float32).reshape(1, -1)
-        return self.session.run(["action"], {"obs": x})[0][0].astype(np.float64)

@@ -11,13 +11,17 @@ returns of the rollouts, so PPO starts with a critic that matches its actor.
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 from typing import Annotated, Literal
 
 import numpy as np
+from tqdm import tqdm
 
 from uwdock.dockcore.domains import Interval
+from uwdock.rl.baselines import PIDController
 from uwdock.rl.config import EnvConfig
+from uwdock.rl.env import DockingEnv
 
 
 @dataclass(frozen=True)
@@ -76,13 +80,7 @@ def warm_start(
         the teacher; k > 0: the student fitted at k - 1) and the number of transitions; the
         selected iteration and the environment steps.
     """
-    import copy
-
     import torch
-    from tqdm import tqdm
-
-    from uwdock.rl.baselines import PIDController
-    from uwdock.rl.env import DockingEnv
 
     env = DockingEnv(env_cfg)
     success_key = f"success_{env_cfg.terminate_on}"  # the condition that ends an episode

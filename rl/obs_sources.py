@@ -8,6 +8,9 @@ Every source returns a :class:`Measurement` of ``T_world_ds`` with a covariance 
   sigma_k = ||e|| / 6: N(0, (sigma/2)^2) always, plus N(0, sigma^2) when the DS is not visible
   (memoryless: used with a non-fusing filter, exactly as in the paper).
 * ``error-model`` and ``camera``: see :mod:`rl.error_model` and :mod:`rl.camera_source`.
+
+Each source class declares what it needs from the env in ``needs`` (:class:`SourceNeeds`); the
+env reads that declaration and never asks a source for its name.
 """
 
 from __future__ import annotations
@@ -38,6 +41,24 @@ class Measurement:
 
 
 @dataclass(frozen=True)
+class SourceNeeds:
+    """What an observation source needs from the env, declared once per source class.
+
+    Attributes:
+        camera: the world renders the onboard camera (the source measures in its frames).
+        fusion: the DS pose filter fuses measurements over time; False makes every measurement
+            replace the estimate (the paper's memoryless proxy), whatever ``estimator.fuse``
+            says.
+        acoustic_fixes: the env adds a position-only acoustic (USBL) fix of the DS every
+            ``estimator.usbl_period_s``.
+    """
+
+    camera: bool = False
+    fusion: bool = True
+    acoustic_fixes: bool = True
+
+
+@dataclass(frozen=True)
 class StepContext:
     """What a source may look at: the true poses (for models), the step time and the filter's
     current DS estimate (a prior for disambiguating the camera's PnP)."""
@@ -50,6 +71,7 @@ class StepContext:
 
 class ObservationSource(Protocol):
     name: str
+    needs: SourceNeeds
 
     def reset(self, rng: np.random.Generator) -> None: ...
 
@@ -60,6 +82,8 @@ class ProxySource:
     """The paper's visibility proxy (module docstring)."""
 
     name = "proxy"
+    #: the paper's proxy is memoryless and has no acoustic fixes
+    needs = SourceNeeds(camera=False, fusion=False, acoustic_fixes=False)
 
     def __init__(self, task: DockingTaskConfig) -> None:
         self.task = task

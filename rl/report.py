@@ -4,92 +4,26 @@ from __future__ import annotations
 
 import csv
 import io
+import json
+import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from tqdm import tqdm
 
 from uwdock.dockcore.config import replace, to_dict
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_path, atomic_write_json, atomic_write_text
-from uwdock.dockcore.media import AtomicVideoWriter
 from uwdock.dockcore.outdir import claim_output_dir
 from uwdock.dockcore.provenance import provenance
-from uwdock.rl.config import EnvConfig
+from uwdock.rl.config import EnvConfig, check_env_files
+from uwdock.rl.env import SOURCE_CLASSES
 from uwdock.rl.evaluate import EpisodeTrace, run_episodes_parallel
-
-#: EnvConfig fields that define a policy's interface (observation layout, action scaling).
-POLICY_INTERFACE_FIELDS = (
-    "obs_last_action",
-    "obs_uncertainty",
-    "obs_frames",
-    "wrench_limits",
-    "wrench_scale",
-    "control_hz",
-)
-
-
-def _policy_train_env(policy: str) -> dict[str, Any]:
-    """The ``[train.env]`` table of the run a policy comes from: the ``config.toml`` of its run
-    folder (beside ``policy.zip`` or one level up, as for ``best/``) or, for an exported
-    ``.onnx``, the ``.json`` written beside it; {} if none."""
-    import json
-
-    from uwdock.dockcore.config import read_toml
-
-    if policy == "pid":
-        return {}
-    p = Path(policy)
-    if p.suffix == ".onnx":
-        meta = p.with_suffix(".json")
-        try:
-            data = json.loads(meta.read_text(encoding="utf-8")) if meta.is_file() else {}
-        except (OSError, ValueError) as exc:
-            raise DockError(f"cannot read {meta}: {exc}") from None
-        env = data.get("env", {}) if isinstance(data, dict) else {}
-        return env if isinstance(env, dict) else {}
-    folder = p if p.is_dir() else p.parent
-    for cand in (folder / "config.toml", folder.parent / "config.toml"):
-        if cand.is_file():
-            env = read_toml(cand, what="run config").get("train", {}).get("env", {})
-            if not isinstance(env, dict):
-                raise DockError(f"{cand}: [train.env] is not a table")
-            return env
-    return {}
-
-
-def policy_env_settings(policy: str) -> dict[str, Any]:
-    """The interface fields (observation layout, action scaling) of the env a policy was
-    trained in (see :func:`_policy_train_env`); {} if unknown."""
-    env = _policy_train_env(policy)
-    return {k: env[k] for k in POLICY_INTERFACE_FIELDS if k in env}
-
-
-def policy_error_model(policy: str) -> str | None:
-    """The error model file the policy's run trained on, if its run config names one."""
-    path = _policy_train_env(policy).get("error_model_path")
-    return path if isinstance(path, str) and path else None
-
-
-def load_controller(policy: str, env_cfg: EnvConfig):
-    """'pid', an .onnx file, or a policy.zip / run folder -> (controller, vecnorm, label)."""
-    if policy == "pid":
-        from uwdock.rl.baselines import PIDController
-
-        return PIDController.for_env(env_cfg), None, "pid"
-    path = Path(policy)
-    from uwdock.rl.export import OnnxPolicy, check_obs_dim, load_policy
-    from uwdock.rl.observation import observation_size
-
-    env_dim = observation_size(env_cfg)
-    if path.suffix == ".onnx":
-        onnx = OnnxPolicy(path)
-        if onnx.obs_dim is not None:
-            check_obs_dim(onnx.obs_dim, env_dim, str(path))
-        return onnx, None, path.name
-    model, vecnorm = load_policy(path)
-    check_obs_dim(int(model.observation_space.shape[0]), env_dim, str(path))
-    return model, vecnorm, str(path)
+from uwdock.rl.policy_io import load_controller
+from uwdock.sim.thrusters import ThrusterRandomisation
+from uwdock.sim.vehicle import VehicleRandomisation
+from uwdock.sim.water import PRESET_ORDER
 
 
 def _csv(rows: list[dict[str, Any]]) -> str:
@@ -171,23 +105,9 @@ def plot_traces(tr: EpisodeTrace, path: Path, title: str) -> None:
     plt.close(fig)
 
 
-def write_video(frames: list[np.ndarray], path: Path, fps: float = 5.0) -> Path | None:
-    """(H, W, 3) uint8 RGB frames -> MP4 (mp4v) written atomically; None when there is none."""
-    import cv2
-
-    if not frames:
-        return None
-    with AtomicVideoWriter(path, fps) as video:
-        for f in frames:
-            video.write(cv2.cvtColor(f, cv2.COLOR_RGB2BGR))
-    return video.path
-
-
 def plot_eval_history(history_path: Path, path: Path) -> Path | None:
     """Training curve from a run's ``eval_history.jsonl``: paper and strict success, time to
     dock and collisions against environment steps (each new best checkpoint marked)."""
-    import json
-
     import matplotlib
 
     matplotlib.use("Agg")
@@ -222,26 +142,6 @@ def plot_eval_history(history_path: Path, path: Path) -> Path | None:
     return Path(path)
 
 
-def write_frames_sheet(
-    frames: list[np.ndarray], path: Path, dt_s: float, first_s: float = 0.0, n: int = 8
-) -> Path | None:
-    """``n`` evenly spaced camera frames of an episode (RGB) as a captioned contact sheet (PNG
-    or JPEG, from the suffix of ``path``);
-    frame k is captioned with its time ``first_s + k * dt_s``."""
-    import cv2
-
-    from uwdock.perception.video import write_contact_sheet
-
-    if not frames:
-        return None
-    idx = np.unique(np.linspace(0, len(frames) - 1, min(n, len(frames))).round().astype(int))
-    thumbs = [
-        (int(k), f"t = {first_s + k * dt_s:.1f} s", cv2.cvtColor(frames[k], cv2.COLOR_RGB2BGR))
-        for k in idx
-    ]
-    return write_contact_sheet(path, thumbs, cols=4)
-
-
 STRESS_CURRENTS_MPS = (0.0, 0.1, 0.2, 0.3)
 STRESS_THRUSTER_ERRORS_M = (0.0, 0.02, 0.05)
 
@@ -252,20 +152,13 @@ def stress_tables(
     """Graded stress: current speed (random direction), water preset, thruster placement.
 
     One progress bar over all rows, its label naming the row being run."""
-    from tqdm import tqdm
-
-    from uwdock.sim.thrusters import ThrusterRandomisation
-    from uwdock.sim.vehicle import VehicleRandomisation
-
     rows: list[tuple[str, str, Any, EnvConfig]] = []
     for speed in STRESS_CURRENTS_MPS:
         cur = replace(
             env_cfg.current, mode="random", range_x_mps=(-speed, speed), range_y_mps=(-speed, speed)
         )
         rows.append(("current", "current_max_mps", speed, replace(env_cfg, current=cur)))
-    if env_cfg.obs_source == "camera":
-        from uwdock.sim.water import PRESET_ORDER
-
+    if SOURCE_CLASSES[env_cfg.obs_source].needs.camera:  # the water acts on rendered frames
         for preset in PRESET_ORDER:
             rows.append(("water", "water", preset, replace(env_cfg, water_preset=preset)))
     for err in STRESS_THRUSTER_ERRORS_M:
@@ -320,8 +213,6 @@ def evaluate_to_folder(
     bad = [k for k in video_episodes if not 0 <= k < episodes]
     if bad:
         raise DockError(f"--videos: episode {bad[0]} is not among the {episodes} episodes")
-    from uwdock.rl.config import check_env_files
-
     check_env_files(env_cfg)
     _, _, label = load_controller(policy, env_cfg)  # fail fast on a bad policy
     with claim_output_dir(out_dir, "rl eval") as out:
@@ -343,10 +234,6 @@ def _evaluate_into(
     stress_episodes: int,
     workers: int,
 ) -> dict[str, Any]:
-    import time
-
-    from tqdm import tqdm
-
     bar = tqdm(total=episodes, desc=f"eval {env_cfg.obs_source}", unit="ep")
     t0 = time.perf_counter()
     try:

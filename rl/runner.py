@@ -25,8 +25,8 @@ from uwdock.calibration.camera import REFERENCE_T_BODYFRD_CAMCV, load_camera, re
 from uwdock.rl.camera_source import measure_from_image
 from uwdock.rl.config import EnvConfig
 from uwdock.rl.estimator import DSPoseFilter
-from uwdock.rl.export import OnnxPolicy
 from uwdock.rl.observation import observation_frame, observation_size
+from uwdock.rl.policy_io import OnnxPolicy
 
 
 @dataclass(frozen=True)
@@ -71,7 +71,7 @@ class DockingRunner:
 
         if env_cfg is None:  # an exported policy carries its observation layout and limits
             from uwdock.dockcore.config import replace
-            from uwdock.rl.report import policy_env_settings
+            from uwdock.rl.policy_io import policy_env_settings
 
             exported = isinstance(policy, (str, os.PathLike))
             env_cfg = replace(EnvConfig(), **(policy_env_settings(str(policy)) if exported else {}))

@@ -32,6 +32,8 @@ from uwdock.rl.checkpoint import (
     rng_state,
     write_unit,
 )
+from uwdock.rl.evaluate import run_episodes
+from uwdock.rl.report import plot_eval_history
 
 HISTORY = "eval_history.jsonl"
 EVAL_SEED = 10_000
@@ -153,8 +155,6 @@ class TrainingSession:
     def evaluate(self, step: int) -> dict[str, Any]:
         """Evaluate the deterministic policy on the fixed episodes; keep it in ``best/`` when
         it scores higher (success that ends the episode, then the other, then the return)."""
-        from uwdock.rl.evaluate import run_episodes
-
         summary = run_episodes(
             self.model,
             self.cfg.env,
@@ -193,8 +193,6 @@ class TrainingSession:
         text = "".join(json.dumps(r, sort_keys=True) + "\n" for r in self.history)
         atomic_write_text(path, text)
         if self.history:
-            from uwdock.rl.report import plot_eval_history
-
             plot_eval_history(path, self.run / "eval_history.png")
 
     def _write_best(self) -> None:

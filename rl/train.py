@@ -34,7 +34,8 @@ from uwdock.dockcore.domains import Count, Fraction, Interval, Seed
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_write_bytes, atomic_write_json, atomic_write_text
 from uwdock.dockcore.outdir import claim_output_dir
-from uwdock.dockcore.provenance import write_provenance
+from uwdock.dockcore.provenance import git_commit, write_provenance
+from uwdock.rl.callbacks import training_callback
 from uwdock.rl.checkpoint import (
     has_legacy_checkpoints,
     latest_unit,
@@ -44,7 +45,11 @@ from uwdock.rl.checkpoint import (
     require_finite_policy,
 )
 from uwdock.rl.config import EnvConfig, check_env_files
-from uwdock.rl.imitation import ImitationConfig
+from uwdock.rl.imitation import ImitationConfig, warm_start
+from uwdock.rl.observation import observation_size
+from uwdock.rl.policy_io import check_obs_dim, load_policy
+from uwdock.rl.session import TrainingSession, load_model, load_vecnormalize
+from uwdock.rl.workers import EnvWorkers
 
 _LearningRate = Annotated[float, Interval(gt=0, le=1)]
 _Width = Annotated[int, Interval(ge=1, le=4096)]  # units in a hidden layer
@@ -283,9 +288,6 @@ def train(
     check_env_files(cfg.env)
     init = None
     if init_policy:
-        from uwdock.rl.export import check_obs_dim, load_policy
-        from uwdock.rl.observation import observation_size
-
         init = load_policy(init_policy)  # refuses damaged or non-finite policies
         env_dim = observation_size(cfg.env)
         check_obs_dim(int(init[0].observation_space.shape[0]), env_dim, init_policy)
@@ -318,8 +320,6 @@ def train(
 
 
 def _log_resume(run: Path, unit, changed: list[str], cfg: TrainConfig) -> None:
-    from uwdock.dockcore.provenance import git_commit
-
     record = {
         "resumed_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]),
@@ -338,10 +338,6 @@ def _run(cfg: TrainConfig, run: Path, unit, init, progress: bool, note) -> Path:
     import torch
     from stable_baselines3 import PPO, SAC
     from stable_baselines3.common.vec_env import VecNormalize
-
-    from uwdock.rl.callbacks import TrainingCallback
-    from uwdock.rl.session import TrainingSession, load_model, load_vecnormalize
-    from uwdock.rl.workers import EnvWorkers
 
     torch.set_num_threads(1)
     algo_cls = PPO if cfg.algo == "ppo" else SAC
@@ -368,8 +364,6 @@ def _run(cfg: TrainConfig, run: Path, unit, init, progress: bool, note) -> Path:
             model = build_model(cfg, venv, run / "tb")
             warm = cfg.imitation.teacher != "none" and init is None
             if warm:
-                from uwdock.rl.imitation import warm_start
-
                 hist = warm_start(
                     model, vecnorm, cfg.env, cfg.imitation, cfg.seed, gamma, progress=progress
                 )
@@ -386,7 +380,7 @@ def _run(cfg: TrainConfig, run: Path, unit, init, progress: bool, note) -> Path:
             session = TrainingSession(cfg, run, model, vecnorm, note)
             session.start(warm_started=warm)
         if model.num_timesteps < cfg.total_steps:
-            cb = TrainingCallback(session, cfg.total_steps, progress=progress)
+            cb = training_callback(session, cfg.total_steps, progress=progress)
             try:
                 model.learn(
                     total_timesteps=cfg.total_steps - model.num_timesteps,

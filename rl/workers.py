@@ -17,10 +17,15 @@ import multiprocessing
 import os
 import signal
 import tempfile
+import time
 from pathlib import Path
 
+import gymnasium as gym
+
 from uwdock.dockcore.errors import DockError
+from uwdock.dockcore.procs import die_with_parent
 from uwdock.rl.config import EnvConfig
+from uwdock.rl.env import DockingEnv
 
 
 class WorkerError(DockError):
@@ -41,7 +46,6 @@ def _report_and_exit(error_file: str, index: int, exc: BaseException) -> None:
 
 def _guarded_env(env, error_file: str, index: int):
     """Wrap ``env`` so an exception in a worker ends it with its reason written down."""
-    import gymnasium as gym
 
     class Guard(gym.Wrapper):
         def reset(self, **kwargs):
@@ -66,12 +70,8 @@ def _make_env_fn(
         if parent is not None:  # a worker process: the parent alone handles signals
             signal.signal(signal.SIGINT, signal.SIG_IGN)
             signal.signal(signal.SIGTERM, signal.SIG_DFL)
-            from uwdock.dockcore.procs import die_with_parent
-
             die_with_parent(parent)
         from stable_baselines3.common.monitor import Monitor
-
-        from uwdock.rl.env import DockingEnv
 
         try:
             env = Monitor(DockingEnv(env_cfg), info_keywords=("success_paper", "success_strict"))
@@ -131,8 +131,6 @@ class EnvWorkers:
     def raise_worker_error(self, exc: BaseException) -> None:
         """Raise a :class:`WorkerError` with the workers' reasons (``exc``: what the parent
         saw, used when no worker left a reason)."""
-        import time
-
         deadline = time.monotonic() + 3.0  # let the other failing workers write their reason
         for p in self._processes():
             p.join(timeout=max(0.0, deadline - time.monotonic()))

@@ -33,6 +33,7 @@ from uwdock.calibration.frames import check_R
 from uwdock.dockcore.config import check_fields
 from uwdock.dockcore.domains import Interval
 from uwdock.sim.domains import BodyCoord_m, Friction, RelativeRange, validate_each
+from uwdock.sim.fastpath import hydro_accel, hydro_params  # numba; no loop: see fastpath
 from uwdock.sim.thrusters import ThrusterArrayConfig, ThrusterRandomisation
 
 __all__ = [
@@ -388,8 +389,6 @@ class Hydrodynamics:
             (u..r) the body velocity, (cu, cv, cw) the current in body FRD and (X..N) the
             applied wrench; all floats.
         """
-        from uwdock.sim.fastpath import hydro_accel, hydro_params  # numba; imports this module
-
         params = hydro_params(self)
 
         def accel(*args: float) -> tuple[float, float, float, float, float, float]:

@@ -29,10 +29,10 @@ def _roots() -> list[type]:
     from uwdock.markers.config import MarkerConfig
     from uwdock.perception.evaluate import PerceptionConfig
     from uwdock.rl.baselines import PIDConfig
+    from uwdock.rl.episode import EpisodeVideoConfig
     from uwdock.rl.error_model import ErrorModelConfig
     from uwdock.rl.train import TrainConfig
     from uwdock.sim.docking_station import DockingStationConfig
-    from uwdock.sim.episode import EpisodeVideoConfig
     from uwdock.sim.water import WaterConfig
 
     return [

@@ -15,9 +15,9 @@ import pytest
 
 from tests.hostile_runs import assert_refused, dead_pid, tree
 from uwdock.datasets import cli as datasets_cli
-from uwdock.sim import cli as sim_cli
+from uwdock.rl import cli as rl_cli
+from uwdock.rl.episode import EpisodeVideoConfig, record_episode
 from uwdock.sim.docking_station import DockingStationConfig, build_docking_station, build_tank
-from uwdock.sim.episode import EpisodeVideoConfig, record_episode
 from uwdock.sim.render import CameraRig, RenderConfig, make_render_scene
 from uwdock.sim.thrusters import ThrusterArray, ThrusterArrayConfig, ThrusterRandomisation
 from uwdock.sim.vehicle import (
@@ -53,7 +53,7 @@ QUICK = ("--seconds", "0.4", *SMALL)
 )
 def test_bad_episode_options_stop_with_one_line(run_cli, tmp_path, args, key):
     out = tmp_path / "ep"
-    res = run_cli(sim_cli.main, "episode", "--out", out, *QUICK, *args)
+    res = run_cli(rl_cli.main, "episode", "--out", out, *QUICK, *args)
     assert key in assert_refused(res, out)
 
 
@@ -92,7 +92,7 @@ def test_bad_episode_config_values_stop_with_one_line(run_cli, tmp_path, toml, k
     short = "" if toml.startswith("episode_s") else "episode_s = 0.4\n"  # were it accepted
     cfg.write_text(short + toml, encoding="utf-8")
     out = tmp_path / "ep"
-    res = run_cli(sim_cli.main, "episode", "--out", out, *SMALL, "--config", cfg)
+    res = run_cli(rl_cli.main, "episode", "--out", out, *SMALL, "--config", cfg)
     assert key in assert_refused(res, out)
 
 
@@ -108,9 +108,9 @@ def _foreign_folder(tmp_path, name: str, command: str):
 def test_another_tools_folder_is_refused(run_cli, tmp_path):
     markers = _foreign_folder(tmp_path, "markers", "markers generate --out markers")
     before = tree(markers)
-    res = run_cli(sim_cli.main, "episode", "--out", markers, *QUICK)
+    res = run_cli(rl_cli.main, "episode", "--out", markers, *QUICK)
     assert "`markers generate`" in assert_refused(res)
-    res = run_cli(sim_cli.main, "render", "--out", markers, "--n", "1", "--width", "96")
+    res = run_cli(datasets_cli.main, "render", "--out", markers, "--n", "1", "--width", "96")
     assert "`markers generate`" in assert_refused(res)
     run = tmp_path / "run"
     run.mkdir()
@@ -128,25 +128,25 @@ def test_render_and_episode_claim_their_folders(run_cli, tmp_path):
     assert run_cli(datasets_cli.main, "synth", *args).code == 0
     before = tree(synth)
     # the same engine and settings: before folders had owners this "resumed" and took it over
-    res = run_cli(sim_cli.main, "render", *args)
+    res = run_cli(datasets_cli.main, "render", *args)
     assert "`datasets synth`" in assert_refused(res)
     assert tree(synth) == before
     episode = tmp_path / "ep"
     env_toml = tmp_path / "env.toml"  # the file's values count unless a flag overrides them
     env_toml.write_text("episode_s = 0.4\ncamera_width_px = 96\n")
     args = ("--out", episode, "--outside-width", "96", "--quiet", "--config", env_toml)
-    assert run_cli(sim_cli.main, "episode", *args).code == 0
+    assert run_cli(rl_cli.main, "episode", *args).code == 0
     assert json.loads((episode / "summary.json").read_text())["steps"] == 2
     assert "camera_width_px = 96" in (episode / "config.toml").read_text()
     owner = json.loads((episode / ".uwdock-owner.json").read_text())
-    assert owner["tool"] == "sim episode"
+    assert owner["tool"] == "rl episode"
     stale = episode / f".episode.mp4.{dead_pid()}.x7_k2q.uwtmp.mp4"  # a killed run's video
     stale.write_bytes(b"half a video")
-    assert run_cli(sim_cli.main, "episode", *args).code == 0  # its own folder: rewritten
+    assert run_cli(rl_cli.main, "episode", *args).code == 0  # its own folder: rewritten
     assert not stale.exists()
     before = tree(episode)
-    res = run_cli(sim_cli.main, "render", "--out", episode, "--n", "1", "--width", "96")
-    assert "`sim episode`" in assert_refused(res)
+    res = run_cli(datasets_cli.main, "render", "--out", episode, "--n", "1", "--width", "96")
+    assert "`rl episode`" in assert_refused(res)
     assert tree(episode) == before
 
 
@@ -266,5 +266,5 @@ def test_given_poses_must_put_the_camera_under_water(run_cli, tmp_path, row, whe
     poses = tmp_path / "poses.csv"
     poses.write_text(f"x_m,y_m,z_m,roll_deg,pitch_deg,yaw_deg\n0,0,2.0,0,0,0\n{row}\n")
     out = tmp_path / "r"
-    line = assert_refused(run_cli(sim_cli.main, "render", "--poses", poses, "--out", out), out)
+    line = assert_refused(run_cli(datasets_cli.main, "render", "--poses", poses, "--out", out), out)
     assert line.startswith("error: poses[1]: the camera (world NED") and where in line

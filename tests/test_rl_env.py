@@ -188,12 +188,12 @@ def test_train_resume_eval_export_through_the_cli(run_cli, tmp_path):
     res = run_cli(cli.main, "export", "--policy", run / "policy.zip", "--out", onnx_path)
     assert res.code == 0, res.err
     from uwdock.rl.evaluate import SB3Controller
-    from uwdock.rl.export import OnnxPolicy, load_policy
+    from uwdock.rl.policy_io import OnnxPolicy, load_policy
 
     model, vecnorm = load_policy(run / "policy.zip")
     sb3, onnx = SB3Controller(model, vecnorm), OnnxPolicy(onnx_path)
     # the exported policy carries its interface (observation layout, limits) for eval and runner
-    from uwdock.rl.report import policy_env_settings
+    from uwdock.rl.policy_io import policy_env_settings
 
     carried = policy_env_settings(str(onnx_path))
     assert carried == policy_env_settings(str(run)) and carried["obs_last_action"] is False
@@ -321,7 +321,7 @@ def test_dagger_warm_start_imitates_the_teacher(tmp_path):
 def test_camera_frames_sheet_picks_evenly_spaced_captioned_frames(tmp_path):
     import cv2
 
-    from uwdock.rl.report import write_frames_sheet
+    from uwdock.rl.episode_media import write_frames_sheet
 
     frames = [np.full((48, 64, 3), 10 * k, np.uint8) for k in range(20)]
     path = write_frames_sheet(frames, tmp_path / "sheet.png", dt_s=0.2, n=8)
@@ -364,7 +364,7 @@ def test_dagger_restores_the_normalisation_of_the_student_it_keeps(tmp_path, mon
     """When an earlier student scores best, it comes back with the statistics it was fitted on."""
     from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
-    import uwdock.rl.env
+    import uwdock.rl.imitation
     from uwdock.rl.imitation import ImitationConfig, warm_start
     from uwdock.rl.train import PPOConfig, TrainConfig, build_model
 
@@ -390,7 +390,7 @@ def test_dagger_restores_the_normalisation_of_the_student_it_keeps(tmp_path, mon
     )
     venv = VecNormalize(DummyVecEnv([lambda: DockingEnv(cfg.env)]))
     model = build_model(cfg, venv, tmp_path / "tb")
-    monkeypatch.setattr(uwdock.rl.env, "DockingEnv", ScriptedSuccess)
+    monkeypatch.setattr(uwdock.rl.imitation, "DockingEnv", ScriptedSuccess)
     icfg = ImitationConfig(iterations=3, episodes_per_iteration=2, epochs=2)
     hist = warm_start(model, venv, cfg.env, icfg, seed=0, gamma=0.99, progress=False)
     assert hist["selected_iteration"] == [0]
@@ -471,7 +471,7 @@ def test_stress_tables_rows_progress_and_seeds(capsys):
 def test_eval_error_model_defaults_to_the_one_the_policy_trained_on(run_cli, tmp_path):
     import shutil
 
-    from uwdock.rl.report import policy_error_model
+    from uwdock.rl.policy_io import policy_error_model
 
     shipped = "rl/policies/error_model_ppo"
     assert policy_error_model(shipped) == "rl/models/error_model_clear_tank_480.json"
@@ -496,3 +496,36 @@ def test_eval_error_model_defaults_to_the_one_the_policy_trained_on(run_cli, tmp
     assert res.code == 2 and res.err.count("\n") == 1
     assert "required for obs_source 'error-model'" in res.err and "--error-model FILE" in res.err
     assert not (tmp_path / "e3").exists()
+
+
+def test_env_reads_what_a_source_needs_not_its_name(monkeypatch):
+    """The filter's fusion and the acoustic fixes follow the source class's ``needs``: the same
+    ``proxy`` config gets both once its class declares them."""
+    from uwdock.rl.camera_source import CameraSource
+    from uwdock.rl.error_model import ErrorModelSource
+    from uwdock.rl.obs_sources import ProxySource, SourceNeeds
+
+    assert ProxySource.needs == SourceNeeds(camera=False, fusion=False, acoustic_fixes=False)
+    assert ErrorModelSource.needs == SourceNeeds(camera=False, fusion=True, acoustic_fixes=True)
+    assert CameraSource.needs == SourceNeeds(camera=True, fusion=True, acoustic_fixes=True)
+    est = replace(EnvConfig().estimator, fuse=True, usbl_period_s=1.0)
+    cfg = replace(SHORT, obs_source="proxy", estimator=est)
+
+    def run(env: DockingEnv) -> list[float]:
+        sigmas: list[float] = []
+        update = env.filter.update_position
+        env.filter.update_position = lambda p, s: (sigmas.append(s), update(p, s))[1]
+        env.reset(seed=4)
+        for _ in range(11):  # 2.2 s at 5 Hz: a fix at the start, then every 5 steps
+            env.step(np.zeros(6, dtype=np.float32))
+        env.close()
+        return sigmas
+
+    env = DockingEnv(cfg)
+    assert (env.filter.cfg.fuse, env.world.with_camera) == (False, False)
+    assert run(env) == []  # the paper's proxy: memoryless, no acoustic fixes
+    monkeypatch.setattr(ProxySource, "needs", SourceNeeds(fusion=True, acoustic_fixes=True))
+    env = DockingEnv(cfg)
+    assert (env.filter.cfg.fuse, env.world.with_camera) == (True, False)
+    sigmas = run(env)
+    assert len(sigmas) == 3 and all(0 < s < 5 for s in sigmas)

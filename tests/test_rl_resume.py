@@ -122,8 +122,9 @@ def test_killed_and_resumed_training_equals_uninterrupted(reference):
     resume = _rl("train", "--out", run, "--resume")
     ckpt = run / "checkpoints"
     kills = [
-        # before the first checkpoint (during start-up or the DAgger warm start)
-        (first, lambda: True, signal.SIGKILL, rng.uniform(2.0, 4.0)),
+        # before the first checkpoint (during start-up or the DAgger warm start), once the run
+        # folder holds its config (a kill before that leaves nothing a --resume could go on from)
+        (first, lambda: (run / "config.toml").exists(), signal.SIGKILL, rng.uniform(0.0, 2.0)),
         # mid-run, each signal once, a random moment after a given checkpoint
         (resume, lambda: (ckpt / "step_0000000128").exists(), signal.SIGKILL, rng.uniform(0, 1)),
         (resume, lambda: (ckpt / "step_0000000256").exists(), signal.SIGTERM, rng.uniform(0, 1)),

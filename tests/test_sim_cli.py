@@ -1,4 +1,4 @@
-"""``sim render`` and ``sim episode`` through the CLI runner, and their input errors.
+"""``datasets render`` and ``rl episode`` through the CLI runner, and their input errors.
 
 Rendering tests are marked ``render`` (SAPIEN on lavapipe or a GPU).
 """
@@ -13,7 +13,10 @@ import pytest
 
 from uwdock.calibration.camera import REFERENCE_T_BODYFRD_CAMCV
 from uwdock.calibration.frames import R_from_rpy, make_T
+from uwdock.datasets import cli as datasets_cli
+from uwdock.rl import cli as rl_cli
 from uwdock.sim import cli as sim_cli
+from uwdock.sim.water import PRESET_ORDER, PRESETS
 
 T_WD = make_T(t=[0.0, 0.0, 4.98])  # default DS pose: tank floor (5 m deep) at the tank centre
 
@@ -26,31 +29,31 @@ def _one_line_error(res) -> None:
 
 def test_bad_inputs(run_cli, tmp_path):
     out = tmp_path / "out"
-    res = run_cli(sim_cli.main, "render", "--out", out, "--n", "1", "--water", "lagoon")
+    res = run_cli(datasets_cli.main, "render", "--out", out, "--n", "1", "--water", "lagoon")
     _one_line_error(res)
     assert "lagoon" in res.err
-    _one_line_error(run_cli(sim_cli.main, "render", "--out", out, "--n", "0"))
+    _one_line_error(run_cli(datasets_cli.main, "render", "--out", out, "--n", "0"))
     poses = tmp_path / "poses.csv"
     poses.write_text("x_m,y_m,z_m,roll_deg,pitch_deg,yaw_deg\n0,0,2,0,0,0\n")
-    res = run_cli(sim_cli.main, "render", "--out", out, "--n", "1", "--poses", poses)
+    res = run_cli(datasets_cli.main, "render", "--out", out, "--n", "1", "--poses", poses)
     _one_line_error(res)
     assert "either" in res.err
     poses.write_text("x_m,y_m,z_m,roll_deg,pitch_deg,yaw_deg\n0,0,2,0,zero,0\n")
-    res = run_cli(sim_cli.main, "render", "--out", out, "--poses", poses)
+    res = run_cli(datasets_cli.main, "render", "--out", out, "--poses", poses)
     _one_line_error(res)
     assert "line 2" in res.err
     blocker = tmp_path / "file.txt"
     blocker.write_text("x")
-    _one_line_error(run_cli(sim_cli.main, "render", "--out", blocker / "sub", "--n", "1"))
-    res = run_cli(sim_cli.main, "episode", "--out", out, "--water", "lagoon")
+    _one_line_error(run_cli(datasets_cli.main, "render", "--out", blocker / "sub", "--n", "1"))
+    res = run_cli(rl_cli.main, "episode", "--out", out, "--water", "lagoon")
     _one_line_error(res)
-    _one_line_error(run_cli(sim_cli.main, "episode", "--out", out, "--seconds", "0"))
-    _one_line_error(run_cli(sim_cli.main, "episode", "--out", blocker / "sub", "--seconds", "1"))
+    _one_line_error(run_cli(rl_cli.main, "episode", "--out", out, "--seconds", "0"))
+    _one_line_error(run_cli(rl_cli.main, "episode", "--out", blocker / "sub", "--seconds", "1"))
     cfg = tmp_path / "env.toml"
     cfg.write_text("episode_s = [\n")
-    _one_line_error(run_cli(sim_cli.main, "episode", "--out", out, "--config", cfg))
+    _one_line_error(run_cli(rl_cli.main, "episode", "--out", out, "--config", cfg))
     cfg.write_text("spawn_auv_height_m = 0.5\n")  # inside the DS: EnvConfig.validate refuses
-    res = run_cli(sim_cli.main, "episode", "--out", out, "--config", cfg)
+    res = run_cli(rl_cli.main, "episode", "--out", out, "--config", cfg)
     _one_line_error(res)
     assert "spawn_auv_height_m" in res.err
     assert not out.exists() or not any(out.iterdir())
@@ -59,11 +62,11 @@ def test_bad_inputs(run_cli, tmp_path):
 @pytest.mark.render
 def test_render_random_and_given_poses(run_cli, tmp_path):
     out = tmp_path / "random"
-    res = run_cli(sim_cli.main, "render", "--out", out, "--n", "3", "--width", "96", "--quiet")
+    res = run_cli(datasets_cli.main, "render", "--out", out, "--n", "3", "--width", "96", "--quiet")
     assert res.code == 0, res.err
     labels = [json.loads(s) for s in (out / "labels.jsonl").read_text().splitlines()]
     assert [lab["frame"] for lab in labels] == [0, 1, 2]
-    assert all(lab["water"] is None for lab in labels)  # sim render default: the clean render
+    assert all(lab["water"] is None for lab in labels)  # datasets render default: the clean render
     assert cv2.imread(str(out / "images" / "000002.png")).shape == (73, 96, 3)
 
     # given poses: 2 m and 3 m above the DS floor, level, yawed
@@ -73,7 +76,7 @@ def test_render_random_and_given_poses(run_cli, tmp_path):
     )
     out = tmp_path / "given"
     res = run_cli(
-        sim_cli.main, "render", "--out", out, "--poses", poses, "--width", "120",
+        datasets_cli.main, "render", "--out", out, "--poses", poses, "--width", "120",
         "--water", "coastal", "--quiet",
     )  # fmt: skip
     assert res.code == 0, res.err
@@ -98,7 +101,7 @@ def test_render_random_and_given_poses(run_cli, tmp_path):
 def test_episode_video(run_cli, tmp_path):
     out = tmp_path / "ep"
     res = run_cli(
-        sim_cli.main, "episode", "--out", out, "--seconds", "2", "--width", "96",
+        rl_cli.main, "episode", "--out", out, "--seconds", "2", "--width", "96",
         "--outside-width", "96", "--seed", "1", "--water", "turbid", "--quiet",
     )  # fmt: skip
     assert res.code == 0, res.err
@@ -124,3 +127,20 @@ def test_episode_video(run_cli, tmp_path):
     left, right = frames[-1][:, : w // 2].astype(float), frames[-1][:, w // 2 :].astype(float)
     assert np.abs(left.mean(axis=(0, 1)) - right.mean(axis=(0, 1))).max() > 3.0
     assert (out / "config.toml").is_file() and (out / "provenance.json").is_file()
+
+
+def test_sim_water_lists_the_presets(run_cli):
+    """``sim water``: every preset, clearest first, with the numbers of its WaterConfig."""
+    res = run_cli(sim_cli.main, "water", "--json")
+    assert res.code == 0, res.err
+    data = json.loads(res.out)
+    assert list(data) == list(PRESET_ORDER)
+    for name in PRESET_ORDER:
+        assert data[name]["beta_D_rgb"] == pytest.approx(list(PRESETS[name].beta_D_rgb))
+        assert data[name]["blur_sigma_per_m"] == PRESETS[name].blur_sigma_per_m
+    res = run_cli(sim_cli.main, "water")
+    assert res.code == 0
+    lines = res.out.strip().splitlines()
+    assert [line.split()[0] for line in lines] == list(PRESET_ORDER)
+    beta_d = [float(v) for v in lines[1].split("beta_D ")[1].split()[:3]]
+    assert beta_d == pytest.approx(PRESETS["coastal"].beta_D_rgb, abs=5e-4)

@@ -15,9 +15,15 @@ GROUPS = {
     "markers": (None, "3D Binary Markers: printable STL, PDF/SVG sheets, the marker set file."),
     "perception": (None, "3DBM detection, DS pose from the marker board, footage evaluation."),
     "calibration": (None, "Camera intrinsics from images, camera-to-vehicle extrinsics."),
-    "datasets": ("sim", "Labelled synthetic datasets rendered with SAPIEN."),
-    "sim": ("sim", "SAPIEN world: rendered frames and checks of the simulator."),
-    "rl": ("rl", "Docking env, PPO training, evaluation with the camera in the loop, export."),
+    "datasets": (
+        "sim",
+        "Labelled synthetic datasets rendered with SAPIEN; frames for given poses.",
+    ),
+    "sim": ("sim", "The simulator's own commands: the water presets."),
+    "rl": (
+        "rl",
+        "Docking env, PPO training, evaluation with the camera in the loop, export, videos.",
+    ),
 }
 
 

@@ -9,7 +9,7 @@ render shapes copied from its PhysX collision shapes; they are shown in the outs
 (hidden while the downward camera renders). The vehicle's body axes are drawn on top (x red,
 y green, z blue).
 
-The env is duck-typed (this module does not import ``rl``): anything with the Gymnasium
+The env is duck-typed: anything with the Gymnasium
 ``reset``/``step`` API whose ``world`` has ``scene``, ``render_scene``, ``vehicle`` (a
 :class:`sim.physics.VehicleBody`), ``ds_cfg``, ``T_world_body`` and ``T_world_ds``, such as
 ``rl.env.DockingEnv(render_mode="rgb_array")``; ``info`` may carry ``e_true``, ``e_psi_true``,
