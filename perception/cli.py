@@ -219,7 +219,9 @@ def eval_cmd(
             truth, truth_source = ds.frames, str(input_path)
     if camera_path is None:
         raise DockError("--camera is required (the camera file of INPUT's frames)")
-    camera = _camera(camera_path)
+    from uwdock.calibration.camera import resolve_camera
+
+    camera, T_body_cam = resolve_camera(camera_path)  # the mounting: reference when unstated
     setup = resolve_markers(markers_path, dictionary, marker_size_m)
     if gt_path is not None:
         truth, truth_source = load_ground_truth(gt_path), str(gt_path)
@@ -234,6 +236,7 @@ def eval_cmd(
         truth_source,
         progress=False if (quiet or as_json) else None,
         note=_note,
+        T_body_cam=T_body_cam,
     )
     if as_json:
         click.echo(json.dumps(report, indent=2))

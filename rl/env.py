@@ -28,7 +28,7 @@ from uwdock.rl.obs_sources import ObservationSource, ProxySource, StepContext
 from uwdock.rl.observation import OBS_BOUND, observation_frame, observation_size
 from uwdock.rl.rewards import DockingReward
 from uwdock.rl.task import docking_errors, ds_visible, paper_success, pegs_seated
-from uwdock.rl.world import DockingWorld
+from uwdock.sim.world import DockingWorld
 
 
 class SimulationError(DockError):
@@ -53,7 +53,7 @@ class DockingEnv(gym.Env):
         self.dt_s = 1.0 / c.control_hz
         self.max_steps = round(c.episode_s * c.control_hz)
         self.world = DockingWorld(
-            c, with_camera=c.obs_source == "camera" or render_mode is not None
+            c.world, with_camera=c.obs_source == "camera" or render_mode is not None
         )
         self.source = self._make_source()
         est_cfg = c.estimator
@@ -83,7 +83,7 @@ class DockingEnv(gym.Env):
             return ErrorModelSource(load_error_model(c.error_model_path), c.task, c.water_preset)
         from uwdock.rl.camera_source import CameraSource
 
-        return CameraSource(self.world, c)
+        return CameraSource(self.world)
 
     def _spawn(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
         """Draw T_world_ds and T_world_body (NED) over the spawn ranges."""
@@ -169,7 +169,7 @@ class DockingEnv(gym.Env):
 
     def render(self):
         if self.render_mode == "rgb_array":
-            return self.world.render_camera()
+            return self.world.render_camera_rgb()
         return None
 
     def camera_frame(self) -> np.ndarray | None:
@@ -177,18 +177,14 @@ class DockingEnv(gym.Env):
         outlined and the step's status written on it; None without a camera."""
         import cv2
 
-        img = getattr(self.source, "last_image", None)
+        frame = getattr(self.source, "last_frame", None)
         dets = getattr(self.source, "last_detections", [])
-        if img is None:
-            res = self.world.render()
-            if res is None:
+        if frame is None:
+            frame = self.world.capture(self._film_rng)
+            if frame is None:
                 return None
-            from uwdock.sim.water import PRESETS, apply_water
-
-            water = PRESETS[self.cfg.water_preset]  # a preset name EnvConfig has checked
-            img = apply_water(res.rgb, res.range_m, water, self._film_rng)
             dets = []
-        out = np.ascontiguousarray(img.copy())
+        out = np.ascontiguousarray(frame.img_rgb.copy())
         for d in dets:
             pts = np.round(d.corners_px).astype(np.int32)
             cv2.polylines(out, [pts], True, (0, 255, 0), 2)
