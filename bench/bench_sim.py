@@ -142,8 +142,7 @@ def bench_render(n_poses: int, repeats: int, seed: int) -> list[dict]:
     T_body_cam = rs.rig.T_bodyfrd_camcv
     rows = []
     for w, h in RESOLUTIONS:
-        cam = scaled_to_width(base, w)
-        assert cam.height_px == h
+        cam = base.scaled(w, h)  # fixed sizes (4:3 and the reference), not a width
         rig = CameraRig(rs.scene, cam, name=f"bench_{w}")
         rs.rig.set_lamp(False)
         poses = _aimed_poses(cam, T_body_cam, rs.ds.T_worldned_ds, n_poses, seed)
