@@ -23,6 +23,7 @@ import cv2
 import numpy as np
 
 from uwdock.calibration.camera import resolve_camera
+from uwdock.dockcore.config import replace
 from uwdock.dockcore.errors import DockError
 from uwdock.markers.config import MarkerConfig
 from uwdock.markers.markerset import load_marker_set, marker_set_from_config
@@ -74,7 +75,6 @@ class DockingRunner:
         env_cfg: EnvConfig | None = None,
     ) -> None:
         if env_cfg is None:  # an exported policy carries its observation layout and limits
-            from uwdock.dockcore.config import replace
             from uwdock.rl.report import policy_env_settings
 
             exported = isinstance(policy, (str, os.PathLike))
