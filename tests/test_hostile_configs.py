@@ -34,6 +34,7 @@ def _roots() -> list[type]:
     from uwdock.sim.docking_station import DockingStationConfig
     from uwdock.sim.episode import EpisodeVideoConfig
     from uwdock.sim.water import WaterConfig
+    from uwdock.sim.world_config import WorldConfig
 
     return [
         MarkerConfig,
@@ -46,6 +47,7 @@ def _roots() -> list[type]:
         PIDConfig,
         WaterConfig,
         DockingStationConfig,
+        WorldConfig,
     ]
 
 
