@@ -14,9 +14,11 @@ Usage::
 (b) Render time per frame on the CPU (SAPIEN rasteriser on lavapipe, its default thread count),
     reference camera scaled to 320x240, 640x480 and 968x732, over aimed poses of the synth
     sampler (DS at 1-6 m); also ``render + water`` (coastal preset).
-(c) Camera in the loop: per control step render + water (coastal) + detect (default pipeline,
-    one OpenCV thread) + board PnP, at widths 320, 480, 640 and 968; the physics step time from
-    (a) is added for the control-step rate. Also the share of frames with a pose.
+(c) Camera in the loop: per control step the env camera source's path: capture (render + water,
+    coastal; ``sim.camera.SimCamera``), the RGB -> BGR conversion at the seam, and the DS-pose
+    estimator (``perception.ds_pose``: detect with the default pipeline, one OpenCV thread, board
+    PnP, level-DS refinement), at widths 320, 480, 640 and 968; the physics step time from (a)
+    is added for the control-step rate. Also the share of frames with a pose.
 (d) Detection range: the reference camera at 968, 640 and 480 px wide straight above the DS
     origin (image x along DS y), altitude 1-10 m above the DS floor in 0.5 m steps, in a 12 m
     deep tank (so the camera stays under water); per water preset the greatest altitude at
@@ -41,7 +43,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from uwdock.calibration.camera import reference_camera
+from uwdock.calibration.camera import reference_camera, scaled_to_width
 from uwdock.calibration.frames import make_T
 from uwdock.dockcore.bench import format_table, save_results, time_call
 
@@ -140,7 +142,7 @@ def bench_render(n_poses: int, repeats: int, seed: int) -> list[dict]:
     T_body_cam = rs.rig.T_bodyfrd_camcv
     rows = []
     for w, h in RESOLUTIONS:
-        cam = base.scaled(w, h)
+        cam = base.scaled(w, h)  # fixed sizes (4:3 and the reference), not a width
         rig = CameraRig(rs.scene, cam, name=f"bench_{w}")
         rs.rig.set_lamp(False)
         poses = _aimed_poses(cam, T_body_cam, rs.ds.T_worldned_ds, n_poses, seed)
@@ -169,51 +171,48 @@ def bench_render(n_poses: int, repeats: int, seed: int) -> list[dict]:
 
 
 def bench_loop(n_poses: int, repeats: int, seed: int, physics_ms: float) -> list[dict]:
-    from uwdock.perception.detector import Detector, DetectorConfig
-    from uwdock.perception.pose import solve_board
+    from uwdock.perception.ds_pose import DSPoseEstimator
+    from uwdock.sim.camera import SimCamera
     from uwdock.sim.render import CameraRig, make_render_scene
-    from uwdock.sim.water import PRESETS, apply_water
+    from uwdock.sim.water import PRESETS
 
     base = reference_camera()
     rs = make_render_scene()
     rs.rig.set_lamp(False)
-    ms = rs.ds.marker_set
-    corners_ds = ms.corners_ds()
-    detector = Detector(DetectorConfig(ids=ms.ids))
+    estimator = DSPoseEstimator.from_marker_set(rs.ds.marker_set)
     rows = []
     for width in LOOP_WIDTHS:
-        cam = base.scaled(width, round(base.height_px * width / base.width_px))
+        cam = scaled_to_width(base, width)
         rig = CameraRig(rs.scene, cam, name=f"loop_{width}")
-        poses = _aimed_poses(cam, rig.T_bodyfrd_camcv, rs.ds.T_worldned_ds, n_poses, seed)
+        sim_cam = SimCamera(rig, PRESETS["coastal"])
+        T_bc = sim_cam.T_body_cam
+        poses = _aimed_poses(cam, T_bc, rs.ds.T_worldned_ds, n_poses, seed)
         rig.render(poses[0])
-        stage = {"render": [], "water": [], "detect": [], "pnp": []}
+        stage = {"capture": [], "to_bgr": [], "estimate": []}
         solved = 0
         rng = np.random.default_rng(seed)
         for _ in range(repeats):
             solved = 0
             for T in poses:
+                # the env's camera source: capture, convert at the seam, estimate (level DS)
                 t0 = time.perf_counter()
-                res = rig.render(T)
+                frame = sim_cam.capture(T, rng)
                 t1 = time.perf_counter()
-                img = apply_water(res.rgb, res.range_m, PRESETS["coastal"], rng)
-                bgr = cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
+                img_bgr = frame.img_bgr()
                 t2 = time.perf_counter()
-                dets = detector.detect(bgr)
+                est = estimator.estimate(img_bgr, cam, T @ T_bc)
                 t3 = time.perf_counter()
-                pose = solve_board(dets, corners_ds, cam.K, cam.dist_coeffs) if dets else None
-                t4 = time.perf_counter()
-                solved += pose is not None
-                for key, dt in zip(stage, (t1 - t0, t2 - t1, t3 - t2, t4 - t3), strict=True):
+                solved += est.T_cam_ds is not None
+                for key, dt in zip(stage, (t1 - t0, t2 - t1, t3 - t2), strict=True):
                     stage[key].append(dt * 1e3)
         med = {k: statistics.median(v) for k, v in stage.items()}
         camera_ms = sum(med.values())
         rows.append(
             {
                 "width": f"{cam.width_px}x{cam.height_px}",
-                "render_ms": med["render"],
-                "water_ms": med["water"],
-                "detect_ms": med["detect"],
-                "pnp_ms": med["pnp"],
+                "capture_ms": med["capture"],
+                "to_bgr_ms": med["to_bgr"],
+                "estimate_ms": med["estimate"],
                 "camera_ms": camera_ms,
                 "control_steps_per_s": 1e3 / (camera_ms + physics_ms),
                 "pose_rate": solved / len(poses),
@@ -229,8 +228,7 @@ def bench_range(altitudes: np.ndarray, draws: int, seed: int, width_px: int) -> 
     from uwdock.sim.render import make_render_scene
     from uwdock.sim.water import PRESET_ORDER, PRESETS, apply_water
 
-    base = reference_camera()
-    cam = base.scaled(width_px, round(base.height_px * width_px / base.width_px))
+    cam = scaled_to_width(reference_camera(), width_px)
     rs = make_render_scene(DockingStationConfig(tank_depth_m=12.0), camera_model=cam)
     ms = rs.ds.marker_set
     detector = Detector(DetectorConfig(ids=ms.ids))
@@ -342,12 +340,12 @@ def main() -> None:
     loop = bench_loop(config["loop_poses"], config["loop_repeats"], args.seed, physics_ms)
     print(
         f"\n(c) Camera in the loop per control step (+ {physics_ms:.1f} ms env physics step); "
-        "coastal water, default pipeline"
+        "coastal water, default pipeline, level DS"
     )
     print(
         format_table(
             loop,
-            ["width", "render_ms", "water_ms", "detect_ms", "pnp_ms", "camera_ms",
+            ["width", "capture_ms", "to_bgr_ms", "estimate_ms", "camera_ms",
              "control_steps_per_s", "pose_rate"],
         )
     )  # fmt: skip

@@ -47,7 +47,9 @@ __all__ = [
     "CameraModel",
     "load_camera",
     "reference_camera",
+    "resolve_camera",
     "save_camera",
+    "scaled_to_width",
 ]
 
 #: Version written into (and accepted from) camera files.
@@ -498,3 +500,50 @@ def load_camera(path: str | os.PathLike[str]) -> tuple[CameraModel, np.ndarray |
     except OSError as exc:
         raise DockError(f"cannot read camera file {path}: {exc.strerror or exc}") from None
     return _model_from_raw(raw, path)
+
+
+# ---------------------------------------------------------------------------- resolution
+
+
+def scaled_to_width(cam: CameraModel, width_px: int) -> CameraModel:
+    """``cam`` resized to ``width_px`` wide, the height keeping the aspect ratio (rounded).
+
+    Args:
+        cam: the camera model.
+        width_px: the new width (px); 0 or ``cam.width_px`` returns ``cam`` unchanged.
+
+    Returns:
+        The scaled model (:meth:`CameraModel.scaled`).
+    """
+    if not width_px or int(width_px) == cam.width_px:
+        return cam
+    height_px = max(1, round(cam.height_px * int(width_px) / cam.width_px))
+    return cam.scaled(int(width_px), height_px)
+
+
+def resolve_camera(
+    camera_file: str | os.PathLike[str] | None = None, width_px: int = 0
+) -> tuple[CameraModel, np.ndarray]:
+    """The one way to turn (camera file, width) into a camera and its mounting.
+
+    Args:
+        camera_file: camera YAML/JSON; None: :func:`reference_camera`.
+        width_px: image width to scale the intrinsics to (:func:`scaled_to_width`); 0 keeps
+            the file's (or the reference's) size.
+
+    Returns:
+        ``(camera, T_body_cam)``: the (scaled) model and the (4, 4) float64 extrinsics
+        ``T_bodyfrd_camcv`` from the file, or ``REFERENCE_T_BODYFRD_CAMCV`` when the file has
+        none or no file is given (a fresh, writable copy).
+
+    Raises:
+        DockError: the camera file is missing or malformed.
+    """
+    T_body_cam = None
+    if camera_file is not None:
+        cam, T_body_cam = load_camera(camera_file)
+    else:
+        cam = reference_camera()
+    if T_body_cam is None:
+        T_body_cam = REFERENCE_T_BODYFRD_CAMCV
+    return scaled_to_width(cam, width_px), np.array(T_body_cam, dtype=np.float64)

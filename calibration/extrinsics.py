@@ -25,8 +25,9 @@ from numpy.typing import ArrayLike
 from uwdock.calibration.camera import (
     REFERENCE_T_BODYFRD_CAMCV,
     load_camera,
-    reference_camera,
+    resolve_camera,
     save_camera,
+    scaled_to_width,
 )
 from uwdock.calibration.frames import R_from_rpy, check_T, make_T, rpy_from_R
 from uwdock.dockcore.errors import DockError
@@ -118,14 +119,17 @@ def write_reference_camera(
     Returns:
         (yaml_path, json_path).
     """
-    cam = reference_camera()
+    cam, T_body_cam = resolve_camera()
     if width_px is not None or height_px is not None:
         w = width_px if width_px is not None else round(height_px * cam.width_px / cam.height_px)
         h = height_px if height_px is not None else round(width_px * cam.height_px / cam.width_px)
         if w <= 0 or h <= 0:
             raise DockError(f"image size must be positive, got {w} x {h}")
-        cam = cam.scaled(int(w), int(h))
-    return save_camera(path, cam, REFERENCE_T_BODYFRD_CAMCV)
+        if height_px is None:
+            cam = scaled_to_width(cam, int(w))  # the world's and the runner's resolution
+        else:
+            cam = cam.scaled(int(w), int(h))
+    return save_camera(path, cam, T_body_cam)
 
 
 def format_extrinsics(T_body_cam: ArrayLike, source: str, as_json: bool = False) -> str:

@@ -61,13 +61,7 @@ from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
-from uwdock.calibration.camera import (
-    REFERENCE_T_BODYFRD_CAMCV,
-    CameraModel,
-    load_camera,
-    reference_camera,
-    save_camera,
-)
+from uwdock.calibration.camera import CameraModel, resolve_camera, save_camera
 from uwdock.calibration.frames import R_from_rpy, check_T, inv_T, make_T
 from uwdock.dockcore.config import changed_keys, from_dict, to_dict, validated
 from uwdock.dockcore.domains import Fraction, Interval, Seed, check, split_annotated
@@ -85,9 +79,11 @@ from uwdock.perception.groundtruth import (
     view_angle_deg,
     write_dataset_json,
 )
+from uwdock.sim.camera import SimCamera
 from uwdock.sim.docking_station import DockingStationConfig, resolve_marker_set
+from uwdock.sim.domains import TANK_SIZE_M
 from uwdock.sim.render import RenderConfig, make_render_scene, project_markers
-from uwdock.sim.water import PRESETS, WaterConfig, WaterRandomisation, apply_water
+from uwdock.sim.water import PRESETS, WaterConfig, WaterRandomisation
 
 __all__ = [
     "PoseSamplingConfig",
@@ -96,8 +92,8 @@ __all__ = [
     "Workers",
     "frame_rng",
     "generate",
-    "resolve_camera",
     "sample_pose",
+    "synth_camera",
 ]
 
 #: Image and partial-label names of frame k.
@@ -307,7 +303,7 @@ def sample_pose(
     camera: CameraModel,
     T_body_cam: ArrayLike,
     T_world_ds: ArrayLike,
-    tank_size_m: tuple[float, float, float] = (19.0, 9.0, 5.0),
+    tank_size_m: tuple[float, float, float] = TANK_SIZE_M,
 ) -> tuple[np.ndarray, str]:
     """Draw one vehicle pose (module docstring).
 
@@ -347,18 +343,10 @@ def sample_pose(
 # ----------------------------------------------------------------------------- setup
 
 
-def resolve_camera(cfg: SynthConfig) -> tuple[CameraModel, np.ndarray]:
-    """The camera model (scaled to ``cfg.width_px``) and ``T_body_cam`` of a config."""
-    if cfg.camera_file is not None:
-        camera, T_body_cam = load_camera(cfg.camera_file)
-        if T_body_cam is None:
-            T_body_cam = np.array(REFERENCE_T_BODYFRD_CAMCV)
-    else:
-        camera, T_body_cam = reference_camera(), np.array(REFERENCE_T_BODYFRD_CAMCV)
-    if cfg.width_px and cfg.width_px != camera.width_px:
-        height = max(1, round(camera.height_px * cfg.width_px / camera.width_px))
-        camera = camera.scaled(cfg.width_px, height)
-    return camera, np.asarray(T_body_cam, np.float64)
+def synth_camera(cfg: SynthConfig) -> tuple[CameraModel, np.ndarray]:
+    """The camera model (scaled to ``cfg.width_px``) and ``T_body_cam`` of a config
+    (:func:`uwdock.calibration.camera.resolve_camera`, as the env's world resolves its camera)."""
+    return resolve_camera(cfg.camera_file, cfg.width_px)
 
 
 def _ds_config(cfg: SynthConfig) -> DockingStationConfig:
@@ -410,10 +398,10 @@ class FrameRenderer:
     def __init__(self, cfg: SynthConfig, poses: np.ndarray | None = None) -> None:
         self.cfg = cfg
         self.poses = poses
-        self.camera, self.T_body_cam = resolve_camera(cfg)
-        ds_cfg = _ds_config(cfg)
-        self.tank_size_m = (ds_cfg.tank_length_m, ds_cfg.tank_width_m, ds_cfg.tank_depth_m)
+        self.camera, self.T_body_cam = synth_camera(cfg)
+        self.tank_size_m = _ds_config(cfg).tank_size_m
         self.rs = _render_scene(cfg, self.camera, self.T_body_cam)
+        self.sim_camera = SimCamera(self.rs.rig)
         self.T_world_ds = self.rs.ds.T_worldned_ds.copy()
 
     def pose(self, k: int, rng: np.random.Generator) -> np.ndarray:
@@ -430,11 +418,10 @@ class FrameRenderer:
         rng = frame_rng(self.cfg.seed, k)
         T_world_body = self.pose(k, rng)
         water, water_label = _water_for_frame(self.cfg, rng)
-        res = self.rs.render(T_world_body)
-        rgb = res.rgb if water is None else apply_water(res.rgb, res.range_m, water, rng)
-        T_cam_ds = inv_T(res.T_worldned_camcv) @ self.T_world_ds
+        frame = self.sim_camera.capture(T_world_body, rng, water=water)
+        T_cam_ds = inv_T(frame.T_world_cam) @ self.T_world_ds
         proj = project_markers(
-            self.camera, T_cam_ds, self.rs.ds.marker_set, res.range_m, self.cfg.occlusion_tol_m
+            self.camera, T_cam_ds, self.rs.ds.marker_set, frame.range_m, self.cfg.occlusion_tol_m
         )
         markers = tuple(
             MarkerTruth(p.marker_id, p.corners_px, p.in_image, p.visible)
@@ -450,7 +437,7 @@ class FrameRenderer:
             water=water_label or None,
             markers=markers,
         )
-        return cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), frame_truth_to_json(truth)
+        return frame.img_bgr(), frame_truth_to_json(truth)
 
     def write(self, out_dir: Path, k: int) -> int:
         """Render frame k and write its image, then its partial label (both atomically)."""
@@ -774,7 +761,7 @@ def generate(
     if reason:
         raise ConfigError(reason)
     pose_arr = _checked_poses(poses, cfg.n_frames)
-    camera, T_body_cam = resolve_camera(cfg)
+    camera, T_body_cam = synth_camera(cfg)
     ds_cfg = _ds_config(cfg)
     if pose_arr is not None:
         _check_cameras_in_water(pose_arr, T_body_cam, ds_cfg)

@@ -30,6 +30,7 @@ from fractions import Fraction
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from uwdock.dockcore.errors import DockError
@@ -79,8 +80,6 @@ def quiet_native_stderr() -> Iterator[None]:
     The OpenCV log level and file descriptor 2 are restored on exit. Without a real file
     descriptor 2 (embedded interpreters) only the log level is changed.
     """
-    import cv2
-
     level = cv2.utils.logging.getLogLevel()
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
     saved = None
@@ -108,8 +107,6 @@ def read_image(path: str | os.PathLike[str], grey: bool = False) -> np.ndarray |
         (H, W) uint8 grey when ``grey``; else (H, W) grey or (H, W, 3) BGR, uint8 or uint16
         (alpha dropped).
     """
-    import cv2
-
     try:
         data = np.fromfile(Path(path), dtype=np.uint8)
     except OSError:
@@ -139,8 +136,6 @@ def open_video(path: str | os.PathLike[str]) -> tuple[Any, np.ndarray, int]:
         DockError: one line when the file is not a video or holds no decodable frame among the
             first ones.
     """
-    import cv2
-
     with quiet_native_stderr():
         cap = cv2.VideoCapture(str(path))
         ok, first, leading = False, None, 0
@@ -217,8 +212,6 @@ class _Mjpeg:
     """Motion-JPEG AVI through ``cv2.VideoWriter`` (frame-indexed, what tank cameras record)."""
 
     def __init__(self, tmp: Path, fps: float, size_px: tuple[int, int]) -> None:
-        import cv2
-
         with quiet_native_stderr():
             self.writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"MJPG"), fps, size_px)
         if not self.writer.isOpened():
@@ -328,9 +321,7 @@ class AtomicVideoWriter:
         if size_px != self.size_px:
             if not self.resize:
                 raise ValueError(f"frame size {size_px} px differs from {self.size_px} px")
-            import cv2
-
-            frame_bgr = cv2.resize(frame_bgr, self.size_px, interpolation=cv2.INTER_AREA)
+                frame_bgr = cv2.resize(frame_bgr, self.size_px, interpolation=cv2.INTER_AREA)
         self._encoder.write(frame_bgr)
         self.frames += 1
 

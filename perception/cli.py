@@ -9,7 +9,7 @@ from typing import Any
 
 import click
 
-from uwdock.calibration.camera import load_camera
+from uwdock.calibration.camera import load_camera, resolve_camera
 from uwdock.dockcore.bench import format_table
 from uwdock.dockcore.cli import domain_type, run_group
 from uwdock.dockcore.config import load_config
@@ -205,7 +205,7 @@ def eval_cmd(
             truth, truth_source = ds.frames, str(input_path)
     if camera_path is None:
         raise DockError("--camera is required (the camera file of INPUT's frames)")
-    camera = _camera(camera_path)
+    camera, T_body_cam = resolve_camera(camera_path)  # the mounting: reference when unstated
     setup = resolve_markers(markers_path, dictionary, marker_size_m)
     if gt_path is not None:
         truth, truth_source = load_ground_truth(gt_path), str(gt_path)
@@ -220,6 +220,7 @@ def eval_cmd(
         truth_source,
         progress=False if (quiet or as_json) else None,
         note=_note,
+        T_body_cam=T_body_cam,
     )
     if as_json:
         click.echo(json.dumps(report, indent=2))

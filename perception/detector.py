@@ -173,11 +173,13 @@ class Detector:
                 out.append(Detection(int(marker_id), np.asarray(c, np.float64).reshape(4, 2)))
         return out
 
-    def detect(self, image: Any) -> list[Detection]:
+    def detect(self, img_bgr: Any) -> list[Detection]:
         """Detect markers in a camera image.
 
         Args:
-            image: (H, W) grey or (H, W, 3) BGR (or BGRA) array, uint8, uint16 or float [0, 1].
+            img_bgr: (H, W) grey or (H, W, 3) BGR (or BGRA) array, uint8, uint16 or float
+                [0, 1]. BGR is OpenCV's order: a simulator's RGB frame must be converted first
+                (``uwdock.sim.camera.Frame.img_bgr``); RGB here weights red as blue.
 
         Returns:
             Detections sorted by marker ID. An ID decoded in several candidate images is
@@ -187,7 +189,7 @@ class Detector:
         Raises:
             DockError: None, empty, or not an image.
         """
-        image = as_uint8(image)
+        image = as_uint8(img_bgr)
         per_candidate = [self.detect_candidate(c) for c in self.pipeline(image)]
         if not per_candidate:
             return []

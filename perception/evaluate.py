@@ -35,7 +35,7 @@ import numpy as np
 from tqdm import tqdm
 
 from uwdock.calibration.camera import CameraModel, reference_camera
-from uwdock.calibration.frames import pos_quat_from_T
+from uwdock.calibration.frames import check_T, pos_quat_from_T
 from uwdock.dockcore.config import to_dict, validated
 from uwdock.dockcore.domains import check, split_annotated
 from uwdock.dockcore.errors import DockError
@@ -45,9 +45,10 @@ from uwdock.dockcore.provenance import provenance, write_provenance
 from uwdock.markers.config import MarkerConfig, MarkerSideM
 from uwdock.markers.dictionary import normalise_dictionary_name
 from uwdock.markers.markerset import load_marker_set, marker_set_from_config
-from uwdock.perception.detector import Detection, Detector, DetectorConfig
+from uwdock.perception.detector import Detection, DetectorConfig
+from uwdock.perception.ds_pose import DSPoseConfig, DSPoseEstimator
 from uwdock.perception.groundtruth import FrameTruth
-from uwdock.perception.pose import BoardPose, BoardPoseConfig, MarkerPose, solve_board, solve_marker
+from uwdock.perception.pose import BoardPose, BoardPoseConfig, MarkerPose, solve_marker
 from uwdock.perception.report_plots import (
     COMPARE_COLUMNS,
     EvalRecord,
@@ -91,11 +92,14 @@ class PerceptionConfig:
     Attributes:
         detector: marker detector (``[detector]``); dictionary and IDs come from the marker set.
         board: DS board pose solver (``[board]``).
+        pose: the DS-pose estimator's refinement (``[pose]``: ``level_ds``, applied to frames
+            whose vehicle attitude is known, i.e. labelled datasets with ``T_world_body``).
         report: evaluation report (``[report]``).
     """
 
     detector: DetectorConfig = field(default_factory=DetectorConfig)
     board: BoardPoseConfig = field(default_factory=BoardPoseConfig)
+    pose: DSPoseConfig = field(default_factory=DSPoseConfig)
     report: ReportConfig = field(default_factory=ReportConfig)
 
 
@@ -177,7 +181,7 @@ class CameraResolver:
             return self._cache[key]
         base = self.camera
         if base is None:
-            cam = reference_camera().scaled(*key)
+            cam = reference_camera().scaled(*key)  # any frame size: aspect ratio as the frames
             self.note(
                 f"no camera file: using the reference camera (968x732, HFOV 55 deg) scaled to "
                 f"{key[0]}x{key[1]}; poses are approximate"
@@ -214,48 +218,85 @@ class FrameResult:
 
     Attributes:
         detections: markers found, sorted by ID.
-        board: the DS pose from the board, or None.
+        board: the DS pose from the board (unconstrained PnP), or None.
         marker_poses: single-marker mode: ID -> both IPPE solutions.
         ms: detection + pose time (ms).
+        level_T_cam_ds: (4, 4) the level-DS solution in the camera frame when the frame's
+            attitude was known (:class:`~uwdock.perception.ds_pose.DSPoseEstimator`), or None.
+        level_rms_px: its RMS reprojection error (px), or None.
     """
 
     detections: list[Detection]
     board: BoardPose | None
     marker_poses: dict[int, MarkerPose]
     ms: float
+    level_T_cam_ds: np.ndarray | None = None
+    level_rms_px: float | None = None
 
     @property
     def T_cam_ds(self) -> np.ndarray | None:
+        """The estimator's DS pose: the level solution when there is one, else the board's."""
+        if self.level_T_cam_ds is not None:
+            return self.level_T_cam_ds
         return None if self.board is None else self.board.T_cam_ds
+
+    @property
+    def reprojection_rms_px(self) -> float | None:
+        """RMS corner reprojection error of :attr:`T_cam_ds` (px), or None."""
+        if self.level_rms_px is not None:
+            return self.level_rms_px
+        return None if self.board is None else self.board.reprojection_rms_px
 
 
 class FrameProcessor:
-    """Detector + pose for one pipeline.
+    """The DS-pose estimator (or single-marker poses) for one pipeline.
 
     Args:
         setup: markers to detect and their geometry.
         detector_cfg: detector settings; dictionary and IDs are taken from ``setup``.
         board_cfg: board solver settings.
+        pose_cfg: the estimator's refinement (level DS when the attitude is known).
     """
 
     def __init__(
-        self, setup: MarkerSetup, detector_cfg: DetectorConfig, board_cfg: BoardPoseConfig
+        self,
+        setup: MarkerSetup,
+        detector_cfg: DetectorConfig,
+        board_cfg: BoardPoseConfig,
+        pose_cfg: DSPoseConfig | None = None,
     ) -> None:
         cfg = dataclasses.replace(detector_cfg, dictionary=setup.dictionary, ids=setup.ids)
-        self.detector = Detector(cfg)
-        self.board_cfg = validated(board_cfg)
+        self.estimator = DSPoseEstimator(setup.corners_ds or {}, cfg, board_cfg, pose_cfg)
+        self.detector = self.estimator.detector
+        self.board_cfg = self.estimator.board_cfg
         self.setup = setup
 
-    def process(self, image: np.ndarray, camera: CameraModel) -> FrameResult:
-        """Detect markers and solve the pose(s) of one image."""
+    def process(
+        self, img_bgr: np.ndarray, camera: CameraModel, T_world_cam: np.ndarray | None = None
+    ) -> FrameResult:
+        """Detect markers and solve the pose(s) of one BGR (or grey) image.
+
+        Args:
+            img_bgr: the frame.
+            camera: its camera model.
+            T_world_cam: (4, 4) camera pose in a z-down gravity-aligned world (the vehicle's
+                attitude and mounting), when known: enables the level-DS refinement.
+        """
         t0 = time.perf_counter()
-        dets = self.detector.detect(image)
-        board, singles = None, {}
         if self.setup.corners_ds is not None:
-            board = solve_board(
-                dets, self.setup.corners_ds, camera.K, camera.dist_coeffs, self.board_cfg
+            est = self.estimator.estimate(img_bgr, camera, T_world_cam)
+            level = est.level
+            return FrameResult(
+                est.detections,
+                est.board,
+                {},
+                (time.perf_counter() - t0) * 1e3,
+                None if level is None else est.T_cam_ds,
+                None if level is None else level.reprojection_rms_px,
             )
-        elif self.setup.marker_size_m:
+        dets = self.detector.detect(img_bgr)
+        board, singles = None, {}
+        if self.setup.marker_size_m:
             for d in dets:
                 try:
                     singles[d.marker_id] = solve_marker(
@@ -295,7 +336,7 @@ def detection_row(index: int, name: str, res: FrameResult | None) -> dict[str, A
         "ids": [d.marker_id for d in res.detections],
         "markers": markers,
         "T_cam_ds": _T(res.T_cam_ds),
-        "reprojection_rms_px": None if b is None else b.reprojection_rms_px,
+        "reprojection_rms_px": res.reprojection_rms_px,
         "used_ids": None if b is None else list(b.used_ids),
         "rejected_ids": None if b is None else list(b.rejected_ids),
         "ms": res.ms,
@@ -403,7 +444,7 @@ def run_detect(
             claimed after the config, markers and input are checked).
     """
     cfg = validated(cfg or PerceptionConfig())
-    proc = FrameProcessor(setup, cfg.detector, cfg.board)
+    proc = FrameProcessor(setup, cfg.detector, cfg.board, cfg.pose)
     source = open_frames(input_path)
     try:
         with claim_output_dir(out_dir, "perception detect") as out:
@@ -521,7 +562,7 @@ def _record(index: int, name: str, res: FrameResult, ft: FrameTruth | None) -> E
         ids=tuple(d.marker_id for d in res.detections),
         ms=res.ms,
         T_cam_ds=res.T_cam_ds,
-        rms_px=None if res.board is None else res.board.reprojection_rms_px,
+        rms_px=res.reprojection_rms_px,
         truth=ft,
         corner_errors_px=tuple(corner_errors),
     )
@@ -545,6 +586,7 @@ def run_eval(
     truth_source: str | None = None,
     progress: bool | None = None,
     note: Note = _silent,
+    T_body_cam: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """Evaluate one or more pipelines on the same frames; write the report.
 
@@ -564,6 +606,9 @@ def run_eval(
         truth_source: where the ground truth came from (for the report).
         progress: tqdm bar on stderr: True, False, or None (only on a terminal).
         note: receives one-line remarks for stderr.
+        T_body_cam: (4, 4) camera mounting ``T_bodyfrd_camcv``; with it, frames whose ground
+            truth records the vehicle pose (``T_world_body``) are estimated with the level-DS
+            refinement (``cfg.pose.level_ds``), as the env's camera source does.
 
     Returns:
         The report (also written as ``report.json``).
@@ -580,14 +625,15 @@ def run_eval(
     if not names:
         raise DockError("no pipeline to evaluate")
     procs = {
-        p: FrameProcessor(setup, dataclasses.replace(cfg.detector, pipeline=p), cfg.board)
+        p: FrameProcessor(setup, dataclasses.replace(cfg.detector, pipeline=p), cfg.board, cfg.pose)
         for p in names
     }
+    T_bc = None if T_body_cam is None else check_T(T_body_cam, "T_body_cam")
     source = open_frames(input_path)
     try:
         with claim_output_dir(out_dir, "perception eval") as out:
             return _evaluate(
-                source, out, setup, camera, cfg, procs, truth, truth_source, progress, note
+                source, out, setup, camera, cfg, procs, truth, truth_source, progress, note, T_bc
             )
     finally:
         source.close()
@@ -604,6 +650,7 @@ def _evaluate(
     truth_source: str | None,
     progress: bool | None,
     note: Note,
+    T_body_cam: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """The frame loop and the report of :func:`run_eval`, in a claimed folder."""
     names = list(procs)
@@ -612,18 +659,23 @@ def _evaluate(
     resolver = CameraResolver(camera, note)
     records: dict[str, list[EvalRecord]] = {p: [] for p in names}
     thumbs = ThumbnailBuffer(cfg.report.contact_sheet_frames, cfg.report.thumbnail_width_px)
-    for index, name, image in _progress(source, progress, "eval"):
-        if image is None:
+    for index, name, img_bgr in _progress(source, progress, "eval"):
+        if img_bgr is None:
             for p in names:
                 records[p].append(EvalRecord(index, name, corrupt=True))
             continue
         ft = lookup(index, name)
-        cam = resolver(image.shape[1], image.shape[0])
+        cam = resolver(img_bgr.shape[1], img_bgr.shape[0])
+        T_world_cam = None
+        if T_body_cam is not None and ft is not None and ft.T_world_body is not None:
+            T_world_cam = ft.T_world_body @ T_body_cam
         for p, proc in procs.items():
-            res = proc.process(image, cam)
+            res = proc.process(img_bgr, cam, T_world_cam)
             records[p].append(_record(index, name, res, ft))
             if p == names[0] and cfg.report.contact_sheet_frames:
-                drawn = _draw(image, res, cam, setup, cfg.report, name) if thumbs.wants() else None
+                drawn = (
+                    _draw(img_bgr, res, cam, setup, cfg.report, name) if thumbs.wants() else None
+                )
                 thumbs.offer(index, name, drawn)
     for warning in source.warnings:
         note(warning)

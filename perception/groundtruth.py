@@ -69,6 +69,7 @@ from uwdock.calibration.camera import CameraModel
 from uwdock.calibration.frames import R_from_quat_wxyz, pos_quat_from_T, transform_points
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_path, atomic_write_json, read_text
+from uwdock.markers.view import markers_in_view
 
 __all__ = [
     "CSV_COLUMNS",
@@ -196,9 +197,9 @@ def label_frame(
     T = np.asarray(T_cam_ds, np.float64)
     markers = []
     for marker_id in sorted(corners_ds):
-        p_cam = transform_points(T, np.asarray(corners_ds[marker_id], np.float64))
-        px = camera.project(p_cam)
-        inside = bool(np.all(p_cam[:, 2] > 0) and np.all(camera.in_image(px)))
+        corners = np.asarray(corners_ds[marker_id], np.float64)
+        px = camera.project(transform_points(T, corners))
+        inside = bool(markers_in_view(camera, T, corners[None])[0])
         markers.append(
             MarkerTruth(int(marker_id), px, inside, inside and marker_id not in occluded_ids)
         )

@@ -1,24 +1,23 @@
-"""The ``camera`` observation source: render -> underwater model -> 3DBM detector -> board PnP.
+"""The ``camera`` observation source: capture (render + water) -> DS-pose estimator -> filter.
 
-Each control step renders the downward camera at the vehicle's pose, applies the water model,
-detects the markers, solves the docking-station pose from the board (the filter's prediction
-breaks the two-fold ambiguity of coplanar markers) and turns it into a world-frame measurement
-with the PnP covariance (inflated by a model-mismatch factor, floored). The DS is known to
-stand level and the vehicle knows its roll and pitch, so the board pose is re-solved with the
-DS's tilt fixed (x, y, z, yaw): with a few coplanar markers in view this removes errors of
-several centimetres and degrees (see :func:`perception.pose.refine_level_board`).
+Each control step captures the downward camera at the vehicle's pose through the water
+(:meth:`uwdock.sim.world.DockingWorld.capture`), converts the RGB frame to perception's BGR once
+(:meth:`uwdock.sim.camera.Frame.img_bgr`, the sim -> perception seam) and runs the one DS-pose
+estimator (:class:`uwdock.perception.ds_pose.DSPoseEstimator`): detector, board PnP (the filter's
+estimate breaks the two-fold ambiguity of coplanar markers) and, since the DS stands level and
+the vehicle knows its roll and pitch, the level-DS re-solve (x, y, z, yaw). The result becomes a
+world-frame measurement with the fit's covariance (inflated by a model-mismatch factor, floored).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from uwdock.calibration.frames import inv_T
-from uwdock.perception.detector import Detector, DetectorConfig
-from uwdock.perception.pose import BoardPoseConfig, refine_level_board, solve_board
-from uwdock.rl.config import EnvConfig
+from uwdock.calibration.camera import CameraModel
+from uwdock.perception.detector import Detection
+from uwdock.perception.ds_pose import DSPoseEstimate, DSPoseEstimator
 from uwdock.rl.obs_sources import Measurement, SourceNeeds, StepContext
-from uwdock.sim.water import apply_water, preset
+from uwdock.sim.camera import Frame
 
 #: PnP's first-order covariance is optimistic (corner bias, blur): scale it by this.
 COVARIANCE_INFLATION = 4.0
@@ -28,82 +27,57 @@ SIGMA_FLOOR_YAW_RAD = 0.005
 
 
 class CameraSource:
-    """Measure the DS pose from the rendered camera image (module docstring)."""
+    """Measure the DS pose from the captured camera frame (module docstring).
+
+    Args:
+        world: a :class:`uwdock.sim.world.DockingWorld` built with a camera.
+    """
 
     name = "camera"
     needs = SourceNeeds(camera=True, fusion=True, acoustic_fixes=True)
 
-    def __init__(self, world, cfg: EnvConfig) -> None:
-        if world.render_scene is None:
+    def __init__(self, world) -> None:
+        if world.camera is None:
             raise ValueError("the camera source needs a world built with a camera")
         self.world = world
-        rs = world.render_scene
-        ms = rs.ds.marker_set
-        self.board = ms.corners_ds()
-        self.detector = Detector(DetectorConfig(dictionary=ms.dictionary, ids=tuple(ms.ids)))
-        self.camera = rs.rig.camera
-        self.T_body_cam = rs.rig.T_bodyfrd_camcv
-        self.water = preset(cfg.water_preset)
-        self.board_cfg = BoardPoseConfig()
+        self.estimator = DSPoseEstimator.from_marker_set(world.ds.marker_set)
+        self.camera: CameraModel = world.camera.model
+        self.T_body_cam = world.camera.T_body_cam
         self.rng = np.random.default_rng(0)
-        self.last_image: np.ndarray | None = None
-        self.last_detections: list = []
+        self.last_frame: Frame | None = None
+        self.last_detections: list[Detection] = []
 
     def reset(self, rng: np.random.Generator) -> None:
         self.rng = rng
-        self.last_image = None
+        self.last_frame = None
 
     def measure(self, ctx: StepContext) -> Measurement | None:
-        res = self.world.render()
-        img = apply_water(res.rgb, res.range_m, self.water, self.rng)
-        self.last_image = img
-        m, self.last_detections = measure_from_image(
-            img,
-            self.detector,
-            self.board,
+        frame = self.world.camera.capture(ctx.T_world_body, self.rng)
+        return self.measure_frame(frame, ctx)
+
+    def measure_frame(self, frame: Frame, ctx: StepContext) -> Measurement | None:
+        """The measurement from one captured frame (RGB; converted to BGR here, once)."""
+        self.last_frame = frame
+        est = self.estimator.estimate(
+            frame.img_bgr(),
             self.camera,
             ctx.T_world_body @ self.T_body_cam,
             ctx.T_world_ds_estimate,
-            self.board_cfg,
         )
-        return m
+        self.last_detections = est.detections
+        return measurement(est)
 
 
-def measure_from_image(
-    image: np.ndarray,
-    detector: Detector,
-    board: dict,
-    camera,
-    T_world_cam: np.ndarray,
-    T_world_ds_prior: np.ndarray | None = None,
-    board_cfg: BoardPoseConfig | None = None,
-) -> tuple[Measurement | None, list]:
-    """Detect the DS markers in ``image`` and turn the board pose into a world measurement.
+def measurement(est: DSPoseEstimate) -> Measurement | None:
+    """The filter's measurement from a level-DS estimate (None without one).
 
-    Shared by the simulated camera source and the deployment runner.
-
-    Args:
-        image: camera frame (BGR, grey or RGB; the default pipeline accepts any).
-        detector: the 3DBM detector (its ID allow-list = the board's markers).
-        board: ID -> (4, 3) marker corners in the DS frame (m).
-        camera: the :class:`~calibration.camera.CameraModel` of ``image``.
-        T_world_cam: (4, 4) camera pose (OpenCV frame) in the world at the frame's time.
-        T_world_ds_prior: the filter's DS estimate, to resolve coplanar-marker ambiguity.
-        board_cfg: PnP settings.
-
-    Returns:
-        (measurement or None, the detections).
+    Shared by the simulated camera source and the deployment runner: the world-frame
+    ``T_world_ds`` with the fit's (4, 4) [x, y, z, yaw] covariance scaled by
+    ``COVARIANCE_INFLATION`` and floored by ``SIGMA_FLOOR_M`` / ``SIGMA_FLOOR_YAW_RAD``.
     """
-    dets = detector.detect(image)
-    if not dets:
-        return None, dets
-    prior = None if T_world_ds_prior is None else inv_T(T_world_cam) @ T_world_ds_prior
-    pose = solve_board(dets, board, camera.K, camera.dist_coeffs, board_cfg, T_cam_ds_prior=prior)
-    if pose is None:
-        return None, dets
-    # the DS stands level and the vehicle knows its attitude: solve x, y, z, yaw only
-    level = refine_level_board(pose, dets, board, camera.K, camera.dist_coeffs, T_world_cam)
-    cov = COVARIANCE_INFLATION * level.covariance + np.diag(
+    if est.level is None:
+        return None
+    cov = COVARIANCE_INFLATION * est.level.covariance + np.diag(
         [SIGMA_FLOOR_M**2] * 3 + [SIGMA_FLOOR_YAW_RAD**2]
     )
-    return Measurement(level.T_world_ds, cov, True), dets
+    return Measurement(est.level.T_world_ds, cov, True)

@@ -14,8 +14,9 @@ from uwdock.rl.error_model import load_error_model
 from uwdock.rl.estimator import EstimatorConfig
 from uwdock.rl.rewards import RewardConfig
 from uwdock.rl.task import DockingTaskConfig
+from uwdock.sim.domains import TANK_SIZE_M
 from uwdock.sim.vehicle import CurrentConfig, Hydrodynamics, VehicleConfig, VehicleRandomisation
-from uwdock.sim.water import PRESET_ORDER
+from uwdock.sim.world_config import WorldConfig
 
 ObsSourceName = Literal["proxy", "error-model", "camera"]
 
@@ -28,6 +29,12 @@ _HalfTurn = Annotated[float, Interval(ge=0, le=180)]  # deg
 @dataclass(frozen=True)
 class EnvConfig:
     """The docking environment (reference.md section 1 and the paper's appendix table).
+
+    The world's fields (``physics_hz``, ``tank_size_m``, ``marker_set_path``, ``camera_file``,
+    ``camera_width_px``, ``water_preset``, ``randomise_vehicle``, ``current``, ``vehicle``,
+    ``vehicle_randomisation``) are kept as flat keys, the layout of every run folder and
+    exported policy; :attr:`world` is the :class:`~uwdock.sim.world_config.WorldConfig` built
+    from them, the one config the simulated world (:class:`uwdock.sim.world.DockingWorld`) reads.
 
     Attributes:
         obs_source: how the DS pose is measured: "proxy" (the paper's visibility test +
@@ -90,7 +97,7 @@ class EnvConfig:
         72.0,
     )
     wrench_scale: Annotated[float, Interval(gt=0, le=1)] = 1.0
-    tank_size_m: tuple[_TankSide, _TankSide, _TankSide] = (19.0, 9.0, 5.0)
+    tank_size_m: tuple[_TankSide, _TankSide, _TankSide] = TANK_SIZE_M
     spawn_auv_range_m: tuple[_Range, _Range, _Range] = (6.0, 3.0, 1.4)
     spawn_auv_height_m: Annotated[float, Interval(gt=0, le=100)] = 3.3
     spawn_auv_yaw_deg: _HalfTurn = 180.0
@@ -114,6 +121,22 @@ class EnvConfig:
     vehicle_randomisation: VehicleRandomisation = field(default_factory=VehicleRandomisation)
 
     @property
+    def world(self) -> WorldConfig:
+        """The simulated world's config, built from this config's world fields."""
+        return WorldConfig(
+            physics_hz=self.physics_hz,
+            tank_size_m=self.tank_size_m,
+            marker_set_path=self.marker_set_path,
+            camera_file=self.camera_file,
+            camera_width_px=self.camera_width_px,
+            water_preset=self.water_preset,
+            randomise_vehicle=self.randomise_vehicle,
+            current=self.current,
+            vehicle=self.vehicle,
+            vehicle_randomisation=self.vehicle_randomisation,
+        )
+
+    @property
     def action_limits(self) -> np.ndarray:
         """(6,) wrench of a unit action: ``wrench_limits * wrench_scale`` (N, N m)."""
         return np.asarray(self.wrench_limits, dtype=np.float64) * self.wrench_scale
@@ -127,8 +150,7 @@ class EnvConfig:
                 f"episode_s: {self.episode_s:g} s is shorter than one control step "
                 f"({1 / self.control_hz:g} s)"
             )
-        if self.camera_width_px and self.camera_width_px < 16:
-            raise ValueError(f"camera_width_px: must be 0 or >= 16, got {self.camera_width_px}")
+        self.world.validate()  # camera width, water preset
         length_m, width_m, _ = self.tank_size_m
         if self.spawn_auv_range_m[0] >= length_m / 2 or self.spawn_auv_range_m[1] >= width_m / 2:
             raise ValueError(
@@ -159,10 +181,6 @@ class EnvConfig:
                 f"vehicle.linear_damping: too stiff for physics_hz {self.physics_hz:g} (the "
                 f"vehicle's damping and mass need a substep < {limit_s:.3g} s, randomised draws "
                 "included): lower the damping, raise the mass or physics_hz"
-            )
-        if self.water_preset not in PRESET_ORDER:
-            raise ValueError(
-                f"water_preset: unknown {self.water_preset!r} (known: {', '.join(PRESET_ORDER)})"
             )
 
 

@@ -32,8 +32,7 @@ from uwdock.rl.obs_sources import ObservationSource, ProxySource, SourceNeeds, S
 from uwdock.rl.observation import OBS_BOUND, observation_frame, observation_size
 from uwdock.rl.rewards import DockingReward
 from uwdock.rl.task import docking_errors, ds_visible, paper_success, pegs_seated
-from uwdock.rl.world import DockingWorld
-from uwdock.sim.water import PRESETS, apply_water
+from uwdock.sim.world import DockingWorld
 
 #: ``EnvConfig.obs_source`` -> the source class (its ``needs`` say what the env provides it)
 SOURCE_CLASSES: dict[str, type] = {
@@ -65,7 +64,7 @@ class DockingEnv(gym.Env):
         self.dt_s = 1.0 / c.control_hz
         self.max_steps = round(c.episode_s * c.control_hz)
         needs: SourceNeeds = SOURCE_CLASSES[c.obs_source].needs
-        self.world = DockingWorld(c, with_camera=needs.camera or render_mode is not None)
+        self.world = DockingWorld(c.world, with_camera=needs.camera or render_mode is not None)
         self.source = self._make_source()
         est_cfg = c.estimator
         if not needs.fusion and est_cfg.fuse:
@@ -88,7 +87,7 @@ class DockingEnv(gym.Env):
             return ProxySource(c.task)
         if c.obs_source == "error-model":
             return ErrorModelSource(load_error_model(c.error_model_path), c.task, c.water_preset)
-        return CameraSource(self.world, c)
+        return CameraSource(self.world)
 
     def _spawn(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
         """Draw T_world_ds and T_world_body (NED) over the spawn ranges."""
@@ -174,22 +173,20 @@ class DockingEnv(gym.Env):
 
     def render(self):
         if self.render_mode == "rgb_array":
-            return self.world.render_camera()
+            return self.world.render_camera_rgb()
         return None
 
     def camera_frame(self) -> np.ndarray | None:
         """The downward camera's view now (RGB, water applied), with the detected markers
         outlined and the step's status written on it; None without a camera."""
-        img = getattr(self.source, "last_image", None)
+        frame = getattr(self.source, "last_frame", None)
         dets = getattr(self.source, "last_detections", [])
-        if img is None:
-            res = self.world.render()
-            if res is None:
+        if frame is None:
+            frame = self.world.capture(self._film_rng)
+            if frame is None:
                 return None
-            water = PRESETS[self.cfg.water_preset]  # a preset name EnvConfig has checked
-            img = apply_water(res.rgb, res.range_m, water, self._film_rng)
             dets = []
-        out = np.ascontiguousarray(img.copy())
+        out = np.ascontiguousarray(frame.img_rgb.copy())
         for d in dets:
             pts = np.round(d.corners_px).astype(np.int32)
             cv2.polylines(out, [pts], True, (0, 255, 0), 2)

@@ -41,6 +41,7 @@ from uwdock.dockcore.config import check_fields, validated
 from uwdock.dockcore.domains import Interval
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.media import AtomicVideoWriter
+from uwdock.sim.camera import SimCamera
 from uwdock.sim.domains import RGB
 from uwdock.sim.render import CameraRig, RenderConfig
 from uwdock.sim.water import PRESETS, WaterConfig, apply_water, preset
@@ -189,7 +190,7 @@ class _Views:
         if getattr(world, "render_scene", None) is None:
             raise DockError("the env has no camera: create it with render_mode='rgb_array'")
         self.world, self.cfg, self.water, self.rng = world, cfg, water, rng
-        self.down = world.render_scene.rig
+        self.down = SimCamera(world.render_scene.rig, water)
         camera = CameraModel.from_hfov(
             cfg.outside_width_px, cfg.outside_height_px, cfg.outside_hfov_deg, name="outside"
         )
@@ -226,17 +227,14 @@ class _Views:
     def render(self, down_lines: list[str], outside_lines: list[str]) -> np.ndarray:
         """(H, W, 3) uint8 BGR side-by-side frame."""
         self.vehicle_visual.visibility = 0.0
-        res = self.down.render(self.world.T_world_body)
-        down = res.rgb
-        if self.water is not None:
-            down = apply_water(down, res.range_m, self.water, self.rng)
+        down = self.down.capture(self.world.T_world_body, self.rng)
         self.vehicle_visual.visibility = 1.0
         self.sun.color = [self.cfg.outside_sun_intensity] * 3
         out = self.outside.render(T_worldned_camcv=self._outside_pose())
         self.sun.color = [0.0, 0.0, 0.0]
-        outside = out.rgb if self.haze is None else apply_water(out.rgb, out.range_m, self.haze)
-        down_bgr = cv2.cvtColor(down, cv2.COLOR_RGB2BGR)
-        out_bgr = cv2.cvtColor(outside, cv2.COLOR_RGB2BGR)
+        outside_rgb = out.rgb if self.haze is None else apply_water(out.rgb, out.range_m, self.haze)
+        down_bgr = down.img_bgr()
+        out_bgr = cv2.cvtColor(outside_rgb, cv2.COLOR_RGB2BGR)
         if self.cfg.overlay:
             T_cam_body = inv_T(out.T_worldned_camcv) @ self.world.T_world_body
             _draw_axes(out_bgr, out.camera, T_cam_body, 0.6)

@@ -26,16 +26,27 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any
 
+import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
+from tqdm import tqdm
 
-from uwdock.calibration.camera import CameraModel, load_camera
+from uwdock.calibration.camera import (
+    REFERENCE_T_BODYFRD_CAMCV,
+    CameraModel,
+    load_camera,
+    resolve_camera,
+)
 from uwdock.calibration.frames import inv_T, make_T
 from uwdock.dockcore.config import to_dict
 from uwdock.dockcore.domains import Interval
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_write_json
 from uwdock.dockcore.provenance import provenance
+from uwdock.markers.markerset import load_marker_set
+from uwdock.markers.view import markers_in_view
+from uwdock.perception.ds_pose import DSPoseEstimator
+from uwdock.perception.groundtruth import load_dataset
 from uwdock.rl.obs_sources import Measurement, SourceNeeds, StepContext
 from uwdock.rl.task import DockingTaskConfig
 
@@ -92,70 +103,48 @@ def apply_error(T_true: np.ndarray, err: np.ndarray) -> np.ndarray:
     return make_T(R, T_true[:3, 3] + err[:3])
 
 
+#: Corners nearer than this to the camera plane count as out of view (m): nothing of the DS is
+#: imaged that close.
+MIN_VIEW_DEPTH_M = 0.05
+
+
 def count_in_view(camera: CameraModel, T_cam_ds: np.ndarray, corners_ds: np.ndarray) -> int:
-    """Markers with all four corners in front of the camera and inside the image.
+    """Markers with all four corners in front of the camera and inside the image (lens
+    distortion applied: :func:`uwdock.markers.view.markers_in_view`).
 
     Args:
+        camera: the camera model.
+        T_cam_ds: (4, 4) DS pose in the OpenCV camera frame.
         corners_ds: (M, 4, 3) board corners in the DS frame (m).
     """
-    p = corners_ds.reshape(-1, 3) @ T_cam_ds[:3, :3].T + T_cam_ds[:3, 3]
-    z = p[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u = camera.fx_px * p[:, 0] / z + camera.cx_px
-        v = camera.fy_px * p[:, 1] / z + camera.cy_px
-    ok = (
-        (z > 0.05)
-        & (u >= -0.5)
-        & (u < camera.width_px - 0.5)
-        & (v >= -0.5)
-        & (v < camera.height_px - 0.5)
-    )
-    return int(ok.reshape(-1, 4).all(axis=1).sum())
+    return int(markers_in_view(camera, T_cam_ds, corners_ds, MIN_VIEW_DEPTH_M).sum())
 
 
 def fit_error_model(
     dataset: str | os.PathLike[str], cfg: ErrorModelConfig | None = None, progress: bool = True
 ) -> dict[str, Any]:
     """Fit the model from a labelled dataset folder (see the module docstring)."""
-    import cv2
-    from tqdm import tqdm
-
-    from uwdock.markers.markerset import load_marker_set
-    from uwdock.perception.detector import Detector, DetectorConfig
-    from uwdock.perception.groundtruth import load_dataset
-    from uwdock.perception.pose import BoardPoseConfig, refine_level_board, solve_board
-
     cfg = cfg or ErrorModelConfig()
     ds = load_dataset(dataset)
-    camera, T_body_cam = load_camera(ds.camera_path)
-    from uwdock.calibration.camera import REFERENCE_T_BODYFRD_CAMCV
-
-    T_bc = np.asarray(T_body_cam if T_body_cam is not None else REFERENCE_T_BODYFRD_CAMCV)
+    _, T_body_cam = load_camera(ds.camera_path)
+    camera, T_bc = resolve_camera(ds.camera_path)
     ms = load_marker_set(ds.marker_set_path)
-    det_cfg = DetectorConfig(dictionary=ms.dictionary, ids=tuple(ms.ids))
-    board_cfg = BoardPoseConfig()
-    detector = Detector(det_cfg)
+    estimator = DSPoseEstimator.from_marker_set(ms)
     board = ms.corners_ds()
     corners = np.stack([board[i] for i in sorted(board)])
     n_bins = math.ceil(cfg.range_max_m / cfg.range_bin_m)
     samples: dict[str, list[tuple[int, int, bool, np.ndarray | None]]] = {}
     frames = sorted(ds.frames.items())
     for _, ft in tqdm(frames, desc="fit error model", unit="frame", disable=not progress):
-        img = cv2.imread(str(ds.root / ft.image)) if ft.image else None
-        if img is None:
+        img_bgr = cv2.imread(str(ds.root / ft.image)) if ft.image else None
+        if img_bgr is None:
             continue
         water = (ft.water or {}).get("preset", "unknown")
         r_bin = min(int(ft.range_m / cfg.range_bin_m), n_bins - 1)
         n_vis = min(count_in_view(camera, ft.T_cam_ds, corners), N_VISIBLE_BINS - 1)
-        dets = detector.detect(img)
-        pose = solve_board(dets, board, camera.K, camera.dist_coeffs, board_cfg)
-        if pose is not None and ft.T_world_body is not None:
-            # the camera source's path: the level-DS refinement with the known attitude
-            T_world_cam = ft.T_world_body @ T_bc
-            lv = refine_level_board(pose, dets, board, camera.K, camera.dist_coeffs, T_world_cam)
-            T_est = inv_T(T_world_cam) @ lv.T_world_ds
-        else:
-            T_est = None if pose is None else pose.T_cam_ds
+        # the camera source's estimator, with the attitude when the label has it
+        T_world_cam = None if ft.T_world_body is None else ft.T_world_body @ T_bc
+        T_est = estimator.estimate(img_bgr, camera, T_world_cam).T_cam_ds
         err = None if T_est is None else pose_error(T_est, ft.T_cam_ds)
         samples.setdefault(water, []).append((r_bin, n_vis, err is not None, err))
     if not samples:
@@ -172,8 +161,8 @@ def fit_error_model(
             "frames": len(frames),
         },
         "config": to_dict(cfg),
-        "detector": to_dict(det_cfg),
-        "board_pose": to_dict(board_cfg),
+        "detector": to_dict(estimator.detector.cfg),
+        "board_pose": to_dict(estimator.board_cfg),
         "camera": {
             **to_dict(camera),
             "T_body_cam": None if T_body_cam is None else np.asarray(T_body_cam).tolist(),
@@ -251,8 +240,6 @@ class ErrorModel:
             cy_px=float(cam["cy_px"]),
             dist=tuple(cam["dist"]),
         )
-        from uwdock.calibration.camera import REFERENCE_T_BODYFRD_CAMCV
-
         tb = cam.get("T_body_cam")
         self.T_body_cam = np.asarray(tb) if tb is not None else np.array(REFERENCE_T_BODYFRD_CAMCV)
         self.corners_ds = np.asarray(data["board_corners_ds_m"], dtype=np.float64)

@@ -19,14 +19,20 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
-from uwdock.calibration.camera import REFERENCE_T_BODYFRD_CAMCV, load_camera, reference_camera
-from uwdock.rl.camera_source import measure_from_image
+from uwdock.calibration.camera import resolve_camera
+from uwdock.dockcore.config import replace
+from uwdock.dockcore.errors import DockError
+from uwdock.markers.config import MarkerConfig
+from uwdock.markers.markerset import load_marker_set, marker_set_from_config
+from uwdock.perception.ds_pose import DSPoseEstimator
+from uwdock.rl.camera_source import measurement
 from uwdock.rl.config import EnvConfig
 from uwdock.rl.estimator import DSPoseFilter
 from uwdock.rl.observation import observation_frame, observation_size
-from uwdock.rl.policy_io import OnnxPolicy
+from uwdock.rl.policy_io import OnnxPolicy, policy_env_settings
 
 
 @dataclass(frozen=True)
@@ -52,7 +58,10 @@ class DockingRunner:
     Args:
         policy: an exported ONNX policy (``rl export``) or any object with ``act(obs)``.
         camera_file: the camera YAML/JSON (intrinsics + ``T_body_cam``); None: the reference
-            camera at ``env_cfg.camera_width_px``.
+            camera. Resolved as the simulated world resolves it
+            (:func:`uwdock.calibration.camera.resolve_camera` at ``env_cfg.camera_width_px``):
+            frames of the file's size are resized to that width before detection, so the
+            policy sees the estimator it was trained with.
         marker_set: the DS marker set file; None: the reference DS set.
         env_cfg: the environment the policy was trained in (observation layout, limits, filter);
             None: the defaults with the interface fields stored beside an exported policy.
@@ -65,33 +74,18 @@ class DockingRunner:
         marker_set: str | os.PathLike[str] | None = None,
         env_cfg: EnvConfig | None = None,
     ) -> None:
-        from uwdock.markers.config import MarkerConfig
-        from uwdock.markers.markerset import load_marker_set, marker_set_from_config
-        from uwdock.perception.detector import Detector, DetectorConfig
-
         if env_cfg is None:  # an exported policy carries its observation layout and limits
-            from uwdock.dockcore.config import replace
-            from uwdock.rl.policy_io import policy_env_settings
-
             exported = isinstance(policy, (str, os.PathLike))
             env_cfg = replace(EnvConfig(), **(policy_env_settings(str(policy)) if exported else {}))
         self.cfg = env_cfg
         self.policy = OnnxPolicy(policy) if isinstance(policy, (str, os.PathLike)) else policy
-        if camera_file is not None:
-            self.camera, T = load_camera(camera_file)
-            self.T_body_cam = np.asarray(T if T is not None else REFERENCE_T_BODYFRD_CAMCV)
-        else:
-            cam = reference_camera()
-            w = self.cfg.camera_width_px or cam.width_px
-            self.camera = cam.scaled(w, round(cam.height_px * w / cam.width_px))
-            self.T_body_cam = np.array(REFERENCE_T_BODYFRD_CAMCV)
+        self.camera, self.T_body_cam = resolve_camera(camera_file, self.cfg.camera_width_px)
         ms = (
             load_marker_set(marker_set)
             if marker_set is not None
             else marker_set_from_config(MarkerConfig())
         )
-        self.board = ms.corners_ds()
-        self.detector = Detector(DetectorConfig(dictionary=ms.dictionary, ids=tuple(ms.ids)))
+        self.estimator = DSPoseEstimator.from_marker_set(ms)
         self.limits = self.cfg.action_limits
         self.dt_s = 1.0 / self.cfg.control_hz
         self.filter = DSPoseFilter(self.cfg.estimator)
@@ -110,20 +104,40 @@ class DockingRunner:
         """Fuse an acoustic position fix of the DS (world NED, m)."""
         self.filter.update_position(p_world_ds_m, sigma_m)
 
-    def observe(self, image: np.ndarray | None, odom: Odometry, predict: bool = True) -> np.ndarray:
-        """Update the DS estimate from a frame and return the policy's observation."""
+    def frame_for_camera(self, img_bgr: np.ndarray) -> np.ndarray:
+        """``img_bgr`` at the resolved camera's size: resized (area averaging) when it has the
+        same aspect ratio at another size, as the simulated camera renders it.
+
+        Raises:
+            DockError: a frame of another aspect ratio (another camera or a crop).
+        """
+        h, w = img_bgr.shape[:2]
+        cam = self.camera
+        if (w, h) == (cam.width_px, cam.height_px):
+            return img_bgr
+        if abs((w / h) / (cam.width_px / cam.height_px) - 1.0) > 0.01:
+            raise DockError(
+                f"frame is {w}x{h} but the camera is {cam.width_px}x{cam.height_px} "
+                "(another aspect ratio)"
+            )
+        size = (cam.width_px, cam.height_px)
+        return cv2.resize(img_bgr, size, interpolation=cv2.INTER_AREA)
+
+    def observe(
+        self, img_bgr: np.ndarray | None, odom: Odometry, predict: bool = True
+    ) -> np.ndarray:
+        """Update the DS estimate from a BGR frame and return the policy's observation."""
         if predict:
             self.filter.predict(self.dt_s)
         self.detected = False
-        if image is not None:
-            m, _ = measure_from_image(
-                image,
-                self.detector,
-                self.board,
+        if img_bgr is not None:
+            est = self.estimator.estimate(
+                self.frame_for_camera(img_bgr),
                 self.camera,
                 odom.T_world_body @ self.T_body_cam,
                 self.filter.T_world_ds,
             )
+            m = measurement(est)
             if m is not None:
                 self.filter.update(m.T_world_ds, m.cov_xyzyaw)
                 self.detected = True
@@ -143,9 +157,10 @@ class DockingRunner:
             self._frames = [*self._frames[1:], frame]
         return np.concatenate(self._frames)
 
-    def step(self, image: np.ndarray | None, odom: Odometry) -> np.ndarray:
-        """One 5 Hz tick: returns the body wrench (6,) [N, N m] to send to the allocator."""
-        obs = self.observe(image, odom)
+    def step(self, img_bgr: np.ndarray | None, odom: Odometry) -> np.ndarray:
+        """One 5 Hz tick on a BGR frame: returns the body wrench (6,) [N, N m] to send to the
+        allocator."""
+        obs = self.observe(img_bgr, odom)
         if obs.shape[0] != observation_size(self.cfg):
             raise ValueError("observation layout does not match the environment config")
         action = np.clip(np.asarray(self.policy.act(obs), dtype=np.float64), -1.0, 1.0)

@@ -10,7 +10,12 @@ Modules:
                      the marine frames meet SAPIEN's z-up world and FLU actors); free flight
                      skips PhysX when no contact is possible.
     docking_station: DS (guides, notches, 3D markers) and tank geometry.
-    render:          the headless downward camera and ground-truth marker projection.
+    render:          the headless SAPIEN camera rig and ground-truth marker projection.
+    camera:          THE simulated camera: ``SimCamera.capture`` = render + water, returning a
+                     ``Frame`` that names its channel order (``img_rgb``, ``img_bgr()``).
+    world_config:    ``WorldConfig`` of the world (SAPIEN-free, built from the env's keys).
+    world:           THE world of one docking env (scene, tank, DS, vehicle, currents, camera),
+                     composed once.
     water:           underwater image formation (attenuation, backscatter, blur, noise, JPEG).
     episode:         a video of a docking episode (``sim episode``).
     domains:         value domains shared by these modules' configs (``dockcore.domains``).

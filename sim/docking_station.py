@@ -48,7 +48,7 @@ from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import clean_stale_temps, temp_sibling
 from uwdock.markers.config import MarkerConfig
 from uwdock.markers.markerset import MarkerSet, load_marker_set
-from uwdock.sim.domains import RGB, Friction, TankSide_m
+from uwdock.sim.domains import RGB, TANK_SIZE_M, Friction, TankSide_m
 
 __all__ = [
     "DockingStation",
@@ -140,15 +140,20 @@ class DockingStationConfig:
     bracket_min_height_m: Annotated[float, Interval(ge=0, le=50)] = 0.8
     frame_rgb: RGB = (0.78, 0.66, 0.22)
     guide_rgb: RGB = (0.55, 0.56, 0.58)
-    tank_length_m: TankSide_m = 19.0
-    tank_width_m: TankSide_m = 9.0
-    tank_depth_m: TankSide_m = 5.0
+    tank_length_m: TankSide_m = TANK_SIZE_M[0]
+    tank_width_m: TankSide_m = TANK_SIZE_M[1]
+    tank_depth_m: TankSide_m = TANK_SIZE_M[2]
     tank_wall_thickness_m: Annotated[float, Interval(gt=0, le=10)] = 0.2
     tank_floor_rgb: RGB = (0.58, 0.52, 0.40)
     tank_wall_rgb: RGB = (0.50, 0.53, 0.56)
     static_friction: Friction = 0.6
     dynamic_friction: Friction = 0.5
     restitution: Annotated[float, Interval(ge=0, le=1)] = 0.0
+
+    @property
+    def tank_size_m(self) -> tuple[float, float, float]:
+        """Tank length, width, depth (m)."""
+        return (self.tank_length_m, self.tank_width_m, self.tank_depth_m)
 
     def validate(self) -> None:
         """Raise ValueError naming the first inconsistent field (comparisons fail on NaN; each

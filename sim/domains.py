@@ -14,6 +14,7 @@ from uwdock.dockcore.domains import Fraction, Interval
 
 __all__ = [
     "RGB",
+    "TANK_SIZE_M",
     "BodyCoord_m",
     "Friction",
     "RelativeRange",
@@ -37,6 +38,10 @@ RelativeRange = Annotated[float, Interval(ge=0, lt=1)]
 
 #: A side of the test tank (m): length, width or water depth.
 TankSide_m = Annotated[float, Interval(gt=0, le=1000)]
+
+#: The test tank of the reference: length (world x), width (world y), water depth (m). The one
+#: default of the env, the DS scene and the dataset pose sampler.
+TANK_SIZE_M: tuple[float, float, float] = (19.0, 9.0, 5.0)
 
 
 def validate_each(name: str, items: Iterable[Any]) -> None:

@@ -37,6 +37,7 @@ from uwdock.dockcore.config import check_fields, validated
 from uwdock.dockcore.domains import Interval
 from uwdock.dockcore.errors import DockError
 from uwdock.markers.markerset import MarkerSet
+from uwdock.markers.view import markers_in_view
 from uwdock.sim.docking_station import (
     DockingStation,
     DockingStationConfig,
@@ -368,7 +369,7 @@ def project_markers(
         pts_cam = transform_points(T, pts_ds)  # (5, 3): 4 corners + centre
         px = camera_model.project(pts_cam)
         in_front = bool(np.all(pts_cam[:, 2] > 0.0))
-        in_image = in_front and bool(np.all(camera_model.in_image(px)))
+        in_image = bool(markers_in_view(camera_model, T, spec.corners_ds_m[None])[0])
         dist = np.linalg.norm(pts_cam, axis=1)
         occluded = False
         if range_m is not None and in_image:

@@ -41,6 +41,7 @@ HEAVY_OPTIONAL = frozenset(
         "open3d",
         "matplotlib",
         "mpl_toolkits",
+        "av",  # FFmpeg's libraries, loaded only where a video is written
     }
 )
 

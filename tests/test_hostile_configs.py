@@ -34,6 +34,7 @@ def _roots() -> list[type]:
     from uwdock.rl.train import TrainConfig
     from uwdock.sim.docking_station import DockingStationConfig
     from uwdock.sim.water import WaterConfig
+    from uwdock.sim.world_config import WorldConfig
 
     return [
         MarkerConfig,
@@ -46,6 +47,7 @@ def _roots() -> list[type]:
         PIDConfig,
         WaterConfig,
         DockingStationConfig,
+        WorldConfig,
     ]
 
 

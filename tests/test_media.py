@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import os
-import subprocess
-import sys
 from fractions import Fraction
 
 import av
@@ -301,9 +299,3 @@ def test_quiet_native_stderr_silences_fd2_and_restores_it(capfd):
     os.write(2, b"shown\n")
     assert capfd.readouterr().err == "shown\n"
     assert cv2.utils.logging.getLogLevel() == level
-
-
-def test_dockcore_media_imports_without_opencv():
-    code = "import sys; sys.modules['cv2'] = None; import uwdock.dockcore.media; print('ok')"
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert out.stdout.strip() == "ok"

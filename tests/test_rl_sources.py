@@ -207,7 +207,7 @@ def test_runner_reproduces_the_env_observation(camera_env):
             reading.acceleration_frd_mps2,
         )
         runner.prev_action = np.clip(action, -1, 1)
-        got = runner.observe(env.source.last_image, odom)
+        got = runner.observe(env.source.last_frame.img_bgr(), odom)
         np.testing.assert_allclose(got, obs, atol=1e-4)
         compared += 1
     assert compared == 6

@@ -1,24 +1,40 @@
-"""The simulated world of one docking env: SAPIEN scene, tank, docking station, AUV, camera.
+"""The simulated world of one docking env: SAPIEN scene, tank, docking station, AUV, currents,
+and the downward camera, composed once from a :class:`~uwdock.sim.world_config.WorldConfig`.
 
 Built once per env (scene construction is slow); :meth:`DockingWorld.reset` only moves things.
 Without a camera the scene is physics-only (collision shapes, no Vulkan needed); with one, the
-tank, DS and markers are also visual and the downward camera renders them.
+tank, DS and markers are also visual and the downward camera (:class:`uwdock.sim.camera.SimCamera`,
+resolved by :func:`uwdock.calibration.camera.resolve_camera` from the config's camera file and
+width) captures them through the config's water.
 """
 
 from __future__ import annotations
 
 import numpy as np
+import sapien
 
-from uwdock.rl.config import EnvConfig
+from uwdock.calibration.camera import resolve_camera
+from uwdock.sim.camera import Frame, SimCamera
 from uwdock.sim.docking_station import DockingStationConfig, build_docking_station, build_tank
 from uwdock.sim.physics import VehicleBody, make_physics_scene
+from uwdock.sim.render import RenderResult, make_render_scene
 from uwdock.sim.vehicle import Current
+from uwdock.sim.water import preset
+from uwdock.sim.world_config import WorldConfig
+
+__all__ = ["DockingWorld", "WorldConfig"]
 
 
 class DockingWorld:
-    """Scene + vehicle + DS for :class:`rl.env.DockingEnv` (poses in world NED, body FRD)."""
+    """Scene + vehicle + DS (+ camera) of one docking env (poses in world NED, body FRD).
 
-    def __init__(self, cfg: EnvConfig, with_camera: bool = False) -> None:
+    Args:
+        cfg: the world.
+        with_camera: build the visual scene and the downward camera (needs Vulkan).
+    """
+
+    def __init__(self, cfg: WorldConfig, with_camera: bool = False) -> None:
+        cfg.validate()
         self.cfg = cfg
         self.with_camera = with_camera
         L, W, D = cfg.tank_size_m
@@ -26,23 +42,11 @@ class DockingWorld:
             tank_length_m=L, tank_width_m=W, tank_depth_m=D, marker_set_path=cfg.marker_set_path
         )
         self.render_scene = None
+        self.camera: SimCamera | None = None
         if with_camera:
-            import sapien
-
-            from uwdock.calibration.camera import load_camera
-            from uwdock.sim.render import make_render_scene
-
             scene = sapien.Scene()
             scene.set_timestep(1.0 / cfg.physics_hz)
-            cam, T_body_cam = None, None
-            if cfg.camera_file:
-                cam, T_body_cam = load_camera(cfg.camera_file)
-            if cfg.camera_width_px:
-                from uwdock.calibration.camera import reference_camera
-
-                base = cam or reference_camera()
-                h = round(base.height_px * cfg.camera_width_px / base.width_px)
-                cam = base.scaled(cfg.camera_width_px, h)
+            cam, T_body_cam = resolve_camera(cfg.camera_file, cfg.camera_width_px)
             self.render_scene = make_render_scene(
                 self.ds_cfg,
                 camera_model=cam,
@@ -50,6 +54,7 @@ class DockingWorld:
                 scene=scene,
                 surface_lid=True,
             )
+            self.camera = SimCamera(self.render_scene.rig, preset(cfg.water_preset))
             self.scene = scene
             self.ds = self.render_scene.ds
         else:
@@ -66,6 +71,7 @@ class DockingWorld:
 
     @property
     def T_world_ds(self) -> np.ndarray:
+        """(4, 4) DS pose in world NED."""
         return self.ds.T_worldned_ds
 
     @property
@@ -91,16 +97,28 @@ class DockingWorld:
     def step(self, wrench_body: np.ndarray, dt_s: float) -> None:
         self.vehicle.step(wrench_body, dt_s)
 
-    def render(self):
-        """Render the downward camera at the vehicle's pose (a :class:`sim.render.RenderResult`)."""
-        if self.render_scene is None:
-            return None
-        return self.render_scene.render(self.T_world_body)
+    def capture(self, rng: np.random.Generator | None) -> Frame | None:
+        """The downward camera's frame at the vehicle's pose, water applied (None: no camera).
 
-    def render_camera(self) -> np.ndarray | None:
+        Args:
+            rng: generator for the sensor noise of the water model.
+        """
+        if self.camera is None:
+            return None
+        return self.camera.capture(self.T_world_body, rng)
+
+    def render(self) -> RenderResult | None:
+        """Render the downward camera in air at the vehicle's pose (None: no camera)."""
+        if self.camera is None:
+            return None
+        return self.camera.render(self.T_world_body)
+
+    def render_camera_rgb(self) -> np.ndarray | None:
+        """(H, W, 3) uint8 RGB view of the downward camera in air, or None without a camera."""
         res = self.render()
         return None if res is None else res.rgb
 
     def close(self) -> None:
         self.render_scene = None
+        self.camera = None
         self.scene = None

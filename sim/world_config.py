@@ -1,0 +1,67 @@
+"""Configuration of the simulated world of one docking env (tank, DS, vehicle, currents, camera).
+
+Kept apart from :mod:`uwdock.sim.world` (which needs SAPIEN) so that configs can be built,
+loaded and checked without the simulator. The env's config (:class:`uwdock.rl.config.EnvConfig`)
+keeps the world's fields as its own flat keys (the layout of existing run folders and policies)
+and builds this config from them (``EnvConfig.world``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Annotated
+
+from uwdock.dockcore.domains import Interval
+from uwdock.sim.domains import TANK_SIZE_M, TankSide_m
+from uwdock.sim.vehicle import CurrentConfig, VehicleConfig, VehicleRandomisation
+from uwdock.sim.water import PRESET_ORDER
+
+__all__ = ["MIN_CAMERA_WIDTH_PX", "WorldConfig"]
+
+#: Narrowest render width (px) a world camera may have (0 = the camera file's own width).
+MIN_CAMERA_WIDTH_PX = 16
+
+
+@dataclass(frozen=True)
+class WorldConfig:
+    """The world of one docking env.
+
+    Attributes:
+        physics_hz: physics substep rate (Hz).
+        tank_size_m: tank length, width, depth (m); the world origin is at the surface above
+            the tank centre (NED), the floor at z = depth.
+        marker_set_path: marker set file (None: the default DS set, generated into a cache).
+        camera_file: camera YAML/JSON (None: the reference camera and mounting).
+        camera_width_px: render width (px): the camera's intrinsics are scaled to it
+            (:func:`uwdock.calibration.camera.resolve_camera`); 0 keeps the file's size.
+        water_preset: water between the camera and the scene (a :mod:`uwdock.sim.water`
+            preset name).
+        randomise_vehicle: draw the vehicle's parameters (and thruster placement) per episode.
+        current: ocean current model.
+        vehicle: nominal vehicle.
+        vehicle_randomisation: ranges used when ``randomise_vehicle``.
+    """
+
+    physics_hz: Annotated[float, Interval(gt=0, le=5000)] = 300.0
+    tank_size_m: tuple[TankSide_m, TankSide_m, TankSide_m] = TANK_SIZE_M
+    marker_set_path: str | None = None
+    camera_file: str | None = None
+    camera_width_px: Annotated[int, Interval(ge=0, le=8192)] = 480
+    water_preset: str = "clear_tank"
+    randomise_vehicle: bool = True
+    current: CurrentConfig = field(default_factory=CurrentConfig)
+    vehicle: VehicleConfig = field(default_factory=VehicleConfig)
+    vehicle_randomisation: VehicleRandomisation = field(default_factory=VehicleRandomisation)
+
+    def validate(self) -> None:
+        """Raise ValueError naming the first field that breaks a rule across fields or a name
+        (each field's own range is its declared domain)."""
+        if self.camera_width_px and self.camera_width_px < MIN_CAMERA_WIDTH_PX:
+            raise ValueError(
+                f"camera_width_px: must be 0 or >= {MIN_CAMERA_WIDTH_PX}, "
+                f"got {self.camera_width_px}"
+            )
+        if self.water_preset not in PRESET_ORDER:
+            raise ValueError(
+                f"water_preset: unknown {self.water_preset!r} (known: {', '.join(PRESET_ORDER)})"
+            )
