@@ -11,6 +11,7 @@ measures the seconds).
 from __future__ import annotations
 
 import importlib
+import importlib.metadata
 import inspect
 import json
 import subprocess
@@ -19,6 +20,7 @@ import sys
 import click
 import pytest
 
+import uwdock
 from uwdock import cli as uwdock_cli
 
 GROUPS = ("markers", "perception", "calibration", "datasets", "sim", "rl")
@@ -68,6 +70,11 @@ def test_group_help_imports_neither_the_group_nor_numpy(group):
     assert not {m for m in mods if m.startswith(f"uwdock.{group}")}
     assert not {m.partition(".")[0] for m in mods} & {"numpy", "cv2", "sapien", "scipy"}
     assert not mods & set(HEAVY)
+    assert "importlib.metadata" not in mods  # the version is a literal in uwdock/__init__.py
+
+
+def test_version_is_the_installed_distributions():
+    assert uwdock.__version__ == importlib.metadata.version("uwdock")
 
 
 def test_umbrella_help_of_a_group_imports_nothing_of_it():
