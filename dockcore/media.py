@@ -321,7 +321,7 @@ class AtomicVideoWriter:
         if size_px != self.size_px:
             if not self.resize:
                 raise ValueError(f"frame size {size_px} px differs from {self.size_px} px")
-                frame_bgr = cv2.resize(frame_bgr, self.size_px, interpolation=cv2.INTER_AREA)
+            frame_bgr = cv2.resize(frame_bgr, self.size_px, interpolation=cv2.INTER_AREA)
         self._encoder.write(frame_bgr)
         self.frames += 1
 
