@@ -41,7 +41,9 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.spatial.transform import Rotation
+
+# scipy.spatial (half a second to import) is imported by the two batch conversions that use it,
+# so every module that handles poses (and every command) does not pay for it.
 
 __all__ = [
     "T_BODYFLU_BODYFRD",
@@ -239,6 +241,8 @@ def R_from_quat_wxyz(q: ArrayLike) -> np.ndarray:
     if np.any(norm < 1e-12):
         raise ValueError("q: quaternion has zero norm")
     xyzw = arr[..., [1, 2, 3, 0]] / norm[..., None]  # scipy order is (x, y, z, w)
+    from scipy.spatial.transform import Rotation
+
     return Rotation.from_quat(xyzw).as_matrix()
 
 
@@ -270,6 +274,8 @@ def quat_wxyz_from_R(R: ArrayLike) -> np.ndarray:
     Returns:
         (4,) float64 quaternion (w, x, y, z) with w >= 0.
     """
+    from scipy.spatial.transform import Rotation
+
     xyzw = Rotation.from_matrix(check_R(R, "R")).as_quat()
     q = xyzw[[3, 0, 1, 2]]
     if q[0] < 0.0:

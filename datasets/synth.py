@@ -58,7 +58,6 @@ from typing import Annotated, Any
 import cv2
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
 from uwdock.calibration.camera import CameraModel, resolve_camera, save_camera
@@ -264,6 +263,8 @@ def _tilted_yaw(rng: np.random.Generator, tilt_max_deg: float) -> np.ndarray:
     cos_t = rng.uniform(math.cos(math.radians(tilt_max_deg)), 1.0)
     tilt, azimuth = math.acos(cos_t), rng.uniform(-math.pi, math.pi)
     axis = np.array([math.cos(azimuth), math.sin(azimuth), 0.0])
+    from scipy.spatial.transform import Rotation  # half a second to import: only when sampling
+
     return Rotation.from_rotvec(tilt * axis).as_matrix() @ R_from_rpy(0.0, 0.0, yaw)
 
 

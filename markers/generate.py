@@ -9,7 +9,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import trimesh
 
 from uwdock.dockcore.config import validated
 from uwdock.dockcore.errors import DockError
@@ -68,6 +67,7 @@ def write_preview(path: Path, solids: MarkerSolids, cfg: MarkerConfig) -> Path:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import trimesh
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
     half = cfg.base_side / 2 * 1.05

@@ -18,14 +18,20 @@ Construction (manifold3d, so every solid is manifold by construction):
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import cv2
 import manifold3d as mf
 import numpy as np
-import trimesh
 
 from uwdock.markers.config import MarkerConfig
 from uwdock.markers.dictionary import marker_cells
+
+if TYPE_CHECKING:
+    import trimesh
+
+# trimesh (about a second to import: scipy, networkx) is imported by the functions that make
+# meshes, so importing this module (and every command that reaches it) does not pay for it.
 
 #: Colours of the two printed parts (RGBA, 0-255), also used by the render meshes.
 INSERT_RGBA = (235, 235, 230, 255)
@@ -64,6 +70,8 @@ def _slab(cs: mf.CrossSection, z0: float, z1: float) -> mf.Manifold:
 
 
 def _to_trimesh(m: mf.Manifold) -> trimesh.Trimesh:
+    import trimesh
+
     mesh = m.to_mesh()
     tm = trimesh.Trimesh(
         vertices=np.asarray(mesh.vert_properties)[:, :3].astype(np.float64),
@@ -105,6 +113,8 @@ def build_solids(cfg: MarkerConfig, marker_id: int) -> MarkerSolids:
 
 def render_scene(solids: MarkerSolids) -> trimesh.Scene:
     """Both parts with PBR materials (white insert, black enclosure), in **metres**, for SAPIEN."""
+    import trimesh
+
     scene = trimesh.Scene()
     for name, mesh, rgba in (
         ("insert", solids.insert, INSERT_RGBA),

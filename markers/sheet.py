@@ -24,19 +24,19 @@ import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import matplotlib
 import numpy as np
-from matplotlib.collections import LineCollection
-from matplotlib.figure import Figure
-from matplotlib.font_manager import FontProperties
-from matplotlib.patches import PathPatch
-from matplotlib.path import Path as MplPath
-from matplotlib.textpath import TextPath
 
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_write_bytes
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+    from matplotlib.patches import PathPatch
+
+# matplotlib (a few tenths of a second to import) is imported by the functions that draw, so
+# importing this module (and the ``markers`` command line) does not pay for it.
 
 MM_PER_INCH = 25.4
 MM_PER_PT = MM_PER_INCH / 72.0
@@ -174,6 +174,8 @@ def render_sheet(
     ]
     title = title or "uwdock marker sheet"
 
+    import matplotlib
+
     with matplotlib.rc_context(RC_PARAMS):
         figures = [
             _draw_page(
@@ -228,6 +230,9 @@ def _label_width_mm(label: str) -> float:
     """Width of ``label`` at the label font size (mm), measured on the font's glyph outlines."""
     if not label:
         return 0.0
+    from matplotlib.font_manager import FontProperties
+    from matplotlib.textpath import TextPath
+
     path = TextPath((0.0, 0.0), label, size=LABEL_PT, prop=FontProperties(family=FONT_FAMILY))
     return float(path.get_extents().width) * MM_PER_PT
 
@@ -302,6 +307,9 @@ def black_rectangles(cells: np.ndarray) -> list[tuple[int, int, int, int]]:
 
 def _marker_patch(cells: np.ndarray, x_mm: float, y_mm: float, side_mm: float) -> PathPatch:
     """One filled path of the black cells, top-left of the marker at (x_mm, y_mm)."""
+    from matplotlib.patches import PathPatch
+    from matplotlib.path import Path as MplPath
+
     cell_mm = side_mm / cells.shape[0]
     verts: list[tuple[float, float]] = []
     codes: list[int] = []
@@ -327,6 +335,8 @@ def _cut_marks(x_mm: float, y_mm: float, side_mm: float) -> list[list[tuple[floa
 
 def _scale_bar(ax, x_mm: float, y_mm: float) -> None:
     """A SCALE_BAR_MM bar with ticks every SCALE_TICK_MM, its left end at (x_mm, y_mm)."""
+    from matplotlib.collections import LineCollection
+
     segs = [[(x_mm, y_mm), (x_mm + SCALE_BAR_MM, y_mm)]]
     n_ticks = round(SCALE_BAR_MM / SCALE_TICK_MM)
     for i in range(n_ticks + 1):
@@ -356,6 +366,9 @@ def _draw_page(
     n_pages: int,
 ) -> Figure:
     """One page as a figure whose data coordinates are paper mm (y down)."""
+    from matplotlib.collections import LineCollection
+    from matplotlib.figure import Figure
+
     w_mm, h_mm = layout.paper_w_mm, layout.paper_h_mm
     fig = Figure(figsize=(w_mm / MM_PER_INCH, h_mm / MM_PER_INCH), dpi=72, facecolor="white")
     ax = fig.add_axes((0.0, 0.0, 1.0, 1.0))

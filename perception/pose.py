@@ -28,7 +28,6 @@ from typing import Annotated, Any
 import cv2
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.optimize import least_squares
 
 from uwdock.calibration.frames import (
     R_from_rpy,
@@ -624,6 +623,8 @@ def refine_level_board(
         rvec, _ = cv2.Rodrigues(R_cw @ R_from_rpy(0.0, 0.0, x[3]))
         proj, _ = cv2.projectPoints(obj, rvec, R_cw @ x[:3] + t_cw, K, dist)
         return (proj.reshape(-1, 2) - img).ravel()
+
+    from scipy.optimize import least_squares  # half a second to import, only needed here
 
     sol = least_squares(residual, x0, method="lm", x_scale=[0.1, 0.1, 0.1, 0.05])
     r = sol.fun

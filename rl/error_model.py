@@ -28,7 +28,6 @@ from typing import Annotated, Any
 
 import cv2
 import numpy as np
-from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
 from uwdock.calibration.camera import (
@@ -92,6 +91,8 @@ def _dataset_checksum(root: Path) -> str:
 
 def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> np.ndarray:
     """(6,) ``[t_est - t_true (m), rotvec(R_est R_true^T) (rad)]`` of two camera-frame poses."""
+    from scipy.spatial.transform import Rotation  # half a second to import: only when used
+
     dt = T_est[:3, 3] - T_true[:3, 3]
     drot = Rotation.from_matrix(T_est[:3, :3] @ T_true[:3, :3].T).as_rotvec()
     return np.concatenate([dt, drot])
@@ -99,6 +100,8 @@ def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> np.ndarray:
 
 def apply_error(T_true: np.ndarray, err: np.ndarray) -> np.ndarray:
     """Inverse of :func:`pose_error`: the estimate with error ``err`` from the truth."""
+    from scipy.spatial.transform import Rotation
+
     R = Rotation.from_rotvec(err[3:]).as_matrix() @ T_true[:3, :3]
     return make_T(R, T_true[:3, 3] + err[:3])
 

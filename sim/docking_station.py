@@ -39,7 +39,6 @@ from typing import Annotated
 import numpy as np
 import sapien
 from numpy.typing import ArrayLike
-from scipy.spatial import ConvexHull
 
 from uwdock.calibration.frames import T_WORLDZUP_WORLDNED, check_T, make_T, pos_quat_from_T
 from uwdock.dockcore.config import to_dict, validated
@@ -47,6 +46,7 @@ from uwdock.dockcore.domains import Interval
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import clean_stale_temps, temp_sibling
 from uwdock.markers.config import MarkerConfig
+from uwdock.markers.generate import MARKER_SET_NAME, generate
 from uwdock.markers.markerset import MarkerSet, load_marker_set
 from uwdock.sim.domains import RGB, TANK_SIZE_M, Friction, TankSide_m
 
@@ -262,8 +262,6 @@ def default_marker_set(cache_dir: str | os.PathLike[str] | None = None) -> Marke
     ``cache_dir``, else ``$UWDOCK_CACHE_DIR``, else ``$XDG_CACHE_HOME/uwdock`` or
     ``~/.cache/uwdock``.
     """
-    from uwdock.markers.generate import MARKER_SET_NAME, generate
-
     cfg = MarkerConfig()
     digest = hashlib.sha1(json.dumps(to_dict(cfg), sort_keys=True).encode()).hexdigest()[:12]
     root = Path(cache_dir) if cache_dir is not None else _cache_root()
@@ -346,6 +344,8 @@ class _StaticBody:
         )
         if self.render is None:
             return
+        from scipy.spatial import ConvexHull  # half a second to import, only needed here
+
         hull = ConvexHull(v)
         tris = []
         for simplex, eq in zip(hull.simplices, hull.equations, strict=True):

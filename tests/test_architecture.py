@@ -27,9 +27,16 @@ from uwdock import LAYERS
 ROOT = Path(__file__).resolve().parents[1]
 
 #: Third-party modules a function may import lazily: each is installed by an extra or takes
-#: seconds to import, so a command that does not need it must not pay for it.
+#: seconds to import, so a command that does not need it must not pay for it (``<group> --help``
+#: and ``import uwdock.rl.env`` are timed by ``bench/bench_startup.py``).
 HEAVY_OPTIONAL = frozenset(
     {
+        # base dependencies, but each costs 0.2-1 s to import on 2 busy cores and only a few
+        # functions use it: trimesh (~1 s with networkx: the marker meshes), scipy (0.5 s for
+        # scipy.spatial or scipy.optimize: batch rotations, one fit, one hull), matplotlib
+        # (0.2-0.4 s: sheets, previews, plots)
+        "trimesh",
+        "scipy",
         "torch",
         "stable_baselines3",
         "sapien",
@@ -44,13 +51,6 @@ HEAVY_OPTIONAL = frozenset(
         "av",  # FFmpeg's libraries, loaded only where a video is written
     }
 )
-
-#: The one function-local import of a project module, and why: ``default_marker_set`` builds the
-#: default marker meshes once (then cached on disk); importing ``markers.generate`` at module
-#: level pulls trimesh and matplotlib into every env and every worker (measured: ``import
-#: uwdock.rl.env`` 1.9 s -> 3.1 s on 2 busy cores). Any other is a failure; this one still counts
-#: for the cycle and rank checks.
-LAZY_PROJECT_IMPORTS = frozenset({("uwdock.sim.docking_station", "uwdock.markers.generate")})
 
 #: Rank of the namespace's own modules: its ``__init__`` (LAYERS, the version) sits below every
 #: package, its umbrella command above them all.
@@ -201,17 +201,14 @@ def local_import_violations(
     root: Path,
     layers: dict[str, int],
     allowed: frozenset[str] = HEAVY_OPTIONAL,
-    lazy_project: frozenset[tuple[str, str]] = LAZY_PROJECT_IMPORTS,
 ) -> list[str]:
-    """Function-local imports of a ``uwdock`` module (but the pairs in ``lazy_project``), of the
-    standard library or of a third-party module not in ``allowed``."""
+    """Function-local imports of a ``uwdock`` module, of the standard library or of a
+    third-party module not in ``allowed``."""
     files = module_files(root, layers)
     hits = [
         imp.where(files)
         for imp in imports_in(files)
-        if imp.local
-        and imp.target.split(".")[0] not in allowed
-        and (imp.importer, imp.target) not in lazy_project
+        if imp.local and imp.target.split(".")[0] not in allowed
     ]
     return list(dict.fromkeys(hits))  # one line per imported module
 
@@ -372,8 +369,6 @@ def test_local_imports_of_the_project_or_light_modules_are_found(tmp_path):
         "uwdock.top.a imports json",
         "uwdock.top.a imports cv2",
     ]
-    exempt = frozenset({("uwdock.top.a", "uwdock.low.b")})
-    assert len(local_import_violations(root, _PLANT_LAYERS, lazy_project=exempt)) == 2
 
 
 def test_unguarded_bare_folder_is_found(tmp_path):

@@ -1,6 +1,7 @@
 """``uwdock``: one command over every command group (``uwdock perception eval`` is
-``perception eval``). A group is imported only when it is called, so the footage commands run
-without the simulator or the learning stack installed."""
+``perception eval``), and the console scripts of the six groups. A group's module is imported
+only when one of its commands is called, so ``<group> --help`` is quick and the footage commands
+run without the simulator or the learning stack installed."""
 
 from __future__ import annotations
 
@@ -27,24 +28,126 @@ GROUPS = {
 }
 
 
+#: command group -> (its help text, {command: the first paragraph of its help}): what
+#: ``<group> --help`` shows without importing the group's module (``uwdock.<group>.cli``, which
+#: imports everything its commands use). ``tests/test_uwdock_cli.py`` checks it word for word
+#: against the groups themselves.
+COMMANDS: dict[str, tuple[str, dict[str, str]]] = {
+    "markers": (
+        "3D Binary Markers: printable parts, flat sheets, the marker set file.",
+        {
+            "dictionaries": "List the marker dictionaries OpenCV offers, with bits and marker "
+            "count.",
+            "generate": "Write STL parts (white insert, black enclosure), render meshes, "
+            "previews, a true-scale PDF/SVG sheet and the marker set file for the given IDs.",
+        },
+    ),
+    "perception": (
+        "Perception: 3DBM detection and docking-station pose from the marker board.",
+        {
+            "detect": "Detect markers in INPUT (an image, a folder of images or a video) and "
+            "solve the DS pose.",
+            "eval": "Evaluate detection and DS pose on INPUT (images, a video, or a labelled "
+            "dataset folder).",
+            "pipelines": "List the preprocessing pipelines.",
+        },
+    ),
+    "calibration": (
+        "Calibration: camera intrinsics and the camera-to-vehicle extrinsics.",
+        {
+            "extrinsics": "Show or set T_body_cam (camera cv frame in body FRD) in a camera file.",
+            "intrinsics": "Calibrate K and distortion from SOURCE: a folder of images or a "
+            "video of the target.",
+            "reference-camera": "Write the reference Girona downward camera (968x732, 55 deg "
+            "HFOV) with its T_body_cam.",
+        },
+    ),
+    "datasets": (
+        "Datasets: labelled synthetic frames and loaders for real footage.",
+        {
+            "render": "Render images (+ labels.jsonl in the dataset format) for given or random "
+            "poses: the ``synth`` engine fed with explicit vehicle poses (``--poses``) or a few "
+            "random ones.",
+            "synth": "Render a labelled dataset of the docking station from random AUV poses.",
+        },
+    ),
+    "sim": (
+        "Simulation: SAPIEN AUV and docking-station physics, underwater camera rendering.\n\n"
+        "Rendered frames for given poses: `datasets render`; a docking episode video: "
+        "`rl episode`.",
+        {
+            "water": "List the water presets, clearest first: attenuation and backscatter per "
+            "channel (1/m), veiling light and forward-scatter blur.",
+        },
+    ),
+    "rl": (
+        "Reinforcement learning: docking env, PPO training, evaluation, export.",
+        {
+            "episode": "Run the scripted PID controller in the docking env and write a "
+            "side-by-side MP4 of the downward camera (with water) and an outside view, plus "
+            "summary.json.",
+            "eval": "Evaluate a policy (or the PID baseline) over seeded episodes.",
+            "export": "Export a policy to ONNX (observation normalisation included).",
+            "fit-error-model": "Fit the image-derived error model from a labelled dataset "
+            "(`datasets synth`).",
+            "train": "Train a docking policy (PPO with the paper's hyperparameters by default).",
+        },
+    ),
+}
+
+
+def load_group(name: str) -> click.Group:
+    """The command group ``name`` itself: ``uwdock.<name>.cli`` imported (a missing optional
+    package is a usage error naming the extra that installs it)."""
+    extra, _ = GROUPS[name]
+    try:
+        module = importlib.import_module(f"uwdock.{name}.cli")
+    except ModuleNotFoundError as exc:
+        if exc.name and not exc.name.startswith("uwdock"):
+            hint = f"pip install 'uwdock[{extra}]'" if extra else "reinstall uwdock"
+            raise click.UsageError(
+                f"'{name}' needs the Python package {exc.name!r}, not installed here ({hint})"
+            ) from None
+        raise
+    return module.cli
+
+
+class LazyGroup(click.Group):
+    """Command group ``name`` as its console script and ``uwdock <name>`` see it: its help and
+    command list come from :data:`COMMANDS`; its module (with the libraries its commands use:
+    OpenCV, SAPIEN, torch ...) is imported only when a command is called, so ``<name> --help``
+    and a mistyped command cost no more than click (click's documented lazy-loading pattern)."""
+
+    def __init__(self, name: str) -> None:
+        super().__init__(name=name, help=COMMANDS[name][0], context_settings=CONTEXT)
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return sorted(COMMANDS[self.name][1])
+
+    def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
+        if cmd_name not in COMMANDS[self.name][1]:
+            return None
+        return load_group(self.name).get_command(ctx, cmd_name)
+
+    def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+        """The listing click writes for the loaded group (same truncation), from the table."""
+        names = self.list_commands(ctx)
+        limit = formatter.width - 6 - max(len(n) for n in names)
+        summaries = COMMANDS[self.name][1]
+        rows = [(n, click.Command(n, help=summaries[n]).get_short_help_str(limit)) for n in names]
+        with formatter.section("Commands"):
+            formatter.write_dl(rows)
+
+
+_LAZY = {name: LazyGroup(name) for name in COMMANDS}
+
+
 class _LazyGroups(click.Group):
     def list_commands(self, ctx: click.Context) -> list[str]:
         return list(GROUPS)
 
     def get_command(self, ctx: click.Context, name: str) -> click.Command | None:
-        if name not in GROUPS:
-            return None
-        extra, _ = GROUPS[name]
-        try:
-            module = importlib.import_module(f"uwdock.{name}.cli")
-        except ModuleNotFoundError as exc:
-            if exc.name and not exc.name.startswith("uwdock"):
-                hint = f"pip install 'uwdock[{extra}]'" if extra else "reinstall uwdock"
-                raise click.UsageError(
-                    f"'{name}' needs the Python package {exc.name!r}, not installed here ({hint})"
-                ) from None
-            raise
-        return module.cli
+        return _LAZY.get(name)
 
     def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
         rows = [(name, summary) for name, (_, summary) in GROUPS.items()]
@@ -62,7 +165,39 @@ def cli() -> None:
 
 
 def main() -> None:
+    """``uwdock``."""
     run_group(cli)
+
+
+# the console scripts of the six groups (``markers``, ``perception`` ...)
+def markers() -> None:
+    """``markers``."""
+    run_group(_LAZY["markers"])
+
+
+def perception() -> None:
+    """``perception``."""
+    run_group(_LAZY["perception"])
+
+
+def calibration() -> None:
+    """``calibration``."""
+    run_group(_LAZY["calibration"])
+
+
+def datasets() -> None:
+    """``datasets``."""
+    run_group(_LAZY["datasets"])
+
+
+def sim() -> None:
+    """``sim``."""
+    run_group(_LAZY["sim"])
+
+
+def rl() -> None:
+    """``rl``."""
+    run_group(_LAZY["rl"])
 
 
 if __name__ == "__main__":  # pragma: no cover
