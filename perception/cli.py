@@ -37,8 +37,10 @@ def _note(msg: str) -> None:
     click.echo(f"note: {msg}", err=True)
 
 
-def _config(config_path: Path | None, pipeline: str | None):
+def _config(config_path: Path | None, pipeline: str | None, level_ds: bool | None = None):
     overrides: dict[str, Any] = {"detector": {"pipeline": pipeline}} if pipeline else {}
+    if level_ds is not None:
+        overrides["pose"] = {"level_ds": level_ds}
     return load_config(PerceptionConfig, config_path, overrides=overrides, section="perception")
 
 
@@ -164,6 +166,12 @@ def _print_summary(report: dict[str, Any], out_dir: Path) -> None:
     help="Labelled dataset folder, labels.jsonl or pose CSV (frame,x_m,y_m,z_m,qw,qx,qy,qz).",
 )
 @click.option("--compare", help="Comma-separated pipelines to run side by side.")
+@click.option(
+    "--level-ds/--no-level-ds",
+    default=None,
+    help="Re-solve the board with the DS level where a frame's label gives the vehicle attitude "
+    "(T_world_body), as the env's camera source does [default: on, or [pose] level_ds].",
+)
 @out_dir_option(required=True)
 @json_option("Print report.json to stdout.")
 def eval_cmd(
@@ -177,6 +185,7 @@ def eval_cmd(
     camera_path,
     gt_path,
     compare,
+    level_ds,
     out_dir,
     as_json,
 ) -> None:
@@ -187,7 +196,7 @@ def eval_cmd(
     plots and a contact sheet. --compare runs several pipelines on the same frames and adds
     compare.json / compare.md.
     """
-    cfg = _config(config_path, pipeline)
+    cfg = _config(config_path, pipeline, level_ds)
     names = [p.strip() for p in (compare or "").split(",") if p.strip()]
     if compare is not None and not names:
         raise DockError("--compare needs at least one pipeline name")

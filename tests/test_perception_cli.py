@@ -527,3 +527,21 @@ def test_labels_round_trip_and_derived_quantities(tmp_path):
         assert (a.marker_id, a.in_image, a.visible) == (b.marker_id, b.in_image, b.visible)
         np.testing.assert_allclose(a.corners_px, b.corners_px)  # nan (behind) survives as nan
     assert np.isnan(loaded[4].markers[0].corners_px).all()
+
+
+def test_eval_level_ds_flag_overrides_the_config(run_cli, scene, tmp_path):
+    """--level-ds/--no-level-ds set the estimator's level-DS re-solve; the flag beats [pose]."""
+    cfg = tmp_path / "p.toml"
+    cfg.write_text("[pose]\nlevel_ds = false\n")
+    cases = {
+        (): True,  # the default: as the env's camera source
+        ("--no-level-ds",): False,
+        ("--config", cfg): False,
+        ("--config", cfg, "--level-ds"): True,
+    }
+    for k, (args, want) in enumerate(cases.items()):
+        out = tmp_path / f"o{k}"
+        res = run_cli(main, "eval", scene["root"], *args, "--out", out, "--quiet")
+        assert res.code == 0, res.err
+        report = json.loads((out / "report.json").read_text())
+        assert report["config"]["pose"]["level_ds"] is want, args
