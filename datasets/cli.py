@@ -21,7 +21,7 @@ from uwdock.dockcore.options import (
     seed_option,
     workers_option,
 )
-from uwdock.sim.water import PRESETS
+from uwdock.sim.water import water_choice
 
 #: Configs whose fields the options override (imported when an option is first used).
 _SYNTH = "uwdock.datasets.synth:SynthConfig"
@@ -116,14 +116,6 @@ def synth(
         )
 
 
-def _water_choice(water: str | None, allow_random: bool) -> str:
-    name = water or "none"
-    known = [*PRESETS, *(["random"] if allow_random else []), "none"]
-    if name not in known:
-        raise DockError(f"unknown water preset {name!r}; known: {', '.join(known)}")
-    return name
-
-
 @cli.command()
 @out_dir_option(
     "Output folder (images/, labels.jsonl, camera, marker set, dataset.json).", required=True
@@ -167,7 +159,7 @@ def render(
     cfg = SynthConfig(  # checked by generate() before it writes anything
         n_frames=n,
         seed=seed,
-        water=_water_choice(water, allow_random=True),
+        water=water_choice(water, allow_random=True),
         camera_file=camera_file,
         width_px=width_px,
         marker_set_path=marker_set_path,

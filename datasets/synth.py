@@ -92,7 +92,6 @@ __all__ = [
     "frame_rng",
     "generate",
     "sample_pose",
-    "synth_camera",
 ]
 
 #: Image and partial-label names of frame k.
@@ -344,12 +343,6 @@ def sample_pose(
 # ----------------------------------------------------------------------------- setup
 
 
-def synth_camera(cfg: SynthConfig) -> tuple[CameraModel, np.ndarray]:
-    """The camera model (scaled to ``cfg.width_px``) and ``T_body_cam`` of a config
-    (:func:`uwdock.calibration.camera.resolve_camera`, as the env's world resolves its camera)."""
-    return resolve_camera(cfg.camera_file, cfg.width_px)
-
-
 def _ds_config(cfg: SynthConfig) -> DockingStationConfig:
     return DockingStationConfig(marker_set_path=cfg.marker_set_path)
 
@@ -399,7 +392,7 @@ class FrameRenderer:
     def __init__(self, cfg: SynthConfig, poses: np.ndarray | None = None) -> None:
         self.cfg = cfg
         self.poses = poses
-        self.camera, self.T_body_cam = synth_camera(cfg)
+        self.camera, self.T_body_cam = resolve_camera(cfg.camera_file, cfg.width_px)
         self.tank_size_m = _ds_config(cfg).tank_size_m
         self.rs = _render_scene(cfg, self.camera, self.T_body_cam)
         self.sim_camera = SimCamera(self.rs.rig)
@@ -762,7 +755,7 @@ def generate(
     if reason:
         raise ConfigError(reason)
     pose_arr = _checked_poses(poses, cfg.n_frames)
-    camera, T_body_cam = synth_camera(cfg)
+    camera, T_body_cam = resolve_camera(cfg.camera_file, cfg.width_px)
     ds_cfg = _ds_config(cfg)
     if pose_arr is not None:
         _check_cameras_in_water(pose_arr, T_body_cam, ds_cfg)

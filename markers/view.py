@@ -40,7 +40,7 @@ def project_corners(
         raise ValueError(f"corners_ds: expected shape (M, 4, 3), got {c.shape}")
     p = c.reshape(-1, 3) @ T[:3, :3].T + T[:3, 3]
     z = p[:, 2]
-    if np.any(camera.dist_coeffs != 0.0):
+    if any(camera.dist):
         px = camera.project(p)
     else:  # the pinhole formula, what projectPoints computes without distortion (faster)
         px = np.full((p.shape[0], 2), np.nan)

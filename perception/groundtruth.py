@@ -196,10 +196,17 @@ def label_frame(
     """
     T = np.asarray(T_cam_ds, np.float64)
     markers = []
-    for marker_id in sorted(corners_ds):
+    ids = sorted(corners_ds)
+    in_view = (
+        markers_in_view(  # all markers in one call
+            camera, T, np.stack([np.asarray(corners_ds[i], np.float64) for i in ids])
+        )
+        if ids
+        else np.zeros(0, bool)
+    )
+    for marker_id, inside in zip(ids, in_view.tolist(), strict=True):
         corners = np.asarray(corners_ds[marker_id], np.float64)
         px = camera.project(transform_points(T, corners))
-        inside = bool(markers_in_view(camera, T, corners[None])[0])
         markers.append(
             MarkerTruth(int(marker_id), px, inside, inside and marker_id not in occluded_ids)
         )

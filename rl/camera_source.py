@@ -24,6 +24,7 @@ COVARIANCE_INFLATION = 4.0
 #: Lower bounds of the measurement standard deviations: position (m), yaw (rad).
 SIGMA_FLOOR_M = 0.01
 SIGMA_FLOOR_YAW_RAD = 0.005
+_COVARIANCE_FLOOR = np.diag([SIGMA_FLOOR_M**2] * 3 + [SIGMA_FLOOR_YAW_RAD**2])
 
 
 class CameraSource:
@@ -77,7 +78,5 @@ def measurement(est: DSPoseEstimate) -> Measurement | None:
     """
     if est.level is None:
         return None
-    cov = COVARIANCE_INFLATION * est.level.covariance + np.diag(
-        [SIGMA_FLOOR_M**2] * 3 + [SIGMA_FLOOR_YAW_RAD**2]
-    )
+    cov = COVARIANCE_INFLATION * est.level.covariance + _COVARIANCE_FLOOR
     return Measurement(est.level.T_world_ds, cov, True)

@@ -34,7 +34,7 @@ from uwdock.rl.policy_io import policy_env_settings, policy_error_model
 from uwdock.rl.report import evaluate_to_folder
 from uwdock.rl.train import TrainConfig, run_config
 from uwdock.rl.train import train as run
-from uwdock.sim.water import PRESETS
+from uwdock.sim.water import PRESETS, water_choice
 
 #: The config whose fields the options override (imported when an option is first used).
 _TRAIN = "uwdock.rl.train:TrainConfig"
@@ -232,14 +232,6 @@ def fit_error_model_cmd(dataset, out_path, range_bin_m) -> None:
     click.echo(f"fitted on {int(n)} frames ({model['dataset']['sha256'][:12]}): {out_path}")
 
 
-def _water_choice(water: str | None, allow_random: bool) -> str:
-    name = water or "none"
-    known = [*PRESETS, *(["random"] if allow_random else []), "none"]
-    if name not in known:
-        raise DockError(f"unknown water preset {name!r}; known: {', '.join(known)}")
-    return name
-
-
 @cli.command()
 @out_dir_option(
     "Output folder (episode.mp4, summary.json, config.toml, provenance.json).", required=True
@@ -275,7 +267,7 @@ def episode(
 ) -> None:
     """Run the scripted PID controller in the docking env and write a side-by-side MP4 of the
     downward camera (with water) and an outside view, plus summary.json."""
-    water_name = _water_choice(water or "coastal", allow_random=False)
+    water_name = water_choice(water or "coastal", allow_random=False)
     given = config_data(config_path, section="env") if config_path is not None else {}
     flags = {"episode_s": seconds, "camera_width_px": width_px}
     data = merge(merge(_EPISODE_DEFAULTS, given), {k: v for k, v in flags.items() if v is not None})

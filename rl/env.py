@@ -186,7 +186,7 @@ class DockingEnv(gym.Env):
             if frame is None:
                 return None
             dets = []
-        out = np.ascontiguousarray(frame.img_rgb.copy())
+        out = frame.img_rgb.copy()
         for d in dets:
             pts = np.round(d.corners_px).astype(np.int32)
             cv2.polylines(out, [pts], True, (0, 255, 0), 2)

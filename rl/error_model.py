@@ -33,7 +33,6 @@ from tqdm import tqdm
 from uwdock.calibration.camera import (
     REFERENCE_T_BODYFRD_CAMCV,
     CameraModel,
-    load_camera,
     resolve_camera,
 )
 from uwdock.calibration.frames import inv_T, make_T
@@ -129,7 +128,6 @@ def fit_error_model(
     """Fit the model from a labelled dataset folder (see the module docstring)."""
     cfg = cfg or ErrorModelConfig()
     ds = load_dataset(dataset)
-    _, T_body_cam = load_camera(ds.camera_path)
     camera, T_bc = resolve_camera(ds.camera_path)
     ms = load_marker_set(ds.marker_set_path)
     estimator = DSPoseEstimator.from_marker_set(ms)
@@ -168,7 +166,7 @@ def fit_error_model(
         "board_pose": to_dict(estimator.board_cfg),
         "camera": {
             **to_dict(camera),
-            "T_body_cam": None if T_body_cam is None else np.asarray(T_body_cam).tolist(),
+            "T_body_cam": T_bc.tolist(),
         },
         "board_corners_ds_m": corners.tolist(),
         "tables": tables,

@@ -25,11 +25,11 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike
 
-from uwdock.calibration.camera import CameraModel, resolve_camera, scaled_to_width
+from uwdock.calibration.camera import CameraModel
 from uwdock.sim.render import CameraRig, RenderResult
 from uwdock.sim.water import WaterConfig, apply_water
 
-__all__ = ["Frame", "SimCamera", "resolve_camera", "scaled_to_width"]
+__all__ = ["Frame", "SimCamera"]
 
 #: Keep the current water of a :class:`SimCamera` (``capture(..., water=KEEP)``).
 KEEP: Literal["keep"] = "keep"

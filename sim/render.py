@@ -364,12 +364,14 @@ def project_markers(
     """
     T = check_T(T_camcv_ds, "T_camcv_ds")
     out: dict[int, MarkerProjection] = {}
-    for spec in marker_set.markers:
+    in_view = markers_in_view(  # all markers in one call (one projection batch per frame)
+        camera_model, T, np.stack([spec.corners_ds_m for spec in marker_set.markers])
+    )
+    for spec, in_image in zip(marker_set.markers, in_view.tolist(), strict=True):
         pts_ds = np.vstack([spec.corners_ds_m, spec.T_ds_marker[:3, 3]])
         pts_cam = transform_points(T, pts_ds)  # (5, 3): 4 corners + centre
         px = camera_model.project(pts_cam)
         in_front = bool(np.all(pts_cam[:, 2] > 0.0))
-        in_image = bool(markers_in_view(camera_model, T, spec.corners_ds_m[None])[0])
         dist = np.linalg.norm(pts_cam, axis=1)
         occluded = False
         if range_m is not None and in_image:

@@ -56,6 +56,7 @@ import numpy as np
 
 from uwdock.dockcore.config import check_fields
 from uwdock.dockcore.domains import Fraction, Interval
+from uwdock.dockcore.errors import DockError
 from uwdock.sim.domains import RGB as ColourRGB
 
 __all__ = [
@@ -189,6 +190,16 @@ def preset(name: str, **changes: object) -> WaterConfig:
     cfg = dataclasses.replace(base, **changes)  # type: ignore[arg-type]
     cfg.validate()
     return cfg
+
+
+def water_choice(name: str | None, allow_random: bool = False) -> str:
+    """A command's water argument checked: a preset name, "none" (None too) or, where the
+    command draws a water per frame, "random". Raises a one-line :class:`DockError` otherwise."""
+    name = name or "none"
+    known = [*PRESETS, *(["random"] if allow_random else []), "none"]
+    if name not in known:
+        raise DockError(f"unknown water preset {name!r}; known: {', '.join(known)}")
+    return name
 
 
 #: Presets from the clearest to the most turbid (see the module docstring for the Jerlov types).

@@ -17,7 +17,7 @@ from uwdock.calibration.camera import resolve_camera
 from uwdock.sim.camera import Frame, SimCamera
 from uwdock.sim.docking_station import DockingStationConfig, build_docking_station, build_tank
 from uwdock.sim.physics import VehicleBody, make_physics_scene
-from uwdock.sim.render import RenderResult, make_render_scene
+from uwdock.sim.render import make_render_scene
 from uwdock.sim.vehicle import Current
 from uwdock.sim.water import preset
 from uwdock.sim.world_config import WorldConfig
@@ -107,16 +107,9 @@ class DockingWorld:
             return None
         return self.camera.capture(self.T_world_body, rng)
 
-    def render(self) -> RenderResult | None:
-        """Render the downward camera in air at the vehicle's pose (None: no camera)."""
-        if self.camera is None:
-            return None
-        return self.camera.render(self.T_world_body)
-
     def render_camera_rgb(self) -> np.ndarray | None:
         """(H, W, 3) uint8 RGB view of the downward camera in air, or None without a camera."""
-        res = self.render()
-        return None if res is None else res.rgb
+        return None if self.camera is None else self.camera.render(self.T_world_body).rgb
 
     def close(self) -> None:
         self.render_scene = None

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 from types import SimpleNamespace
@@ -70,15 +71,8 @@ def test_world_config_is_built_from_the_flat_env_keys_of_existing_run_folders():
 
 
 def _distorted() -> CameraModel:
-    ref = reference_camera().scaled(640, 484)
-    return CameraModel(
-        width_px=ref.width_px,
-        height_px=ref.height_px,
-        fx_px=ref.fx_px,
-        fy_px=ref.fy_px,
-        cx_px=ref.cx_px,
-        cy_px=ref.cy_px,
-        dist=(-0.35, 0.1, 0.0, 0.0, 0.0),
+    return dataclasses.replace(
+        reference_camera().scaled(640, 484), dist=(-0.35, 0.1, 0.0, 0.0, 0.0)
     )
 
 

@@ -24,7 +24,7 @@ def test_uwdock_help_lists_the_six_groups(run_cli):
     rows = res.out.split("Commands:")[1].splitlines()
     names = [row.split()[0] for row in rows if row.startswith("  ") and row[2] != " "]
     assert names == list(GROUPS)  # continuation lines of a wrapped summary are indented deeper
-    for name, (_, summary) in uwdock_cli.GROUPS.items():
+    for name, (summary, _) in uwdock_cli.COMMANDS.items():
         assert summary.split()[0] in res.out, name
 
 

@@ -11,20 +11,14 @@ import click
 
 from uwdock.dockcore.cli import CONTEXT, run_group
 
-#: command group -> (the extra that installs what it needs, its one-line summary)
-GROUPS = {
-    "markers": (None, "3D Binary Markers: printable STL, PDF/SVG sheets, the marker set file."),
-    "perception": (None, "3DBM detection, DS pose from the marker board, footage evaluation."),
-    "calibration": (None, "Camera intrinsics from images, camera-to-vehicle extrinsics."),
-    "datasets": (
-        "sim",
-        "Labelled synthetic datasets rendered with SAPIEN; frames for given poses.",
-    ),
-    "sim": ("sim", "The simulator's own commands: the water presets."),
-    "rl": (
-        "rl",
-        "Docking env, PPO training, evaluation with the camera in the loop, export, videos.",
-    ),
+#: command group -> the extra that installs what its commands need (None: the base install)
+EXTRAS: dict[str, str | None] = {
+    "markers": None,
+    "perception": None,
+    "calibration": None,
+    "datasets": "sim",
+    "sim": "sim",
+    "rl": "rl",
 }
 
 
@@ -99,7 +93,7 @@ COMMANDS: dict[str, tuple[str, dict[str, str]]] = {
 def load_group(name: str) -> click.Group:
     """The command group ``name`` itself: ``uwdock.<name>.cli`` imported (a missing optional
     package is a usage error naming the extra that installs it)."""
-    extra, _ = GROUPS[name]
+    extra = EXTRAS[name]
     try:
         module = importlib.import_module(f"uwdock.{name}.cli")
     except ModuleNotFoundError as exc:
@@ -119,7 +113,13 @@ class LazyGroup(click.Group):
     and a mistyped command cost no more than click (click's documented lazy-loading pattern)."""
 
     def __init__(self, name: str) -> None:
-        super().__init__(name=name, help=COMMANDS[name][0], context_settings=CONTEXT)
+        help_text = COMMANDS[name][0]
+        super().__init__(
+            name=name,
+            help=help_text,
+            short_help=" ".join(help_text.split("\n\n")[0].split()),  # uwdock's listing
+            context_settings=CONTEXT,
+        )
 
     def list_commands(self, ctx: click.Context) -> list[str]:
         return sorted(COMMANDS[self.name][1])
@@ -143,16 +143,13 @@ _LAZY = {name: LazyGroup(name) for name in COMMANDS}
 
 
 class _LazyGroups(click.Group):
+    """``uwdock``: the six lazy groups, listed with the first line of their own help."""
+
     def list_commands(self, ctx: click.Context) -> list[str]:
-        return list(GROUPS)
+        return list(EXTRAS)
 
     def get_command(self, ctx: click.Context, name: str) -> click.Command | None:
         return _LAZY.get(name)
-
-    def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
-        rows = [(name, summary) for name, (_, summary) in GROUPS.items()]
-        with formatter.section("Commands"):
-            formatter.write_dl(rows)
 
 
 @click.group(cls=_LazyGroups, context_settings=CONTEXT)
@@ -169,35 +166,23 @@ def main() -> None:
     run_group(cli)
 
 
+def _console_script(name: str):
+    """The entry point of the console script ``name`` (``[project.scripts]``)."""
+
+    def script() -> None:
+        run_group(_LAZY[name])
+
+    script.__doc__ = f"``{name}``."
+    return script
+
+
 # the console scripts of the six groups (``markers``, ``perception`` ...)
-def markers() -> None:
-    """``markers``."""
-    run_group(_LAZY["markers"])
-
-
-def perception() -> None:
-    """``perception``."""
-    run_group(_LAZY["perception"])
-
-
-def calibration() -> None:
-    """``calibration``."""
-    run_group(_LAZY["calibration"])
-
-
-def datasets() -> None:
-    """``datasets``."""
-    run_group(_LAZY["datasets"])
-
-
-def sim() -> None:
-    """``sim``."""
-    run_group(_LAZY["sim"])
-
-
-def rl() -> None:
-    """``rl``."""
-    run_group(_LAZY["rl"])
+markers = _console_script("markers")
+perception = _console_script("perception")
+calibration = _console_script("calibration")
+datasets = _console_script("datasets")
+sim = _console_script("sim")
+rl = _console_script("rl")
 
 
 if __name__ == "__main__":  # pragma: no cover
