@@ -66,6 +66,9 @@ class EnvConfig:
             and whether the DS was detected this step (0/1), so a policy can tell a fresh
             camera fix from a stale or acoustic estimate (not in the paper's observation).
         obs_frames: stack this many observation frames (1 = no history).
+        obs_privileged: asymmetric actor-critic: the observation ends with privileged state
+            (true errors, the estimate's error, time left) that only the critic reads and only
+            training envs fill (:mod:`rl.observation`, :mod:`rl.asymmetric`).
         randomise_vehicle: draw the vehicle's parameters (and thruster placement) per episode.
         error_model_path: fitted error model file, for ``obs_source = "error-model"``.
         camera_file: camera YAML/JSON for the camera source (None: the reference camera).
@@ -107,6 +110,7 @@ class EnvConfig:
     obs_last_action: bool = False
     obs_uncertainty: bool = True
     obs_frames: Annotated[int, Interval(ge=1, le=64)] = 1
+    obs_privileged: bool = False
     randomise_vehicle: bool = True
     error_model_path: str | None = None
     camera_file: str | None = None

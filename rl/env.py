@@ -29,7 +29,13 @@ from uwdock.rl.config import EnvConfig
 from uwdock.rl.error_model import ErrorModelSource, load_error_model
 from uwdock.rl.estimator import DSPoseFilter
 from uwdock.rl.obs_sources import ObservationSource, ProxySource, SourceNeeds, StepContext
-from uwdock.rl.observation import OBS_BOUND, observation_frame, observation_size
+from uwdock.rl.observation import (
+    OBS_BOUND,
+    PRIVILEGED_DIM,
+    observation_frame,
+    observation_size,
+    privileged_block,
+)
 from uwdock.rl.rewards import DockingReward
 from uwdock.rl.task import docking_errors, ds_visible, paper_success, pegs_seated
 from uwdock.sim.world import DockingWorld
@@ -52,12 +58,20 @@ class DockingEnv(gym.Env):
     Args:
         config: the environment; defaults to :class:`EnvConfig` ().
         render_mode: None, or "rgb_array" (the downward camera's view, when a camera exists).
+        privileged: fill the observation's privileged block (``obs_privileged``) with the true
+            state: training envs only (:func:`rl.workers.EnvWorkers`); otherwise it is zeros.
     """
 
     metadata: ClassVar[dict[str, Any]] = {"render_modes": ["rgb_array"], "render_fps": 5}
 
-    def __init__(self, config: EnvConfig | None = None, render_mode: str | None = None) -> None:
+    def __init__(
+        self,
+        config: EnvConfig | None = None,
+        render_mode: str | None = None,
+        privileged: bool = False,
+    ) -> None:
         self.cfg = config or EnvConfig()
+        self.privileged = bool(privileged)
         self.cfg.validate()
         self.render_mode = render_mode
         c = self.cfg
@@ -71,14 +85,27 @@ class DockingEnv(gym.Env):
             # a memoryless source (the paper's proxy): every step replaces the estimate
             est_cfg = replace(est_cfg, fuse=False)
         self.filter = DSPoseFilter(est_cfg)
-        self.reward_fn = DockingReward(c.reward)
         self._limits = c.action_limits
+        self.reward_fn = DockingReward(c.reward, actuated=self._limits > 0)
         self.observation_space = gym.spaces.Box(
             -OBS_BOUND, OBS_BOUND, shape=(observation_size(c),), dtype=np.float32
         )
         self.action_space = gym.spaces.Box(-1.0, 1.0, shape=(6,), dtype=np.float32)
         self._frames: list[np.ndarray] = []
         self._hold_steps = max(1, round(c.task.strict_hold_s * c.control_hz))
+        self._success_task = c.task  # the paper test's task (a curriculum may relax its z)
+        self._spawn_scale = 1.0
+
+    def set_curriculum(self, z_tolerance_m: float, spawn_scale: float) -> None:
+        """Training curriculum (:mod:`rl.curriculum`): the paper success test's z tolerance
+        (m) from now on, and the scale (0, 1] of the AUV's horizontal offset from the DS at
+        the next spawns. ``(task.success_z_m, 1.0)`` restores the env's own test."""
+        if not (0 < z_tolerance_m <= 10 and 0 < spawn_scale <= 1):
+            raise ValueError(
+                f"curriculum level out of range: z {z_tolerance_m!r} m, spawn {spawn_scale!r}"
+            )
+        self._success_task = replace(self.cfg.task, success_z_m=float(z_tolerance_m))
+        self._spawn_scale = float(spawn_scale)
 
     # ------------------------------------------------------------------ setup
     def _make_source(self) -> ObservationSource:
@@ -107,6 +134,8 @@ class DockingEnv(gym.Env):
                     depth - c.spawn_auv_height_m + rng.uniform(-az, az),
                 ]
             )
+            if self._spawn_scale != 1.0:  # curriculum: closer to the DS, horizontally
+                p[:2] = T_world_ds[:2, 3] + self._spawn_scale * (p[:2] - T_world_ds[:2, 3])
             horizontal = np.linalg.norm(p[:2] - T_world_ds[:2, 3])
             if depth - p[2] > 2.4 or horizontal > 2.0:  # clear of the DS structure
                 break
@@ -157,7 +186,7 @@ class DockingEnv(gym.Env):
 
         e_true, psi_true = docking_errors(T_world_body, world.T_world_ds, self.cfg.task)
         visible = ds_visible(inv_T(T_world_body) @ world.T_world_ds, self.cfg.task)
-        paper = paper_success(e_true, psi_true, visible, self.cfg.task)
+        paper = paper_success(e_true, psi_true, visible, self._success_task)
         seated = pegs_seated(T_world_body, world.T_world_ds, self.cfg.task)
         self._seated_steps = self._seated_steps + 1 if seated else 0
         strict = self._seated_steps >= self._hold_steps
@@ -255,7 +284,22 @@ class DockingEnv(gym.Env):
         )
 
     def _obs(self) -> np.ndarray:
-        return np.concatenate(self._frames).astype(np.float32)
+        obs = np.concatenate(self._frames).astype(np.float32)
+        if not self.cfg.obs_privileged:
+            return obs
+        block = np.zeros(PRIVILEGED_DIM, dtype=np.float32)
+        if self.privileged:
+            world, task = self.world, self.cfg.task
+            e_true, psi_true = docking_errors(world.T_world_body, world.T_world_ds, task)
+            e_hat, _ = docking_errors(world.T_world_body, self.filter.T_world_ds, task)
+            block = privileged_block(
+                e_true,
+                psi_true,
+                e_hat,
+                1.0 - self.steps / self.max_steps,
+                self._seated_steps / self._hold_steps,
+            )
+        return np.concatenate([obs, block])
 
     def _info(
         self,

@@ -2,7 +2,8 @@
 
 The exported graph maps the raw observation (as :class:`rl.env.DockingEnv` builds it) to the
 deterministic action in [-1, 1]^6: ``clip((obs - mean) / std, -clip, clip)`` -> actor network ->
-mean action (PPO) or tanh(mean) (SAC) -> clip to [-1, 1].
+mean action (PPO) or tanh(mean) (SAC) -> clip to [-1, 1]. An asymmetric actor-critic's actor
+reads only the leading ``actor_obs_dim`` values (its privileged block is ignored).
 """
 
 from __future__ import annotations
@@ -44,10 +45,12 @@ def _actor_module(model, vecnorm):
                 pol = model.policy
                 self.net = torch.nn.Sequential(pol.mlp_extractor.policy_net, pol.action_net)
                 self.squash = False
+            # an asymmetric actor-critic's actor reads only the leading values
+            self.actor_dim = int(getattr(model.policy, "actor_obs_dim", len(mean)))
 
         def forward(self, obs):
             x = torch.clamp((obs - self.mean) / self.std, -self.clip, self.clip)
-            a = self.net(x)
+            a = self.net(x[..., : self.actor_dim])
             if self.squash:
                 a = torch.tanh(a)
             return torch.clamp(a, -1.0, 1.0)

@@ -29,6 +29,7 @@ POLICY_INTERFACE_FIELDS = (
     "obs_last_action",
     "obs_uncertainty",
     "obs_frames",
+    "obs_privileged",
     "wrench_limits",
     "wrench_scale",
     "control_hz",

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Annotated
+from typing import Annotated, Literal
 
 import numpy as np
 
@@ -26,7 +26,15 @@ class RewardConfig:
     Attributes:
         w_xyz: weights of |e_x|, |e_y|, |e_z| in r_dist (1/m).
         angle_gain: k in r_angle = exp(-k |e_psi|) - 1 (1/rad).
+        angle_linear: c_lin, an added linear yaw term -c_lin |e_psi| / pi in r_angle (-); 0 is
+            the paper's. The exponential is nearly flat beyond 45 deg (its slope at 90 deg is
+            4 % of that at 0), so a policy far off in yaw gets almost no signal to turn.
         smooth_scale: c in r_smooth = -(c / N) exp(sum |a_k - a_k-1|) (-).
+        smooth_over: the action components r_smooth sums over (N of them): "actuated" (those
+            with a non-zero wrench limit; roll is not actuated) or "all" six (the paper's
+            formula). Summed over all six, the unactuated roll's exploration noise alone
+            makes the term as large as r_dist at PPO's initial noise, and PPO escapes it by
+            saturating the roll mean beyond +-1 (bench/diagnose_reward.py; README).
         collision_penalty: p_c, paid when the IMU acceleration jumps by more than Gamma (-).
         gamma_set_mps2: nominal collision threshold Gamma_set (m/s^2).
         success_reward: p_s on docking (-).
@@ -36,7 +44,9 @@ class RewardConfig:
 
     w_xyz: tuple[_Weight, _Weight, _Weight] = (1.0, 1.0, 0.5)
     angle_gain: Annotated[float, Interval(ge=0, le=100)] = 2.0
+    angle_linear: Annotated[float, Interval(ge=0, le=100)] = 0.0
     smooth_scale: _Weight = 0.1
+    smooth_over: Literal["actuated", "all"] = "actuated"
     collision_penalty: _Reward = 10.0
     gamma_set_mps2: Annotated[float, Interval(gt=0, le=1000)] = 1.0
     success_reward: _Reward = 500.0
@@ -55,8 +65,16 @@ TERMS = ("dist", "angle", "smooth", "collision", "mission")
 class DockingReward:
     """Stateful reward (the collision threshold Gamma adapts); call :meth:`reset` per episode."""
 
-    def __init__(self, cfg: RewardConfig | None = None) -> None:
+    def __init__(self, cfg: RewardConfig | None = None, actuated: np.ndarray | None = None) -> None:
+        """
+        Args:
+            cfg: the reward constants.
+            actuated: (6,) bool, the action components that move the vehicle (the env's
+                non-zero wrench limits); None: all six.
+        """
         self.cfg = cfg or RewardConfig()
+        mask = np.ones(6, dtype=bool) if actuated is None else np.asarray(actuated, dtype=bool)
+        self._smooth_mask = mask if self.cfg.smooth_over == "actuated" else np.ones(6, bool)
         self._w = {t: 1.0 for t in TERMS} | dict(self.cfg.weights or {})
         self.gamma_mps2 = self.cfg.gamma_set_mps2
 
@@ -85,10 +103,13 @@ class DockingReward:
         """The weighted terms of one step (their sum is the reward)."""
         c = self.cfg
         a = np.asarray(action, dtype=np.float64)
+        da = np.abs(a - prev_action)[self._smooth_mask]
         terms = {
             "dist": -float(np.dot(c.w_xyz, np.abs(e_xyz_m))),
-            "angle": math.exp(-c.angle_gain * abs(e_psi_rad)) - 1.0,
-            "smooth": -(c.smooth_scale / a.size) * math.exp(float(np.abs(a - prev_action).sum())),
+            "angle": math.exp(-c.angle_gain * abs(e_psi_rad))
+            - 1.0
+            - c.angle_linear * abs(e_psi_rad) / math.pi,
+            "smooth": -(c.smooth_scale / max(da.size, 1)) * math.exp(float(da.sum())),
             "collision": -c.collision_penalty if collided else 0.0,
             "mission": c.success_reward if docked else -c.truncation_penalty if truncated else 0.0,
         }

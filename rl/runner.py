@@ -31,7 +31,7 @@ from uwdock.perception.ds_pose import DSPoseEstimator
 from uwdock.rl.camera_source import measurement
 from uwdock.rl.config import EnvConfig
 from uwdock.rl.estimator import DSPoseFilter
-from uwdock.rl.observation import observation_frame, observation_size
+from uwdock.rl.observation import PRIVILEGED_DIM, observation_frame, observation_size
 from uwdock.rl.policy_io import OnnxPolicy, policy_env_settings
 
 
@@ -155,6 +155,8 @@ class DockingRunner:
             self._frames = [frame] * self.cfg.obs_frames
         else:
             self._frames = [*self._frames[1:], frame]
+        if self.cfg.obs_privileged:  # the critic's block: never filled on a vehicle
+            return np.concatenate([*self._frames, np.zeros(PRIVILEGED_DIM, np.float32)])
         return np.concatenate(self._frames)
 
     def step(self, img_bgr: np.ndarray | None, odom: Odometry) -> np.ndarray:

@@ -32,6 +32,7 @@ from uwdock.rl.checkpoint import (
     rng_state,
     write_unit,
 )
+from uwdock.rl.curriculum import curriculum_level
 from uwdock.rl.evaluate import run_episodes
 from uwdock.rl.report import plot_eval_history
 
@@ -107,6 +108,7 @@ class TrainingSession:
     def boundary(self, final: bool = False) -> None:
         """Evaluate and/or checkpoint if due at the current step (``final``: always save)."""
         n = int(self.model.num_timesteps)
+        self.apply_curriculum(n)
         s = self.schedule
         if s["next_eval"] is not None and n >= s["next_eval"]:
             self.evaluate(n)
@@ -119,6 +121,7 @@ class TrainingSession:
 
     def reset_envs(self, step: int) -> None:
         """Reset the training envs with the seeds of ``step`` (no normalisation update)."""
+        self.apply_curriculum(step)
         model, vecnorm = self.model, self.vecnorm
         raw_venv = vecnorm.venv if vecnorm is not None else model.get_env()
         raw_venv.seed(boundary_seed(self.cfg.seed, step))
@@ -132,6 +135,15 @@ class TrainingSession:
         model._last_episode_starts = np.ones((raw_venv.num_envs,), dtype=bool)
         if hasattr(model, "_last_original_obs"):
             model._last_original_obs = raw
+
+    def apply_curriculum(self, step: int) -> None:
+        """Push the curriculum's level at ``step`` (:mod:`rl.curriculum`) to the training envs
+        (nothing when the run has no curriculum)."""
+        cur = self.cfg.curriculum
+        if cur.steps <= 0:
+            return
+        z_m, spawn = curriculum_level(cur, step, self.cfg.env.task.success_z_m)
+        self.model.get_env().env_method("set_curriculum", z_m, spawn)
 
     def checkpoint(self, step: int) -> Path:
         """Reset the envs, then write the unit of ``step``."""

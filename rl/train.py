@@ -27,7 +27,7 @@ import sys
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 from uwdock.dockcore.config import changed_keys, dumps_toml, load_config, to_dict, validated
 from uwdock.dockcore.domains import Count, Fraction, Interval, Seed
@@ -45,8 +45,9 @@ from uwdock.rl.checkpoint import (
     require_finite_policy,
 )
 from uwdock.rl.config import EnvConfig, check_env_files
+from uwdock.rl.curriculum import CurriculumConfig
 from uwdock.rl.imitation import ImitationConfig, warm_start
-from uwdock.rl.observation import observation_size
+from uwdock.rl.observation import actor_observation_size, observation_size
 from uwdock.rl.policy_io import check_obs_dim, load_policy
 from uwdock.rl.session import TrainingSession, load_model, load_vecnormalize
 from uwdock.rl.workers import EnvWorkers
@@ -71,6 +72,12 @@ class PPOConfig:
         ent_coef: entropy bonus (-).
         clip_range: PPO clip (-).
         net_arch: hidden layer sizes of policy and value networks.
+        log_std_init: initial log standard deviation of the Gaussian policy (-); SB3's 0 gives
+            std 1, whose action changes alone cost as much as r_dist through r_smooth's
+            exponential (bench/diagnose_reward.py).
+        use_sde: generalised state-dependent exploration (gSDE) instead of independent noise.
+        target_kl: stop an update's epochs early when the approximate KL divergence exceeds
+            this (None: never).
     """
 
     learning_rate: _LearningRate = 5e-4
@@ -83,6 +90,9 @@ class PPOConfig:
     ent_coef: Annotated[float, Interval(ge=0, le=10)] = 0.01
     clip_range: Annotated[float, Interval(gt=0, le=10)] = 0.2
     net_arch: tuple[_Width, ...] = (64, 64)
+    log_std_init: Annotated[float, Interval(ge=-10, le=2)] = 0.0
+    use_sde: bool = False
+    target_kl: Annotated[float, Interval(gt=0, le=10)] | None = None
 
 
 @dataclass(frozen=True)
@@ -130,6 +140,7 @@ class TrainConfig:
         ppo: PPO hyperparameters.
         sac: SAC hyperparameters.
         imitation: teacher-guided warm start before RL (``teacher = "none"``: pure RL).
+        curriculum: success-tolerance and spawn-distance curriculum (:mod:`rl.curriculum`).
     """
 
     algo: Literal["ppo", "sac"] = "ppo"
@@ -145,10 +156,13 @@ class TrainConfig:
     ppo: PPOConfig = field(default_factory=PPOConfig)
     sac: SACConfig = field(default_factory=SACConfig)
     imitation: ImitationConfig = field(default_factory=lambda: ImitationConfig(teacher="none"))
+    curriculum: CurriculumConfig = field(default_factory=CurriculumConfig)
 
     def validate(self) -> None:
         if self.algo == "ppo" and self.ppo.n_steps * self.n_envs < 2:
             raise ValueError("ppo.n_steps: n_steps x n_envs must be >= 2 (a rollout to learn from)")
+        if self.algo == "sac" and self.env.obs_privileged:
+            raise ValueError("env.obs_privileged: the asymmetric critic is built for PPO only")
         if self.algo == "sac" and self.sac.batch_size > self.sac.buffer_size:
             raise ValueError(
                 f"sac.batch_size: {self.sac.batch_size} exceeds buffer_size {self.sac.buffer_size}"
@@ -168,8 +182,15 @@ def build_model(cfg: TrainConfig, venv, tb_dir: Path):
 
     if cfg.algo == "ppo":
         p = cfg.ppo
+        policy: Any = "MlpPolicy"
+        kwargs: dict[str, Any] = {"net_arch": list(p.net_arch), "log_std_init": p.log_std_init}
+        if cfg.env.obs_privileged:  # asymmetric actor-critic
+            from uwdock.rl.asymmetric import AsymmetricPolicy
+
+            policy = AsymmetricPolicy
+            kwargs["actor_obs_dim"] = actor_observation_size(cfg.env)
         return PPO(
-            "MlpPolicy",
+            policy,
             venv,
             learning_rate=_lr(p),
             n_steps=p.n_steps,
@@ -179,7 +200,9 @@ def build_model(cfg: TrainConfig, venv, tb_dir: Path):
             gae_lambda=p.gae_lambda,
             ent_coef=p.ent_coef,
             clip_range=p.clip_range,
-            policy_kwargs={"net_arch": list(p.net_arch)},
+            use_sde=p.use_sde,
+            target_kl=p.target_kl,
+            policy_kwargs=kwargs,
             tensorboard_log=str(tb_dir),
             seed=cfg.seed,
             device="cpu",

@@ -74,7 +74,10 @@ def _make_env_fn(
         from stable_baselines3.common.monitor import Monitor
 
         try:
-            env = Monitor(DockingEnv(env_cfg), info_keywords=("success_paper", "success_strict"))
+            env = Monitor(
+                DockingEnv(env_cfg, privileged=True),  # the critic's state, when configured
+                info_keywords=("success_paper", "success_strict"),
+            )
             env.reset(seed=seed)
         except Exception as exc:
             if error_file is None:

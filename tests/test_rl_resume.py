@@ -24,7 +24,8 @@ from uwdock.rl import cli
 from uwdock.rl.train import TrainConfig, train
 
 # Two envs in worker processes, a DAgger warm start, a critic warm-up that spans a checkpoint,
-# evaluations between checkpoints: everything a resume has to restore.
+# evaluations between checkpoints, a curriculum and an asymmetric critic: everything a resume
+# has to restore.
 CONFIG = """\
 n_envs = 2
 total_steps = 512
@@ -33,6 +34,10 @@ eval_every = 192
 eval_episodes = 2
 [env]
 episode_s = 4.0
+obs_privileged = true
+[curriculum]
+steps = 384
+spawn_scale_start = 0.3
 [ppo]
 n_steps = 32
 batch_size = 64

@@ -82,8 +82,28 @@ def test_reward_terms_hand_computed():
     assert r(np.zeros(3), 0, a, a, True, True, False)["mission"] == 500
     assert r(np.zeros(3), 0, a, a, False, False, True)["mission"] == -10
     assert r(np.zeros(3), 0, a, a, True, False, False)["collision"] == -10
+    linear = DockingReward(RewardConfig(angle_linear=2.0))
+    assert linear(np.zeros(3), 0.5, a, a, False, False, False)["angle"] == pytest.approx(
+        math.exp(-1.0) - 1 - 2.0 * 0.5 / math.pi
+    )
     weighted = DockingReward(RewardConfig(weights={"dist": 0.5}))
     assert weighted(np.array([1.0, 0, 0]), 0, a, a, False, False, False)["dist"] == -0.5
+
+
+def test_smoothness_counts_only_actuated_components():
+    """Roll is not actuated: its change costs nothing and N counts the five actuated ones;
+    ``smooth_over = "all"`` is the paper's six-component formula."""
+    actuated = np.array([1, 1, 1, 0, 1, 1], dtype=bool)
+    prev = np.zeros(6)
+    a = np.array([0.5, 0, 0, 1.0, 0, -0.5])  # roll jumps by 1
+    r = DockingReward(RewardConfig(), actuated=actuated)
+    assert r(np.zeros(3), 0, a, prev, False, False, False)["smooth"] == pytest.approx(
+        -(0.1 / 5) * math.exp(1.0)
+    )
+    paper = DockingReward(RewardConfig(smooth_over="all"), actuated=actuated)
+    assert paper(np.zeros(3), 0, a, prev, False, False, False)["smooth"] == pytest.approx(
+        -(0.1 / 6) * math.exp(2.0)
+    )
 
 
 def test_collision_threshold_adapts():

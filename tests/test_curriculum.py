@@ -1,0 +1,86 @@
+"""Training curriculum: the schedule, what it does to the env, and that training pushes it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from uwdock.calibration.frames import make_T
+from uwdock.dockcore.config import replace
+from uwdock.rl.config import EnvConfig
+from uwdock.rl.curriculum import CurriculumConfig, curriculum_level
+from uwdock.rl.env import DockingEnv
+from uwdock.rl.session import TrainingSession
+from uwdock.rl.train import TrainConfig
+
+CUR = CurriculumConfig(steps=1000, z_tolerance_start_m=1.0, spawn_scale_start=0.3)
+
+
+def test_schedule_is_linear_then_the_envs_own_values():
+    assert curriculum_level(CurriculumConfig(), 0, 0.1) == (0.1, 1.0)  # off
+    assert curriculum_level(CUR, 0, 0.1) == pytest.approx((1.0, 0.3))
+    assert curriculum_level(CUR, 500, 0.1) == pytest.approx((0.55, 0.65))
+    assert curriculum_level(CUR, 1000, 0.1) == pytest.approx((0.1, 1.0))
+    assert curriculum_level(CUR, 10**6, 0.1) == pytest.approx((0.1, 1.0))
+
+
+def test_relaxed_z_tolerance_pays_success_half_a_metre_high():
+    env = DockingEnv(replace(EnvConfig(), episode_s=4.0))
+    try:
+        env.reset(seed=0)
+        T_world_ds = env.world.T_world_ds
+        above = T_world_ds @ env.cfg.task.T_ds_target @ make_T(t=[0.0, 0.0, -0.5])
+        results = []
+        for z_m in (0.1, 1.0):
+            env.set_curriculum(z_m, 1.0)
+            env.reset(seed=0)
+            env.world.reset(T_world_ds, above, np.random.default_rng(0))
+            _, _, terminated, _, info = env.step(np.zeros(6))
+            assert abs(info["e_true"][2]) == pytest.approx(0.5, abs=0.05)
+            results.append(terminated and info["success_paper"])
+        assert results == [False, True]
+        with pytest.raises(ValueError, match="curriculum"):
+            env.set_curriculum(float("nan"), 1.0)
+    finally:
+        env.close()
+
+
+def test_spawn_scale_brings_the_auv_closer_to_the_ds():
+    env = DockingEnv(replace(EnvConfig(), episode_s=4.0))
+
+    def horizontal(seed: int) -> float:
+        _, info = env.reset(seed=seed)
+        return float(np.linalg.norm(info["T_world_body"][:2, 3] - info["T_world_ds"][:2, 3]))
+
+    try:
+        full = [horizontal(s) for s in range(30)]
+        env.set_curriculum(0.1, 0.2)
+        near = [horizontal(s) for s in range(30)]
+    finally:
+        env.close()
+    assert np.mean(near) == pytest.approx(0.2 * np.mean(full), rel=0.35)
+    assert max(near) < 0.2 * np.hypot(6 + 1, 3 + 2) + 1e-9
+
+
+def test_training_session_pushes_the_level_at_every_boundary(tmp_path):
+    calls = []
+
+    class Venv:
+        def env_method(self, name, *args):
+            calls.append((name, *args))
+
+    class Model:
+        num_timesteps = 250
+
+        def get_env(self):
+            return Venv()
+
+    cfg = replace(TrainConfig(), curriculum=CUR)
+    session = TrainingSession(cfg, tmp_path, Model(), None, note=lambda m: None)
+    session.apply_curriculum(250)
+    ((name, z_m, scale),) = calls
+    assert name == "set_curriculum"
+    assert (z_m, scale) == pytest.approx((0.775, 0.475))
+    calls.clear()
+    TrainingSession(TrainConfig(), tmp_path, Model(), None, lambda m: None).apply_curriculum(9)
+    assert not calls  # no curriculum: the envs keep their own test
