@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, get_args
 
 import click
 from tqdm import tqdm
@@ -25,7 +25,7 @@ from uwdock.dockcore.options import (
 from uwdock.dockcore.outdir import claim_output_dir
 from uwdock.dockcore.provenance import write_provenance
 from uwdock.rl.baselines import PIDController
-from uwdock.rl.config import EnvConfig
+from uwdock.rl.config import EnvConfig, ObsSourceName
 from uwdock.rl.env import DockingEnv
 from uwdock.rl.episode import EpisodeVideoConfig, record_episode
 from uwdock.rl.error_model import ErrorModelConfig, fit_error_model, save_error_model
@@ -34,6 +34,7 @@ from uwdock.rl.policy_io import policy_env_settings, policy_error_model
 from uwdock.rl.report import evaluate_to_folder
 from uwdock.rl.train import TrainConfig, run_config
 from uwdock.rl.train import train as run
+from uwdock.sim.usbl import USBL_PRESETS
 from uwdock.sim.water import PRESETS, water_choice
 
 #: The config whose fields the options override (imported when an option is first used).
@@ -43,7 +44,15 @@ _VIDEO = "uwdock.rl.episode:EpisodeVideoConfig"
 
 #: ``rl episode``'s values of EnvConfig fields that neither a flag nor ``--config`` sets.
 _EPISODE_DEFAULTS = {"episode_s": 30.0, "camera_width_px": 484}
-OBS_CHOICES = click.Choice(["proxy", "error-model", "camera"])
+OBS_CHOICES = click.Choice(list(get_args(ObsSourceName)))
+#: ``--usbl``: the acoustic positioning model (``EnvConfig.usbl.preset``).
+USBL_OPTION = click.option(
+    "--usbl",
+    "usbl",
+    type=click.Choice(list(USBL_PRESETS)),
+    help="Acoustic (USBL) positioning model, a preset of uwdock.sim.usbl; fields of the "
+    "--config's [usbl] table still override it [ideal].",
+)
 
 
 @command_group()
@@ -60,6 +69,7 @@ def cli() -> None:
     type=click.Path(path_type=Path),
     help="Fitted error model file (for --obs error-model).",
 )
+@USBL_OPTION
 @click.option("--algo", type=click.Choice(["ppo", "sac"]), help="Algorithm [ppo].")
 @click.option("--steps", type=field_type(_TRAIN, "total_steps"), help="Total env steps.")
 @click.option("--envs", type=field_type(_TRAIN, "n_envs"), help="Parallel environments.")
@@ -79,7 +89,7 @@ def cli() -> None:
 )
 @out_dir_option("Run folder.", required=True)
 def train(
-    config_path, obs, error_model, algo, steps, envs, seed, init_policy, resume,
+    config_path, obs, error_model, usbl, algo, steps, envs, seed, init_policy, resume,
     allow_config_change, out_dir,
 ) -> None:  # fmt: skip
     """Train a docking policy (PPO with the paper's hyperparameters by default).
@@ -87,7 +97,11 @@ def train(
     Killed at any moment, `--resume` goes on from the newest complete checkpoint and gives the
     same checkpoints, evaluation history and best/ as a run never stopped.
     """
-    env_over = {"obs_source": obs, "error_model_path": str(error_model) if error_model else None}
+    env_over = {
+        "obs_source": obs,
+        "error_model_path": str(error_model) if error_model else None,
+        "usbl": {"preset": usbl} if usbl else None,
+    }
     overrides = {
         "algo": algo,
         "total_steps": steps,
@@ -124,6 +138,7 @@ def train(
 @click.option("--episodes", type=domain_type(Count), default=100, show_default=True)
 @click.option("--obs", type=OBS_CHOICES, default="camera", show_default=True)
 @click.option("--error-model", "error_model", type=click.Path(path_type=Path))
+@USBL_OPTION
 @config_option("TOML overriding EnvConfig.")
 @seed_option(domain_type(Seed), default=1000, show_default=True)
 @click.option(
@@ -152,6 +167,7 @@ def eval_cmd(
     episodes,
     obs,
     error_model,
+    usbl,
     config_path,
     seed,
     videos,
@@ -175,6 +191,7 @@ def eval_cmd(
             "obs_source": obs,
             "error_model_path": em,
             "terminate_on": terminate_on,
+            "usbl": {"preset": usbl} if usbl else None,
         },
     )
     # the policy's observation layout and action scaling come from its own run config

@@ -15,10 +15,11 @@ from uwdock.rl.estimator import EstimatorConfig
 from uwdock.rl.rewards import RewardConfig
 from uwdock.rl.task import DockingTaskConfig
 from uwdock.sim.domains import TANK_SIZE_M
+from uwdock.sim.usbl import UsblConfig
 from uwdock.sim.vehicle import CurrentConfig, Hydrodynamics, VehicleConfig, VehicleRandomisation
 from uwdock.sim.world_config import WorldConfig
 
-ObsSourceName = Literal["proxy", "error-model", "camera"]
+ObsSourceName = Literal["proxy", "error-model", "camera", "acoustic"]
 
 _Wrench = Annotated[float, Interval(ge=0, le=10_000)]  # N or N m at action +-1
 _TankSide = Annotated[float, Interval(gt=0, le=1000)]  # m
@@ -38,8 +39,9 @@ class EnvConfig:
 
     Attributes:
         obs_source: how the DS pose is measured: "proxy" (the paper's visibility test +
-            Gaussian noise), "error-model" (image-derived noise model) or "camera"
-            (render -> detect -> PnP every control step).
+            Gaussian noise), "error-model" (image-derived noise model), "camera"
+            (render -> detect -> PnP every control step) or "acoustic" (no camera: the
+            acoustic fixes alone, the camera-off ablation).
         control_hz: policy (and camera) rate (Hz).
         physics_hz: physics substep rate (Hz); a multiple of ``control_hz``.
         episode_s: truncation time (s).
@@ -81,7 +83,12 @@ class EnvConfig:
         marker_set_path: marker set file (None: the default DS set, generated into a cache).
         task: success criteria and docking geometry.
         reward: reward constants.
-        estimator: DS pose filter.
+        estimator: DS pose filter. Its ``usbl_*`` fields are the period and noise of the
+            "ideal" acoustic model (kept there so run folders written before :attr:`usbl`
+            existed load and run unchanged); other presets carry their own.
+        usbl: the acoustic (USBL) positioning of the DS that sources with
+            ``needs.acoustic_fixes`` receive (:mod:`uwdock.sim.usbl`): a preset name plus any
+            field overriding it; :attr:`usbl_model` is the model the env simulates.
         current: ocean current model.
         vehicle: nominal vehicle.
         vehicle_randomisation: ranges used when ``randomise_vehicle``.
@@ -120,6 +127,7 @@ class EnvConfig:
     task: DockingTaskConfig = field(default_factory=DockingTaskConfig)
     reward: RewardConfig = field(default_factory=RewardConfig)
     estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
+    usbl: UsblConfig = field(default_factory=UsblConfig)
     current: CurrentConfig = field(default_factory=CurrentConfig)
     vehicle: VehicleConfig = field(default_factory=VehicleConfig)
     vehicle_randomisation: VehicleRandomisation = field(default_factory=VehicleRandomisation)
@@ -139,6 +147,21 @@ class EnvConfig:
             vehicle=self.vehicle,
             vehicle_randomisation=self.vehicle_randomisation,
         )
+
+    @property
+    def usbl_model(self) -> UsblConfig:
+        """The acoustic model the env simulates, every field set: :attr:`usbl`'s preset, for
+        "ideal" with the period and noise of ``estimator.usbl_*``, then :attr:`usbl`'s own
+        fields."""
+        base: dict[str, float] = {}
+        if self.usbl.preset == "ideal":
+            e = self.estimator
+            base = {
+                "period_s": e.usbl_period_s,
+                "sigma_floor_m": e.usbl_sigma_floor_m,
+                "sigma_per_m": e.usbl_sigma_per_m,
+            }
+        return self.usbl.resolved(**base)
 
     @property
     def action_limits(self) -> np.ndarray:

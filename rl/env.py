@@ -28,7 +28,13 @@ from uwdock.rl.camera_source import CameraSource
 from uwdock.rl.config import EnvConfig
 from uwdock.rl.error_model import ErrorModelSource, load_error_model
 from uwdock.rl.estimator import DSPoseFilter
-from uwdock.rl.obs_sources import ObservationSource, ProxySource, SourceNeeds, StepContext
+from uwdock.rl.obs_sources import (
+    AcousticSource,
+    ObservationSource,
+    ProxySource,
+    SourceNeeds,
+    StepContext,
+)
 from uwdock.rl.observation import (
     OBS_BOUND,
     PRIVILEGED_DIM,
@@ -38,6 +44,7 @@ from uwdock.rl.observation import (
 )
 from uwdock.rl.rewards import DockingReward
 from uwdock.rl.task import docking_errors, ds_visible, paper_success, pegs_seated
+from uwdock.sim.usbl import UsblSensor
 from uwdock.sim.world import DockingWorld
 
 #: ``EnvConfig.obs_source`` -> the source class (its ``needs`` say what the env provides it)
@@ -45,6 +52,7 @@ SOURCE_CLASSES: dict[str, type] = {
     "proxy": ProxySource,
     "error-model": ErrorModelSource,
     "camera": CameraSource,
+    "acoustic": AcousticSource,
 }
 
 
@@ -80,6 +88,7 @@ class DockingEnv(gym.Env):
         needs: SourceNeeds = SOURCE_CLASSES[c.obs_source].needs
         self.world = DockingWorld(c.world, with_camera=needs.camera or render_mode is not None)
         self.source = self._make_source()
+        self.usbl = UsblSensor(c.usbl_model)
         est_cfg = c.estimator
         if not needs.fusion and est_cfg.fuse:
             # a memoryless source (the paper's proxy): every step replaces the estimate
@@ -114,6 +123,8 @@ class DockingEnv(gym.Env):
             return ProxySource(c.task)
         if c.obs_source == "error-model":
             return ErrorModelSource(load_error_model(c.error_model_path), c.task, c.water_preset)
+        if c.obs_source == "acoustic":
+            return AcousticSource()
         return CameraSource(self.world)
 
     def _spawn(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -152,6 +163,7 @@ class DockingEnv(gym.Env):
         # spawning a child sequence consumes no draws of the episode's stream
         self._film_rng = np.random.default_rng(rng.bit_generator.seed_seq.spawn(1)[0])
         self.filter.reset(T_world_ds, rng)
+        self.usbl.reset(rng)  # after the prior: the acoustic bias draws leave it as it was
         self.reward_fn.reset()
         self.steps = 0
         self.prev_action = np.zeros(6)
@@ -255,16 +267,15 @@ class DockingEnv(gym.Env):
             self.filter.update(m.T_world_ds, m.cov_xyzyaw)
 
     def _usbl_fix(self, T_world_body: np.ndarray) -> None:
-        """A position-only acoustic fix every ``estimator.usbl_period_s``, for sources that
+        """Fuse the position-only acoustic fix the vehicle receives this step, if one arrives
+        (:class:`uwdock.sim.usbl.UsblSensor` of ``EnvConfig.usbl_model``), for sources that
         declare ``needs.acoustic_fixes``."""
-        period = self.filter.cfg.usbl_period_s
-        if not self.source.needs.acoustic_fixes or period <= 0:
+        if not self.source.needs.acoustic_fixes:
             return
-        if self.steps % max(1, round(period * self.cfg.control_hz)) != 0:
-            return
-        true_p = self.world.T_world_ds[:3, 3]
-        sigma = self.filter.usbl_sigma_m(float(np.linalg.norm(true_p - T_world_body[:3, 3])))
-        self.filter.update_position(true_p + self.np_random.normal(0.0, sigma, 3), sigma)
+        world = self.world
+        fix = self.usbl.fix(world.time_s, T_world_body, world.T_world_ds[:3, 3], self.np_random)
+        if fix is not None:
+            self.filter.update_position(fix.p_world_ds_m, fix.sigma_m)
 
     def _detected(self) -> bool:
         """The camera (or its error model) found the DS this step (not a proxy or USBL fix)."""

@@ -39,11 +39,13 @@ class EstimatorConfig:
             proxy observation, which is memoryless).
         gate_sigma: measurements further than this many standard deviations (Mahalanobis) from
             the estimate are rejected as outliers (0 disables gating).
-        usbl_period_s: a USBL-like acoustic fix of the DS position arrives this often (s);
-            0 disables it. Used with the camera and error-model sources (the approach is
-            acoustic, the final servoing visual), not with the paper's proxy.
-        usbl_sigma_floor_m: USBL horizontal/vertical standard deviation at short range (m).
-        usbl_sigma_per_m: USBL standard deviation growth with slant range (m per m).
+        usbl_period_s: the "ideal" acoustic model (``EnvConfig.usbl.preset = "ideal"``, the
+            default; :mod:`uwdock.sim.usbl`): a fix of the DS position arrives this often (s);
+            0 disables it. Sources that declare ``needs.acoustic_fixes`` receive them (the
+            approach is acoustic, the final servoing visual), the paper's proxy does not.
+            Other presets carry their own period and noise in ``EnvConfig.usbl``.
+        usbl_sigma_floor_m: "ideal" model: standard deviation on each axis at short range (m).
+        usbl_sigma_per_m: "ideal" model: its growth with slant range (m per m).
     """
 
     prior_sigma_xy_m: _Sigma = 1.0
@@ -127,10 +129,6 @@ class DSPoseFilter:
         T = self.T_world_ds.copy()
         T[:3, 3] = p_world_ds_m
         return self.update(T, np.diag([sigma_m**2] * 3 + [1e6]))
-
-    def usbl_sigma_m(self, slant_range_m: float) -> float:
-        """USBL fix standard deviation at a slant range (m)."""
-        return self.cfg.usbl_sigma_floor_m + self.cfg.usbl_sigma_per_m * slant_range_m
 
     @property
     def T_world_ds(self) -> np.ndarray:

@@ -8,6 +8,8 @@ Every source returns a :class:`Measurement` of ``T_world_ds`` with a covariance 
   sigma_k = ||e|| / 6: N(0, (sigma/2)^2) always, plus N(0, sigma^2) when the DS is not visible
   (memoryless: used with a non-fusing filter, exactly as in the paper).
 * ``error-model`` and ``camera``: see :mod:`rl.error_model` and :mod:`rl.camera_source`.
+* ``acoustic``: no camera at all: the filter lives on the acoustic (USBL) fixes alone, the
+  camera-off row of an ablation.
 
 Each source class declares what it needs from the env in ``needs`` (:class:`SourceNeeds`); the
 env reads that declaration and never asks a source for its name.
@@ -49,8 +51,8 @@ class SourceNeeds:
         fusion: the DS pose filter fuses measurements over time; False makes every measurement
             replace the estimate (the paper's memoryless proxy), whatever ``estimator.fuse``
             says.
-        acoustic_fixes: the env adds a position-only acoustic (USBL) fix of the DS every
-            ``estimator.usbl_period_s``.
+        acoustic_fixes: the env fuses the position-only acoustic (USBL) fixes of the DS that
+            ``EnvConfig.usbl_model`` delivers (:mod:`uwdock.sim.usbl`).
     """
 
     camera: bool = False
@@ -106,3 +108,18 @@ class ProxySource:
         T[:3, 3] += ctx.T_world_body[:3, :3] @ noise_body
         cov = np.diag([var, var, var, 1e-6])
         return Measurement(T, cov, visible)
+
+
+class AcousticSource:
+    """No camera and no model of one: every step measures nothing, so the DS estimate is the
+    prior refined by the acoustic fixes alone (the camera-off ablation)."""
+
+    name = "acoustic"
+    needs = SourceNeeds(camera=False, fusion=True, acoustic_fixes=True)
+
+    def reset(self, rng: np.random.Generator) -> None:
+        """Nothing to draw: the source never measures."""
+
+    def measure(self, ctx: StepContext) -> None:
+        """No measurement (the acoustic fixes reach the filter through the env)."""
+        return None

@@ -17,6 +17,8 @@ Modules:
     world:           THE world of one docking env (scene, tank, DS, vehicle, currents, camera),
                      composed once.
     water:           underwater image formation (attenuation, backscatter, blur, noise, JPEG).
+    usbl:            the acoustic (USBL) positioning of the DS: noise, per-episode bias,
+                     outliers, dropouts and latency, with presets from published systems.
     episode:         a video of a docking episode (``sim episode``).
     domains:         value domains shared by these modules' configs (``dockcore.domains``).
 """
