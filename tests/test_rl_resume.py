@@ -53,7 +53,9 @@ _SKIP = ("tb/", "provenance.json", "resume_log.jsonl", ".uwdock", "eval_history.
 
 
 def _rl(*args: str) -> list[str]:
-    return [sys.executable, "-c", "from uwdock.rl.cli import main; main()", *map(str, args)]
+    # the console script's path: `rl` imports its group inside the error handling, so a signal
+    # that lands while it imports is one line too
+    return [sys.executable, "-c", "from uwdock.cli import rl; rl()", *map(str, args)]
 
 
 def _digest(run: Path) -> dict[str, str]:
