@@ -59,12 +59,12 @@ class FrameSequences:
             "time_s": [float(v) for v in self.time_s],
         }
 
-    def consecutive_pairs(self) -> tuple[np.ndarray, np.ndarray]:
+    def consecutive_pairs(self, lag: int = 1) -> tuple[np.ndarray, np.ndarray]:
         """Frame indices ``(i, j)`` (each (P,) int64, ascending in ``i``) of the consecutive
-        pairs: same sequence, ``step[j] == step[i] + 1``."""
+        pairs: same sequence, ``step[j] == step[i] + lag`` (lag >= 1 steps)."""
         keys = list(zip(self.sequence.tolist(), self.step.tolist(), strict=True))
         where = {key: f for f, key in enumerate(keys)}
-        pairs = [(f, where[(s, k + 1)]) for f, (s, k) in enumerate(keys) if (s, k + 1) in where]
+        pairs = [(f, where[(s, k + lag)]) for f, (s, k) in enumerate(keys) if (s, k + lag) in where]
         a = np.asarray(pairs, np.int64).reshape(-1, 2)
         return a[:, 0], a[:, 1]
 

@@ -15,9 +15,11 @@ label. Per water preset, the model keeps
   the AR(1) coefficient ``rho`` of the *standardised* inlier error ``z = L_k^-1 (err - bias_k)``
   (``L_k`` the range bin's Cholesky factor; so ``z`` is white with unit variance in every bin),
   i.e. its lag-1 autocorrelation over pairs of consecutive frames of a sequence that were both
-  inlier detections, with an approximate 95 % interval and the pair count; and, as a
-  diagnostic, how often a detection follows a detection (or a miss) against what the
-  memoryless model predicts for the same frames.
+  inlier detections, with an approximate 95 % interval and the pair count; and, as
+  diagnostics, the autocorrelation at lags up to ``MAX_LAG`` steps (an AR(1) decays as
+  ``rho^lag``: a slower decay says the memory is longer than the model's) and how often a
+  detection follows a detection (or a miss) against what the memoryless model predicts for
+  the same frames.
 
 The model file (JSON) records the dataset's checksum, frame count, the perception configs and
 provenance: it is versioned with its data. Version-1 files (and tables without a fitted
@@ -334,6 +336,27 @@ def ar1_fit(z_prev: np.ndarray, z_next: np.ndarray) -> dict[str, Any]:
     return {"rho": rho.tolist(), "rho_ci95": ci.tolist(), "pairs": len(a)}
 
 
+#: Longest lag of the autocorrelation diagnostic (steps).
+MAX_LAG = 5
+
+
+def _autocorrelation(z: dict[int, np.ndarray], sequences: FrameSequences) -> dict[str, list]:
+    """Standardised autocorrelation at lags 1..``MAX_LAG`` over pairs of inlier frames that
+    many steps apart in a sequence (the frames between may be anything): ``{"lag", "rho"
+    (per lag, 6 values or None with < 2 pairs), "pairs"}``."""
+    out: dict[str, list] = {"lag": [], "rho": [], "pairs": []}
+    for lag in range(1, MAX_LAG + 1):
+        first, then = (a.tolist() for a in sequences.consecutive_pairs(lag))
+        ij = [(i, j) for i, j in zip(first, then, strict=True) if i in z and j in z]
+        fit = None
+        if len(ij) >= 2:
+            fit = ar1_fit(np.stack([z[i] for i, _ in ij]), np.stack([z[j] for _, j in ij]))
+        out["lag"].append(lag)
+        out["rho"].append(None if fit is None else fit["rho"])
+        out["pairs"].append(len(ij))
+    return out
+
+
 def _memory(
     group: Sequence[FrameSample],
     table: dict[str, Any],
@@ -367,10 +390,12 @@ def _memory(
     if len(pairs) >= cfg.min_pairs:
         fi, fj = zip(*pairs, strict=True)
         ar1 = ar1_fit(np.stack([z[f] for f in fi]), np.stack([z[f] for f in fj]))
-        # diagnostic: each error component's own lag-1 autocorrelation (m or rad, not mixed)
+        # diagnostics: each error component's own lag-1 autocorrelation (m or rad, not mixed),
+        # and the standardised autocorrelation at longer lags (AR(1): rho^lag)
         ar1["rho_per_axis"] = ar1_fit(np.stack([u[f] for f in fi]), np.stack([u[f] for f in fj]))[
             "rho"
         ]
+        ar1["autocorrelation"] = _autocorrelation(z, sequences)
     else:
         ar1 = {"rho": None, "rho_ci95": None, "pairs": len(pairs)}
     persistence = {

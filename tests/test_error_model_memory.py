@@ -150,6 +150,10 @@ def test_fit_recovers_a_known_ar1_correlation(rho):
         assert np.all(hi - lo < 0.1)
         assert np.all((lo <= rho + 0.02) & (rho - 0.02 <= hi))
         np.testing.assert_allclose(ar1["rho_per_axis"], rho, atol=0.06)
+        acf = ar1["autocorrelation"]  # an AR(1) decays as rho^lag
+        assert acf["lag"] == [1, 2, 3, 4, 5] and acf["rho"][0] == ar1["rho"]
+        np.testing.assert_allclose(acf["rho"][1], rho**2, atol=0.06)
+        assert acf["pairs"][1] < acf["pairs"][0]
     # the detection diagnostic: misses are independent here, so the model predicts them
     after = tables["all"]["detection_pairs"]["after_detection"]
     assert after["detected"] == pytest.approx(0.9, abs=0.02)
