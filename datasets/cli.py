@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from uwdock.datasets.loaders import load_poses_csv
+from uwdock.datasets.loaders import load_pose_track_csv
 from uwdock.datasets.synth import SynthConfig, generate
 from uwdock.dockcore.cli import domain_type, field_type, run_group
 from uwdock.dockcore.config import load_config
@@ -131,7 +131,8 @@ def synth(
     "poses_csv",
     type=click.Path(dir_okay=False, path_type=Path),
     help="CSV of vehicle poses in world NED: x_m,y_m,z_m + qw,qx,qy,qz or "
-    "roll_deg,pitch_deg,yaw_deg (DS origin at 0,0,4.98).",
+    "roll_deg,pitch_deg,yaw_deg (DS origin at 0,0,4.98); optional sequence,step,time_s columns "
+    "(e.g. from `rl trajectories`) are recorded in dataset.json.",
 )
 @click.option("--water", help="Water preset, 'random' or 'none' [default: none].")
 @click.option(
@@ -154,7 +155,7 @@ def render(
     ``synth`` engine fed with explicit vehicle poses (``--poses``) or a few random ones."""
     if n_frames is not None and poses_csv is not None:
         raise DockError("give either --n or --poses, not both")
-    poses = load_poses_csv(poses_csv) if poses_csv is not None else None
+    poses, sequences = load_pose_track_csv(poses_csv) if poses_csv is not None else (None, None)
     n = len(poses) if poses is not None else (8 if n_frames is None else n_frames)
     cfg = SynthConfig(  # checked by generate() before it writes anything
         n_frames=n,
@@ -171,6 +172,7 @@ def render(
         poses=poses,
         progress=False if quiet else None,
         tool="datasets render",
+        sequences=sequences,
     )
     if quiet:
         click.echo(str(result.out_dir))

@@ -5,7 +5,8 @@
   with the camera model, ``T_body_cam`` and the marker set.
 * :class:`FootageSource`: an image folder, a single image or a video, iterable any number of
   times; a thin wrapper over :func:`perception.video.open_frames`.
-* :func:`load_poses_csv`: vehicle poses to render (``sim render --poses``).
+* :func:`load_poses_csv`: vehicle poses to render (``datasets render --poses``);
+  :func:`load_pose_track_csv` / :func:`write_pose_track_csv` with their sequence labels.
 
 Example:
     >>> ds = LabelledDataset("data/synth_coastal")
@@ -25,16 +26,30 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from uwdock.calibration.camera import CameraModel, load_camera
-from uwdock.calibration.frames import R_from_quat_wxyz, R_from_rpy, make_T
+from uwdock.calibration.frames import R_from_quat_wxyz, R_from_rpy, make_T, pos_quat_from_T
+from uwdock.datasets.sequences import (
+    SEQUENCE_COLUMNS,
+    FrameSequences,
+    check_sequences,
+    sequences_from_manifest,
+)
 from uwdock.dockcore.errors import DockError
-from uwdock.dockcore.io import read_text
+from uwdock.dockcore.io import atomic_path, read_text
 from uwdock.markers.markerset import MarkerSet, load_marker_set
 from uwdock.perception.groundtruth import FrameTruth, load_dataset
 from uwdock.perception.video import FrameSource, open_frames, read_image
 
-__all__ = ["FootageSource", "LabelledDataset", "Sample", "load_poses_csv"]
+__all__ = [
+    "FootageSource",
+    "LabelledDataset",
+    "Sample",
+    "load_pose_track_csv",
+    "load_poses_csv",
+    "write_pose_track_csv",
+]
 
 
 @dataclass(frozen=True)
@@ -81,6 +96,10 @@ class LabelledDataset:
                 raise DockError(f"{self.root}: frame {ft.frame} names no image")
             if not (self.root / ft.image).is_file():
                 raise DockError(f"{self.root}: frame {ft.frame}: image {ft.image} is missing")
+        #: which frames follow each other in time (frame k is entry k), or None
+        self.sequences: FrameSequences | None = sequences_from_manifest(
+            self.manifest, len(self.frames), str(self.root / "dataset.json")
+        )
 
     @property
     def config(self) -> dict[str, Any]:
@@ -150,16 +169,29 @@ class FootageSource:
 
 
 def load_poses_csv(path: str | os.PathLike[str]) -> np.ndarray:
-    """Vehicle poses (N, 4, 4) ``T_world_body`` from a CSV.
+    """Vehicle poses (N, 4, 4) ``T_world_body`` from a CSV (see :func:`load_pose_track_csv`)."""
+    return load_pose_track_csv(path)[0]
+
+
+def load_pose_track_csv(
+    path: str | os.PathLike[str],
+) -> tuple[np.ndarray, FrameSequences | None]:
+    """Vehicle poses (N, 4, 4) ``T_world_body`` from a CSV, with their sequence labels.
 
     Columns (header required, extra columns ignored): ``x_m, y_m, z_m`` (body origin in world
     NED: x north, y east, z down from the surface; the DS origin is at (0, 0, 4.98) by default)
     and either ``qw, qx, qy, qz`` (body FRD orientation, normalised on load) or ``roll_deg,
     pitch_deg, yaw_deg`` (ZYX Euler angles of body FRD in world NED). One frame per row.
+    Optionally ``sequence, step, time_s`` (all three): the frames form time sequences
+    (:mod:`uwdock.datasets.sequences`), as :func:`write_pose_track_csv` writes them.
+
+    Returns:
+        ``(poses, sequences)``: (N, 4, 4) float64 and the sequence labels, or None without
+        the sequence columns.
 
     Raises:
         DockError: one line naming the file and line on a missing file, missing columns, a
-            non-numeric value or no rows.
+            non-numeric value, no rows or inconsistent sequence labels.
     """
     path = Path(path)
     text = read_text(path, "poses file")
@@ -175,15 +207,23 @@ def load_poses_csv(path: str | os.PathLike[str]) -> np.ndarray:
             f"{path} line 1: missing column(s) {', '.join(missing)} (need x_m,y_m,z_m and "
             "qw,qx,qy,qz or roll_deg,pitch_deg,yaw_deg)"
         )
-    poses = []
+    seq_cols = [c for c in SEQUENCE_COLUMNS if c in header]
+    if seq_cols and len(seq_cols) < len(SEQUENCE_COLUMNS):
+        absent = [c for c in SEQUENCE_COLUMNS if c not in header]
+        raise DockError(
+            f"{path} line 1: sequence columns need all of {', '.join(SEQUENCE_COLUMNS)} "
+            f"(missing {', '.join(absent)})"
+        )
+    poses, seq_rows = [], []
     for row in reader:
         where = f"{path} line {reader.line_num}"
         try:
-            v = [float(str(row[c]).strip()) for c in need]
+            v = [float(str(row[c]).strip()) for c in (*need, *seq_cols)]
         except (TypeError, ValueError):
             raise DockError(f"{where}: non-numeric value") from None
         if not all(math.isfinite(x) for x in v):
             raise DockError(f"{where}: non-finite value")
+        seq_rows.append(v[len(need) :])
         if rot is quat:
             q = np.array(v[3:7])
             if np.linalg.norm(q) < 1e-9:
@@ -194,4 +234,31 @@ def load_poses_csv(path: str | os.PathLike[str]) -> np.ndarray:
         poses.append(make_T(R, v[:3]))
     if not poses:
         raise DockError(f"{path}: no pose rows")
-    return np.stack(poses)
+    if not seq_cols:
+        return np.stack(poses), None
+    cols = np.asarray(seq_rows, np.float64).T
+    return np.stack(poses), check_sequences(*cols, len(poses), str(path))
+
+
+def write_pose_track_csv(
+    path: str | os.PathLike[str], poses: ArrayLike, sequences: FrameSequences | None = None
+) -> Path:
+    """Write vehicle poses (N, 4, 4) ``T_world_body`` (body FRD in world NED, m) as the CSV
+    :func:`load_pose_track_csv` reads (``x_m,y_m,z_m,qw,qx,qy,qz`` + ``sequence,step,time_s``
+    when given), atomically; values at full float64 precision (they read back exactly)."""
+    pose_arr = np.asarray(poses, np.float64).reshape(-1, 4, 4)
+    if sequences is not None and len(sequences) != len(pose_arr):
+        raise DockError(f"{len(pose_arr)} poses but {len(sequences)} sequence labels")
+    path = Path(path)
+    header = ["x_m", "y_m", "z_m", "qw", "qx", "qy", "qz"]
+    with atomic_path(path) as tmp, tmp.open("w", newline="", encoding="utf-8") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(header + (list(SEQUENCE_COLUMNS) if sequences is not None else []))
+        for f, T in enumerate(pose_arr):
+            pos, quat = pos_quat_from_T(T)
+            row = [repr(float(v)) for v in (*pos, *quat)]
+            if sequences is not None:
+                s = sequences
+                row += [str(int(s.sequence[f])), str(int(s.step[f])), repr(float(s.time_s[f]))]
+            writer.writerow(row)
+    return path

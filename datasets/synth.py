@@ -62,6 +62,7 @@ from tqdm import tqdm
 
 from uwdock.calibration.camera import CameraModel, resolve_camera, save_camera
 from uwdock.calibration.frames import R_from_rpy, check_T, inv_T, make_T
+from uwdock.datasets.sequences import FrameSequences
 from uwdock.dockcore.config import changed_keys, from_dict, to_dict, validated
 from uwdock.dockcore.domains import Fraction, Interval, Seed, check, split_annotated
 from uwdock.dockcore.errors import ConfigError, DockError
@@ -89,6 +90,7 @@ __all__ = [
     "SynthConfig",
     "SynthResult",
     "Workers",
+    "camera_outside_tank",
     "frame_rng",
     "generate",
     "sample_pose",
@@ -485,12 +487,19 @@ def _read_jsonl_lenient(path: Path) -> dict[int, str]:
     return out
 
 
-def _state(cfg: SynthConfig, poses: np.ndarray | None) -> dict[str, Any]:
-    """What must match for a resume: the config without n_frames, and the given poses."""
+def _state(
+    cfg: SynthConfig, poses: np.ndarray | None, sequences: FrameSequences | None = None
+) -> dict[str, Any]:
+    """What must match for a resume: the config without n_frames, the given poses and their
+    sequence labels (a key only when given, so folders of earlier runs still resume)."""
     digest = None
     if poses is not None:
         digest = hashlib.sha1(np.ascontiguousarray(poses, np.float64).tobytes()).hexdigest()
-    return {"config": {**to_dict(cfg), "n_frames": None}, "poses_sha1": digest}
+    state = {"config": {**to_dict(cfg), "n_frames": None}, "poses_sha1": digest}
+    if sequences is not None:
+        text = json.dumps(sequences.to_json(), sort_keys=True).encode()
+        state["sequences_sha1"] = hashlib.sha1(text).hexdigest()
+    return state
 
 
 def _check_resume(out_dir: Path, state: dict[str, Any]) -> None:
@@ -511,9 +520,7 @@ def _check_resume(out_dir: Path, state: dict[str, Any]) -> None:
         raise DockError(f"{path}: unreadable ({reason}); use a new --out") from None
     new = json.loads(json.dumps(state))
     if old != new:
-        changed = [
-            k.removeprefix("config.").replace("poses_sha1", "poses") for k in changed_keys(old, new)
-        ]
+        changed = [k.removeprefix("config.").removesuffix("_sha1") for k in changed_keys(old, new)]
         raise DockError(
             f"{out_dir} holds a dataset made with another config (differs in "
             f"{', '.join(changed[:4]) or 'format'}); use a new --out (or the same settings "
@@ -676,23 +683,33 @@ def _render_all(
             on_frame(k)
 
 
+def camera_outside_tank(
+    T_world_body: np.ndarray, T_body_cam: np.ndarray, ds_cfg: DockingStationConfig
+) -> str | None:
+    """Why the camera of vehicle pose ``T_world_body`` (4, 4, body FRD in world NED, m) is not
+    under water inside the tank of ``ds_cfg`` (e.g. "0.2 m above the water surface"), or None
+    when it is: the renderer models the underwater view only."""
+    length_m, width_m, depth_m = ds_cfg.tank_length_m, ds_cfg.tank_width_m, ds_cfg.tank_depth_m
+    x, y, z = (T_world_body @ T_body_cam)[:3, 3]
+    if z <= 0.0:
+        return f"{-z:.3g} m above the water surface"
+    if z >= depth_m:
+        return f"below the tank floor ({depth_m:g} m deep)"
+    if abs(x) >= length_m / 2 or abs(y) >= width_m / 2:
+        return f"outside the {length_m:g} x {width_m:g} m tank"
+    return None
+
+
 def _check_cameras_in_water(
     poses: np.ndarray, T_body_cam: np.ndarray, ds_cfg: DockingStationConfig
 ) -> None:
     """Refuse a given pose whose camera is not under water inside the tank: the renderer models
     the underwater view only, so a camera above the surface (or in a wall) would be labelled
     as seeing markers it could not see."""
-    length_m, width_m, depth_m = ds_cfg.tank_length_m, ds_cfg.tank_width_m, ds_cfg.tank_depth_m
     for k, T_world_body in enumerate(poses):
-        x, y, z = (T_world_body @ T_body_cam)[:3, 3]
-        where = None
-        if z <= 0.0:
-            where = f"{-z:.3g} m above the water surface"
-        elif z >= depth_m:
-            where = f"below the tank floor ({depth_m:g} m deep)"
-        elif abs(x) >= length_m / 2 or abs(y) >= width_m / 2:
-            where = f"outside the {length_m:g} x {width_m:g} m tank"
+        where = camera_outside_tank(T_world_body, T_body_cam, ds_cfg)
         if where:
+            x, y, z = (T_world_body @ T_body_cam)[:3, 3]
             raise DockError(
                 f"poses[{k}]: the camera (world NED {x:.3g}, {y:.3g}, {z:.3g} m) is {where}: "
                 "only underwater views inside the tank are rendered"
@@ -722,6 +739,7 @@ def generate(
     poses: ArrayLike | None = None,
     progress: bool | None = None,
     tool: str = "datasets synth",
+    sequences: FrameSequences | None = None,
 ) -> SynthResult:
     """Render a labelled dataset into ``out_dir`` (resuming an interrupted run).
 
@@ -740,6 +758,8 @@ def generate(
             ``cfg.n_frames``.
         progress: show a tqdm bar (None: only on a terminal).
         tool: the command claiming the folder (``"datasets synth"``, ``"sim render"``).
+        sequences: optional sequence labels of the given poses (which frames follow each other
+            in time, :mod:`uwdock.datasets.sequences`); written to ``dataset.json``.
 
     Returns:
         A :class:`SynthResult`.
@@ -755,12 +775,14 @@ def generate(
     if reason:
         raise ConfigError(reason)
     pose_arr = _checked_poses(poses, cfg.n_frames)
+    if sequences is not None and (pose_arr is None or len(sequences) != cfg.n_frames):
+        raise DockError(f"sequences: need one label per given pose ({cfg.n_frames})")
     camera, T_body_cam = resolve_camera(cfg.camera_file, cfg.width_px)
     ds_cfg = _ds_config(cfg)
     if pose_arr is not None:
         _check_cameras_in_water(pose_arr, T_body_cam, ds_cfg)
     marker_set = resolve_marker_set(ds_cfg)
-    state = _state(cfg, pose_arr)
+    state = _state(cfg, pose_arr, sequences)
     n = cfg.n_frames
     _check_folder(Path(out_dir), state, n)
     with claim_output_dir(out_dir, tool) as out:
@@ -783,7 +805,8 @@ def generate(
 
             _render_all(out, cfg, todo, workers, pose_arr, on_frame)
         _assemble(out, n, old_lines)
+        extra = {} if sequences is None else {"sequences": sequences.to_json()}
         write_dataset_json(
-            out, n, config=to_dict(cfg), generator=tool, seed=cfg.seed, water=cfg.water
+            out, n, config=to_dict(cfg), generator=tool, seed=cfg.seed, water=cfg.water, **extra
         )
     return SynthResult(out, n, tuple(sorted(rendered)), time.perf_counter() - t0)

@@ -8,6 +8,7 @@ from typing import Annotated, get_args
 import click
 from tqdm import tqdm
 
+from uwdock.datasets.loaders import write_pose_track_csv
 from uwdock.dockcore.cli import domain_type, field_type, run_group
 from uwdock.dockcore.config import config_data, from_dict, load_config, merge, replace, to_dict
 from uwdock.dockcore.domains import Count, Interval, Seed
@@ -25,7 +26,7 @@ from uwdock.dockcore.options import (
 from uwdock.dockcore.outdir import claim_output_dir
 from uwdock.dockcore.provenance import write_provenance
 from uwdock.rl.baselines import PIDController
-from uwdock.rl.config import EnvConfig, ObsSourceName
+from uwdock.rl.config import EnvConfig, ObsSourceName, check_env_files
 from uwdock.rl.env import DockingEnv
 from uwdock.rl.episode import EpisodeVideoConfig, record_episode
 from uwdock.rl.error_model import ErrorModelConfig, fit_error_model, save_error_model
@@ -34,6 +35,7 @@ from uwdock.rl.policy_io import policy_env_settings, policy_error_model
 from uwdock.rl.report import evaluate_to_folder
 from uwdock.rl.train import TrainConfig, run_config
 from uwdock.rl.train import train as run
+from uwdock.rl.trajectories import record_pid_trajectories
 from uwdock.sim.usbl import USBL_PRESETS
 from uwdock.sim.water import PRESETS, water_choice
 
@@ -240,13 +242,26 @@ def export(policy, out_path) -> None:
     help="Range bin width [0.5].",
 )
 def fit_error_model_cmd(dataset, out_path, range_bin_m) -> None:
-    """Fit the image-derived error model from a labelled dataset (`datasets synth`)."""
+    """Fit the image-derived error model from a labelled dataset (`datasets synth`).
+
+    A dataset whose frames form time sequences (`rl trajectories`, then `datasets render
+    --poses`) also gives the model's memory: the AR(1) correlation of consecutive errors.
+    """
     cfg = load_config(ErrorModelConfig, overrides={"range_bin_m": range_bin_m})
     model = fit_error_model(dataset, cfg)
     save_error_model(model, out_path)
     t = model["tables"]["all"]
     n = sum(sum(row) for row in t["frames"])
     click.echo(f"fitted on {int(n)} frames ({model['dataset']['sha256'][:12]}): {out_path}")
+    for water, table in model["tables"].items() if model["sequences"] else ():
+        ar1 = table["ar1"]
+        rho = "memoryless (too few pairs)" if ar1["rho"] is None else _fmt_rho(ar1["rho"])
+        pairs = ar1["pairs"]
+        click.echo(f"  {water}: AR(1) rho (standardised dt xyz, drot xyz) {rho}, {pairs} pairs")
+
+
+def _fmt_rho(rho: list[float]) -> str:
+    return "[" + " ".join(f"{r:+.2f}" for r in rho) + "]"
 
 
 @cli.command()
@@ -329,6 +344,67 @@ def episode(
         f"{summary['steps']} steps ({summary['sim_time_s']:.1f} s), {result}, final |e| "
         f"{summary['final_distance_m']:.2f} m, return {summary['return']:.0f} -> "
         f"{out / summary['video']}"
+    )
+
+
+@cli.command()
+@out_dir_option(
+    "Output folder (poses.csv, episodes.json, config.toml, provenance.json).", required=True
+)
+@click.option("--episodes", type=domain_type(Count), default=30, show_default=True)
+@seed_option(domain_type(Seed), "Reset seed of episode 0 (episode k: seed + k).", default=0)
+@click.option("--obs", type=OBS_CHOICES, default="error-model", show_default=True)
+@click.option(
+    "--error-model",
+    "error_model",
+    type=click.Path(path_type=Path),
+    help="Fitted error model file (for --obs error-model), e.g. "
+    "rl/models/error_model_clear_tank_480.json.",
+)
+@config_option("TOML overriding rl.config.EnvConfig (terminate_on defaults to 'strict').")
+@quiet_option("No progress bar; print only the CSV path.")
+def trajectories(out_dir, episodes, seed, obs, error_model, config_path, quiet) -> None:
+    """Record the PID baseline's docking trajectories as a pose CSV with sequence, step and
+    time columns (`datasets render --poses` renders them): frames consecutive in time, for
+    fitting the error model's memory.
+
+    Each pose is moved with its episode's DS into the render world (DS at the tank centre);
+    poses whose camera then falls outside the tank are left out (a gap in the steps).
+    """
+    em = str(error_model) if error_model else None
+    given = config_data(config_path, section="env") if config_path is not None else {}
+    base = merge({"terminate_on": "strict"}, given)
+    env_cfg = from_dict(
+        EnvConfig,
+        merge(base, {k: v for k, v in {"obs_source": obs, "error_model_path": em}.items() if v}),
+    )
+    check_env_files(env_cfg)
+    disable = True if quiet else None  # None: a bar on a terminal only
+    with claim_output_dir(out_dir, "rl trajectories") as out:
+        with tqdm(total=episodes, unit="episode", desc="trajectories", disable=disable) as bar:
+            result = record_pid_trajectories(
+                env_cfg, episodes, seed, on_episode=lambda _row: bar.update(1)
+            )
+        csv_path = write_pose_track_csv(out / "poses.csv", result.poses, result.sequences)
+        summary = {
+            "episodes": episodes,
+            "seed": seed,
+            "poses": len(result.poses),
+            "left_out": sum(r["left_out"] for r in result.episodes),
+            "success_strict": sum(r["success_strict"] for r in result.episodes) / episodes,
+            "step_s": result.sequences.step_s(),
+            "rows": result.episodes,
+        }
+        atomic_write_json(out / "episodes.json", summary)
+        extra = {k: v for k, v in summary.items() if k != "rows"}
+        write_provenance(out, {"env": env_cfg}, extra={"trajectories": extra})
+    if quiet:
+        click.echo(str(csv_path))
+        return
+    click.echo(
+        f"{summary['poses']} poses of {episodes} episodes ({summary['left_out']} left out, "
+        f"{summary['success_strict']:.0%} docked strictly) -> {csv_path}; render them with "
+        f"`datasets render --poses {csv_path} --width {env_cfg.camera_width_px} --water ...`"
     )
 
 

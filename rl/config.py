@@ -73,6 +73,9 @@ class EnvConfig:
             training envs fill (:mod:`rl.observation`, :mod:`rl.asymmetric`).
         randomise_vehicle: draw the vehicle's parameters (and thruster placement) per episode.
         error_model_path: fitted error model file, for ``obs_source = "error-model"``.
+        error_model_memory: sample the error model's fitted memory (the AR(1) correlation of
+            consecutive steps' pose errors, ``rl.error_model``); False: every step's error is
+            drawn independently. Models without memory (version 1) are memoryless either way.
         camera_file: camera YAML/JSON for the camera source (None: the reference camera).
         camera_width_px: render width for the camera source (intrinsics scaled from the camera
             file; 0 keeps the file's size). 480 (of the reference 968) keeps the DS markers
@@ -120,6 +123,7 @@ class EnvConfig:
     obs_privileged: bool = False
     randomise_vehicle: bool = True
     error_model_path: str | None = None
+    error_model_memory: bool = True
     camera_file: str | None = None
     camera_width_px: Annotated[int, Interval(ge=0, le=8192)] = 480
     water_preset: str = "clear_tank"

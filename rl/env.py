@@ -122,7 +122,12 @@ class DockingEnv(gym.Env):
         if c.obs_source == "proxy":
             return ProxySource(c.task)
         if c.obs_source == "error-model":
-            return ErrorModelSource(load_error_model(c.error_model_path), c.task, c.water_preset)
+            return ErrorModelSource(
+                load_error_model(c.error_model_path),
+                c.task,
+                c.water_preset,
+                temporal=c.error_model_memory,
+            )
         if c.obs_source == "acoustic":
             return AcousticSource()
         return CameraSource(self.world)

@@ -10,10 +10,25 @@ label. Per water preset, the model keeps
   translation error in the camera frame and rotation-vector error) over inlier detections, and
   the rate and samples of gross errors (rotation error above ``outlier_deg``, e.g. PnP flips).
 
+* memory (version 2, from a dataset whose frames form time sequences, e.g. rendered along PID
+  docking trajectories: ``rl trajectories`` + ``datasets render --poses``): per error component,
+  the AR(1) coefficient ``rho`` of the *standardised* inlier error ``z = L_k^-1 (err - bias_k)``
+  (``L_k`` the range bin's Cholesky factor; so ``z`` is white with unit variance in every bin),
+  i.e. its lag-1 autocorrelation over pairs of consecutive frames of a sequence that were both
+  inlier detections, with an approximate 95 % interval and the pair count; and, as
+  diagnostics, the autocorrelation at lags up to ``MAX_LAG`` steps (an AR(1) decays as
+  ``rho^lag``: a slower decay says the memory is longer than the model's) and how often a
+  detection follows a detection (or a miss) against what the memoryless model predicts for
+  the same frames.
+
 The model file (JSON) records the dataset's checksum, frame count, the perception configs and
-provenance: it is versioned with its data. Sampling (:class:`ErrorModelSource`) costs a few
-microseconds: it projects the board markers to count those in view, draws detection, then an
-error from the bin, and applies it to the true pose.
+provenance: it is versioned with its data. Version-1 files (and tables without a fitted
+``rho``) are memoryless. Sampling (:class:`ErrorModelSource`) costs a few microseconds: it
+projects the board markers to count those in view, draws detection, then an error from the bin,
+and applies it to the true pose. With memory, the standardised error follows
+``z_t = rho z_{t-1} + sqrt(1 - rho^2) w_t`` (``w_t`` white) between consecutive inlier
+detections and restarts (``z_t = w_t``) after a reset, a miss or a gross error, so the marginal
+distribution of each step's error is the memoryless model's.
 """
 
 from __future__ import annotations
@@ -22,9 +37,10 @@ import hashlib
 import json
 import math
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, NamedTuple
 
 import cv2
 import numpy as np
@@ -36,6 +52,7 @@ from uwdock.calibration.camera import (
     resolve_camera,
 )
 from uwdock.calibration.frames import inv_T, make_T
+from uwdock.datasets.sequences import FrameSequences, sequences_from_manifest
 from uwdock.dockcore.config import to_dict
 from uwdock.dockcore.domains import Interval
 from uwdock.dockcore.errors import DockError
@@ -49,8 +66,11 @@ from uwdock.rl.obs_sources import Measurement, SourceNeeds, StepContext
 from uwdock.rl.task import DockingTaskConfig
 
 FORMAT = "uwdock.error_model"
-VERSION = 1
+VERSION = 2
+#: Versions :func:`load_error_model` reads (1: no memory).
+READ_VERSIONS = (1, 2)
 N_VISIBLE_BINS = 4  # 0, 1, 2, 3+ markers in view
+N_ERR = 6  # error components: dt_cam xyz (m), rotation vector (rad)
 
 
 @dataclass(frozen=True)
@@ -64,6 +84,8 @@ class ErrorModelConfig:
         min_inliers: fewest inlier detections for a bin's own covariance; sparser bins borrow
             from their neighbours (-).
         max_outlier_samples: gross-error samples kept per bin (-).
+        min_pairs: fewest pairs of consecutive inlier detections for a table's AR(1) fit;
+            with fewer, the table stays memoryless (-).
     """
 
     range_bin_m: Annotated[float, Interval(gt=0, le=100)] = 0.5
@@ -71,6 +93,7 @@ class ErrorModelConfig:
     outlier_deg: Annotated[float, Interval(gt=0, le=180)] = 10.0
     min_inliers: Annotated[int, Interval(ge=1, le=1_000_000)] = 8
     max_outlier_samples: Annotated[int, Interval(ge=0, le=1_000_000)] = 40
+    min_pairs: Annotated[int, Interval(ge=2, le=1_000_000)] = 30
 
     def validate(self) -> None:
         bins = self.range_max_m / self.range_bin_m
@@ -122,21 +145,44 @@ def count_in_view(camera: CameraModel, T_cam_ds: np.ndarray, corners_ds: np.ndar
     return int(markers_in_view(camera, T_cam_ds, corners_ds, MIN_VIEW_DEPTH_M).sum())
 
 
+class FrameSample(NamedTuple):
+    """One dataset frame run through the perception package (the fit's input).
+
+    Attributes:
+        frame: frame index in the dataset.
+        water: water preset name ("unknown" without one).
+        r_bin: range bin of the true camera-to-DS distance.
+        n_vis: markers geometrically in view, capped at ``N_VISIBLE_BINS - 1``.
+        err: (6,) pose error ``[dt_cam (m), drot (rad)]`` of the estimate, None when the DS was
+            not detected.
+    """
+
+    frame: int
+    water: str
+    r_bin: int
+    n_vis: int
+    err: np.ndarray | None
+
+
 def fit_error_model(
     dataset: str | os.PathLike[str], cfg: ErrorModelConfig | None = None, progress: bool = True
 ) -> dict[str, Any]:
-    """Fit the model from a labelled dataset folder (see the module docstring)."""
+    """Fit the model from a labelled dataset folder (see the module docstring); its memory when
+    the dataset's frames form time sequences (``dataset.json`` ``sequences``)."""
     cfg = cfg or ErrorModelConfig()
     ds = load_dataset(dataset)
+    frames = sorted(ds.frames.items())
+    sequences = sequences_from_manifest(ds.manifest, len(frames), str(ds.root / "dataset.json"))
+    if sequences is not None and [k for k, _ in frames] != list(range(len(frames))):
+        raise DockError(f"{ds.root}: a dataset with sequences must number its frames 0..N-1")
     camera, T_bc = resolve_camera(ds.camera_path)
     ms = load_marker_set(ds.marker_set_path)
     estimator = DSPoseEstimator.from_marker_set(ms)
     board = ms.corners_ds()
     corners = np.stack([board[i] for i in sorted(board)])
     n_bins = math.ceil(cfg.range_max_m / cfg.range_bin_m)
-    samples: dict[str, list[tuple[int, int, bool, np.ndarray | None]]] = {}
-    frames = sorted(ds.frames.items())
-    for _, ft in tqdm(frames, desc="fit error model", unit="frame", disable=not progress):
+    samples: list[FrameSample] = []
+    for k, ft in tqdm(frames, desc="fit error model", unit="frame", disable=not progress):
         img_bgr = cv2.imread(str(ds.root / ft.image)) if ft.image else None
         if img_bgr is None:
             continue
@@ -147,12 +193,9 @@ def fit_error_model(
         T_world_cam = None if ft.T_world_body is None else ft.T_world_body @ T_bc
         T_est = estimator.estimate(img_bgr, camera, T_world_cam).T_cam_ds
         err = None if T_est is None else pose_error(T_est, ft.T_cam_ds)
-        samples.setdefault(water, []).append((r_bin, n_vis, err is not None, err))
+        samples.append(FrameSample(k, water, r_bin, n_vis, err))
     if not samples:
         raise DockError(f"no readable frames in dataset {ds.root}")
-    all_samples = [s for v in samples.values() for s in v]
-    tables = {w: _tables(v, n_bins, cfg) for w, v in samples.items()}
-    tables["all"] = _tables(all_samples, n_bins, cfg)
     return {
         "format": FORMAT,
         "version": VERSION,
@@ -169,9 +212,44 @@ def fit_error_model(
             "T_body_cam": T_bc.tolist(),
         },
         "board_corners_ds_m": corners.tolist(),
-        "tables": tables,
+        "sequences": _sequence_summary(sequences),
+        "tables": fit_tables(samples, n_bins, cfg, sequences),
         "provenance": provenance(),
     }
+
+
+def _sequence_summary(sequences: FrameSequences | None) -> dict[str, Any] | None:
+    """What the dataset's sequences are: count, frames, step duration (s); None without."""
+    if sequences is None:
+        return None
+    return {
+        "sequences": len(set(sequences.sequence.tolist())),
+        "frames": len(sequences),
+        "consecutive_pairs": len(sequences.consecutive_pairs()[0]),
+        "step_s": sequences.step_s(),
+    }
+
+
+def fit_tables(
+    samples: Sequence[FrameSample],
+    n_bins: int,
+    cfg: ErrorModelConfig,
+    sequences: FrameSequences | None = None,
+) -> dict[str, dict[str, Any]]:
+    """The model's tables from per-frame samples: one per water preset and "all" (module
+    docstring), each with its memory (``ar1``, ``detection_pairs``) when ``sequences`` (indexed
+    by ``FrameSample.frame``) are given."""
+    by_water: dict[str, list[FrameSample]] = {}
+    for smp in samples:
+        by_water.setdefault(smp.water, []).append(smp)
+    by_water["all"] = [s for group in by_water.values() for s in group]  # grouped, as in v1
+    tables = {}
+    for water, group in by_water.items():
+        table = _tables([(s.r_bin, s.n_vis, s.err is not None, s.err) for s in group], n_bins, cfg)
+        if sequences is not None:
+            table.update(_memory(group, table, sequences, cfg))
+        tables[water] = table
+    return tables
 
 
 def _tables(samples, n_bins: int, cfg: ErrorModelConfig) -> dict[str, Any]:
@@ -218,6 +296,119 @@ def _tables(samples, n_bins: int, cfg: ErrorModelConfig) -> dict[str, Any]:
     return {"p_detect": p_detect.tolist(), "frames": tot.tolist(), "bins": bins}
 
 
+def standardise(err: np.ndarray, bias: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """(..., 6) standardised errors ``L^-1 (err - bias)`` (``L L^T = cov``, the Cholesky factor
+    the sampler uses), white with unit variance when ``err`` follows the bin's distribution.
+
+    Args:
+        err: (..., 6) pose errors ``[dt_cam (m), drot (rad)]``.
+        bias: (6,) the bin's bias (m, rad).
+        cov: (6, 6) the bin's covariance (m^2, rad^2).
+    """
+    L = np.linalg.cholesky(_psd(np.asarray(cov, np.float64)))
+    d = np.asarray(err, np.float64) - np.asarray(bias, np.float64)
+    return np.linalg.solve(L, d.reshape(-1, N_ERR).T).T.reshape(d.shape)
+
+
+def ar1_fit(z_prev: np.ndarray, z_next: np.ndarray) -> dict[str, Any]:
+    """Per-component lag-1 autocorrelation of standardised errors over consecutive pairs.
+
+    ``rho_k = sum(a_k b_k) / sqrt(sum(a_k^2) sum(b_k^2))`` (not centred: the errors are already
+    bias-free, and a view-dependent bias that persists from frame to frame is part of the
+    memory), with Bartlett's approximate 95 % interval for an AR(1) series,
+    ``rho +- 1.96 sqrt((1 - rho^2) / P)``, clipped to [-1, 1].
+
+    Args:
+        z_prev: (P, K) standardised errors at step t.
+        z_next: (P, K) the same components at step t + 1.
+
+    Returns:
+        ``{"rho": [K], "rho_ci95": [[lo, hi] x K], "pairs": P}``.
+    """
+    a = np.asarray(z_prev, np.float64)
+    b = np.asarray(z_next, np.float64)
+    if a.shape != b.shape or a.ndim != 2 or len(a) < 2:
+        raise ValueError(f"ar1_fit: need two (P >= 2, K) arrays, got {a.shape} and {b.shape}")
+    rho = (a * b).sum(axis=0) / np.sqrt((a * a).sum(axis=0) * (b * b).sum(axis=0))
+    rho = np.clip(np.nan_to_num(rho), -0.999, 0.999)  # a constant component: no evidence
+    half = 1.96 * np.sqrt((1.0 - rho**2) / len(a))
+    ci = np.clip(np.stack([rho - half, rho + half], axis=1), -1.0, 1.0)
+    return {"rho": rho.tolist(), "rho_ci95": ci.tolist(), "pairs": len(a)}
+
+
+#: Longest lag of the autocorrelation diagnostic (steps).
+MAX_LAG = 5
+
+
+def _autocorrelation(z: dict[int, np.ndarray], sequences: FrameSequences) -> dict[str, list]:
+    """Standardised autocorrelation at lags 1..``MAX_LAG`` over pairs of inlier frames that
+    many steps apart in a sequence (the frames between may be anything): ``{"lag", "rho"
+    (per lag, 6 values or None with < 2 pairs), "pairs"}``."""
+    out: dict[str, list] = {"lag": [], "rho": [], "pairs": []}
+    for lag in range(1, MAX_LAG + 1):
+        first, then = (a.tolist() for a in sequences.consecutive_pairs(lag))
+        ij = [(i, j) for i, j in zip(first, then, strict=True) if i in z and j in z]
+        fit = None
+        if len(ij) >= 2:
+            fit = ar1_fit(np.stack([z[i] for i, _ in ij]), np.stack([z[j] for _, j in ij]))
+        out["lag"].append(lag)
+        out["rho"].append(None if fit is None else fit["rho"])
+        out["pairs"].append(len(ij))
+    return out
+
+
+def _memory(
+    group: Sequence[FrameSample],
+    table: dict[str, Any],
+    sequences: FrameSequences,
+    cfg: ErrorModelConfig,
+) -> dict[str, Any]:
+    """A table's memory: AR(1) of the standardised inlier errors (``ar1``; ``rho`` null with
+    fewer than ``cfg.min_pairs`` pairs) and the detection persistence diagnostic."""
+    thr = math.radians(cfg.outlier_deg)
+    by_frame = {s.frame: s for s in group}
+    bins = table["bins"]
+    p_detect = np.asarray(table["p_detect"])
+    z, u = {}, {}  # inlier frame -> standardised error; error scaled by the bin's std only
+    for s in group:
+        if s.err is not None and np.linalg.norm(s.err[3:]) <= thr:
+            bias, cov = np.asarray(bins[s.r_bin]["bias"]), np.asarray(bins[s.r_bin]["cov"])
+            z[s.frame] = standardise(s.err, bias, cov)
+            u[s.frame] = (s.err - bias) / np.sqrt(np.diag(cov))
+    pairs = []
+    counts = {True: [0, 0, 0.0], False: [0, 0, 0.0]}  # prev detected -> [pairs, hits, expected]
+    for i, j in zip(*sequences.consecutive_pairs(), strict=True):
+        si, sj = by_frame.get(int(i)), by_frame.get(int(j))
+        if si is None or sj is None:
+            continue
+        c = counts[si.err is not None]
+        c[0] += 1
+        c[1] += sj.err is not None
+        c[2] += float(p_detect[sj.r_bin, sj.n_vis])
+        if si.frame in z and sj.frame in z:
+            pairs.append((si.frame, sj.frame))
+    if len(pairs) >= cfg.min_pairs:
+        fi, fj = zip(*pairs, strict=True)
+        ar1 = ar1_fit(np.stack([z[f] for f in fi]), np.stack([z[f] for f in fj]))
+        # diagnostics: each error component's own lag-1 autocorrelation (m or rad, not mixed),
+        # and the standardised autocorrelation at longer lags (AR(1): rho^lag)
+        ar1["rho_per_axis"] = ar1_fit(np.stack([u[f] for f in fi]), np.stack([u[f] for f in fj]))[
+            "rho"
+        ]
+        ar1["autocorrelation"] = _autocorrelation(z, sequences)
+    else:
+        ar1 = {"rho": None, "rho_ci95": None, "pairs": len(pairs)}
+    persistence = {
+        ("after_detection" if prev else "after_miss"): {
+            "pairs": n,
+            "detected": hits / n if n else None,
+            "memoryless": expected / n if n else None,
+        }
+        for prev, (n, hits, expected) in counts.items()
+    }
+    return {"ar1": ar1, "detection_pairs": persistence}
+
+
 def save_error_model(model: dict[str, Any], path: str | os.PathLike[str]) -> Path:
     return atomic_write_json(path, model)
 
@@ -244,10 +435,19 @@ class ErrorModel:
         tb = cam.get("T_body_cam")
         self.T_body_cam = np.asarray(tb) if tb is not None else np.array(REFERENCE_T_BODYFRD_CAMCV)
         self.corners_ds = np.asarray(data["board_corners_ds_m"], dtype=np.float64)
+        memory = data.get("version", VERSION) >= 2  # version 1: memoryless
+        seqs = data.get("sequences") if memory else None
+        step = seqs.get("step_s") if isinstance(seqs, dict) else None
+        #: duration of the fitted AR(1) step (s), None without sequences
+        self.step_s: float | None = None if step is None else float(step)
         self._tables = {}
         for water, t in data["tables"].items():
             bins = t["bins"]
+            rho = _rho(t.get("ar1") if memory else None, water)
+            if np.any(rho != 0) and not (self.step_s is not None and 0 < self.step_s < math.inf):
+                raise ValueError(f"table '{water}': ar1 rho needs sequences.step_s > 0")
             self._tables[water] = {
+                "rho": rho,
                 "p": np.asarray(t["p_detect"]),
                 "bias": np.asarray([b["bias"] for b in bins]),
                 "chol": np.stack([np.linalg.cholesky(_psd(np.asarray(b["cov"]))) for b in bins]),
@@ -261,6 +461,24 @@ class ErrorModel:
 
     def range_bin(self, range_m: float) -> int:
         return min(int(range_m / self.range_bin_m), self.n_bins - 1)
+
+
+def _rho(ar1: Any, water: str) -> np.ndarray:
+    """(6,) AR(1) coefficients of a table's ``ar1`` entry (zeros: memoryless, for a missing
+    entry or a null ``rho``); ValueError naming the table when malformed."""
+    raw = None if ar1 is None else ar1["rho"]
+    if raw is None:
+        return np.zeros(N_ERR)
+    try:
+        rho = np.asarray(raw, dtype=np.float64)
+    except (TypeError, ValueError):
+        rho = np.full(1, np.nan)
+    if rho.shape != (N_ERR,) or not np.all(np.abs(rho) < 1.0):  # also refuses NaN
+        shown = " ".join(str(raw).split())[:80]
+        raise ValueError(
+            f"table '{water}': ar1 rho must be {N_ERR} numbers in (-1, 1), got {shown}"
+        )
+    return rho
 
 
 def _psd(c: np.ndarray) -> np.ndarray:
@@ -279,8 +497,9 @@ def load_error_model(path: str | os.PathLike[str] | None) -> ErrorModel:
         data = json.loads(p.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise DockError(f"{p}: malformed JSON ({exc})") from None
-    if data.get("format") != FORMAT or data.get("version") != VERSION:
-        raise DockError(f"{p}: not a version-{VERSION} '{FORMAT}' file")
+    version = data.get("version") if isinstance(data, dict) else None
+    if data.get("format") != FORMAT or isinstance(version, bool) or version not in READ_VERSIONS:
+        raise DockError(f"{p}: not a version-{'/'.join(map(str, READ_VERSIONS))} '{FORMAT}' file")
     try:
         return ErrorModel(data, p)
     except (KeyError, ValueError, TypeError, np.linalg.LinAlgError) as exc:
@@ -288,19 +507,52 @@ def load_error_model(path: str | os.PathLike[str] | None) -> ErrorModel:
 
 
 class ErrorModelSource:
-    """Sample camera-pipeline measurements from a fitted :class:`ErrorModel`."""
+    """Sample camera-pipeline measurements from a fitted :class:`ErrorModel`.
+
+    Args:
+        model: the loaded model.
+        task: docking geometry.
+        water: the table to sample ("all" when the model has none of that name).
+        temporal: sample the table's fitted memory (AR(1) per standardised error component,
+            module docstring); False, or a table without it: every step independent. With
+            ``rho = 0`` the draws are bit-identical to the memoryless sampler's.
+    """
 
     name = "error-model"
     needs = SourceNeeds(camera=False, fusion=True, acoustic_fixes=True)
 
-    def __init__(self, model: ErrorModel, task: DockingTaskConfig, water: str = "all") -> None:
+    def __init__(
+        self, model: ErrorModel, task: DockingTaskConfig, water: str = "all", temporal: bool = True
+    ) -> None:
         self.model = model
         self.task = task
         self.water = water
+        self.temporal = temporal
         self.rng = np.random.default_rng(0)
+        #: standardised error of the last inlier detection and its time (s); None: no memory
+        self._z_prev: np.ndarray | None = None
+        self._t_prev_s = 0.0
 
     def reset(self, rng: np.random.Generator) -> None:
         self.rng = rng
+        self._z_prev = None
+
+    def _standard_error(self, rho: np.ndarray, time_s: float) -> np.ndarray:
+        """(6,) this step's standardised error: one ``standard_normal(6)`` draw ``w``, carried
+        through the AR(1) recursion from the previous inlier detection when there is one.
+
+        Over ``n = dt / step_s`` fitted steps the coefficient is ``rho^n`` (``dt`` since that
+        detection, s); a measurement at the same or an earlier time starts afresh."""
+        w = self.rng.standard_normal(N_ERR)
+        z = w
+        prev, step_s = self._z_prev, self.model.step_s
+        if self.temporal and prev is not None and step_s and np.any(rho != 0):
+            n = (time_s - self._t_prev_s) / step_s
+            if n > 0:
+                r = np.sign(rho) ** round(n) * np.abs(rho) ** n
+                z = r * prev + np.sqrt(1.0 - r * r) * w
+        self._z_prev, self._t_prev_s = z, time_s
+        return z
 
     def measure(self, ctx: StepContext) -> Measurement | None:
         m = self.model
@@ -311,11 +563,13 @@ class ErrorModelSource:
         t = m.table(self.water)
         k = m.range_bin(r)
         if self.rng.random() >= t["p"][k, n_vis]:
+            self._z_prev = None  # a miss breaks the chain
             return None
         if t["outliers"][k].size and self.rng.random() < t["p_out"][k]:
             err = t["outliers"][k][self.rng.integers(len(t["outliers"][k]))]
+            self._z_prev = None  # so does a gross error
         else:
-            err = t["bias"][k] + t["chol"][k] @ self.rng.standard_normal(6)
+            err = t["bias"][k] + t["chol"][k] @ self._standard_error(t["rho"], ctx.time_s)
         T_meas = T_world_cam @ apply_error(T_cam_ds, err)
         R = T_world_cam[:3, :3]
         cov = np.zeros((4, 4))

@@ -85,6 +85,9 @@ COMMANDS: dict[str, tuple[str, dict[str, str]]] = {
             "fit-error-model": "Fit the image-derived error model from a labelled dataset "
             "(`datasets synth`).",
             "train": "Train a docking policy (PPO with the paper's hyperparameters by default).",
+            "trajectories": "Record the PID baseline's docking trajectories as a pose CSV with "
+            "sequence, step and time columns (`datasets render --poses` renders them): frames "
+            "consecutive in time, for fitting the error model's memory.",
         },
     ),
 }
