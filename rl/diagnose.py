@@ -23,9 +23,11 @@ from typing import Any
 
 import numpy as np
 
+from uwdock.calibration.frames import inv_T
 from uwdock.rl.config import EnvConfig
 from uwdock.rl.env import DockingEnv
 from uwdock.rl.rewards import TERMS
+from uwdock.rl.task import ds_visible
 
 #: (xy, z) position tolerances (m) whose first meeting is counted, yaw and visibility as the
 #: paper's test: the paper's own (0.07, 0.1), the curriculum's start (0.07, 1.0), a wide one
@@ -94,9 +96,6 @@ def diagnose(
     Returns:
         name -> summary (module docstring); per-step figures are means over all steps.
     """
-    from uwdock.calibration.frames import inv_T
-    from uwdock.rl.task import ds_visible
-
     env = DockingEnv(env_cfg)
     out: dict[str, dict[str, Any]] = {}
     try:

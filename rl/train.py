@@ -35,6 +35,7 @@ from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_write_bytes, atomic_write_json, atomic_write_text
 from uwdock.dockcore.outdir import claim_output_dir
 from uwdock.dockcore.provenance import git_commit, write_provenance
+from uwdock.rl import asymmetric
 from uwdock.rl.callbacks import training_callback
 from uwdock.rl.checkpoint import (
     has_legacy_checkpoints,
@@ -185,9 +186,7 @@ def build_model(cfg: TrainConfig, venv, tb_dir: Path):
         policy: Any = "MlpPolicy"
         kwargs: dict[str, Any] = {"net_arch": list(p.net_arch), "log_std_init": p.log_std_init}
         if cfg.env.obs_privileged:  # asymmetric actor-critic
-            from uwdock.rl.asymmetric import AsymmetricPolicy
-
-            policy = AsymmetricPolicy
+            policy = asymmetric.AsymmetricPolicy
             kwargs["actor_obs_dim"] = actor_observation_size(cfg.env)
         return PPO(
             policy,
