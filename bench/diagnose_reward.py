@@ -7,8 +7,10 @@ Usage::
 
 Controllers: Gaussian actions with std 1 (PPO's initial policy: ``log_std_init`` 0), std 0.37
 (``log_std_init`` -1), the PID baseline, and each ``--policy`` (deterministic). Every controller
-runs the same seeded episodes. ``--config`` takes the ``[env]`` table of a training config (the
-reward and task of that recipe). See :mod:`uwdock.rl.diagnose` for the figures.
+runs the same seeded episodes; a PPO policy acts with its Gaussian's mean before clipping (the
+env clips), so means beyond +-1 show in the saturation columns. ``--config`` takes the
+``[env]`` table of a training config (the reward and task of that recipe). See
+:mod:`uwdock.rl.diagnose` for the figures.
 
 Writes ``bench/results/<name>.json`` (default ``reward_diagnosis``).
 """
@@ -40,7 +42,7 @@ def main() -> None:
     from uwdock.dockcore.config import load_config, replace, to_dict
     from uwdock.rl.baselines import PIDController
     from uwdock.rl.config import EnvConfig
-    from uwdock.rl.diagnose import GaussianController, diagnose
+    from uwdock.rl.diagnose import GaussianController, SB3MeanController, diagnose
     from uwdock.rl.evaluate import SB3Controller
     from uwdock.rl.policy_io import load_controller
 
@@ -59,7 +61,12 @@ def main() -> None:
     }
     for p in args.policy:
         ctrl, vecnorm, label = load_controller(p, env_cfg)
-        controllers[label] = ctrl if hasattr(ctrl, "act") else SB3Controller(ctrl, vecnorm)
+        if hasattr(ctrl, "act"):
+            controllers[label] = ctrl
+        elif hasattr(ctrl.policy, "get_distribution"):  # PPO: the mean before clipping
+            controllers[label] = SB3MeanController(ctrl, vecnorm)
+        else:
+            controllers[label] = SB3Controller(ctrl, vecnorm)
     t0 = time.perf_counter()
 
     def progress(name: str, done: int, total: int) -> None:

@@ -122,8 +122,20 @@ class _Interrupted(KeyboardInterrupt):
     """SIGTERM, delivered as an interrupt so cleanup code runs as for Ctrl-C."""
 
 
+#: the signals received while a command runs: an exception that follows one is reported as
+#: the interrupt (a signal that lands while a C extension initialises surfaces as an
+#: ``ImportError: initialization failed``, not as KeyboardInterrupt)
+_received: list[int] = []
+
+
 def _on_sigterm(signum: int, frame: Any) -> None:
+    _received.append(signal.SIGTERM)
     raise _Interrupted()
+
+
+def _on_sigint(signum: int, frame: Any) -> None:
+    _received.append(signal.SIGINT)
+    raise KeyboardInterrupt
 
 
 def _oserror_line(exc: OSError) -> str:
@@ -139,10 +151,13 @@ def _oserror_line(exc: OSError) -> str:
 
 def run_group(group: click.Group, args: list[str] | None = None) -> None:
     """Run a click group with the toolkit's error convention (module docstring)."""
-    previous = None
+    previous = previous_int = None
+    _received.clear()
     try:
         previous = signal.signal(signal.SIGTERM, _on_sigterm)
-    except ValueError:  # not the main thread (embedded use): leave SIGTERM alone
+        if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # not ignored
+            previous_int = signal.signal(signal.SIGINT, _on_sigint)
+    except ValueError:  # not the main thread (embedded use): leave the signals alone
         previous = None
     argv = list(sys.argv[1:] if args is None else args)
     try:
@@ -172,6 +187,10 @@ def run_group(group: click.Group, args: list[str] | None = None) -> None:
         click.echo(f"error: {_oserror_line(exc)}", err=True)
         sys.exit(2)
     except Exception as exc:  # a bug: one line, the traceback on request
+        if _received:  # what an interrupt left behind (e.g. a module that failed to load)
+            sigterm = signal.SIGTERM in _received
+            click.echo(f"error: interrupted{' (SIGTERM)' if sigterm else ''}", err=True)
+            sys.exit(128 + signal.SIGTERM if sigterm else 130)
         if os.environ.get("UWDOCK_DEBUG"):
             traceback.print_exc()
         text = " ".join(str(exc).split()) or type(exc).__name__
@@ -184,4 +203,6 @@ def run_group(group: click.Group, args: list[str] | None = None) -> None:
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+        if previous_int is not None:
+            signal.signal(signal.SIGINT, previous_int)
     sys.exit(0)

@@ -49,6 +49,29 @@ class GaussianController:
         return self.mean + self.std * self.rng.standard_normal(6)
 
 
+class SB3MeanController:
+    """A PPO policy's deterministic action *before* clipping (the Gaussian's mean), with its
+    observation normalisation: ``model.predict`` clips to the action space, which would hide
+    means that sit beyond +-1."""
+
+    def __init__(self, model, vecnorm=None) -> None:
+        self.model, self.vecnorm = model, vecnorm
+
+    def reset(self) -> None:
+        pass
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        import torch
+
+        o = obs[None, :]
+        if self.vecnorm is not None:
+            o = self.vecnorm.normalize_obs(o)
+        with torch.no_grad():
+            t = torch.as_tensor(o, dtype=torch.float32)
+            mean = self.model.policy.get_distribution(t).distribution.mean
+        return mean.numpy()[0].astype(np.float64)
+
+
 @dataclass
 class _Tally:
     steps: int = 0

@@ -124,7 +124,7 @@ def _group() -> None:
 @click.option("--size-mm", type=field_type(Dom, "size_mm"))
 @click.option("--limit-m", type=field_type(Dom, "limit_m"))
 @click.option("--n", type=domain_type(Count))
-@click.option("--fail", type=click.Choice(["dock", "os", "bug", "term", "disk"]))
+@click.option("--fail", type=click.Choice(["dock", "os", "bug", "term", "disk", "int-import"]))
 def _cmd(size_mm, limit_m, n, fail) -> None:
     if fail == "dock":
         raise DockError("bad input,\nreally")
@@ -137,6 +137,13 @@ def _cmd(size_mm, limit_m, n, fail) -> None:
     if fail == "term":
         os.kill(os.getpid(), signal.SIGTERM)
         time.sleep(5)
+    if fail == "int-import":  # Ctrl-C while a C extension initialises: Python reports that as
+        try:  # "ImportError: initialization failed", the KeyboardInterrupt swallowed
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(5)
+        except KeyboardInterrupt:
+            pass
+        raise ImportError("initialization failed")
     click.echo(f"ok {size_mm} {limit_m} {n}")
 
 
@@ -181,6 +188,7 @@ def test_numeric_options_accept_their_domain(capsys):
         ("os", 2, "error: /x/y.toml: No such file or directory\n"),
         ("disk", 2, "error: /x/out.json: no space left on the device\n"),
         ("term", 143, "error: interrupted (SIGTERM)\n"),
+        ("int-import", 130, "error: interrupted\n"),  # what the interrupt left behind
     ],
 )
 def test_errors_are_one_line(capsys, fail, code, message):
