@@ -3,7 +3,8 @@
 Usage::
 
     python bench/diagnose_reward.py [--episodes 20] [--seed 70000] [--source SOURCE]
-        [--config configs/X.toml] [--policy PATH ...] [--out-dir DIR] [--name NAME]
+        [--config configs/X.toml] [--smooth-over all|actuated] [--policy PATH ...]
+        [--out-dir DIR] [--name NAME]
 
 Controllers: Gaussian actions with std 1 (PPO's initial policy: ``log_std_init`` 0), std 0.37
 (``log_std_init`` -1), the PID baseline, and each ``--policy`` (deterministic). Every controller
@@ -34,6 +35,12 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=70_000)
     parser.add_argument("--source", default=None, help="override the observation source")
     parser.add_argument("--config", default=None, help="a training config (its [env] is used)")
+    parser.add_argument(
+        "--smooth-over",
+        choices=["all", "actuated"],
+        default=None,
+        help="override the reward's smooth_over ('all': the paper's six-component formula)",
+    )
     parser.add_argument("--policy", action="append", default=[])
     parser.add_argument("--out-dir", type=Path, default=None)
     parser.add_argument("--name", default="reward_diagnosis")
@@ -42,7 +49,7 @@ def main() -> None:
     from uwdock.dockcore.config import load_config, replace, to_dict
     from uwdock.rl.baselines import PIDController
     from uwdock.rl.config import EnvConfig
-    from uwdock.rl.diagnose import GaussianController, SB3MeanController, diagnose
+    from uwdock.rl.diagnose import GaussianController, diagnose
     from uwdock.rl.evaluate import SB3Controller
     from uwdock.rl.policy_io import load_controller
 
@@ -54,6 +61,8 @@ def main() -> None:
         env_cfg = EnvConfig()
     if args.source:
         env_cfg = replace(env_cfg, obs_source=args.source)
+    if args.smooth_over:
+        env_cfg = replace(env_cfg, reward=replace(env_cfg.reward, smooth_over=args.smooth_over))
     controllers = {
         "gauss_std1": GaussianController(1.0, seed=args.seed),
         f"gauss_std{math.exp(-1):.2f}": GaussianController(math.exp(-1), seed=args.seed),
@@ -63,10 +72,9 @@ def main() -> None:
         ctrl, vecnorm, label = load_controller(p, env_cfg)
         if hasattr(ctrl, "act"):
             controllers[label] = ctrl
-        elif hasattr(ctrl.policy, "get_distribution"):  # PPO: the mean before clipping
-            controllers[label] = SB3MeanController(ctrl, vecnorm)
-        else:
-            controllers[label] = SB3Controller(ctrl, vecnorm)
+        else:  # PPO: the mean before clipping
+            pre_clip = hasattr(ctrl.policy, "get_distribution")
+            controllers[label] = SB3Controller(ctrl, vecnorm, pre_clip=pre_clip)
     t0 = time.perf_counter()
 
     def progress(name: str, done: int, total: int) -> None:
@@ -95,6 +103,7 @@ def main() -> None:
         "episodes": args.episodes,
         "seed": args.seed,
         "source": args.source,
+        "smooth_over": env_cfg.reward.smooth_over,
         "config": args.config,
         "policies": args.policy,
         "wall_s": time.perf_counter() - t0,

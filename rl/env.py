@@ -181,7 +181,8 @@ class DockingEnv(gym.Env):
         self._measure_and_filter(T_world_body, predict=False)
         self._frames = [self._frame(imu, T_world_body)] * self.cfg.obs_frames
         e_true, psi_true = docking_errors(T_world_body, T_world_ds, self.cfg.task)
-        return self._obs(), self._info(T_world_body, e_true, psi_true, {}, collided=False)
+        obs = self._obs(T_world_body, e_true, psi_true)
+        return obs, self._info(T_world_body, e_true, psi_true, {}, collided=False)
 
     def step(self, action):
         a = np.asarray(action, dtype=np.float64).reshape(-1)
@@ -215,7 +216,8 @@ class DockingEnv(gym.Env):
         self.prev_action = a
         self._frames = [*self._frames[1:], self._frame(imu, T_world_body)]
         info = self._info(T_world_body, e_true, psi_true, terms, collided)
-        return self._obs(), float(sum(terms.values())), bool(docked), bool(truncated), info
+        obs = self._obs(T_world_body, e_true, psi_true)
+        return obs, float(sum(terms.values())), bool(docked), bool(truncated), info
 
     def render(self):
         if self.render_mode == "rgb_array":
@@ -299,15 +301,15 @@ class DockingEnv(gym.Env):
             self._detected(),
         )
 
-    def _obs(self) -> np.ndarray:
+    def _obs(self, T_world_body: np.ndarray, e_true: np.ndarray, psi_true: float) -> np.ndarray:
+        """The stacked frames, then (``obs_privileged``) the critic's block from this step's
+        true errors: filled in training envs only, zeros elsewhere."""
         obs = np.concatenate(self._frames).astype(np.float32)
         if not self.cfg.obs_privileged:
             return obs
         block = np.zeros(PRIVILEGED_DIM, dtype=np.float32)
         if self.privileged:
-            world, task = self.world, self.cfg.task
-            e_true, psi_true = docking_errors(world.T_world_body, world.T_world_ds, task)
-            e_hat, _ = docking_errors(world.T_world_body, self.filter.T_world_ds, task)
+            e_hat, _ = docking_errors(T_world_body, self.filter.T_world_ds, self.cfg.task)
             block = privileged_block(
                 e_true,
                 psi_true,

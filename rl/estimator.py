@@ -20,8 +20,11 @@ import numpy as np
 
 from uwdock.calibration.frames import R_from_rpy, make_T, rpy_from_R, wrap_angle_rad
 from uwdock.dockcore.domains import Interval
+from uwdock.sim.usbl import USBL_PRESETS
 
 _Sigma = Annotated[float, Interval(ge=0, le=100)]  # m
+#: the "ideal" acoustic model, whose numbers the ``usbl_*`` fields default to
+_IDEAL = USBL_PRESETS["ideal"]
 
 
 @dataclass(frozen=True)
@@ -55,9 +58,9 @@ class EstimatorConfig:
     drift_yaw_deg_per_sqrt_s: Annotated[float, Interval(ge=0, le=180)] = 0.2
     fuse: bool = True
     gate_sigma: Annotated[float, Interval(ge=0, le=1000)] = 0.0
-    usbl_period_s: Annotated[float, Interval(ge=0, le=3600)] = 1.0
-    usbl_sigma_floor_m: _Sigma = 0.15
-    usbl_sigma_per_m: Annotated[float, Interval(ge=0, le=1)] = 0.03
+    usbl_period_s: Annotated[float, Interval(ge=0, le=3600)] = _IDEAL.period_s
+    usbl_sigma_floor_m: _Sigma = _IDEAL.sigma_floor_m
+    usbl_sigma_per_m: Annotated[float, Interval(ge=0, le=1)] = _IDEAL.sigma_per_m
 
 
 class DSPoseFilter:

@@ -29,11 +29,19 @@ class Controller(Protocol):
 
 
 class SB3Controller:
-    """A stable-baselines3 policy (deterministic), with its observation normalisation."""
+    """A stable-baselines3 policy (deterministic), with its observation normalisation.
 
-    def __init__(self, model, vecnorm=None) -> None:
+    Args:
+        model: the SB3 model.
+        vecnorm: its observation normalisation, or None.
+        pre_clip: return a PPO policy's Gaussian mean *before* clipping to [-1, 1] (the env
+            clips; diagnostics see means beyond +-1 that ``predict`` would hide).
+    """
+
+    def __init__(self, model, vecnorm=None, pre_clip: bool = False) -> None:
         self.model = model
         self.vecnorm = vecnorm
+        self.pre_clip = pre_clip
 
     def reset(self) -> None:
         pass
@@ -47,6 +55,13 @@ class SB3Controller:
                 "the policy's observation normalisation gives NaN or infinity "
                 "(a broken vecnormalize.pkl)"
             )
+        if self.pre_clip:
+            import torch
+
+            with torch.no_grad():
+                t = torch.as_tensor(o, dtype=torch.float32)
+                mean = self.model.policy.get_distribution(t).distribution.mean
+            return mean.numpy()[0].astype(np.float64)
         action, _ = self.model.predict(o, deterministic=True)
         return np.asarray(action[0], dtype=np.float64)
 

@@ -91,6 +91,7 @@ class TrainingSession:
         self._write_history()
         self._write_best()
         saved = self.model._last_obs
+        self.apply_curriculum(unit.step)  # before the reset: its spawns follow the schedule
         self.reset_envs(unit.step)
         if saved is not None and not np.array_equal(saved, self.model._last_obs):
             self.note(
@@ -121,7 +122,6 @@ class TrainingSession:
 
     def reset_envs(self, step: int) -> None:
         """Reset the training envs with the seeds of ``step`` (no normalisation update)."""
-        self.apply_curriculum(step)
         model, vecnorm = self.model, self.vecnorm
         raw_venv = vecnorm.venv if vecnorm is not None else model.get_env()
         raw_venv.seed(boundary_seed(self.cfg.seed, step))

@@ -98,8 +98,8 @@ def test_rl_eval_and_the_runner_never_see_privileged_state(monkeypatch):
     seen = []
 
     class Spy(DockingEnv):
-        def _obs(self):
-            obs = super()._obs()
+        def _obs(self, *args):
+            obs = super()._obs(*args)
             seen.append((self.privileged, obs[actor_observation_size(self.cfg) :].copy()))
             return obs
 

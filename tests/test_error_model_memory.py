@@ -9,14 +9,12 @@ import math
 import numpy as np
 import pytest
 
-from uwdock.calibration.camera import REFERENCE_T_BODYFRD_CAMCV, reference_camera
+from tests.error_models import N_BINS, STEP_S, above_ds, synthetic_model
 from uwdock.calibration.frames import R_from_rpy, inv_T, make_T
 from uwdock.datasets.loaders import load_pose_track_csv, write_pose_track_csv
 from uwdock.datasets.sequences import check_sequences, sequences_from_manifest
-from uwdock.dockcore.config import to_dict
 from uwdock.dockcore.errors import DockError
 from uwdock.rl.error_model import (
-    FORMAT,
     N_VISIBLE_BINS,
     VERSION,
     ErrorModel,
@@ -26,6 +24,7 @@ from uwdock.rl.error_model import (
     apply_error,
     ar1_fit,
     count_in_view,
+    fit_error_model,
     fit_tables,
     load_error_model,
     pose_error,
@@ -34,66 +33,12 @@ from uwdock.rl.error_model import (
 from uwdock.rl.obs_sources import StepContext
 from uwdock.rl.task import DockingTaskConfig
 
-N_BINS = 16
-STEP_S = 0.2
-
 
 def _cov(sd: np.ndarray, corr: float = 0.3) -> np.ndarray:
     """A full (6, 6) covariance with standard deviations ``sd`` and a dt_x-drot_y coupling."""
     c = np.diag(sd**2)
     c[0, 4] = c[4, 0] = corr * sd[0] * sd[4]
     return c
-
-
-def _model(
-    p_detect: float,
-    bias: np.ndarray,
-    cov: np.ndarray,
-    rho: list | None = None,
-    version: int = VERSION,
-    p_outlier: float = 0.0,
-) -> dict:
-    """A model dict with the same bias and covariance in every range bin."""
-    from uwdock.markers.config import MarkerConfig
-    from uwdock.markers.markerset import marker_set_from_config
-
-    cam = reference_camera().scaled(640, 484)
-    board = marker_set_from_config(MarkerConfig()).corners_ds()
-    p = np.full((N_BINS, 4), p_detect)
-    p[:, 0] = 0.0
-    outliers = [[0.3, 0.0, 0.0, 0.5, 0.0, 0.0]] if p_outlier else []
-    bins = [
-        {
-            "range_m": [k * 0.5, k * 0.5 + 0.5],
-            "detections": 100,
-            "pooled_inliers": 100,
-            "bias": bias.tolist(),
-            "cov": cov.tolist(),
-            "p_outlier": p_outlier,
-            "outliers": outliers,
-        }
-        for k in range(N_BINS)
-    ]
-    table = {"p_detect": p.tolist(), "frames": (p * 0 + 10).tolist(), "bins": bins}
-    data = {
-        "format": FORMAT,
-        "version": version,
-        "config": to_dict(ErrorModelConfig()),
-        "camera": {**to_dict(cam), "T_body_cam": np.asarray(REFERENCE_T_BODYFRD_CAMCV).tolist()},
-        "board_corners_ds_m": np.stack([board[i] for i in sorted(board)]).tolist(),
-        "tables": {"all": table},
-    }
-    if rho is not None:
-        data["sequences"] = {"sequences": 1, "frames": 10, "consecutive_pairs": 9, "step_s": STEP_S}
-        table["ar1"] = {"rho": rho, "rho_ci95": None, "pairs": 100}
-    return data
-
-
-def _above_ds(height_m: float = 3.0) -> tuple[np.ndarray, np.ndarray]:
-    task = DockingTaskConfig()
-    T_world_ds = make_T(t=[0.0, 0.0, 5.0])
-    T_target = T_world_ds @ task.T_ds_target
-    return T_world_ds, make_T(T_target[:3, :3], T_target[:3, 3] - [0.0, 0.0, height_m])
 
 
 BIAS = np.array([0.01, -0.02, 0.03, 0.002, 0.0, 0.01])
@@ -183,7 +128,7 @@ def test_standardise_whitens_with_the_samplers_cholesky_factor():
 def _run(src: ErrorModelSource, n: int, dt_s: float = STEP_S, height_m: float = 3.0):
     """Errors (n, 6) (NaN rows for misses) over ``n`` steps ``dt_s`` apart, and the
     measurements' DS poses."""
-    T_world_ds, T_world_body = _above_ds(height_m)
+    T_world_ds, T_world_body = above_ds(height_m)
     T_world_cam = T_world_body @ src.model.T_body_cam
     T_cam_ds = inv_T(T_world_cam) @ T_world_ds
     errs, poses = np.full((n, 6), np.nan), []
@@ -203,7 +148,7 @@ def _lag1(z: np.ndarray) -> np.ndarray:
 def test_sampling_reproduces_the_fitted_rho_and_the_marginal():
     rho = [0.8, 0.6, 0.9, 0.5, 0.7, 0.0]
     cov = _cov(SD)
-    model = ErrorModel(_model(1.0, BIAS, cov, rho))
+    model = ErrorModel(synthetic_model(1.0, BIAS, cov, rho))
     src = ErrorModelSource(model, DockingTaskConfig())
     src.reset(np.random.default_rng(3))
     errs, _ = _run(src, 12_000)
@@ -223,7 +168,7 @@ def test_sampling_reproduces_the_fitted_rho_and_the_marginal():
 
 
 def test_misses_and_gross_errors_restart_the_chain():
-    model = ErrorModel(_model(0.6, BIAS, _cov(SD), [0.95] * 6, p_outlier=0.2))
+    model = ErrorModel(synthetic_model(0.6, BIAS, _cov(SD), [0.95] * 6, p_outlier=0.2))
     src = ErrorModelSource(model, DockingTaskConfig())
     src.reset(np.random.default_rng(5))
     errs, _ = _run(src, 15_000)
@@ -246,7 +191,7 @@ def test_misses_and_gross_errors_restart_the_chain():
 
 def _memoryless_reference(model: ErrorModel, rng: np.random.Generator, n: int) -> list:
     """The sampler before memory, written out: its draws in its order."""
-    T_world_ds, T_world_body = _above_ds(3.0)
+    T_world_ds, T_world_body = above_ds(3.0)
     T_world_cam = T_world_body @ model.T_body_cam
     T_cam_ds = inv_T(T_world_cam) @ T_world_ds
     r = float(np.linalg.norm(T_cam_ds[:3, 3]))
@@ -276,13 +221,13 @@ def _memoryless_reference(model: ErrorModel, rng: np.random.Generator, n: int) -
 )
 def test_rho_zero_v1_or_memory_off_give_the_memoryless_draws(rho, version, temporal):
     cov = _cov(SD)
-    model = ErrorModel(_model(0.8, BIAS, cov, rho, version=version, p_outlier=0.1))
+    model = ErrorModel(synthetic_model(0.8, BIAS, cov, rho, version=version, p_outlier=0.1))
     ref_rng = np.random.default_rng(9)
     ref = _memoryless_reference(model, ref_rng, 400)
     src = ErrorModelSource(model, DockingTaskConfig(), temporal=temporal)
     src.reset(np.random.default_rng(9))
     _, poses = _run(src, 400)
-    T_world_ds, T_world_body = _above_ds(3.0)
+    T_world_ds, T_world_body = above_ds(3.0)
     T_world_cam = T_world_body @ model.T_body_cam
     T_cam_ds = inv_T(T_world_cam) @ T_world_ds
     for want, got in zip(ref, poses, strict=True):
@@ -308,7 +253,7 @@ def test_rho_zero_v1_or_memory_off_give_the_memoryless_draws(rho, version, tempo
 )
 def test_malformed_rho_is_a_one_line_dock_error(tmp_path, rho, why):
     path = tmp_path / "em.json"
-    path.write_text(json.dumps(_model(0.8, BIAS, _cov(SD), rho)))
+    path.write_text(json.dumps(synthetic_model(0.8, BIAS, _cov(SD), rho)))
     with pytest.raises(DockError) as exc:
         load_error_model(path)
     msg = str(exc.value)
@@ -317,12 +262,12 @@ def test_malformed_rho_is_a_one_line_dock_error(tmp_path, rho, why):
 
 def test_model_files_load_with_and_without_memory(tmp_path):
     path = tmp_path / "em.json"
-    data = _model(0.8, BIAS, _cov(SD), [0.5] * 6)
+    data = synthetic_model(0.8, BIAS, _cov(SD), [0.5] * 6)
     del data["sequences"]  # rho without a step duration
     path.write_text(json.dumps(data))
     with pytest.raises(DockError, match=r"needs sequences\.step_s"):
         load_error_model(path)
-    data = _model(0.8, BIAS, _cov(SD), [0.5] * 6, version=1)  # version 1: rho ignored
+    data = synthetic_model(0.8, BIAS, _cov(SD), [0.5] * 6, version=1)  # version 1: rho ignored
     path.write_text(json.dumps(data))
     assert not load_error_model(path).table("all")["rho"].any()
     data["version"] = 3
@@ -427,7 +372,6 @@ def test_rendered_sequences_reach_the_fit(tmp_path):
     """The seam: poses + sequence labels -> datasets render -> dataset.json -> the fit."""
     from uwdock.datasets.loaders import LabelledDataset
     from uwdock.datasets.synth import SynthConfig, generate
-    from uwdock.rl.error_model import fit_error_model
 
     T_ds = make_T(t=[0.0, 0.0, 4.98])
     task = DockingTaskConfig()

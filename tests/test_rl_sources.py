@@ -7,13 +7,11 @@ import json
 import numpy as np
 import pytest
 
-from uwdock.calibration.camera import REFERENCE_T_BODYFRD_CAMCV, reference_camera
+from tests.error_models import above_ds, synthetic_model
 from uwdock.calibration.frames import inv_T, make_T
-from uwdock.dockcore.config import replace, to_dict
+from uwdock.dockcore.config import replace
 from uwdock.rl.config import EnvConfig
 from uwdock.rl.error_model import (
-    FORMAT,
-    VERSION,
     ErrorModel,
     ErrorModelSource,
     apply_error,
@@ -23,52 +21,6 @@ from uwdock.rl.error_model import (
 )
 from uwdock.rl.obs_sources import StepContext
 from uwdock.rl.task import DockingTaskConfig
-
-
-def _synthetic_model(p_detect: float, bias: np.ndarray, sd: np.ndarray) -> dict:
-    cam = reference_camera().scaled(640, 484)
-    from uwdock.markers.config import MarkerConfig
-    from uwdock.markers.markerset import marker_set_from_config
-
-    board = marker_set_from_config(MarkerConfig()).corners_ds()
-    n_bins = 16
-    p = np.full((n_bins, 4), p_detect)
-    p[:, 0] = 0.0
-    cov = np.diag(sd**2)
-    bins = [
-        {
-            "range_m": [k * 0.5, k * 0.5 + 0.5],
-            "detections": 100,
-            "pooled_inliers": 100,
-            "bias": bias.tolist(),
-            "cov": cov.tolist(),
-            "p_outlier": 0.0,
-            "outliers": [],
-        }
-        for k in range(n_bins)
-    ]
-    return {
-        "format": FORMAT,
-        "version": VERSION,
-        "config": {
-            "range_bin_m": 0.5,
-            "range_max_m": 8.0,
-            "outlier_deg": 10.0,
-            "min_inliers": 8,
-            "max_outlier_samples": 40,
-        },
-        "camera": {**to_dict(cam), "T_body_cam": np.asarray(REFERENCE_T_BODYFRD_CAMCV).tolist()},
-        "board_corners_ds_m": np.stack([board[i] for i in sorted(board)]).tolist(),
-        "tables": {"all": {"p_detect": p.tolist(), "frames": (p * 0 + 10).tolist(), "bins": bins}},
-    }
-
-
-def _above_ds(height_m: float = 3.0) -> tuple[np.ndarray, np.ndarray]:
-    task = DockingTaskConfig()
-    T_world_ds = make_T(t=[0.0, 0.0, 5.0])
-    T_target = T_world_ds @ task.T_ds_target
-    T_world_body = make_T(T_target[:3, :3], T_target[:3, 3] - [0.0, 0.0, height_m])
-    return T_world_ds, T_world_body
 
 
 def test_pose_error_round_trip():
@@ -82,10 +34,10 @@ def test_pose_error_round_trip():
 def test_error_model_source_samples_the_fitted_statistics():
     bias = np.array([0.01, -0.02, 0.03, 0.0, 0.0, 0.01])
     sd = np.array([0.01, 0.02, 0.03, 0.01, 0.01, 0.02])
-    model = ErrorModel(_synthetic_model(0.7, bias, sd))
+    model = ErrorModel(synthetic_model(0.7, bias, np.diag(sd**2)))
     src = ErrorModelSource(model, DockingTaskConfig())
     src.reset(np.random.default_rng(1))
-    T_world_ds, T_world_body = _above_ds(3.0)
+    T_world_ds, T_world_body = above_ds(3.0)
     T_world_cam = T_world_body @ model.T_body_cam
     T_cam_ds = inv_T(T_world_cam) @ T_world_ds
     ctx = StepContext(T_world_body, T_world_ds, 0.0)
@@ -102,9 +54,9 @@ def test_error_model_source_samples_the_fitted_statistics():
 
 
 def test_error_model_never_detects_without_markers_in_view():
-    model = ErrorModel(_synthetic_model(1.0, np.zeros(6), np.full(6, 0.01)))
+    model = ErrorModel(synthetic_model(1.0, np.zeros(6), np.diag(np.full(6, 0.01) ** 2)))
     src = ErrorModelSource(model, DockingTaskConfig())
-    T_world_ds, T_world_body = _above_ds(3.0)
+    T_world_ds, T_world_body = above_ds(3.0)
     far = T_world_body.copy()
     far[:3, 3] += [6.0, 0.0, 0.0]  # DS out of the field of view
     assert all(src.measure(StepContext(far, T_world_ds, 0.0)) is None for _ in range(50))
