@@ -87,9 +87,7 @@ def diagnose(
         name -> summary (module docstring); per-step figures are means over all steps.
     """
     env = DockingEnv(env_cfg)
-    relaxed = [
-        replace(env_cfg.task, success_xy_m=xy, success_z_m=z) for xy, z in TOLERANCES_M
-    ]
+    relaxed = [replace(env_cfg.task, success_xy_m=xy, success_z_m=z) for xy, z in TOLERANCES_M]
     out: dict[str, dict[str, Any]] = {}
     try:
         for name, ctrl in controllers.items():
