@@ -53,7 +53,7 @@ class CameraSource:
         self.last_frame = None
 
     def measure(self, ctx: StepContext) -> Measurement | None:
-        frame = self.world.camera.capture(ctx.T_world_body, self.rng)
+        frame = self.world.capture(self.rng, ctx.T_world_body)  # the true camera mounting
         return self.measure_frame(frame, ctx)
 
     def measure_frame(self, frame: Frame, ctx: StepContext) -> Measurement | None:

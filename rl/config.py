@@ -32,10 +32,11 @@ class EnvConfig:
     """The docking environment (reference.md section 1 and the paper's appendix table).
 
     The world's fields (``physics_hz``, ``tank_size_m``, ``marker_set_path``, ``camera_file``,
-    ``camera_width_px``, ``water_preset``, ``randomise_vehicle``, ``current``, ``vehicle``,
-    ``vehicle_randomisation``) are kept as flat keys, the layout of every run folder and
-    exported policy; :attr:`world` is the :class:`~uwdock.sim.world_config.WorldConfig` built
-    from them, the one config the simulated world (:class:`uwdock.sim.world.DockingWorld`) reads.
+    ``camera_width_px``, ``water_preset``, ``randomise_vehicle``, ``camera_mount_error_m``,
+    ``camera_mount_error_deg``, ``current``, ``vehicle``, ``vehicle_randomisation``) are kept
+    as flat keys, the layout of every run folder and exported policy; :attr:`world` is the
+    :class:`~uwdock.sim.world_config.WorldConfig` built from them, the one config the simulated
+    world (:class:`uwdock.sim.world.DockingWorld`) reads.
 
     Attributes:
         obs_source: how the DS pose is measured: "proxy" (the paper's visibility test +
@@ -58,6 +59,9 @@ class EnvConfig:
         spawn_auv_yaw_deg: AUV yaw uniform within +- this (deg).
         spawn_ds_range_m: DS origin uniform within +- this of the tank centre on the floor (m).
         spawn_ds_yaw_deg: DS yaw uniform within +- this (deg).
+        spawn_horizontal_range_m: the AUV's horizontal distance from the DS at spawn, (min,
+            max): spawns outside are redrawn (m); e.g. (8, 10) with a wider spawn box for a
+            long approach. The default accepts every spawn of the box.
         terminate_on: "paper" (the paper's docking condition ends the episode, +p_s) or
             "strict" (pegs seated in the notches, held ``task.strict_hold_s``).
         obs_last_action: append the previous action to the observation (the paper's reference
@@ -72,6 +76,9 @@ class EnvConfig:
             (true errors, the estimate's error, time left) that only the critic reads and only
             training envs fill (:mod:`rl.observation`, :mod:`rl.asymmetric`).
         randomise_vehicle: draw the vehicle's parameters (and thruster placement) per episode.
+        camera_mount_error_m: per-episode error of the camera's true mounting against its
+            calibration, each axis within +- this (m) (the camera source only).
+        camera_mount_error_deg: likewise in roll, pitch and yaw (deg).
         error_model_path: fitted error model file, for ``obs_source = "error-model"``.
         error_model_memory: sample the error model's fitted memory (the AR(1) correlation of
             consecutive steps' pose errors, ``rl.error_model``); False: every step's error is
@@ -116,12 +123,15 @@ class EnvConfig:
     spawn_auv_yaw_deg: _HalfTurn = 180.0
     spawn_ds_range_m: tuple[_Range, _Range, _Range] = (1.0, 2.0, 0.0)
     spawn_ds_yaw_deg: _HalfTurn = 180.0
+    spawn_horizontal_range_m: tuple[_Range, _Range] = (0.0, 1000.0)
     terminate_on: Literal["paper", "strict"] = "paper"
     obs_last_action: bool = False
     obs_uncertainty: bool = True
     obs_frames: Annotated[int, Interval(ge=1, le=64)] = 1
     obs_privileged: bool = False
     randomise_vehicle: bool = True
+    camera_mount_error_m: Annotated[float, Interval(ge=0, le=0.5)] = 0.0
+    camera_mount_error_deg: Annotated[float, Interval(ge=0, le=45)] = 0.0
     error_model_path: str | None = None
     error_model_memory: bool = True
     camera_file: str | None = None
@@ -147,6 +157,8 @@ class EnvConfig:
             camera_width_px=self.camera_width_px,
             water_preset=self.water_preset,
             randomise_vehicle=self.randomise_vehicle,
+            camera_mount_error_m=self.camera_mount_error_m,
+            camera_mount_error_deg=self.camera_mount_error_deg,
             current=self.current,
             vehicle=self.vehicle,
             vehicle_randomisation=self.vehicle_randomisation,
@@ -187,6 +199,11 @@ class EnvConfig:
             raise ValueError(
                 f"spawn_auv_range_m: the spawn box {self.spawn_auv_range_m[:2]} m reaches the "
                 f"walls of a {length_m:g} x {width_m:g} m tank"
+            )
+        lo_m, hi_m = self.spawn_horizontal_range_m
+        if not lo_m < hi_m:
+            raise ValueError(
+                f"spawn_horizontal_range_m: min {lo_m:g} m must be below max {hi_m:g} m"
             )
         if self.spawn_ds_range_m[0] >= length_m / 2 or self.spawn_ds_range_m[1] >= width_m / 2:
             raise ValueError(

@@ -2,7 +2,9 @@
 
 The paper's reference code tightens the z tolerance of its docking test from 1.0 m to 0.1 m
 while training: a policy that has learned to hover aligned above the DS is paid the success
-reward early, and then learns to descend. A spawn-distance curriculum starts the AUV close to
+reward early, and then learns to descend. With ``terminate_on = "strict"`` the same schedule
+eases the strict test's peg height (``strict_peg_z_m``, 0.04 m at the end): measured without
+it, PPO learns to hover aligned 0.5-0.6 m above the seats and never lands. A spawn-distance curriculum starts the AUV close to
 the DS (horizontally) and widens the spawn box to the env's full range. Both are pure functions
 of the number of environment steps taken, so a resumed run follows the same schedule.
 
@@ -25,8 +27,10 @@ class CurriculumConfig:
     Attributes:
         steps: environment steps over which both schedules reach the env's own values; 0
             disables the curriculum.
-        z_tolerance_start_m: the success test's z tolerance at step 0 (m); it falls linearly to
-            the task's ``success_z_m`` (the reference code: 1.0 -> 0.1 m).
+        z_tolerance_start_m: the z tolerance of the episode-ending test at step 0 (m); it falls
+            linearly to the task's own (:func:`curriculum_z_end`: the paper test's
+            ``success_z_m``, as in the reference code 1.0 -> 0.1 m, or the strict test's
+            ``strict_peg_z_m``).
         spawn_scale_start: the AUV's horizontal offset from the DS at spawn is scaled by this at
             step 0 (-); it grows linearly to 1 (the env's spawn box).
     """
@@ -34,6 +38,12 @@ class CurriculumConfig:
     steps: Annotated[int, Interval(ge=0, le=10**10)] = 0
     z_tolerance_start_m: Annotated[float, Interval(gt=0, le=10)] = 1.0
     spawn_scale_start: Annotated[float, Interval(gt=0, le=1)] = 1.0
+
+
+def curriculum_z_end(env_cfg) -> float:
+    """The z tolerance (m) a curriculum ends at: that of the env's episode-ending test."""
+    t = env_cfg.task
+    return t.strict_peg_z_m if env_cfg.terminate_on == "strict" else t.success_z_m
 
 
 def curriculum_level(

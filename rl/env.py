@@ -103,17 +103,24 @@ class DockingEnv(gym.Env):
         self._frames: list[np.ndarray] = []
         self._hold_steps = max(1, round(c.task.strict_hold_s * c.control_hz))
         self._success_task = c.task  # the paper test's task (a curriculum may relax its z)
+        self._strict_task = c.task  # the strict test's task (likewise)
         self._spawn_scale = 1.0
 
     def set_curriculum(self, z_tolerance_m: float, spawn_scale: float) -> None:
-        """Training curriculum (:mod:`rl.curriculum`): the paper success test's z tolerance
-        (m) from now on, and the scale (0, 1] of the AUV's horizontal offset from the DS at
-        the next spawns. ``(task.success_z_m, 1.0)`` restores the env's own test."""
+        """Training curriculum (:mod:`rl.curriculum`): from now on the z tolerance (m) of the
+        test that ends the episode (``terminate_on``: the paper test's ``success_z_m``, or the
+        strict test's ``strict_peg_z_m``, the pegs' height above their seats), and the scale
+        (0, 1] of the AUV's horizontal offset from the DS at the next spawns. The task's own
+        tolerance and 1.0 restore the env's own test (:func:`rl.curriculum.curriculum_z_end`)."""
         if not (0 < z_tolerance_m <= 10 and 0 < spawn_scale <= 1):
             raise ValueError(
                 f"curriculum level out of range: z {z_tolerance_m!r} m, spawn {spawn_scale!r}"
             )
-        self._success_task = replace(self.cfg.task, success_z_m=float(z_tolerance_m))
+        z_m = float(z_tolerance_m)
+        if self.cfg.terminate_on == "strict":
+            self._strict_task = replace(self.cfg.task, strict_peg_z_m=z_m)
+        else:
+            self._success_task = replace(self.cfg.task, success_z_m=z_m)
         self._spawn_scale = float(spawn_scale)
 
     # ------------------------------------------------------------------ setup
@@ -142,7 +149,8 @@ class DockingEnv(gym.Env):
             R_from_rpy(0.0, 0.0, ds_yaw), [rng.uniform(-dx, dx), rng.uniform(-dy, dy), depth]
         )
         ax, ay, az = c.spawn_auv_range_m
-        for _ in range(100):
+        lo_m, hi_m = c.spawn_horizontal_range_m
+        for _ in range(1000):
             p = np.array(
                 [
                     rng.uniform(-ax, ax),
@@ -153,8 +161,14 @@ class DockingEnv(gym.Env):
             if self._spawn_scale != 1.0:  # curriculum: closer to the DS, horizontally
                 p[:2] = T_world_ds[:2, 3] + self._spawn_scale * (p[:2] - T_world_ds[:2, 3])
             horizontal = np.linalg.norm(p[:2] - T_world_ds[:2, 3])
-            if depth - p[2] > 2.4 or horizontal > 2.0:  # clear of the DS structure
+            clear = depth - p[2] > 2.4 or horizontal > 2.0  # of the DS structure
+            if clear and lo_m <= horizontal <= hi_m:
                 break
+        else:
+            raise ValueError(
+                f"spawn: no AUV position clear of the DS and {lo_m:g}-{hi_m:g} m from it "
+                f"(spawn_horizontal_range_m) in 1000 draws of the box {c.spawn_auv_range_m} m"
+            )
         yaw = math.radians(c.spawn_auv_yaw_deg) * rng.uniform(-1, 1)
         return T_world_ds, make_T(R_from_rpy(0.0, 0.0, yaw), p)
 
@@ -205,7 +219,7 @@ class DockingEnv(gym.Env):
         e_true, psi_true = docking_errors(T_world_body, world.T_world_ds, self.cfg.task)
         visible = ds_visible(inv_T(T_world_body) @ world.T_world_ds, self.cfg.task)
         paper = paper_success(e_true, psi_true, visible, self._success_task)
-        seated = pegs_seated(T_world_body, world.T_world_ds, self.cfg.task)
+        seated = pegs_seated(T_world_body, world.T_world_ds, self._strict_task)
         self._seated_steps = self._seated_steps + 1 if seated else 0
         strict = self._seated_steps >= self._hold_steps
         self.success_paper |= paper

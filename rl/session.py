@@ -32,7 +32,7 @@ from uwdock.rl.checkpoint import (
     rng_state,
     write_unit,
 )
-from uwdock.rl.curriculum import curriculum_level
+from uwdock.rl.curriculum import curriculum_level, curriculum_z_end
 from uwdock.rl.evaluate import run_episodes
 from uwdock.rl.report import plot_eval_history
 
@@ -142,7 +142,7 @@ class TrainingSession:
         cur = self.cfg.curriculum
         if cur.steps <= 0:
             return
-        z_m, spawn = curriculum_level(cur, step, self.cfg.env.task.success_z_m)
+        z_m, spawn = curriculum_level(cur, step, curriculum_z_end(self.cfg.env))
         self.model.get_env().env_method("set_curriculum", z_m, spawn)
 
     def checkpoint(self, step: int) -> Path:

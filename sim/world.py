@@ -14,6 +14,7 @@ import numpy as np
 import sapien
 
 from uwdock.calibration.camera import resolve_camera
+from uwdock.calibration.frames import R_from_rpy, inv_T, make_T
 from uwdock.sim.camera import Frame, SimCamera
 from uwdock.sim.docking_station import DockingStationConfig, build_docking_station, build_tank
 from uwdock.sim.physics import VehicleBody, make_physics_scene
@@ -63,6 +64,8 @@ class DockingWorld:
             self.ds = build_docking_station(self.scene, self.ds_cfg, visual=False)
         self.current = Current(cfg.current)
         self.vehicle = VehicleBody(self.scene, cfg.vehicle, self.current)
+        #: (4, 4) this episode's mounting error, the true camera frame in the calibrated one
+        self.T_camcal_camtrue = np.eye(4)
 
     @property
     def floor_z_m(self) -> float:
@@ -86,30 +89,51 @@ class DockingWorld:
     def reset(
         self, T_world_ds: np.ndarray, T_world_body: np.ndarray, rng: np.random.Generator
     ) -> None:
-        """Move the DS, draw the current and (optionally) the vehicle, place the vehicle."""
+        """Move the DS, draw the current, (optionally) the vehicle and the camera's mounting
+        error, place the vehicle. Nothing is drawn for a zero range (same random stream)."""
         self.ds.set_pose(T_world_ds)
         self.current.reset(rng)
         if self.cfg.randomise_vehicle:
             drawn = self.cfg.vehicle_randomisation.sample(self.cfg.vehicle, rng)
             self.vehicle.set_config(drawn, nominal_config=self.cfg.vehicle)
         self.vehicle.reset(T_world_body, rng=rng)
+        err_m, err_deg = self.cfg.camera_mount_error_m, self.cfg.camera_mount_error_deg
+        if err_m > 0 or err_deg > 0:
+            t_m = rng.uniform(-err_m, err_m, 3)
+            rpy = np.radians(rng.uniform(-err_deg, err_deg, 3))
+            self.T_camcal_camtrue = make_T(R_from_rpy(*rpy), t_m)
+
+    def T_world_body_rendered(self, T_world_body: np.ndarray | None = None) -> np.ndarray:
+        """(4, 4) the body pose to hand the camera rig (which mounts the camera at its
+        calibration) so that it renders from the true, mis-mounted camera."""
+        T = self.T_world_body if T_world_body is None else T_world_body
+        if self.camera is None or np.array_equal(self.T_camcal_camtrue, np.eye(4)):
+            return T
+        T_body_cam = self.camera.T_body_cam
+        return T @ T_body_cam @ self.T_camcal_camtrue @ inv_T(T_body_cam)
 
     def step(self, wrench_body: np.ndarray, dt_s: float) -> None:
         self.vehicle.step(wrench_body, dt_s)
 
-    def capture(self, rng: np.random.Generator | None) -> Frame | None:
-        """The downward camera's frame at the vehicle's pose, water applied (None: no camera).
+    def capture(
+        self, rng: np.random.Generator | None, T_world_body: np.ndarray | None = None
+    ) -> Frame | None:
+        """The downward camera's frame, water applied (None: no camera), rendered from the
+        true camera mounting (calibration plus this episode's mounting error).
 
         Args:
             rng: generator for the sensor noise of the water model.
+            T_world_body: (4, 4) vehicle pose to render from (None: the vehicle's own).
         """
         if self.camera is None:
             return None
-        return self.camera.capture(self.T_world_body, rng)
+        return self.camera.capture(self.T_world_body_rendered(T_world_body), rng)
 
     def render_camera_rgb(self) -> np.ndarray | None:
         """(H, W, 3) uint8 RGB view of the downward camera in air, or None without a camera."""
-        return None if self.camera is None else self.camera.render(self.T_world_body).rgb
+        if self.camera is None:
+            return None
+        return self.camera.render(self.T_world_body_rendered()).rgb
 
     def close(self) -> None:
         self.render_scene = None

@@ -37,6 +37,11 @@ class WorldConfig:
         water_preset: water between the camera and the scene (a :mod:`uwdock.sim.water`
             preset name).
         randomise_vehicle: draw the vehicle's parameters (and thruster placement) per episode.
+        camera_mount_error_m: the camera's true mounting differs from its calibration by a
+            translation drawn per episode, each camera axis uniform within +- this (m); the
+            frames are rendered from the true mounting, perception keeps the calibrated one.
+        camera_mount_error_deg: likewise a rotation, roll, pitch and yaw of the camera each
+            uniform within +- this (deg).
         current: ocean current model.
         vehicle: nominal vehicle.
         vehicle_randomisation: ranges used when ``randomise_vehicle``.
@@ -49,6 +54,8 @@ class WorldConfig:
     camera_width_px: Annotated[int, Interval(ge=0, le=8192)] = 480
     water_preset: str = "clear_tank"
     randomise_vehicle: bool = True
+    camera_mount_error_m: Annotated[float, Interval(ge=0, le=0.5)] = 0.0
+    camera_mount_error_deg: Annotated[float, Interval(ge=0, le=45)] = 0.0
     current: CurrentConfig = field(default_factory=CurrentConfig)
     vehicle: VehicleConfig = field(default_factory=VehicleConfig)
     vehicle_randomisation: VehicleRandomisation = field(default_factory=VehicleRandomisation)

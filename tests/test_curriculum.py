@@ -45,6 +45,31 @@ def test_relaxed_z_tolerance_pays_success_half_a_metre_high():
         env.close()
 
 
+def test_strict_env_relaxes_the_seated_height_not_the_paper_test():
+    """With strict termination the curriculum's z tolerance is the pegs' height above their
+    seats: the AUV held aligned 0.5 m above the dock counts as seated at 1.0 m, not at the
+    task's own 0.04 m; the paper test keeps its 0.1 m."""
+    env = DockingEnv(replace(EnvConfig(), episode_s=8.0, terminate_on="strict"))
+    try:
+        env.reset(seed=0)
+        T_world_ds = env.world.T_world_ds
+        above = T_world_ds @ env.cfg.task.T_ds_target @ make_T(t=[0.0, 0.0, -0.5])
+        held = {}
+        for z_m in (env.cfg.task.strict_peg_z_m, 1.0):
+            env.set_curriculum(z_m, 1.0)
+            env.reset(seed=0)
+            for _ in range(10):  # pinned above the dock (the hold is 5 steps at 5 Hz)
+                env.world.reset(T_world_ds, above, np.random.default_rng(0))
+                _, _, terminated, _, info = env.step(np.zeros(6))
+                assert not info["success_paper"]
+                if terminated:
+                    break
+            held[z_m] = terminated and info["success_strict"]
+        assert held == {env.cfg.task.strict_peg_z_m: False, 1.0: True}
+    finally:
+        env.close()
+
+
 def test_spawn_scale_brings_the_auv_closer_to_the_ds():
     env = DockingEnv(replace(EnvConfig(), episode_s=4.0))
 
@@ -81,6 +106,10 @@ def test_training_session_pushes_the_level_at_every_boundary(tmp_path):
     ((name, z_m, scale),) = calls
     assert name == "set_curriculum"
     assert (z_m, scale) == pytest.approx((0.775, 0.475))
+    calls.clear()  # strict termination: the schedule ends at the strict test's 0.04 m
+    strict = replace(cfg, env=replace(cfg.env, terminate_on="strict"))
+    TrainingSession(strict, tmp_path, Model(), None, lambda m: None).apply_curriculum(1000)
+    assert calls[0][1] == pytest.approx(strict.env.task.strict_peg_z_m)
     calls.clear()
     TrainingSession(TrainConfig(), tmp_path, Model(), None, lambda m: None).apply_curriculum(9)
     assert not calls  # no curriculum: the envs keep their own test

@@ -121,7 +121,9 @@ def _fake_world(rgb: np.ndarray, camera: CameraModel):
     rig = SimpleNamespace(camera=camera, T_bodyfrd_camcv=np.array(REFERENCE_T_BODYFRD_CAMCV))
     rig.render = render
     ds = SimpleNamespace(marker_set=MARKERS)
-    return SimpleNamespace(camera=SimCamera(rig, water=None), ds=ds)
+    sim_camera = SimCamera(rig, water=None)
+    capture = lambda rng, T_world_body: sim_camera.capture(T_world_body, rng)  # noqa: E731
+    return SimpleNamespace(camera=sim_camera, ds=ds, capture=capture)
 
 
 def test_camera_source_hands_the_detector_bgr(monkeypatch):

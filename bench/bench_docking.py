@@ -1,0 +1,253 @@
+"""Policy against the PID baseline, same seeds, over the headline and the harder conditions.
+
+Usage::
+
+    python bench/bench_docking.py --policy RUN/best [--episodes 100] [--stress-episodes 30]
+        [--seed 50000] [--usbl evologics-s2cr] [--workers 2] [--rows all|headline|NAME,...]
+        [--name docking]
+
+Every row flies the policy and the PID baseline (``PIDController.for_env``) over the same
+seeded episodes (episode k: seed + k; seeds 50000... were never used in training, whose
+episodes draw from the run's own seed), ``terminate_on = "strict"`` so that the strict
+success (pegs seated and held) and the paper's one-instant condition are measured on the same
+episodes, the USBL preset ``--usbl`` in every row:
+
+headline rows (``--episodes``):
+    camera            the camera in the loop: render -> 3DBM detector -> PnP -> filter
+                      (clear tank, 480 px)
+    camera off        acoustic fixes only (the filter never sees the camera)
+    error model       the policy's training observation (its run's error model)
+harder rows (``--stress-episodes``, camera in the loop):
+    coastal, turbid   the water between the camera and the DS
+    current 0.4       a drifting current up to 0.4 m/s (the training draws reach 0.28)
+    long approach     the AUV spawned 8-10 m from the DS (training: up to ~7.5 m)
+    camera mount      the camera's true mounting off its calibration by up to 1 cm / 1 deg
+                      per axis
+    thrusters         thruster placement off by up to 5 cm and 5 deg (training: 1 cm, 2 deg)
+    all               all of the above at once, in coastal water
+
+Success rates carry Wilson 95 % intervals (scipy). Writes ``bench/results/<name>.json`` (rows,
+config, machine, commit) and ``<name>.png`` (strict success per condition, policy beside PID).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from uwdock.dockcore.bench import format_table, save_results
+from uwdock.dockcore.config import replace, to_dict
+from uwdock.rl.config import EnvConfig
+from uwdock.rl.policy_io import policy_env_settings, policy_error_model
+from uwdock.sim.thrusters import ThrusterRandomisation
+from uwdock.sim.usbl import USBL_PRESETS
+from uwdock.sim.vehicle import VehicleRandomisation
+
+RESULTS = Path(__file__).resolve().parent / "results"
+
+HARD_CURRENT = {
+    "mode": "varying",
+    "range_x_mps": (-0.4, 0.4),
+    "range_y_mps": (-0.4, 0.4),
+    "max_speed_mps": 0.4,
+}
+LONG_APPROACH = {"spawn_auv_range_m": (8.5, 4.0, 1.4), "spawn_horizontal_range_m": (8.0, 10.0)}
+CAMERA_MOUNT = {"camera_mount_error_m": 0.01, "camera_mount_error_deg": 1.0}
+THRUSTERS = {
+    "vehicle_randomisation": VehicleRandomisation(
+        thrusters=ThrusterRandomisation(position_m=0.05, axis_deg=5.0)
+    )
+}
+
+
+@dataclass(frozen=True)
+class Row:
+    """One condition: its name, the observation source, EnvConfig overrides, and whether it is
+    a headline row (``--episodes``) or a harder one (``--stress-episodes``)."""
+
+    name: str
+    obs: str
+    overrides: dict[str, Any] = field(default_factory=dict)
+    headline: bool = False
+
+
+ROWS = (
+    Row("camera", "camera", headline=True),
+    Row("camera off", "acoustic", headline=True),
+    Row("error model", "error-model", headline=True),
+    Row("coastal", "camera", {"water_preset": "coastal"}),
+    Row("turbid", "camera", {"water_preset": "turbid"}),
+    Row("current 0.4", "camera", {"current": HARD_CURRENT}),
+    Row("long approach", "camera", LONG_APPROACH),
+    Row("camera mount", "camera", CAMERA_MOUNT),
+    Row("thrusters", "camera", THRUSTERS),
+    Row(
+        "all",
+        "camera",
+        {
+            "water_preset": "coastal",
+            "current": HARD_CURRENT,
+            **LONG_APPROACH,
+            **CAMERA_MOUNT,
+            **THRUSTERS,
+        },
+    ),
+)
+
+
+def wilson_ci(successes: int, n: int) -> tuple[float, float]:
+    """Wilson 95 % interval of a success rate."""
+    from scipy.stats import binomtest
+
+    if n == 0:
+        return (0.0, 1.0)
+    ci = binomtest(successes, n).proportion_ci(0.95, method="wilson")
+    return (float(ci.low), float(ci.high))
+
+
+def env_for(row: Row, policy: str, usbl: str) -> EnvConfig:
+    """The row's env: defaults, the policy's observation interface, strict termination."""
+    overrides: dict[str, Any] = {
+        "obs_source": row.obs,
+        "terminate_on": "strict",
+        "usbl": {"preset": usbl},
+        "error_model_path": policy_error_model(policy) if row.obs == "error-model" else None,
+    }
+    for key, value in row.overrides.items():
+        overrides[key] = replace(EnvConfig().current, **value) if key == "current" else value
+    cfg = replace(EnvConfig(), **overrides)
+    return replace(cfg, **policy_env_settings(policy))
+
+
+def run_row(row: Row, controller: str, cfg: EnvConfig, episodes: int, seed: int, workers: int):
+    """One (condition, controller) cell: the eval summary plus intervals and wall time."""
+    from tqdm import tqdm
+
+    from uwdock.rl.evaluate import run_episodes_parallel
+
+    t0 = time.perf_counter()
+    label = "policy" if controller != "pid" else "pid"
+    with tqdm(total=episodes, desc=f"{row.name} / {label}", unit="ep", leave=False) as bar:
+        res = run_episodes_parallel(
+            controller, cfg, episodes, seed, workers=workers, record=False,
+            progress=lambda k, n: bar.update(k - bar.n),
+        )  # fmt: skip
+    eps = res.episodes
+    n = len(eps)
+    strict = sum(bool(e["success_strict"]) for e in eps)
+    paper = sum(bool(e["success"]) for e in eps)
+    s = res.summary
+    return {
+        "condition": row.name,
+        "obs": row.obs,
+        "controller": label,
+        "episodes": n,
+        "strict": strict / n,
+        "strict_ci95": wilson_ci(strict, n),
+        "paper": paper / n,
+        "paper_ci95": wilson_ci(paper, n),
+        "time_to_dock_s": s["mean_time_to_dock_s"],
+        "collisions": s["mean_collisions"],
+        "final_e_xy_m_median": s["final_e_xy_m_median"],
+        "final_e_yaw_deg_median": s["final_e_yaw_deg_median"],
+        "wall_s": time.perf_counter() - t0,
+    }
+
+
+def plot(rows: list[dict[str, Any]], path: Path) -> None:
+    """Strict success per condition, policy beside PID, with the Wilson intervals."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from uwdock.dockcore.io import atomic_path
+
+    conds = list(dict.fromkeys(r["condition"] for r in rows))
+    x = np.arange(len(conds))
+    fig, ax = plt.subplots(figsize=(max(6.0, 1.1 * len(conds)), 3.8))
+    for k, (ctrl, colour) in enumerate((("policy", "tab:blue"), ("pid", "tab:grey"))):
+        cells = {r["condition"]: r for r in rows if r["controller"] == ctrl}
+        val = np.array([100 * cells[c]["strict"] if c in cells else np.nan for c in conds])
+        lo = np.array([100 * cells[c]["strict_ci95"][0] if c in cells else np.nan for c in conds])
+        hi = np.array([100 * cells[c]["strict_ci95"][1] if c in cells else np.nan for c in conds])
+        at = x + (k - 0.5) * 0.38
+        ax.bar(at, val, 0.38, color=colour, label="PID baseline" if ctrl == "pid" else "PPO")
+        ax.errorbar(at, val, yerr=[val - lo, hi - val], fmt="none", ecolor="k", capsize=2, lw=0.8)
+    n_of = {r["condition"]: r["episodes"] for r in rows}
+    ax.set_xticks(x, [f"{c}\n({n_of[c]} ep)" for c in conds], fontsize=8)
+    ax.set_ylabel("strict success (%)")
+    ax.set_ylim(0, 105)
+    ax.legend(loc="lower left", fontsize=8)
+    ax.set_title("docking success by condition (Wilson 95 % intervals)", fontsize=10)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=110)
+    plt.close(fig)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--policy", required=True, help="policy.zip / run folder / .onnx")
+    ap.add_argument("--episodes", type=int, default=100, help="episodes per headline row")
+    ap.add_argument("--stress-episodes", type=int, default=30, help="episodes per harder row")
+    ap.add_argument("--seed", type=int, default=50000)
+    ap.add_argument("--usbl", default="evologics-s2cr", choices=list(USBL_PRESETS))
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--rows", default="all", help="all, headline, or condition names (comma)")
+    ap.add_argument("--controllers", default="policy,pid")
+    ap.add_argument("--name", default="docking")
+    ap.add_argument("--out-dir", type=Path, default=RESULTS)
+    a = ap.parse_args()
+    names = {r.name for r in ROWS}
+    if a.rows == "all":
+        chosen = list(ROWS)
+    elif a.rows == "headline":
+        chosen = [r for r in ROWS if r.headline]
+    else:
+        wanted = [w.strip() for w in a.rows.split(",")]
+        unknown = [w for w in wanted if w not in names]
+        if unknown:
+            sys.exit(f"error: --rows: unknown condition {unknown[0]!r} (known: {sorted(names)})")
+        chosen = [r for r in ROWS if r.name in wanted]
+    controllers = [c.strip() for c in a.controllers.split(",")]
+    if not set(controllers) <= {"policy", "pid"}:
+        sys.exit("error: --controllers: policy, pid or both")
+    results = []
+    for row in chosen:
+        n = a.episodes if row.headline else a.stress_episodes
+        cfg = env_for(row, a.policy, a.usbl)
+        for ctrl in controllers:
+            spec = a.policy if ctrl == "policy" else "pid"
+            results.append(run_row(row, spec, cfg, n, a.seed, a.workers))
+            r = results[-1]
+            print(
+                f"{row.name:>14} {r['controller']:>6}: strict {100 * r['strict']:.0f} % "
+                f"paper {100 * r['paper']:.0f} % ({r['wall_s']:.0f} s)",
+                flush=True,
+            )
+    cols = ["condition", "controller", "episodes", "strict", "paper", "time_to_dock_s"]
+    print(format_table(results, [*cols, "collisions", "final_e_xy_m_median", "wall_s"]))
+    config = {
+        "policy": a.policy,
+        "episodes": a.episodes,
+        "stress_episodes": a.stress_episodes,
+        "seed": a.seed,
+        "usbl": a.usbl,
+        "rows": [r.name for r in chosen],
+        "env": {r.name: to_dict(env_for(r, a.policy, a.usbl)) for r in chosen},
+    }
+    print(save_results(a.name, results, config, a.out_dir))
+    if set(controllers) == {"policy", "pid"}:
+        plot(results, a.out_dir / f"{a.name}.png")
+
+
+if __name__ == "__main__":
+    main()
