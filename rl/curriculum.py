@@ -4,9 +4,10 @@ The paper's reference code tightens the z tolerance of its docking test from 1.0
 while training: a policy that has learned to hover aligned above the DS is paid the success
 reward early, and then learns to descend. With ``terminate_on = "strict"`` the same schedule
 eases the strict test's peg height (``strict_peg_z_m``, 0.04 m at the end): measured without
-it, PPO learns to hover aligned 0.5-0.6 m above the seats and never lands. A spawn-distance curriculum starts the AUV close to
-the DS (horizontally) and widens the spawn box to the env's full range. Both are pure functions
-of the number of environment steps taken, so a resumed run follows the same schedule.
+it, PPO learns to hover aligned 0.5-0.6 m above the seats and never lands. A spawn-distance
+curriculum starts the AUV close to the DS (horizontally) and widens the spawn box to the env's
+full range. Both are pure functions of the number of environment steps taken, so a resumed run
+follows the same schedule.
 
 The level is pushed to every training env at the start of each rollout
 (:meth:`rl.env.DockingEnv.set_curriculum`); evaluations always use the env's own test.
