@@ -27,7 +27,8 @@ harder rows (``--stress-episodes``, camera in the loop):
     all               all of the above at once, in coastal water
 
 Success rates carry Wilson 95 % intervals (scipy). Writes ``bench/results/<name>.json`` (rows,
-config, machine, commit) and ``<name>.png`` (strict success per condition, policy beside PID).
+config, machine, commit; rewritten after every cell, ``complete`` false until the last) and
+``<name>.png`` (strict success per condition, policy beside PID).
 """
 
 from __future__ import annotations
@@ -220,7 +221,17 @@ def main() -> None:
     controllers = [c.strip() for c in a.controllers.split(",")]
     if not set(controllers) <= {"policy", "pid"}:
         sys.exit("error: --controllers: policy, pid or both")
-    results = []
+    config = {
+        "policy": a.policy,
+        "episodes": a.episodes,
+        "stress_episodes": a.stress_episodes,
+        "seed": a.seed,
+        "usbl": a.usbl,
+        "rows": [r.name for r in chosen],
+        "controllers": controllers,
+        "env": {r.name: to_dict(env_for(r, a.policy, a.usbl)) for r in chosen},
+    }
+    results: list[dict[str, Any]] = []
     for row in chosen:
         n = a.episodes if row.headline else a.stress_episodes
         cfg = env_for(row, a.policy, a.usbl)
@@ -233,18 +244,10 @@ def main() -> None:
                 f"paper {100 * r['paper']:.0f} % ({r['wall_s']:.0f} s)",
                 flush=True,
             )
+            save_results(a.name, results, {**config, "complete": False}, a.out_dir)  # so far
     cols = ["condition", "controller", "episodes", "strict", "paper", "time_to_dock_s"]
     print(format_table(results, [*cols, "collisions", "final_e_xy_m_median", "wall_s"]))
-    config = {
-        "policy": a.policy,
-        "episodes": a.episodes,
-        "stress_episodes": a.stress_episodes,
-        "seed": a.seed,
-        "usbl": a.usbl,
-        "rows": [r.name for r in chosen],
-        "env": {r.name: to_dict(env_for(r, a.policy, a.usbl)) for r in chosen},
-    }
-    print(save_results(a.name, results, config, a.out_dir))
+    print(save_results(a.name, results, {**config, "complete": True}, a.out_dir))
     if set(controllers) == {"policy", "pid"}:
         plot(results, a.out_dir / f"{a.name}.png")
 

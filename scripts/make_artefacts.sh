@@ -4,12 +4,15 @@
 # Run the stages in order and commit what each writes before the next:
 #
 #   bash scripts/make_artefacts.sh models    # rl/models/error_model_clear_tank_{480,640}.json
-#   bash scripts/make_artefacts.sh policy    # rl/policies/error_model_ppo/, docs/results/training_curve.png
+#   bash scripts/make_artefacts.sh policy    # rl/policies/error_model_ppo/ (DAgger + PPO), docs/results/training_curve.png
+#   bash scripts/make_artefacts.sh scratch   # rl/policies/scratch_error_model_ppo/ (PPO from scratch), docs/results/training_curve_scratch.png
 #   bash scripts/make_artefacts.sh figures   # docs/results/ (evaluation summaries and figures)
 #
 # Seeds and data: datasets `datasets synth --n 2500 --water clear_tank --seed 0` at 480 and 640 px
 # (their SHA-256 is recorded in each error model); training `configs/train_error_model_ppo.toml`
-# (seed 0); evaluations on episode seeds 1000-1099. WORK (default /tmp/uwdock-artefacts) holds
+# (seed 0); training `configs/scratch_error_model_ppo.toml` (seed SEED, default 0: the seed
+# of the shipped from-scratch policy, the best of seeds 0-2); evaluations on episode seeds
+# 1000-1099. WORK (default /tmp/uwdock-artefacts) holds
 # the datasets, the run folder and the evaluation folders; an interrupted stage resumes there.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -56,6 +59,24 @@ policy() {
   rm -f "$POLICY/resume_log.jsonl"
   [ ! -f "$run/resume_log.jsonl" ] || cp "$run/resume_log.jsonl" "$POLICY/"  # interruptions, commits
   cp "$run/eval_history.png" "$RESULTS/training_curve.png"
+}
+
+scratch() {
+  local seed=${SEED:-0} dest=rl/policies/scratch_error_model_ppo
+  local run=$WORK/run_scratch_error_model_ppo_s$seed
+  say "training PPO from scratch (configs/scratch_error_model_ppo.toml, seed $seed) into $run"
+  if [ -f "$run/config.toml" ]; then
+    "$BIN/rl" train --out "$run" --resume
+  else
+    "$BIN/rl" train --config configs/scratch_error_model_ppo.toml --seed "$seed" --out "$run"
+  fi
+  say "shipping best/ (the best evaluated checkpoint) into $dest"
+  mkdir -p "$dest"
+  cp "$run/best/policy.zip" "$run/best/vecnormalize.pkl" "$dest/"
+  cp "$run/config.toml" "$run/provenance.json" "$run/eval_history.jsonl" "$dest/"
+  rm -f "$dest/resume_log.jsonl"
+  [ ! -f "$run/resume_log.jsonl" ] || cp "$run/resume_log.jsonl" "$dest/"
+  cp "$run/eval_history.png" "$RESULTS/training_curve_scratch.png"
 }
 
 EM=rl/models/error_model_clear_tank_480.json  # the error model the shipped policy trained on
@@ -110,7 +131,8 @@ PY
 case "${1:-}" in
   models) models ;;
   policy) policy ;;
+  scratch) scratch ;;
   figures) figures ;;
-  *) die "usage: bash scripts/make_artefacts.sh models|policy|figures" ;;
+  *) die "usage: bash scripts/make_artefacts.sh models|policy|scratch|figures" ;;
 esac
 say "done: review and commit what changed (git status)"
