@@ -186,7 +186,7 @@ def plot(rows: list[dict[str, Any]], path: Path) -> None:
     ax.set_xticks(x, [f"{c}\n({n_of[c]} ep)" for c in conds], fontsize=8)
     ax.set_ylabel("strict success (%)")
     ax.set_ylim(0, 105)
-    ax.legend(loc="lower left", fontsize=8)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), fontsize=8)
     ax.set_title("docking success by condition (Wilson 95 % intervals)", fontsize=10)
     fig.tight_layout()
     with atomic_path(path) as tmp:
