@@ -48,16 +48,13 @@ from uwdock.rl.config import EnvConfig
 from uwdock.rl.policy_io import policy_env_settings, policy_error_model
 from uwdock.sim.thrusters import ThrusterRandomisation
 from uwdock.sim.usbl import USBL_PRESETS
-from uwdock.sim.vehicle import VehicleRandomisation
+from uwdock.sim.vehicle import CurrentConfig, VehicleRandomisation
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
-HARD_CURRENT = {
-    "mode": "varying",
-    "range_x_mps": (-0.4, 0.4),
-    "range_y_mps": (-0.4, 0.4),
-    "max_speed_mps": 0.4,
-}
+HARD_CURRENT = CurrentConfig(
+    mode="varying", range_x_mps=(-0.4, 0.4), range_y_mps=(-0.4, 0.4), max_speed_mps=0.4
+)
 LONG_APPROACH = {"spawn_auv_range_m": (8.5, 4.0, 1.4), "spawn_horizontal_range_m": (8.0, 10.0)}
 CAMERA_MOUNT = {"camera_mount_error_m": 0.01, "camera_mount_error_deg": 1.0}
 THRUSTERS = {
@@ -114,15 +111,14 @@ def wilson_ci(successes: int, n: int) -> tuple[float, float]:
 
 def env_for(row: Row, policy: str, usbl: str) -> EnvConfig:
     """The row's env: defaults, the policy's observation interface, strict termination."""
-    overrides: dict[str, Any] = {
-        "obs_source": row.obs,
-        "terminate_on": "strict",
-        "usbl": {"preset": usbl},
-        "error_model_path": policy_error_model(policy) if row.obs == "error-model" else None,
-    }
-    for key, value in row.overrides.items():
-        overrides[key] = replace(EnvConfig().current, **value) if key == "current" else value
-    cfg = replace(EnvConfig(), **overrides)
+    cfg = replace(
+        EnvConfig(),
+        obs_source=row.obs,
+        terminate_on="strict",
+        usbl={"preset": usbl},
+        error_model_path=policy_error_model(policy) if row.obs == "error-model" else None,
+        **row.overrides,
+    )
     return replace(cfg, **policy_env_settings(policy))
 
 
@@ -139,20 +135,18 @@ def run_row(row: Row, controller: str, cfg: EnvConfig, episodes: int, seed: int,
             controller, cfg, episodes, seed, workers=workers, record=False,
             progress=lambda k, n: bar.update(k - bar.n),
         )  # fmt: skip
-    eps = res.episodes
-    n = len(eps)
-    strict = sum(bool(e["success_strict"]) for e in eps)
-    paper = sum(bool(e["success"]) for e in eps)
     s = res.summary
+    n = s["episodes"]
+    strict, paper = s["success_rate_strict"], s["success_rate"]
     return {
         "condition": row.name,
         "obs": row.obs,
         "controller": label,
         "episodes": n,
-        "strict": strict / n,
-        "strict_ci95": wilson_ci(strict, n),
-        "paper": paper / n,
-        "paper_ci95": wilson_ci(paper, n),
+        "strict": strict,
+        "strict_ci95": wilson_ci(round(strict * n), n),
+        "paper": paper,
+        "paper_ci95": wilson_ci(round(paper * n), n),
         "time_to_dock_s": s["mean_time_to_dock_s"],
         "collisions": s["mean_collisions"],
         "final_e_xy_m_median": s["final_e_xy_m_median"],
@@ -221,6 +215,7 @@ def main() -> None:
     controllers = [c.strip() for c in a.controllers.split(",")]
     if not set(controllers) <= {"policy", "pid"}:
         sys.exit("error: --controllers: policy, pid or both")
+    envs = {r.name: env_for(r, a.policy, a.usbl) for r in chosen}  # reads the policy's config
     config = {
         "policy": a.policy,
         "episodes": a.episodes,
@@ -229,15 +224,14 @@ def main() -> None:
         "usbl": a.usbl,
         "rows": [r.name for r in chosen],
         "controllers": controllers,
-        "env": {r.name: to_dict(env_for(r, a.policy, a.usbl)) for r in chosen},
+        "env": {name: to_dict(cfg) for name, cfg in envs.items()},
     }
     results: list[dict[str, Any]] = []
     for row in chosen:
         n = a.episodes if row.headline else a.stress_episodes
-        cfg = env_for(row, a.policy, a.usbl)
         for ctrl in controllers:
             spec = a.policy if ctrl == "policy" else "pid"
-            results.append(run_row(row, spec, cfg, n, a.seed, a.workers))
+            results.append(run_row(row, spec, envs[row.name], n, a.seed, a.workers))
             r = results[-1]
             print(
                 f"{row.name:>14} {r['controller']:>6}: strict {100 * r['strict']:.0f} % "

@@ -26,6 +26,7 @@ from uwdock.dockcore.config import replace
 from uwdock.dockcore.errors import DockError
 from uwdock.rl.camera_source import CameraSource
 from uwdock.rl.config import EnvConfig
+from uwdock.rl.curriculum import curriculum_z_field
 from uwdock.rl.error_model import ErrorModelSource, load_error_model
 from uwdock.rl.estimator import DSPoseFilter
 from uwdock.rl.obs_sources import (
@@ -102,8 +103,7 @@ class DockingEnv(gym.Env):
         self.action_space = gym.spaces.Box(-1.0, 1.0, shape=(6,), dtype=np.float32)
         self._frames: list[np.ndarray] = []
         self._hold_steps = max(1, round(c.task.strict_hold_s * c.control_hz))
-        self._success_task = c.task  # the paper test's task (a curriculum may relax its z)
-        self._strict_task = c.task  # the strict test's task (likewise)
+        self._task = c.task  # the success tests' task (a curriculum may relax one z tolerance)
         self._spawn_scale = 1.0
 
     def set_curriculum(self, z_tolerance_m: float, spawn_scale: float) -> None:
@@ -116,11 +116,8 @@ class DockingEnv(gym.Env):
             raise ValueError(
                 f"curriculum level out of range: z {z_tolerance_m!r} m, spawn {spawn_scale!r}"
             )
-        z_m = float(z_tolerance_m)
-        if self.cfg.terminate_on == "strict":
-            self._strict_task = replace(self.cfg.task, strict_peg_z_m=z_m)
-        else:
-            self._success_task = replace(self.cfg.task, success_z_m=z_m)
+        field = curriculum_z_field(self.cfg)
+        self._task = replace(self.cfg.task, **{field: float(z_tolerance_m)})
         self._spawn_scale = float(spawn_scale)
 
     # ------------------------------------------------------------------ setup
@@ -218,8 +215,8 @@ class DockingEnv(gym.Env):
 
         e_true, psi_true = docking_errors(T_world_body, world.T_world_ds, self.cfg.task)
         visible = ds_visible(inv_T(T_world_body) @ world.T_world_ds, self.cfg.task)
-        paper = paper_success(e_true, psi_true, visible, self._success_task)
-        seated = pegs_seated(T_world_body, world.T_world_ds, self._strict_task)
+        paper = paper_success(e_true, psi_true, visible, self._task)
+        seated = pegs_seated(T_world_body, world.T_world_ds, self._task)
         self._seated_steps = self._seated_steps + 1 if seated else 0
         strict = self._seated_steps >= self._hold_steps
         self.success_paper |= paper

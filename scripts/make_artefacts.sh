@@ -10,10 +10,10 @@
 #
 # Seeds and data: datasets `datasets synth --n 2500 --water clear_tank --seed 0` at 480 and 640 px
 # (their SHA-256 is recorded in each error model); training `configs/train_error_model_ppo.toml`
-# (seed 0); training `configs/scratch_error_model_ppo.toml` (seed SEED, default 0: the seed
-# of the shipped from-scratch policy, the best of seeds 0-2); evaluations on episode seeds
-# 1000-1099. WORK (default /tmp/uwdock-artefacts) holds
-# the datasets, the run folder and the evaluation folders; an interrupted stage resumes there.
+# (seed 0); training `configs/scratch_error_model_ppo.toml` (seed SEED, default 0; not yet
+# shipped: see README "Learning to dock from scratch"); evaluations on episode seeds 1000-1099.
+# WORK (default /tmp/uwdock-artefacts) holds the datasets, the run folder and the evaluation
+# folders; an interrupted stage resumes there.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 BIN=${VENV:-.venv}/bin
@@ -43,40 +43,36 @@ models() {
   cp "$WORK"/error_model_clear_tank_{480,640}.json rl/models/
 }
 
-policy() {
-  local run=$WORK/run_error_model_ppo
-  say "training the shipped recipe (configs/train_error_model_ppo.toml) into $run"
+# train_and_ship CONFIG RUN DEST CURVE [rl train flags]: train CONFIG into RUN (or resume it),
+# then copy its best/ checkpoint and its records into DEST and its curve to $RESULTS/CURVE
+train_and_ship() {
+  local config=$1 run=$2 dest=$3 curve=$4
+  shift 4
+  say "training $config into $run"
   if [ -f "$run/config.toml" ]; then
     "$BIN/rl" train --out "$run" --resume
   else
-    "$BIN/rl" train --config configs/train_error_model_ppo.toml --out "$run"
-  fi
-  say "shipping best/ (the best evaluated checkpoint) into $POLICY"
-  mkdir -p "$POLICY"
-  cp "$run/best/policy.zip" "$run/best/vecnormalize.pkl" "$POLICY/"
-  cp "$run/config.toml" "$run/provenance.json" "$run/eval_history.jsonl" "$run/imitation.json" \
-    "$POLICY/"
-  rm -f "$POLICY/resume_log.jsonl"
-  [ ! -f "$run/resume_log.jsonl" ] || cp "$run/resume_log.jsonl" "$POLICY/"  # interruptions, commits
-  cp "$run/eval_history.png" "$RESULTS/training_curve.png"
-}
-
-scratch() {
-  local seed=${SEED:-0} dest=rl/policies/scratch_error_model_ppo
-  local run=$WORK/run_scratch_error_model_ppo_s$seed
-  say "training PPO from scratch (configs/scratch_error_model_ppo.toml, seed $seed) into $run"
-  if [ -f "$run/config.toml" ]; then
-    "$BIN/rl" train --out "$run" --resume
-  else
-    "$BIN/rl" train --config configs/scratch_error_model_ppo.toml --seed "$seed" --out "$run"
+    "$BIN/rl" train --config "$config" "$@" --out "$run"
   fi
   say "shipping best/ (the best evaluated checkpoint) into $dest"
   mkdir -p "$dest"
   cp "$run/best/policy.zip" "$run/best/vecnormalize.pkl" "$dest/"
   cp "$run/config.toml" "$run/provenance.json" "$run/eval_history.jsonl" "$dest/"
-  rm -f "$dest/resume_log.jsonl"
-  [ ! -f "$run/resume_log.jsonl" ] || cp "$run/resume_log.jsonl" "$dest/"
-  cp "$run/eval_history.png" "$RESULTS/training_curve_scratch.png"
+  rm -f "$dest/imitation.json" "$dest/resume_log.jsonl"
+  [ ! -f "$run/imitation.json" ] || cp "$run/imitation.json" "$dest/"  # the DAgger warm start
+  [ ! -f "$run/resume_log.jsonl" ] || cp "$run/resume_log.jsonl" "$dest/"  # interruptions, commits
+  cp "$run/eval_history.png" "$RESULTS/$curve"
+}
+
+policy() {
+  train_and_ship configs/train_error_model_ppo.toml "$WORK/run_error_model_ppo" "$POLICY" \
+    training_curve.png
+}
+
+scratch() {
+  local seed=${SEED:-0}
+  train_and_ship configs/scratch_error_model_ppo.toml "$WORK/run_scratch_error_model_ppo_s$seed" \
+    rl/policies/scratch_error_model_ppo training_curve_scratch.png --seed "$seed"
 }
 
 EM=rl/models/error_model_clear_tank_480.json  # the error model the shipped policy trained on

@@ -66,6 +66,7 @@ class DockingWorld:
         self.vehicle = VehicleBody(self.scene, cfg.vehicle, self.current)
         #: (4, 4) this episode's mounting error, the true camera frame in the calibrated one
         self.T_camcal_camtrue = np.eye(4)
+        self._T_body_rendered: np.ndarray | None = None  # the body pose correction it implies
 
     @property
     def floor_z_m(self) -> float:
@@ -101,16 +102,21 @@ class DockingWorld:
         if err_m > 0 or err_deg > 0:
             t_m = rng.uniform(-err_m, err_m, 3)
             rpy = np.radians(rng.uniform(-err_deg, err_deg, 3))
-            self.T_camcal_camtrue = make_T(R_from_rpy(*rpy), t_m)
+            self.set_camera_mount_error(make_T(R_from_rpy(*rpy), t_m))
 
-    def T_world_body_rendered(self, T_world_body: np.ndarray | None = None) -> np.ndarray:
-        """(4, 4) the body pose to hand the camera rig (which mounts the camera at its
-        calibration) so that it renders from the true, mis-mounted camera."""
+    def set_camera_mount_error(self, T_camcal_camtrue: np.ndarray) -> None:
+        """Mount the camera off its calibration by ``T_camcal_camtrue`` (4, 4) until the next
+        draw; perception keeps the calibration (``camera.T_body_cam``)."""
+        self.T_camcal_camtrue = np.asarray(T_camcal_camtrue, dtype=np.float64)
+        self._T_body_rendered = None
+        if self.camera is not None and not np.array_equal(self.T_camcal_camtrue, np.eye(4)):
+            # the rig mounts the camera at its calibration: hand it this body pose instead
+            T_body_cam = self.camera.T_body_cam
+            self._T_body_rendered = T_body_cam @ self.T_camcal_camtrue @ inv_T(T_body_cam)
+
+    def _rendered_from(self, T_world_body: np.ndarray | None) -> np.ndarray:
         T = self.T_world_body if T_world_body is None else T_world_body
-        if self.camera is None or np.array_equal(self.T_camcal_camtrue, np.eye(4)):
-            return T
-        T_body_cam = self.camera.T_body_cam
-        return T @ T_body_cam @ self.T_camcal_camtrue @ inv_T(T_body_cam)
+        return T if self._T_body_rendered is None else T @ self._T_body_rendered
 
     def step(self, wrench_body: np.ndarray, dt_s: float) -> None:
         self.vehicle.step(wrench_body, dt_s)
@@ -127,13 +133,13 @@ class DockingWorld:
         """
         if self.camera is None:
             return None
-        return self.camera.capture(self.T_world_body_rendered(T_world_body), rng)
+        return self.camera.capture(self._rendered_from(T_world_body), rng)
 
     def render_camera_rgb(self) -> np.ndarray | None:
         """(H, W, 3) uint8 RGB view of the downward camera in air, or None without a camera."""
         if self.camera is None:
             return None
-        return self.camera.render(self.T_world_body_rendered()).rgb
+        return self.camera.render(self._rendered_from(None)).rgb
 
     def close(self) -> None:
         self.render_scene = None

@@ -110,7 +110,7 @@ def test_a_mounting_error_renders_from_the_true_camera_and_biases_the_estimate()
         ctx = StepContext(T_world_body, T_world_ds, 0.0, T_world_ds)
         errs = {}
         for pitch_deg in (0.0, 2.0):
-            world.T_camcal_camtrue = make_T(R_from_rpy(math.radians(pitch_deg), 0, 0), [0, 0, 0])
+            world.set_camera_mount_error(make_T(R_from_rpy(math.radians(pitch_deg), 0, 0)))
             m = source.measure(ctx)
             assert m is not None
             T_true_cam = T_world_body @ world.camera.T_body_cam @ world.T_camcal_camtrue
