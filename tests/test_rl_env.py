@@ -53,7 +53,14 @@ def test_same_seed_same_rollout(env):
 def test_reward_terms_sum_to_the_reward(env):
     env.reset(seed=0)
     _, r, _, _, info = env.step(np.zeros(6))
-    assert set(info["reward_terms"]) == {"dist", "angle", "smooth", "collision", "mission"}
+    assert set(info["reward_terms"]) == {
+        "dist",
+        "angle",
+        "smooth",
+        "collision",
+        "mission",
+        "precision",
+    }
     assert r == pytest.approx(sum(info["reward_terms"].values()))
 
 

@@ -86,6 +86,12 @@ def test_reward_terms_hand_computed():
     assert linear(np.zeros(3), 0.5, a, a, False, False, False)["angle"] == pytest.approx(
         math.exp(-1.0) - 1 - 2.0 * 0.5 / math.pi
     )
+    assert terms["precision"] == 0  # off by default: the paper's reward
+    precise = DockingReward(RewardConfig(precision_gain=2.0, precision_scale_m=0.1))
+    e = np.array([0.03, -0.04, 0.0])  # 5 cm off
+    assert precise(e, 0, a, a, False, False, False)["precision"] == pytest.approx(
+        2.0 * math.exp(-0.5)
+    )
     weighted = DockingReward(RewardConfig(weights={"dist": 0.5}))
     assert weighted(np.array([1.0, 0, 0]), 0, a, a, False, False, False)["dist"] == -0.5
 
