@@ -43,6 +43,10 @@ class RewardConfig:
             is the paper's reward. Its slope at the dock is c_p / s_p per metre, against r_dist's
             1: it pays for the centimetres that seat the pegs (strict: within 5 cm).
         precision_scale_m: s_p, the distance over which r_precision falls by e (m).
+        precision_yaw_scale_rad: s_psi; > 0 multiplies r_precision by exp(-|e_psi| / s_psi),
+            so it pays only when the heading is right too (rad); 0: position only. A policy
+            that lands with its yaw 10-20 deg off rests on the guides' crests, where r_angle's
+            slope (about 0.02 per degree) is too small to make it lift and turn.
         success_reward: p_s on docking (-).
         truncation_penalty: p_f when the episode is truncated (-).
         weights: multiplier per term name (dist, angle, smooth, collision, mission).
@@ -57,6 +61,7 @@ class RewardConfig:
     gamma_set_mps2: Annotated[float, Interval(gt=0, le=1000)] = 1.0
     precision_gain: _Weight = 0.0
     precision_scale_m: Annotated[float, Interval(gt=0, le=100)] = 0.1
+    precision_yaw_scale_rad: Annotated[float, Interval(ge=0, le=10)] = 0.0
     success_reward: _Reward = 500.0
     truncation_penalty: _Reward = 10.0
     weights: dict[str, _Weight] | None = None
@@ -112,6 +117,7 @@ class DockingReward:
         c = self.cfg
         a = np.asarray(action, dtype=np.float64)
         da = np.abs(a - prev_action)[self._smooth_mask]
+        yaw_gated = c.precision_yaw_scale_rad > 0
         terms = {
             "dist": -float(np.dot(c.w_xyz, np.abs(e_xyz_m))),
             "angle": math.exp(-c.angle_gain * abs(e_psi_rad))
@@ -121,6 +127,7 @@ class DockingReward:
             "collision": -c.collision_penalty if collided else 0.0,
             "mission": c.success_reward if docked else -c.truncation_penalty if truncated else 0.0,
             "precision": c.precision_gain
-            * math.exp(-float(np.linalg.norm(e_xyz_m)) / c.precision_scale_m),
+            * math.exp(-float(np.linalg.norm(e_xyz_m)) / c.precision_scale_m)
+            * (math.exp(-abs(e_psi_rad) / c.precision_yaw_scale_rad) if yaw_gated else 1.0),
         }
         return {k: self._w[k] * v for k, v in terms.items()}

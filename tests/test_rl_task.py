@@ -92,6 +92,10 @@ def test_reward_terms_hand_computed():
     assert precise(e, 0, a, a, False, False, False)["precision"] == pytest.approx(
         2.0 * math.exp(-0.5)
     )
+    gated = DockingReward(RewardConfig(precision_gain=2.0, precision_yaw_scale_rad=0.1))
+    assert gated(e, 0.05, a, a, False, False, False)["precision"] == pytest.approx(
+        2.0 * math.exp(-0.5) * math.exp(-0.5)
+    )
     weighted = DockingReward(RewardConfig(weights={"dist": 0.5}))
     assert weighted(np.array([1.0, 0, 0]), 0, a, a, False, False, False)["dist"] == -0.5
 
