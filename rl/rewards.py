@@ -49,7 +49,7 @@ class RewardConfig:
             slope (about 0.02 per degree) is too small to make it lift and turn.
         success_reward: p_s on docking (-).
         truncation_penalty: p_f when the episode is truncated (-).
-        weights: multiplier per term name (dist, angle, smooth, collision, mission).
+        weights: multiplier per term name (:data:`TERMS`).
     """
 
     w_xyz: tuple[_Weight, _Weight, _Weight] = (1.0, 1.0, 0.5)
@@ -117,7 +117,12 @@ class DockingReward:
         c = self.cfg
         a = np.asarray(action, dtype=np.float64)
         da = np.abs(a - prev_action)[self._smooth_mask]
-        yaw_gated = c.precision_yaw_scale_rad > 0
+        precision = 0.0  # off (the paper's reward): nothing to compute on the step's hot path
+        if c.precision_gain > 0:
+            x = math.hypot(*e_xyz_m) / c.precision_scale_m
+            if c.precision_yaw_scale_rad > 0:
+                x += abs(e_psi_rad) / c.precision_yaw_scale_rad
+            precision = c.precision_gain * math.exp(-x)
         terms = {
             "dist": -float(np.dot(c.w_xyz, np.abs(e_xyz_m))),
             "angle": math.exp(-c.angle_gain * abs(e_psi_rad))
@@ -126,8 +131,6 @@ class DockingReward:
             "smooth": -(c.smooth_scale / max(da.size, 1)) * math.exp(float(da.sum())),
             "collision": -c.collision_penalty if collided else 0.0,
             "mission": c.success_reward if docked else -c.truncation_penalty if truncated else 0.0,
-            "precision": c.precision_gain
-            * math.exp(-float(np.linalg.norm(e_xyz_m)) / c.precision_scale_m)
-            * (math.exp(-abs(e_psi_rad) / c.precision_yaw_scale_rad) if yaw_gated else 1.0),
+            "precision": precision,
         }
         return {k: self._w[k] * v for k, v in terms.items()}

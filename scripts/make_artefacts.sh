@@ -10,8 +10,8 @@
 #
 # Seeds and data: datasets `datasets synth --n 2500 --water clear_tank --seed 0` at 480 and 640 px
 # (their SHA-256 is recorded in each error model); training `configs/train_error_model_ppo.toml`
-# (seed 0); training `configs/scratch_error_model_ppo.toml` (seed SEED, default 0; not yet
-# shipped: see README "Learning to dock from scratch"); evaluations on episode seeds 1000-1099.
+# (seed 0); training `configs/scratch_error_model_precision_ppo.toml` (seed SEED, default 0;
+# not yet shipped: see README "Learning to dock from scratch"); evaluations on episode seeds 1000-1099.
 # WORK (default /tmp/uwdock-artefacts) holds the datasets, the run folder and the evaluation
 # folders; an interrupted stage resumes there.
 set -euo pipefail
@@ -71,8 +71,9 @@ policy() {
 
 scratch() {
   local seed=${SEED:-0}
-  train_and_ship configs/scratch_error_model_ppo.toml "$WORK/run_scratch_error_model_ppo_s$seed" \
-    rl/policies/scratch_error_model_ppo training_curve_scratch.png --seed "$seed"
+  train_and_ship configs/scratch_error_model_precision_ppo.toml \
+    "$WORK/run_scratch_error_model_precision_ppo_s$seed" rl/policies/scratch_error_model_ppo \
+    training_curve_scratch.png --seed "$seed"
 }
 
 EM=rl/models/error_model_clear_tank_480.json  # the error model the shipped policy trained on
