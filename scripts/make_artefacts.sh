@@ -10,7 +10,8 @@
 #
 # Seeds and data: datasets `datasets synth --n 2500 --water clear_tank --seed 0` at 480 and 640 px
 # (their SHA-256 is recorded in each error model); training `configs/train_error_model_ppo.toml`
-# (seed 0); training `configs/scratch_error_model_precision_ppo.toml` (seed SEED, default 0;
+# (seed 0); training `configs/scratch_error_model_precision_ppo.toml` then
+# `configs/scratch_error_model_precision_soft_ppo.toml` from its best/ (seed SEED, default 0;
 # not yet shipped: see README "Learning to dock from scratch"); evaluations on episode seeds 1000-1099.
 # WORK (default /tmp/uwdock-artefacts) holds the datasets, the run folder and the evaluation
 # folders; an interrupted stage resumes there.
@@ -43,17 +44,22 @@ models() {
   cp "$WORK"/error_model_clear_tank_{480,640}.json rl/models/
 }
 
-# train_and_ship CONFIG RUN DEST CURVE [rl train flags]: train CONFIG into RUN (or resume it),
-# then copy its best/ checkpoint and its records into DEST and its curve to $RESULTS/CURVE
-train_and_ship() {
-  local config=$1 run=$2 dest=$3 curve=$4
-  shift 4
+# train CONFIG RUN [rl train flags]: train CONFIG into RUN, or resume it (a finished run is kept)
+train() {
+  local config=$1 run=$2
+  shift 2
   say "training $config into $run"
   if [ -f "$run/config.toml" ]; then
     "$BIN/rl" train --out "$run" --resume
   else
     "$BIN/rl" train --config "$config" "$@" --out "$run"
   fi
+}
+
+# ship RUN DEST CURVE: copy RUN's best/ checkpoint and its records into DEST, its curve to
+# $RESULTS/CURVE
+ship() {
+  local run=$1 dest=$2 curve=$3
   say "shipping best/ (the best evaluated checkpoint) into $dest"
   mkdir -p "$dest"
   cp "$run/best/policy.zip" "$run/best/vecnormalize.pkl" "$dest/"
@@ -65,15 +71,16 @@ train_and_ship() {
 }
 
 policy() {
-  train_and_ship configs/train_error_model_ppo.toml "$WORK/run_error_model_ppo" "$POLICY" \
-    training_curve.png
+  train configs/train_error_model_ppo.toml "$WORK/run_error_model_ppo"
+  ship "$WORK/run_error_model_ppo" "$POLICY" training_curve.png
 }
 
-scratch() {
-  local seed=${SEED:-0}
-  train_and_ship configs/scratch_error_model_precision_ppo.toml \
-    "$WORK/run_scratch_error_model_precision_ppo_s$seed" rl/policies/scratch_error_model_ppo \
-    training_curve_scratch.png --seed "$seed"
+scratch() {  # stage 1: PPO from scratch; stage 2: its best/ fine-tuned (collision penalty 30)
+  local seed=${SEED:-0} w=$WORK/run_scratch_error_model_precision_ppo_s${SEED:-0}
+  train configs/scratch_error_model_precision_ppo.toml "$w" --seed "$seed"
+  train configs/scratch_error_model_precision_soft_ppo.toml "${w}_soft" --seed "$seed" \
+    --init-policy "$w/best"
+  ship "${w}_soft" rl/policies/scratch_error_model_ppo training_curve_scratch.png
 }
 
 EM=rl/models/error_model_clear_tank_480.json  # the error model the shipped policy trained on
