@@ -76,7 +76,8 @@ policy() {
 }
 
 scratch() {  # stage 1: PPO from scratch; stage 2: its best/ fine-tuned (collision penalty 30)
-  local seed=${SEED:-0} w=$WORK/run_scratch_error_model_precision_ppo_s${SEED:-0}
+  local seed=${SEED:-0}
+  local w=$WORK/run_scratch_error_model_precision_ppo_s$seed
   train configs/scratch_error_model_precision_ppo.toml "$w" --seed "$seed"
   train configs/scratch_error_model_precision_soft_ppo.toml "${w}_soft" --seed "$seed" \
     --init-policy "$w/best"

@@ -4,7 +4,7 @@ from pathlib import Path
 
 import pytest
 
-from uwdock.dockcore.config import load_config
+from uwdock.dockcore.config import load_config, replace
 from uwdock.rl.config import check_env_files
 from uwdock.rl.train import TrainConfig
 
@@ -33,10 +33,6 @@ def test_stage_two_only_raises_the_collision_penalty():
     assert one.env.reward.collision_penalty == 10.0
     assert two.env.reward.collision_penalty == 30.0
     assert two.curriculum.steps == 0
-    r1 = {k: v for k, v in vars(one.env.reward).items() if k != "collision_penalty"}
-    r2 = {k: v for k, v in vars(two.env.reward).items() if k != "collision_penalty"}
-    assert r1 == r2
-    assert {k: v for k, v in vars(one.env).items() if k != "reward"} == {
-        k: v for k, v in vars(two.env).items() if k != "reward"
-    }
+    reward_one = replace(two.env.reward, collision_penalty=one.env.reward.collision_penalty)
+    assert replace(two.env, reward=reward_one) == one.env
     assert one.ppo == two.ppo
