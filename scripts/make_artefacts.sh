@@ -11,8 +11,9 @@
 # Seeds and data: datasets `datasets synth --n 2500 --water clear_tank --seed 0` at 480 and 640 px
 # (their SHA-256 is recorded in each error model); training `configs/train_error_model_ppo.toml`
 # (seed 0); training `configs/scratch_error_model_precision_ppo.toml` then
-# `configs/scratch_error_model_precision_soft_ppo.toml` from its best/ (seed SEED, default 0;
-# not yet shipped: see README "Learning to dock from scratch"); evaluations on episode seeds 1000-1099.
+# `configs/scratch_error_model_precision_soft_ppo.toml` from its best/ (seed SEED, default 1: the
+# seed shipped, recorded in bench/results/scratch_runs/error_model_precision{,_soft}_s1);
+# evaluations on episode seeds 1000-1099.
 # WORK (default /tmp/uwdock-artefacts) holds the datasets, the run folder and the evaluation
 # folders; an interrupted stage resumes there.
 set -euo pipefail
@@ -76,7 +77,7 @@ policy() {
 }
 
 scratch() {  # stage 1: PPO from scratch; stage 2: its best/ fine-tuned (collision penalty 30)
-  local seed=${SEED:-0}
+  local seed=${SEED:-1}
   local w=$WORK/run_scratch_error_model_precision_ppo_s$seed
   train configs/scratch_error_model_precision_ppo.toml "$w" --seed "$seed"
   train configs/scratch_error_model_precision_soft_ppo.toml "${w}_soft" --seed "$seed" \
