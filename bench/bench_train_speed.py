@@ -1,0 +1,99 @@
+"""Training throughput: environment steps per second of a training recipe, by number of envs.
+
+Usage::
+
+    python bench/bench_train_speed.py [--config configs/scratch_error_model_precision_ppo.toml]
+        [--envs 2] [--rollouts 8] [--repeats 3] [--seed 1] [--name train_speed]
+
+Each measurement trains the recipe (``rl.train.train``, no progress bar) from scratch in a
+temporary run folder for ``rollouts`` PPO rollouts of ``n_steps x n_envs`` steps, with the
+periodic evaluation and checkpoints switched off, and times the whole call (environment worker
+start included). The table gives the median, min and max steps/s over ``repeats`` runs per env
+count, and the hours the recipe's ``total_steps`` would take at the median (stepping and PPO
+updates only: the recipe's own evaluations come on top). More envs than the recipe's
+``n_envs`` change the recipe (larger batches per update): those rows measure the machine, not a
+validated recipe.
+
+Writes ``bench/results/<name>.json`` (rows + machine, commit, packages).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from uwdock.dockcore.bench import format_table, save_results
+from uwdock.dockcore.config import load_config, replace
+from uwdock.rl.train import TrainConfig, train
+
+OFF = 10**12  # an evaluation / checkpoint interval no run reaches
+
+
+def measure(cfg: TrainConfig, envs: int, rollouts: int) -> tuple[int, float]:
+    """Train ``rollouts`` rollouts with ``envs`` envs; returns (steps, wall seconds)."""
+    steps = rollouts * cfg.ppo.n_steps * envs
+    run_cfg = replace(cfg, n_envs=envs, total_steps=steps, eval_every=OFF, checkpoint_every=OFF)
+    with tempfile.TemporaryDirectory(prefix="bench_train_") as tmp:
+        t0 = time.perf_counter()
+        train(run_cfg, Path(tmp) / "run", progress=False, note=lambda _msg: None)
+        return steps, time.perf_counter() - t0
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--config", default="configs/scratch_error_model_precision_ppo.toml")
+    ap.add_argument("--envs", default=None, help="comma-separated env counts [the recipe's]")
+    ap.add_argument("--rollouts", type=int, default=8)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--name", default="train_speed")
+    ap.add_argument("--out-dir", type=Path, default=None)
+    a = ap.parse_args()
+    if a.rollouts < 1 or a.repeats < 1:
+        sys.exit("error: --rollouts and --repeats must be at least 1")
+    cfg = replace(load_config(TrainConfig, a.config, section="train"), seed=a.seed)
+    env_counts = [int(e) for e in a.envs.split(",")] if a.envs else [cfg.n_envs]
+    rows = []
+    for envs in env_counts:
+        rates = []
+        for k in range(a.repeats):
+            steps, wall_s = measure(cfg, envs, a.rollouts)
+            rates.append(steps / wall_s)
+            print(
+                f"envs {envs}, run {k + 1}/{a.repeats}: {steps:,} steps in {wall_s:.1f} s "
+                f"({rates[-1]:.0f} steps/s)",
+                flush=True,
+            )
+        med = statistics.median(rates)
+        rows.append(
+            {
+                "envs": envs,
+                "recipe": envs == cfg.n_envs,
+                "steps_per_run": a.rollouts * cfg.ppo.n_steps * envs,
+                "steps_per_s_median": med,
+                "steps_per_s_min": min(rates),
+                "steps_per_s_max": max(rates),
+                "recipe_total_steps_h": cfg.total_steps / med / 3600.0,
+            }
+        )
+    print(format_table(rows, list(rows[0])))
+    bench_cfg = {
+        "config": a.config,
+        "seed": a.seed,
+        "rollouts": a.rollouts,
+        "repeats": a.repeats,
+        "n_steps": cfg.ppo.n_steps,
+        "recipe_n_envs": cfg.n_envs,
+        "recipe_total_steps": cfg.total_steps,
+    }
+    print("wrote", save_results(a.name, rows, bench_cfg, a.out_dir))
+
+
+if __name__ == "__main__":
+    main()
