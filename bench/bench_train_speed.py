@@ -32,7 +32,7 @@ from uwdock.dockcore.bench import format_table, save_results
 from uwdock.dockcore.config import load_config, replace
 from uwdock.rl.train import TrainConfig, train
 
-OFF = 10**12  # an evaluation / checkpoint interval no run reaches
+OFF = 10**9  # an evaluation / checkpoint interval no run reaches
 
 
 def measure(cfg: TrainConfig, envs: int, rollouts: int) -> tuple[int, float]:
