@@ -6,11 +6,14 @@ Usage::
         [--envs 2] [--rollouts 8] [--repeats 3] [--seed 1] [--name train_speed]
 
 Each measurement trains the recipe (``rl.train.train``, no progress bar) from scratch in a
-temporary run folder for ``rollouts`` PPO rollouts of ``n_steps x n_envs`` steps, with the
-periodic evaluation and checkpoints switched off, and times the whole call (environment worker
-start included). The table gives the median, min and max steps/s over ``repeats`` runs per env
-count, and the hours the recipe's ``total_steps`` would take at the median (stepping and PPO
-updates only: the recipe's own evaluations come on top). More envs than the recipe's
+temporary run folder, in a fresh process (a process that has started SAPIEN cannot fork
+working env workers on a GPU's Vulkan driver), with the periodic evaluation and checkpoints
+switched off: once for one PPO rollout of ``n_steps x n_envs`` steps and once for ``rollouts``
+rollouts. The difference gives the steady rate (steps/s of stepping and PPO updates) and the
+start cost (processes, SAPIEN, the first observations). The table gives the median, min and max
+of the steady rate over ``repeats`` pairs per env count, the median start cost, and the hours
+the recipe's ``total_steps`` would take at the median (the recipe's own evaluations come on
+top). More envs than the recipe's
 ``n_envs`` change the recipe (larger batches per update): those rows measure the machine, not a
 validated recipe.
 
@@ -20,6 +23,7 @@ Writes ``bench/results/<name>.json`` (rows + machine, commit, packages).
 from __future__ import annotations
 
 import argparse
+import multiprocessing
 import statistics
 import sys
 import tempfile
@@ -35,7 +39,7 @@ from uwdock.rl.train import TrainConfig, train
 OFF = 10**9  # an evaluation / checkpoint interval no run reaches
 
 
-def measure(cfg: TrainConfig, envs: int, rollouts: int) -> tuple[int, float]:
+def _measure(cfg: TrainConfig, envs: int, rollouts: int) -> tuple[int, float]:
     """Train ``rollouts`` rollouts with ``envs`` envs; returns (steps, wall seconds)."""
     steps = rollouts * cfg.ppo.n_steps * envs
     run_cfg = replace(cfg, n_envs=envs, total_steps=steps, eval_every=OFF, checkpoint_every=OFF)
@@ -43,6 +47,22 @@ def measure(cfg: TrainConfig, envs: int, rollouts: int) -> tuple[int, float]:
         t0 = time.perf_counter()
         train(run_cfg, Path(tmp) / "run", progress=False, note=lambda _msg: None)
         return steps, time.perf_counter() - t0
+
+
+def _child(cfg: TrainConfig, envs: int, rollouts: int, out: multiprocessing.Queue) -> None:
+    out.put(_measure(cfg, envs, rollouts))
+
+
+def measure(cfg: TrainConfig, envs: int, rollouts: int) -> tuple[int, float]:
+    """:func:`_measure` in a fresh (spawned, non-daemonic: it starts env workers) process."""
+    ctx = multiprocessing.get_context("spawn")
+    out = ctx.Queue()
+    proc = ctx.Process(target=_child, args=(cfg, envs, rollouts, out))
+    proc.start()
+    proc.join()
+    if proc.exitcode != 0:
+        sys.exit(f"error: the measurement with {envs} envs failed (exit {proc.exitcode})")
+    return out.get()
 
 
 def main() -> None:
@@ -55,19 +75,21 @@ def main() -> None:
     ap.add_argument("--name", default="train_speed")
     ap.add_argument("--out-dir", type=Path, default=None)
     a = ap.parse_args()
-    if a.rollouts < 1 or a.repeats < 1:
-        sys.exit("error: --rollouts and --repeats must be at least 1")
+    if a.rollouts < 2 or a.repeats < 1:
+        sys.exit("error: --rollouts must be at least 2 and --repeats at least 1")
     cfg = replace(load_config(TrainConfig, a.config, section="train"), seed=a.seed)
     env_counts = [int(e) for e in a.envs.split(",")] if a.envs else [cfg.n_envs]
     rows = []
     for envs in env_counts:
-        rates = []
+        rates, starts = [], []
         for k in range(a.repeats):
+            steps_1, wall_1 = measure(cfg, envs, 1)
             steps, wall_s = measure(cfg, envs, a.rollouts)
-            rates.append(steps / wall_s)
+            rates.append((steps - steps_1) / (wall_s - wall_1))
+            starts.append(wall_1 - steps_1 / rates[-1])
             print(
-                f"envs {envs}, run {k + 1}/{a.repeats}: {steps:,} steps in {wall_s:.1f} s "
-                f"({rates[-1]:.0f} steps/s)",
+                f"envs {envs}, pair {k + 1}/{a.repeats}: {steps_1:,} steps in {wall_1:.1f} s, "
+                f"{steps:,} in {wall_s:.1f} s: {rates[-1]:.0f} steps/s, start {starts[-1]:.1f} s",
                 flush=True,
             )
         med = statistics.median(rates)
@@ -79,6 +101,7 @@ def main() -> None:
                 "steps_per_s_median": med,
                 "steps_per_s_min": min(rates),
                 "steps_per_s_max": max(rates),
+                "start_s_median": statistics.median(starts),
                 "recipe_total_steps_h": cfg.total_steps / med / 3600.0,
             }
         )
