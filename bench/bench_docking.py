@@ -26,9 +26,14 @@ harder rows (``--stress-episodes``, camera in the loop):
     thrusters         thruster placement off by up to 5 cm and 5 deg (training: 1 cm, 2 deg)
     all               all of the above at once, in coastal water
 
-Success rates carry Wilson 95 % intervals (scipy). Writes ``bench/results/<name>.json`` (rows,
-config, machine, commit; rewritten after every cell, ``complete`` false until the last) and
-``<name>.png`` (strict success per condition, policy beside PID).
+Success rates carry Wilson 95 % intervals (scipy). Each row keeps its episodes' outcomes
+(``per_episode``), and every other camera row is compared with the ``camera`` row of the same
+controller on the episodes both flew (the same seeds): the change in strict success with an
+exact McNemar test on the discordant episodes, and the paired change in time to dock over the
+episodes both docked, with a bootstrap 95 % interval (``paired_vs_camera`` in the JSON).
+Writes ``bench/results/<name>.json`` (rows, config, machine, commit; rewritten after every
+cell, ``complete`` false until the last) and ``<name>.png`` (strict success per condition,
+policy beside PID).
 """
 
 from __future__ import annotations
@@ -152,7 +157,64 @@ def run_row(row: Row, controller: str, cfg: EnvConfig, episodes: int, seed: int,
         "final_e_xy_m_median": s["final_e_xy_m_median"],
         "final_e_yaw_deg_median": s["final_e_yaw_deg_median"],
         "wall_s": time.perf_counter() - t0,
-    }
+        "per_episode": [
+            {k: e[k] for k in ("episode", "success_strict", "success", "time_to_dock_s",
+                               "collisions")}
+            for e in res.episodes
+        ],
+    }  # fmt: skip
+
+
+def paired_vs_camera(rows: list[dict[str, Any]], ref: str = "camera") -> list[dict[str, Any]]:
+    """Each camera row against the ``ref`` row of the same controller, episode by episode.
+
+    ``strict_change``: strict success of the row minus the reference's on the common episodes,
+    with the exact McNemar p-value (binomial test on the episodes where exactly one docked).
+    ``time_change_s``: mean paired change in time to dock over the episodes both docked
+    (strict), with a percentile bootstrap 95 % interval (10,000 resamples, seed 0).
+    """
+    import numpy as np
+    from scipy.stats import binomtest, bootstrap
+
+    out = []
+    for r in rows:
+        base = next(
+            (b for b in rows if b["condition"] == ref and b["controller"] == r["controller"]),
+            None,
+        )
+        if base is None or r is base or r["obs"] != "camera":
+            continue
+        a = {e["episode"]: e for e in base["per_episode"]}
+        common = [(a[e["episode"]], e) for e in r["per_episode"] if e["episode"] in a]
+        if not common:
+            continue
+        gained = sum(1 for x, y in common if y["success_strict"] and not x["success_strict"])
+        lost = sum(1 for x, y in common if x["success_strict"] and not y["success_strict"])
+        p = binomtest(gained, gained + lost).pvalue if gained + lost else 1.0
+        dt = np.array([
+            y["time_to_dock_s"] - x["time_to_dock_s"]
+            for x, y in common
+            if x["success_strict"] and y["success_strict"]
+            and x["time_to_dock_s"] is not None and y["time_to_dock_s"] is not None
+        ])  # fmt: skip
+        if len(dt) >= 2 and np.ptp(dt) > 0:
+            ci = bootstrap((dt,), np.mean, n_resamples=10_000, method="percentile",
+                           random_state=0).confidence_interval  # fmt: skip
+            dt_ci = (float(ci.low), float(ci.high))
+        else:
+            dt_ci = (float(dt.mean()), float(dt.mean())) if len(dt) else (None, None)
+        out.append({
+            "condition": r["condition"],
+            "controller": r["controller"],
+            "episodes": len(common),
+            "strict_change": (sum(y["success_strict"] for _, y in common)
+                              - sum(x["success_strict"] for x, _ in common)) / len(common),
+            "strict_mcnemar_p": p,
+            "both_docked": len(dt),
+            "time_change_s": float(dt.mean()) if len(dt) else None,
+            "time_change_ci95_s": dt_ci,
+        })  # fmt: skip
+    return out
 
 
 def plot(rows: list[dict[str, Any]], path: Path) -> None:
@@ -241,7 +303,12 @@ def main() -> None:
             save_results(a.name, results, {**config, "complete": False}, a.out_dir)  # so far
     cols = ["condition", "controller", "episodes", "strict", "paper", "time_to_dock_s"]
     print(format_table(results, [*cols, "collisions", "final_e_xy_m_median", "wall_s"]))
-    print(save_results(a.name, results, {**config, "complete": True}, a.out_dir))
+    paired = paired_vs_camera(results)
+    if paired:
+        print("against the camera row (clear tank), episode by episode:")
+        print(format_table(paired, list(paired[0])))
+    final = {**config, "complete": True, "paired_vs_camera": paired}
+    print(save_results(a.name, results, final, a.out_dir))
     if set(controllers) == {"policy", "pid"}:
         plot(results, a.out_dir / f"{a.name}.png")
 

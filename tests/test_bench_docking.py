@@ -1,0 +1,56 @@
+"""bench/bench_docking.py's paired comparison against the camera row, on hand-made episodes."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import pytest
+
+BENCH = Path(__file__).resolve().parent.parent / "bench" / "bench_docking.py"
+
+
+@pytest.fixture(scope="module")
+def bench():
+    spec = importlib.util.spec_from_file_location("bench_docking", BENCH)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["bench_docking"] = mod
+    spec.loader.exec_module(mod)
+    yield mod
+    sys.modules.pop("bench_docking", None)
+
+
+def _row(condition, outcomes, controller="policy", obs="camera"):
+    """outcomes: (docked strictly, time to dock or None) per episode 0, 1, ..."""
+    eps = [
+        {"episode": k, "success_strict": ok, "success": ok, "time_to_dock_s": t, "collisions": 0}
+        for k, (ok, t) in enumerate(outcomes)
+    ]
+    return {"condition": condition, "controller": controller, "obs": obs, "per_episode": eps}
+
+
+def test_paired_change_against_the_camera_row(bench):
+    camera = _row("camera", [(True, 10.0), (True, 11.0), (True, 12.0), (False, None)])
+    turbid = _row("turbid", [(True, 12.0), (False, None), (True, 13.0), (True, 14.0)])
+    pid_camera = _row("camera", [(True, 20.0)] * 4, controller="pid")
+    off = _row("camera off", [(False, None)] * 4, obs="acoustic")  # not a camera row
+    (p,) = bench.paired_vs_camera([camera, turbid, pid_camera, off])
+    assert p["condition"] == "turbid" and p["controller"] == "policy"
+    assert p["episodes"] == 4
+    assert p["strict_change"] == pytest.approx(0.0)  # one gained, one lost
+    assert p["strict_mcnemar_p"] == pytest.approx(1.0)
+    assert p["both_docked"] == 2  # episodes 0 and 2
+    assert p["time_change_s"] == pytest.approx(1.5)  # (2 + 1) / 2
+    lo, hi = p["time_change_ci95_s"]
+    assert 1.0 <= lo <= 1.5 <= hi <= 2.0
+
+
+def test_paired_change_only_on_common_episodes(bench):
+    camera = _row("camera", [(True, 10.0)] * 10)
+    coastal = _row("coastal", [(False, None)] * 3)  # 3 episodes: compared on episodes 0-2
+    (p,) = bench.paired_vs_camera([camera, coastal])
+    assert p["episodes"] == 3
+    assert p["strict_change"] == pytest.approx(-1.0)
+    assert p["strict_mcnemar_p"] == pytest.approx(0.25)  # 3 discordant, all one way: 2 x 1/8
+    assert p["both_docked"] == 0 and p["time_change_s"] is None
