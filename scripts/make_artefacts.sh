@@ -4,9 +4,9 @@
 # Run the stages in order and commit what each writes before the next:
 #
 #   bash scripts/make_artefacts.sh models    # rl/models/error_model_clear_tank_{480,640}.json
-#   bash scripts/make_artefacts.sh policy    # rl/policies/error_model_ppo/ (DAgger + PPO), docs/results/training_curve.png
-#   bash scripts/make_artefacts.sh scratch   # rl/policies/scratch_error_model_ppo/ (PPO from scratch), docs/results/training_curve_scratch.png
-#   bash scripts/make_artefacts.sh figures   # docs/results/ (evaluation summaries and figures)
+#   bash scripts/make_artefacts.sh policy    # rl/policies/error_model_ppo/ (DAgger + PPO, the option), docs/results/training_curve.png
+#   bash scripts/make_artefacts.sh scratch   # rl/policies/scratch_error_model_ppo/ (PPO from scratch, shipped), docs/results/training_curve_scratch.png
+#   bash scripts/make_artefacts.sh figures   # docs/results/ (evaluation summaries and figures of the shipped policy)
 #
 # Seeds and data: datasets `datasets synth --n 2500 --water clear_tank --seed 0` at 480 and 640 px
 # (their SHA-256 is recorded in each error model); training `configs/train_error_model_ppo.toml`
@@ -20,7 +20,8 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 BIN=${VENV:-.venv}/bin
 WORK=${WORK:-/tmp/uwdock-artefacts}
-POLICY=rl/policies/error_model_ppo
+DAGGER=rl/policies/error_model_ppo      # the DAgger + PPO option
+POLICY=rl/policies/scratch_error_model_ppo  # the shipped policy: PPO from scratch
 RESULTS=docs/results
 
 say() { printf '[artefacts] %s\n' "$*"; }
@@ -73,7 +74,7 @@ ship() {
 
 policy() {
   train configs/train_error_model_ppo.toml "$WORK/run_error_model_ppo"
-  ship "$WORK/run_error_model_ppo" "$POLICY" training_curve.png
+  ship "$WORK/run_error_model_ppo" "$DAGGER" training_curve.png
 }
 
 scratch() {  # stage 1: PPO from scratch; stage 2: its best/ fine-tuned (collision penalty 30)
@@ -82,10 +83,12 @@ scratch() {  # stage 1: PPO from scratch; stage 2: its best/ fine-tuned (collisi
   train configs/scratch_error_model_precision_ppo.toml "$w" --seed "$seed"
   train configs/scratch_error_model_precision_soft_ppo.toml "${w}_soft" --seed "$seed" \
     --init-policy "$w/best"
-  ship "${w}_soft" rl/policies/scratch_error_model_ppo training_curve_scratch.png
+  ship "${w}_soft" "$POLICY" training_curve_scratch.png
+  cp "$w/provenance.json" "$POLICY/stage1_provenance.json"  # stage 1's records beside stage 2's
+  cp "$w/eval_history.jsonl" "$POLICY/stage1_eval_history.jsonl"
 }
 
-EM=rl/models/error_model_clear_tank_480.json  # the error model the shipped policy trained on
+EM=rl/models/error_model_clear_tank_480_ar1.json  # the error model the shipped policy trained on
 
 evaluate() {  # evaluate NAME ARGS...: rl eval into $WORK/NAME, unless a finished one is there
   local name=$1
