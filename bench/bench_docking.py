@@ -176,12 +176,10 @@ def paired_vs_camera(rows: list[dict[str, Any]], ref: str = "camera") -> list[di
     import numpy as np
     from scipy.stats import binomtest, bootstrap
 
+    refs = {b["controller"]: b for b in rows if b["condition"] == ref}
     out = []
     for r in rows:
-        base = next(
-            (b for b in rows if b["condition"] == ref and b["controller"] == r["controller"]),
-            None,
-        )
+        base = refs.get(r["controller"])
         if base is None or r is base or r["obs"] != "camera":
             continue
         a = {e["episode"]: e for e in base["per_episode"]}
@@ -207,8 +205,7 @@ def paired_vs_camera(rows: list[dict[str, Any]], ref: str = "camera") -> list[di
             "condition": r["condition"],
             "controller": r["controller"],
             "episodes": len(common),
-            "strict_change": (sum(y["success_strict"] for _, y in common)
-                              - sum(x["success_strict"] for x, _ in common)) / len(common),
+            "strict_change": (gained - lost) / len(common),
             "strict_mcnemar_p": p,
             "both_docked": len(dt),
             "time_change_s": float(dt.mean()) if len(dt) else None,

@@ -13,9 +13,8 @@ rollouts. The difference gives the steady rate (steps/s of stepping and PPO upda
 start cost (processes, SAPIEN, the first observations). The table gives the median, min and max
 of the steady rate over ``repeats`` pairs per env count, the median start cost, and the hours
 the recipe's ``total_steps`` would take at the median (the recipe's own evaluations come on
-top). More envs than the recipe's
-``n_envs`` change the recipe (larger batches per update): those rows measure the machine, not a
-validated recipe.
+top). More envs than the recipe's ``n_envs`` change the recipe (larger batches per update):
+those rows measure the machine, not a validated recipe.
 
 Writes ``bench/results/<name>.json`` (rows + machine, commit, packages).
 """

@@ -1,6 +1,6 @@
 """Every training config shipped in configs/ loads, and the files it names are in the tree."""
 
-import os
+import json
 from pathlib import Path
 
 import pytest
@@ -42,8 +42,6 @@ def test_stage_two_only_raises_the_collision_penalty():
 def test_shipped_policy_is_the_from_scratch_recipe():
     """The shipped policy (the main job's) was trained by the committed stage-2 config, from a
     clean tree, from stage 1's best/, with no imitation, and loads as a finite policy."""
-    import json
-
     from uwdock.rl.policy_io import load_policy
 
     shipped = ROOT / "rl" / "policies" / "scratch_error_model_ppo"
@@ -57,7 +55,7 @@ def test_shipped_policy_is_the_from_scratch_recipe():
     assert cfg.imitation.teacher == "none"
     prov = json.loads((shipped / "provenance.json").read_text(encoding="utf-8"))
     assert prov["git"]["dirty"] is False and len(prov["git"]["commit"]) == 40
-    assert "--init-policy" in prov["command"] and "imitation.json" not in os.listdir(shipped)
+    assert "--init-policy" in prov["command"] and not (shipped / "imitation.json").exists()
     history = [json.loads(line) for line in (shipped / "eval_history.jsonl").open()]
     best = [r for r in history if r.get("best")][-1]
     assert best["success_rate_strict"] >= 0.9  # the kept checkpoint, on its 30 episodes
