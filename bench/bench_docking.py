@@ -165,10 +165,11 @@ def run_row(row: Row, controller: str, cfg: EnvConfig, episodes: int, seed: int,
     }  # fmt: skip
 
 
-def paired_vs_camera(rows: list[dict[str, Any]], ref: str = "camera") -> list[dict[str, Any]]:
-    """Each camera row against the ``ref`` row of the same controller, episode by episode.
+def paired_change(base: list[dict[str, Any]], other: list[dict[str, Any]]) -> dict[str, Any] | None:
+    """``other``'s episodes against ``base``'s, on the episodes both flew (same ``episode``
+    index, so the same seed); None if they share none.
 
-    ``strict_change``: strict success of the row minus the reference's on the common episodes,
+    ``strict_change``: strict success of ``other`` minus ``base``'s on the common episodes,
     with the exact McNemar p-value (binomial test on the episodes where exactly one docked).
     ``time_change_s``: mean paired change in time to dock over the episodes both docked
     (strict), with a percentile bootstrap 95 % interval (10,000 resamples, seed 0).
@@ -176,41 +177,49 @@ def paired_vs_camera(rows: list[dict[str, Any]], ref: str = "camera") -> list[di
     import numpy as np
     from scipy.stats import binomtest, bootstrap
 
+    a = {e["episode"]: e for e in base}
+    common = [(a[e["episode"]], e) for e in other if e["episode"] in a]
+    if not common:
+        return None
+    gained = sum(1 for x, y in common if y["success_strict"] and not x["success_strict"])
+    lost = sum(1 for x, y in common if x["success_strict"] and not y["success_strict"])
+    p = binomtest(gained, gained + lost).pvalue if gained + lost else 1.0
+    dt = np.array([
+        y["time_to_dock_s"] - x["time_to_dock_s"]
+        for x, y in common
+        if x["success_strict"] and y["success_strict"]
+        and x["time_to_dock_s"] is not None and y["time_to_dock_s"] is not None
+    ])  # fmt: skip
+    if len(dt) >= 2 and np.ptp(dt) > 0:
+        ci = bootstrap((dt,), np.mean, n_resamples=10_000, method="percentile",
+                       random_state=0).confidence_interval  # fmt: skip
+        dt_ci = (float(ci.low), float(ci.high))
+    else:
+        dt_ci = (float(dt.mean()), float(dt.mean())) if len(dt) else (None, None)
+    return {
+        "episodes": len(common),
+        "strict_change": (gained - lost) / len(common),
+        "strict_gained": gained,
+        "strict_lost": lost,
+        "strict_mcnemar_p": p,
+        "both_docked": len(dt),
+        "time_change_s": float(dt.mean()) if len(dt) else None,
+        "time_change_ci95_s": dt_ci,
+    }
+
+
+def paired_vs_camera(rows: list[dict[str, Any]], ref: str = "camera") -> list[dict[str, Any]]:
+    """Each camera row against the ``ref`` row of the same controller, episode by episode
+    (:func:`paired_change`)."""
     refs = {b["controller"]: b for b in rows if b["condition"] == ref}
     out = []
     for r in rows:
         base = refs.get(r["controller"])
         if base is None or r is base or r["obs"] != "camera":
             continue
-        a = {e["episode"]: e for e in base["per_episode"]}
-        common = [(a[e["episode"]], e) for e in r["per_episode"] if e["episode"] in a]
-        if not common:
-            continue
-        gained = sum(1 for x, y in common if y["success_strict"] and not x["success_strict"])
-        lost = sum(1 for x, y in common if x["success_strict"] and not y["success_strict"])
-        p = binomtest(gained, gained + lost).pvalue if gained + lost else 1.0
-        dt = np.array([
-            y["time_to_dock_s"] - x["time_to_dock_s"]
-            for x, y in common
-            if x["success_strict"] and y["success_strict"]
-            and x["time_to_dock_s"] is not None and y["time_to_dock_s"] is not None
-        ])  # fmt: skip
-        if len(dt) >= 2 and np.ptp(dt) > 0:
-            ci = bootstrap((dt,), np.mean, n_resamples=10_000, method="percentile",
-                           random_state=0).confidence_interval  # fmt: skip
-            dt_ci = (float(ci.low), float(ci.high))
-        else:
-            dt_ci = (float(dt.mean()), float(dt.mean())) if len(dt) else (None, None)
-        out.append({
-            "condition": r["condition"],
-            "controller": r["controller"],
-            "episodes": len(common),
-            "strict_change": (gained - lost) / len(common),
-            "strict_mcnemar_p": p,
-            "both_docked": len(dt),
-            "time_change_s": float(dt.mean()) if len(dt) else None,
-            "time_change_ci95_s": dt_ci,
-        })  # fmt: skip
+        change = paired_change(base["per_episode"], r["per_episode"])
+        if change is not None:
+            out.append({"condition": r["condition"], "controller": r["controller"], **change})
     return out
 
 

@@ -54,3 +54,23 @@ def test_paired_change_only_on_common_episodes(bench):
     assert p["strict_change"] == pytest.approx(-1.0)
     assert p["strict_mcnemar_p"] == pytest.approx(0.25)  # 3 discordant, all one way: 2 x 1/8
     assert p["both_docked"] == 0 and p["time_change_s"] is None
+
+
+def test_two_policies_compared_on_their_common_rows():
+    spec = importlib.util.spec_from_file_location(
+        "compare_docking", BENCH.parent / "compare_docking.py"
+    )
+    cmp = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(cmp)
+    a_cam = _row("camera", [(True, 10.0), (True, 10.0), (False, None), (True, 9.0)])
+    b_cam = _row("camera", [(True, 12.0), (False, None), (False, None), (True, 10.0)])
+    a_em = _row("error model", [(True, 8.0)] * 4, obs="error-model")
+    b_pid = _row("camera", [(True, 20.0)] * 4, controller="pid")  # not in the base file
+    for r, s in ((a_cam, 0.75), (b_cam, 0.5), (a_em, 1.0), (b_pid, 1.0)):
+        r.update(strict=s, paper=s, time_to_dock_s=None, collisions=0.0, episodes=4)
+    (row,) = cmp.compare({"rows": [a_cam, a_em]}, {"rows": [b_cam, b_pid]})
+    assert (row["condition"], row["controller"]) == ("camera", "policy")
+    assert row["base"]["strict"] == 0.75 and row["other"]["strict"] == 0.5
+    assert (row["strict_gained"], row["strict_lost"]) == (0, 1)
+    assert row["strict_change"] == pytest.approx(-0.25)
+    assert row["both_docked"] == 2 and row["time_change_s"] == pytest.approx(1.5)

@@ -1,0 +1,127 @@
+"""Two policies' docking benchmarks compared episode by episode (same rows, same seeds).
+
+Usage::
+
+    python bench/compare_docking.py BASE.json OTHER.json --name NAME [--label-base A]
+        [--label-other B] [--out-dir bench/results]
+
+``BASE.json`` and ``OTHER.json`` are outputs of ``bench/bench_docking.py`` (each row keeps its
+episodes' outcomes, ``per_episode``). For every (condition, controller) the two files share,
+and on the episodes both flew (the same episode index, so the same seed when both ran with the
+same ``--seed``), ``OTHER`` is compared with ``BASE``: the change in strict success with an exact
+McNemar test on the discordant episodes, and the paired change in time to dock over the episodes
+both docked, with a bootstrap 95 % interval (``paired_change`` of ``bench_docking.py``). Each
+output row also carries both sides' success, time to dock and collisions per episode, and the
+file records both inputs' commands, commits and seeds. Writes ``<out-dir>/<NAME>.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from uwdock.dockcore.bench import format_table, save_results
+
+HERE = Path(__file__).resolve().parent
+
+
+def _bench_docking():
+    spec = importlib.util.spec_from_file_location("bench_docking", HERE / "bench_docking.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _load(path: Path) -> dict[str, Any]:
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        sys.exit(f"error: {path}: not a readable benchmark JSON ({type(exc).__name__})")
+    rows = data.get("rows") if isinstance(data, dict) else None
+    if not isinstance(rows, list) or not all(isinstance(r, dict) for r in rows):
+        sys.exit(f"error: {path}: no rows (not an output of bench/bench_docking.py)")
+    return data
+
+
+def _side(row: dict[str, Any]) -> dict[str, Any]:
+    return {k: row.get(k) for k in ("episodes", "strict", "paper", "time_to_dock_s", "collisions")}
+
+
+def compare(base: dict[str, Any], other: dict[str, Any]) -> list[dict[str, Any]]:
+    """Rows of ``other`` against the same (condition, controller) rows of ``base``."""
+    paired_change = _bench_docking().paired_change
+    index = {(r.get("condition"), r.get("controller")): r for r in base["rows"]}
+    out = []
+    for r in other["rows"]:
+        b = index.get((r.get("condition"), r.get("controller")))
+        if b is None or "per_episode" not in b or "per_episode" not in r:
+            continue
+        change = paired_change(b["per_episode"], r["per_episode"])
+        if change is None:
+            continue
+        out.append({
+            "condition": r["condition"],
+            "controller": r["controller"],
+            "base": _side(b),
+            "other": _side(r),
+            **change,
+        })  # fmt: skip
+    return out
+
+
+def _source(path: Path, data: dict[str, Any], label: str) -> dict[str, Any]:
+    cfg = data.get("bench_config", {})
+    return {
+        "label": label,
+        "file": str(path),
+        "command": data.get("command"),
+        "git": data.get("git"),
+        "policy": cfg.get("policy"),
+        "seed": cfg.get("seed"),
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("base", type=Path, help="bench_docking.py JSON (the reference)")
+    ap.add_argument("other", type=Path, help="bench_docking.py JSON (compared with it)")
+    ap.add_argument("--name", required=True)
+    ap.add_argument("--label-base", default="base")
+    ap.add_argument("--label-other", default="other")
+    ap.add_argument("--out-dir", type=Path, default=HERE / "results")
+    a = ap.parse_args()
+    base, other = _load(a.base), _load(a.other)
+    seeds = (base.get("bench_config", {}).get("seed"), other.get("bench_config", {}).get("seed"))
+    if seeds[0] != seeds[1]:
+        sys.exit(f"error: the two benchmarks flew different seeds ({seeds[0]} vs {seeds[1]})")
+    rows = compare(base, other)
+    if not rows:
+        sys.exit("error: the two benchmarks share no (condition, controller) row with episodes")
+    flat = [
+        {
+            "condition": r["condition"],
+            "controller": r["controller"],
+            "episodes": r["episodes"],
+            f"strict {a.label_base}": r["base"]["strict"],
+            f"strict {a.label_other}": r["other"]["strict"],
+            "mcnemar_p": r["strict_mcnemar_p"],
+            "time_change_s": r["time_change_s"],
+        }
+        for r in rows
+    ]
+    print(format_table(flat, list(flat[0])))
+    config = {
+        "base": _source(a.base, base, a.label_base),
+        "other": _source(a.other, other, a.label_other),
+    }
+    print(save_results(a.name, rows, config, a.out_dir))
+
+
+if __name__ == "__main__":
+    main()
