@@ -3,7 +3,8 @@
 Usage::
 
     python bench/bench_train_speed.py [--config configs/scratch_error_model_precision_ppo.toml]
-        [--envs 2] [--rollouts 8] [--repeats 3] [--seed 1] [--name train_speed]
+        [--envs 2] [--rollouts 8] [--repeats 3] [--seed 1] [--init-policy POLICY]
+        [--name train_speed]
 
 Each measurement trains the recipe (``rl.train.train``, no progress bar) from scratch in a
 temporary run folder, in a fresh process (a process that has started SAPIEN cannot fork
@@ -14,7 +15,10 @@ start cost (processes, SAPIEN, the first observations). The table gives the medi
 of the steady rate over ``repeats`` pairs per env count, the median start cost, and the hours
 the recipe's ``total_steps`` would take at the median (the recipe's own evaluations come on
 top). More envs than the recipe's ``n_envs`` change the recipe (larger batches per update):
-those rows measure the machine, not a validated recipe.
+those rows measure the machine, not a validated recipe. ``--init-policy`` starts every run from
+a trained policy (``rl train --init-policy``): an early policy's episodes are mostly free flight
+far from the DS, a trained one's end in contact, which costs the physics more per step, so the
+two bracket a training run's mix.
 
 Writes ``bench/results/<name>.json`` (rows + machine, commit, packages).
 """
@@ -38,25 +42,28 @@ from uwdock.rl.train import TrainConfig, train
 OFF = 10**9  # an evaluation / checkpoint interval no run reaches
 
 
-def _measure(cfg: TrainConfig, envs: int, rollouts: int) -> tuple[int, float]:
-    """Train ``rollouts`` rollouts with ``envs`` envs; returns (steps, wall seconds)."""
+def _measure(
+    cfg: TrainConfig, envs: int, rollouts: int, init: str | None = None
+) -> tuple[int, float]:
+    """Train ``rollouts`` rollouts with ``envs`` envs (from policy ``init`` if given); returns
+    (steps, wall seconds)."""
     steps = rollouts * cfg.ppo.n_steps * envs
     run_cfg = replace(cfg, n_envs=envs, total_steps=steps, eval_every=OFF, checkpoint_every=OFF)
     with tempfile.TemporaryDirectory(prefix="bench_train_") as tmp:
         t0 = time.perf_counter()
-        train(run_cfg, Path(tmp) / "run", progress=False, note=lambda _msg: None)
+        train(run_cfg, Path(tmp) / "run", progress=False, init_policy=init, note=lambda _m: None)
         return steps, time.perf_counter() - t0
 
 
-def _child(cfg: TrainConfig, envs: int, rollouts: int, out: multiprocessing.Queue) -> None:
-    out.put(_measure(cfg, envs, rollouts))
+def _child(cfg: TrainConfig, envs: int, rollouts: int, init, out: multiprocessing.Queue) -> None:
+    out.put(_measure(cfg, envs, rollouts, init))
 
 
-def measure(cfg: TrainConfig, envs: int, rollouts: int) -> tuple[int, float]:
+def measure(cfg: TrainConfig, envs: int, rollouts: int, init: str | None = None):
     """:func:`_measure` in a fresh (spawned, non-daemonic: it starts env workers) process."""
     ctx = multiprocessing.get_context("spawn")
     out = ctx.Queue()
-    proc = ctx.Process(target=_child, args=(cfg, envs, rollouts, out))
+    proc = ctx.Process(target=_child, args=(cfg, envs, rollouts, init, out))
     proc.start()
     proc.join()
     if proc.exitcode != 0:
@@ -71,6 +78,7 @@ def main() -> None:
     ap.add_argument("--rollouts", type=int, default=8)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--init-policy", default=None, help="start every run from this policy")
     ap.add_argument("--name", default="train_speed")
     ap.add_argument("--out-dir", type=Path, default=None)
     a = ap.parse_args()
@@ -82,8 +90,8 @@ def main() -> None:
     for envs in env_counts:
         rates, starts = [], []
         for k in range(a.repeats):
-            steps_1, wall_1 = measure(cfg, envs, 1)
-            steps, wall_s = measure(cfg, envs, a.rollouts)
+            steps_1, wall_1 = measure(cfg, envs, 1, a.init_policy)
+            steps, wall_s = measure(cfg, envs, a.rollouts, a.init_policy)
             rates.append((steps - steps_1) / (wall_s - wall_1))
             starts.append(wall_1 - steps_1 / rates[-1])
             print(
@@ -108,6 +116,7 @@ def main() -> None:
     bench_cfg = {
         "config": a.config,
         "seed": a.seed,
+        "init_policy": a.init_policy,
         "rollouts": a.rollouts,
         "repeats": a.repeats,
         "n_steps": cfg.ppo.n_steps,
