@@ -74,3 +74,19 @@ def test_two_policies_compared_on_their_common_rows():
     assert (row["strict_gained"], row["strict_lost"]) == (0, 1)
     assert row["strict_change"] == pytest.approx(-0.25)
     assert row["both_docked"] == 2 and row["time_change_s"] == pytest.approx(1.5)
+
+
+def test_summary_figure_collects_every_committed_source_once():
+    spec = importlib.util.spec_from_file_location(
+        "plot_docking_summary", BENCH.parent / "plot_docking_summary.py"
+    )
+    summary = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(summary)
+    rows = summary.collect()
+    keys = [(r["condition"], r["series"]) for r in rows]
+    assert len(keys) == len(set(keys))  # one row per condition and series
+    assert {r["file"] for r in rows} == {name for _, name in summary.SOURCES}  # all used
+    for r in rows:
+        lo, hi = r["strict_ci95"]
+        assert 0 <= lo <= r["strict"] <= hi <= 1 and r["episodes"] >= 30
+        assert r["seed"] == 50000  # the held-out episodes, every row
