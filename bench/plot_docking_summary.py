@@ -36,10 +36,13 @@ SOURCES: tuple[tuple[str, str], ...] = (
     ("seed 0", "docking_scratch_soft_camera_off.json"),
     ("seed 0", "docking_water_soft_policy.json"),
     ("seed 0", "docking_hard_soft_policy.json"),
+    ("seed 0", "docking_fill_s0.json"),
     ("seed 1 (shipped)", "docking_water_shipped.json"),
     ("seed 1 (shipped)", "docking_hard_shipped.json"),
+    ("seed 1 (shipped)", "docking_fill_s1.json"),
     ("seed 2", "docking_scratch_soft_camera_s2.json"),
     ("seed 2", "docking_hard_s2.json"),
+    ("seed 2", "docking_fill_s2.json"),
 )
 
 CONDITIONS = (
