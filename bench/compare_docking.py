@@ -2,17 +2,18 @@
 
 Usage::
 
-    python bench/compare_docking.py BASE.json OTHER.json --name NAME [--label-base A]
-        [--label-other B] [--out-dir bench/results]
+    python bench/compare_docking.py --base BASE.json [BASE2.json ...] --other OTHER.json [...]
+        --name NAME [--label-base A] [--label-other B] [--out-dir bench/results]
 
-``BASE.json`` and ``OTHER.json`` are outputs of ``bench/bench_docking.py`` (each row keeps its
-episodes' outcomes, ``per_episode``). For every (condition, controller) the two files share,
+The files are outputs of ``bench/bench_docking.py`` (each row keeps its episodes' outcomes,
+``per_episode``); each side's rows are pooled over its files (a condition and controller in
+two files of one side is refused). For every (condition, controller) the two sides share,
 and on the episodes both flew (the same episode index, so the same seed when both ran with the
 same ``--seed``), ``OTHER`` is compared with ``BASE``: the change in strict success with an exact
 McNemar test on the discordant episodes, and the paired change in time to dock over the episodes
 both docked, with a bootstrap 95 % interval (``paired_change`` of ``bench_docking.py``). Each
 output row also carries both sides' success, time to dock and collisions per episode, and the
-file records both inputs' commands, commits and seeds. Writes ``<out-dir>/<NAME>.json``.
+file records every input's command, commit and seed. Writes ``<out-dir>/<NAME>.json``.
 """
 
 from __future__ import annotations
@@ -38,6 +39,21 @@ def _bench_docking():
     return mod
 
 
+def _load_side(paths: list[Path]) -> dict[str, Any]:
+    """The files of one side: their rows pooled, each tagged with its file."""
+    rows, seen, sources = [], {}, []
+    for path in paths:
+        data = _load(path)
+        for r in data["rows"]:
+            key = (r.get("condition"), r.get("controller"))
+            if key in seen:
+                sys.exit(f"error: {key[0]!r} / {key[1]!r} is in both {seen[key]} and {path}")
+            seen[key] = path
+            rows.append({**r, "file": str(path)})
+        sources.append((path, data))
+    return {"rows": rows, "sources": sources}
+
+
 def _load(path: Path) -> dict[str, Any]:
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
@@ -50,7 +66,8 @@ def _load(path: Path) -> dict[str, Any]:
 
 
 def _side(row: dict[str, Any]) -> dict[str, Any]:
-    return {k: row.get(k) for k in ("episodes", "strict", "paper", "time_to_dock_s", "collisions")}
+    keys = ("file", "episodes", "strict", "paper", "time_to_dock_s", "collisions")
+    return {k: row.get(k) for k in keys}
 
 
 def compare(base: dict[str, Any], other: dict[str, Any]) -> list[dict[str, Any]]:
@@ -89,20 +106,21 @@ def _source(path: Path, data: dict[str, Any], label: str) -> dict[str, Any]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("base", type=Path, help="bench_docking.py JSON (the reference)")
-    ap.add_argument("other", type=Path, help="bench_docking.py JSON (compared with it)")
+    ap.add_argument("--base", type=Path, nargs="+", required=True, help="the reference side")
+    ap.add_argument("--other", type=Path, nargs="+", required=True, help="compared with it")
     ap.add_argument("--name", required=True)
     ap.add_argument("--label-base", default="base")
     ap.add_argument("--label-other", default="other")
     ap.add_argument("--out-dir", type=Path, default=HERE / "results")
     a = ap.parse_args()
-    base, other = _load(a.base), _load(a.other)
-    seeds = (base.get("bench_config", {}).get("seed"), other.get("bench_config", {}).get("seed"))
-    if seeds[0] != seeds[1]:
-        sys.exit(f"error: the two benchmarks flew different seeds ({seeds[0]} vs {seeds[1]})")
+    base, other = _load_side(a.base), _load_side(a.other)
+    seeds = {d.get("bench_config", {}).get("seed") for side in (base, other)
+             for _, d in side["sources"]}  # fmt: skip
+    if len(seeds) != 1:
+        sys.exit(f"error: the benchmarks flew different seeds ({sorted(map(str, seeds))})")
     rows = compare(base, other)
     if not rows:
-        sys.exit("error: the two benchmarks share no (condition, controller) row with episodes")
+        sys.exit("error: the two sides share no (condition, controller) row with episodes")
     flat = [
         {
             "condition": r["condition"],
@@ -117,8 +135,8 @@ def main() -> None:
     ]
     print(format_table(flat, list(flat[0])))
     config = {
-        "base": _source(a.base, base, a.label_base),
-        "other": _source(a.other, other, a.label_other),
+        "base": [_source(p, d, a.label_base) for p, d in base["sources"]],
+        "other": [_source(p, d, a.label_other) for p, d in other["sources"]],
     }
     print(save_results(a.name, rows, config, a.out_dir))
 

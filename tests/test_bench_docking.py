@@ -90,3 +90,24 @@ def test_summary_figure_collects_every_committed_source_once():
         lo, hi = r["strict_ci95"]
         assert 0 <= lo <= r["strict"] <= hi <= 1 and r["episodes"] >= 30
         assert r["seed"] == 50000  # the held-out episodes, every row
+
+
+def test_comparison_pools_a_side_over_files_and_refuses_a_row_twice(tmp_path):
+    import json
+
+    spec = importlib.util.spec_from_file_location(
+        "compare_docking", BENCH.parent / "compare_docking.py"
+    )
+    cmp = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(cmp)
+    cam, em = _row("camera", [(True, 10.0)]), _row("error model", [(True, 9.0)], obs="error-model")
+    files = []
+    for name, rows in (("a", [cam]), ("b", [em]), ("c", [cam])):
+        files.append(tmp_path / f"{name}.json")
+        files[-1].write_text(json.dumps({"rows": rows, "bench_config": {"seed": 50000}}))
+    side = cmp._load_side(files[:2])
+    assert [(r["condition"], r["file"]) for r in side["rows"]] == [
+        ("camera", str(files[0])), ("error model", str(files[1]))
+    ]  # fmt: skip
+    with pytest.raises(SystemExit, match="in both"):
+        cmp._load_side([files[0], files[2]])
