@@ -33,9 +33,13 @@ HERE = Path(__file__).resolve().parent
 
 
 def _bench_docking():
-    spec = importlib.util.spec_from_file_location("bench_docking", HERE / "bench_docking.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    """``bench/bench_docking.py`` as a module (registered first: its dataclasses need it)."""
+    mod = sys.modules.get("bench_docking")
+    if mod is None:
+        spec = importlib.util.spec_from_file_location("bench_docking", HERE / "bench_docking.py")
+        mod = importlib.util.module_from_spec(spec)
+        sys.modules["bench_docking"] = mod
+        spec.loader.exec_module(mod)
     return mod
 
 
