@@ -37,6 +37,7 @@ Example:
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -360,6 +361,9 @@ def wrap_angle_rad(a: Any) -> Any:
     Returns:
         float for a scalar input, float64 array of the same shape otherwise.
     """
+    if type(a) is float:  # the scalar path: Python's % is np.mod's fmod-and-adjust, bit for bit
+        out_f = (a + math.pi) % (2.0 * math.pi) - math.pi
+        return out_f - 2.0 * math.pi if out_f >= math.pi else out_f
     arr = np.asarray(a, dtype=np.float64)
     out = np.mod(arr + np.pi, 2.0 * np.pi) - np.pi
     # np.mod can round up to exactly 2*pi for inputs a hair below pi: keep the half-open range.

@@ -87,8 +87,11 @@ class DockingTaskConfig:
 
 
 def yaw_of(T: np.ndarray) -> float:
-    """Yaw (rad, ZYX convention) of the rotation of a 4x4 pose."""
-    return rpy_from_R(T[:3, :3])[2]
+    """Yaw (rad, ZYX convention) of the rotation of a 4x4 pose (``rpy_from_R``'s yaw, computed
+    alone: this runs several times per env step)."""
+    if math.hypot(T[2, 1], T[2, 2]) < 1e-9:  # gimbal lock: rpy_from_R's convention
+        return rpy_from_R(T[:3, :3])[2]
+    return math.atan2(T[1, 0], T[0, 0])
 
 
 def docking_errors(

@@ -325,3 +325,12 @@ def test_ned_zup_pose_round_trip_and_down_is_minus_z():
         F.transform_points(F.T_WORLDZUP_WORLDNED @ T_ned_frd, p_frd),
         atol=1e-12,
     )
+
+
+def test_wrap_angle_scalar_path_is_the_array_path_bit_for_bit():
+    rng = np.random.default_rng(0)
+    edges = [math.pi, -math.pi, 0.0, -0.0, math.nextafter(math.pi, 0.0), 3 * math.pi, -7.0]
+    xs = np.concatenate([rng.uniform(-50.0, 50.0, 20000), edges])
+    scalar = np.array([F.wrap_angle_rad(float(x)) for x in xs])
+    np.testing.assert_array_equal(scalar, F.wrap_angle_rad(xs))
+    assert np.all((scalar >= -math.pi) & (scalar < math.pi))
