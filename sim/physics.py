@@ -384,7 +384,7 @@ class VehicleBody:
         get_v = comp.get_linear_velocity
         get_w = comp.get_angular_velocity
         add = comp.add_force_torque
-        step = self.scene.step
+        step = self.scene.physx_system.step  # what scene.step() calls, without its Python frame
         P, B = self._P, self._B
         v = w = np.zeros(3)
         for k in range(n):
