@@ -8,7 +8,9 @@ training envs are reset with seeds drawn from ``(seed, step)`` (episodes in flig
 truncation, which PPO has already bootstrapped with the value of the last observation), then
 the unit is written. A resumed run loads the unit and resets its fresh envs with the same
 seeds, so learner, normalisation, random generators and envs are all where they were.
-Evaluations run at boundaries too, on their own envs with fixed seeds.
+Evaluations run at boundaries too, on their own envs with fixed seeds: with several training
+envs, in the env workers (:class:`rl.workers.EvalJob`), a share each, the same rows as in one
+process.
 """
 
 from __future__ import annotations
@@ -33,8 +35,9 @@ from uwdock.rl.checkpoint import (
     write_unit,
 )
 from uwdock.rl.curriculum import curriculum_level, curriculum_z_end
-from uwdock.rl.evaluate import run_episodes
+from uwdock.rl.evaluate import run_episodes, summarise
 from uwdock.rl.report import plot_eval_history
+from uwdock.rl.workers import EvalJob
 
 HISTORY = "eval_history.jsonl"
 EVAL_SEED = 10_000
@@ -167,14 +170,7 @@ class TrainingSession:
     def evaluate(self, step: int) -> dict[str, Any]:
         """Evaluate the deterministic policy on the fixed episodes; keep it in ``best/`` when
         it scores higher (success that ends the episode, then the other, then the return)."""
-        summary = run_episodes(
-            self.model,
-            self.cfg.env,
-            self.cfg.eval_episodes,
-            seed=EVAL_SEED,
-            vecnorm=self.vecnorm,
-            record=False,
-        ).summary
+        summary = summarise(self._eval_rows())
         logger = getattr(self.model, "_logger", None)
         if logger is not None:
             for k in ("success_rate", "success_rate_strict", "mean_time_to_dock_s"):
@@ -197,6 +193,28 @@ class TrainingSession:
         self.history.append(record)
         self._write_history()
         return record
+
+    def _eval_rows(self) -> list[dict[str, Any]]:
+        """The evaluation episodes' rows: in the env workers when there are several, else here."""
+        from stable_baselines3.common.vec_env import SubprocVecEnv
+
+        raw_venv = self.vecnorm.venv if self.vecnorm is not None else self.model.get_env()
+        n = self.cfg.eval_episodes
+        if not isinstance(raw_venv, SubprocVecEnv):
+            return run_episodes(
+                self.model, self.cfg.env, n, EVAL_SEED, vecnorm=self.vecnorm, record=False
+            ).episodes
+        job = EvalJob(
+            type(self.model),
+            model_bytes(self.model),
+            pickle_bytes(self.vecnorm) if self.vecnorm is not None else None,
+            self.cfg.env,
+            n,
+            EVAL_SEED,
+            raw_venv.num_envs,
+        )
+        parts = raw_venv.env_method("evaluate_share", job)
+        return sorted((r for p in parts for r in p), key=lambda r: r["episode"])
 
     # ------------------------------------------------------------------ files
 

@@ -8,13 +8,19 @@ What this adds to SB3's ``SubprocVecEnv``:
   the worker's traceback and ``Connection reset by peer``);
 * **no orphans**: workers die with the parent, whatever killed it
   (:func:`dockcore.procs.die_with_parent`), ignore SIGINT (the parent decides), and are
-  terminated if they do not close in time.
+  terminated if they do not close in time;
+* **the periodic evaluation on the workers**: ``evaluate_share`` runs a share of the evaluation
+  episodes in each worker (on an evaluation env of its own, never the training env), so the
+  evaluation takes the cores the rollouts use instead of one core while the workers wait. Every
+  episode has a fixed seed and a fresh PhysX system, so the rows equal one process's.
 """
 
 from __future__ import annotations
 
+import io
 import multiprocessing
 import os
+import pickle
 import signal
 import tempfile
 import time
@@ -26,6 +32,7 @@ from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.procs import die_with_parent
 from uwdock.rl.config import EnvConfig
 from uwdock.rl.env import DockingEnv
+from uwdock.rl.evaluate import SB3Controller, run_episodes
 
 
 class WorkerError(DockError):
@@ -60,7 +67,49 @@ def _guarded_env(env, error_file: str, index: int):
             except Exception as exc:
                 _report_and_exit(error_file, index, exc)
 
+        def evaluate_share(self, job: EvalJob) -> list[dict]:
+            """This worker's share of ``job``'s episodes (their rows)."""
+            try:
+                return job.rows(index)
+            except Exception as exc:
+                _report_and_exit(error_file, index, exc)
+
     return Guard(env)
+
+
+class EvalJob:
+    """Evaluation episodes of a policy snapshot, split between the env workers.
+
+    Args:
+        algo_cls: the SB3 algorithm class of the snapshot.
+        policy_zip: the model's bytes (:func:`rl.checkpoint.model_bytes`).
+        vecnorm_pkl: its pickled observation normalisation, or None.
+        env_cfg: the evaluation env.
+        n_episodes: episodes in all (episode k has seed ``seed + k``).
+        seed: seed of episode 0.
+        n_workers: how many workers share them (worker i runs i, i + n, ...).
+    """
+
+    def __init__(
+        self, algo_cls, policy_zip: bytes, vecnorm_pkl: bytes | None, env_cfg: EnvConfig,
+        n_episodes: int, seed: int, n_workers: int,
+    ) -> None:  # fmt: skip
+        self.algo_cls, self.policy_zip, self.vecnorm_pkl = algo_cls, policy_zip, vecnorm_pkl
+        self.env_cfg, self.n_episodes, self.seed, self.n_workers = (
+            env_cfg, n_episodes, seed, n_workers,
+        )  # fmt: skip
+
+    def share(self, index: int) -> list[int]:
+        return list(range(index, self.n_episodes, self.n_workers))
+
+    def rows(self, index: int) -> list[dict]:
+        model = self.algo_cls.load(io.BytesIO(self.policy_zip), device="cpu")
+        vecnorm = pickle.loads(self.vecnorm_pkl) if self.vecnorm_pkl is not None else None
+        res = run_episodes(
+            SB3Controller(model, vecnorm), self.env_cfg, self.n_episodes, self.seed,
+            record=False, episodes=self.share(index),
+        )  # fmt: skip
+        return res.episodes
 
 
 def _make_env_fn(

@@ -165,6 +165,17 @@ class VehicleBody:
         self.set_config(config, nominal_config)
         self.reset(np.eye(4))
 
+    def rebind(self, scene: sapien.Scene) -> None:
+        """Follow the vehicle's entity into ``scene`` (a world that moved its entities into a
+        fresh physics system, :meth:`uwdock.sim.world.DockingWorld.reset`); call
+        :meth:`reset` afterwards."""
+        if self.entity.scene is not scene:
+            raise ValueError("rebind: the vehicle's entity is not in that scene")
+        if float(scene.get_timestep()) != self.dt_s:
+            raise ValueError("rebind: the new scene has another timestep")
+        self.scene = scene
+        self._obstacles = StaticObstacles(scene, self.component)
+
     # ------------------------------------------------------------------ construction
 
     @staticmethod

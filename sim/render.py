@@ -171,7 +171,6 @@ class CameraRig:
         self.camera.validate()
         T_bc = REFERENCE_T_BODYFRD_CAMCV if T_bodyfrd_camcv is None else T_bodyfrd_camcv
         self.T_bodyfrd_camcv = check_T(T_bc, "T_bodyfrd_camcv")
-        self.scene = scene
         cam = self.camera
         try:  # SAPIEN parses the shader here and when the camera joins the scene
             self._component = sapien.render.RenderCameraComponent(
@@ -259,7 +258,7 @@ class CameraRig:
     ) -> RenderResult:
         """Render one frame from a vehicle pose or a camera pose (see :meth:`set_pose`)."""
         T = self.set_pose(T_worldned_bodyfrd, T_worldned_camcv=T_worldned_camcv)
-        self.scene.update_render()
+        self.entity.scene.update_render()  # the entity's scene: a world may move it to a new one
         self._component.take_picture()
         rgba = self._component.get_picture("Color")  # float32 (H, W, 4) in [0, 1]
         rgb = cv2.cvtColor(cv2.convertScaleAbs(rgba, alpha=255.0), cv2.COLOR_RGBA2RGB)

@@ -1,7 +1,11 @@
 """The simulated world of one docking env: SAPIEN scene, tank, docking station, AUV, currents,
 and the downward camera, composed once from a :class:`~uwdock.sim.world_config.WorldConfig`.
 
-Built once per env (scene construction is slow); :meth:`DockingWorld.reset` only moves things.
+Built once per env (scene construction is slow); :meth:`DockingWorld.reset` moves things, and
+gives the entities a fresh PhysX system: PhysX keeps contact state (pair caches, friction
+anchors) from one episode into the next, so without it an episode's contacts, and so its
+trajectory, depended on the episodes the process had run before (seen as run-to-run differences
+of the camera loop between one and two evaluation workers). Moving the entities costs ~1.5 ms.
 Without a camera the scene is physics-only (collision shapes, no Vulkan needed); with one, the
 tank, DS and markers are also visual and the downward camera (:class:`uwdock.sim.camera.SimCamera`,
 resolved by :func:`uwdock.calibration.camera.resolve_camera` from the config's camera file and
@@ -92,6 +96,7 @@ class DockingWorld:
     ) -> None:
         """Move the DS, draw the current, (optionally) the vehicle and the camera's mounting
         error, place the vehicle. Nothing is drawn for a zero range (same random stream)."""
+        self._fresh_physics()
         self.ds.set_pose(T_world_ds)
         self.current.reset(rng)
         if self.cfg.randomise_vehicle:
@@ -103,6 +108,25 @@ class DockingWorld:
             t_m = rng.uniform(-err_m, err_m, 3)
             rpy = np.radians(rng.uniform(-err_deg, err_deg, 3))
             self.set_camera_mount_error(make_T(R_from_rpy(*rpy), t_m))
+
+    def _fresh_physics(self) -> None:
+        """Move every entity into a new scene with a new PhysX system (same render system), so
+        no contact state survives from the last episode (module docstring)."""
+        old = self.scene
+        entities = list(old.entities)
+        for e in entities:
+            old.remove_entity(e)
+        systems: list = [sapien.physx.PhysxCpuSystem()]
+        if self.render_scene is not None:
+            systems.append(old.render_system)
+        scene = sapien.Scene(systems)
+        scene.set_timestep(old.timestep)
+        for e in entities:
+            scene.add_entity(e)
+        self.scene = scene
+        if self.render_scene is not None:
+            self.render_scene.scene = scene
+        self.vehicle.rebind(scene)
 
     def set_camera_mount_error(self, T_camcal_camtrue: np.ndarray) -> None:
         """Mount the camera off its calibration by ``T_camcal_camtrue`` (4, 4) until the next
