@@ -88,7 +88,9 @@ class DockingTaskConfig:
 
 def yaw_of(T: np.ndarray) -> float:
     """Yaw (rad, ZYX convention) of the rotation of a 4x4 pose (``rpy_from_R``'s yaw, computed
-    alone: this runs several times per env step)."""
+    alone: this runs several times per env step). ``math.atan2``: the same bits as NumPy's
+    ``arctan2`` on some CPUs, within one unit in the last place where NumPy uses its AVX-512
+    kernels."""
     if math.hypot(T[2, 1], T[2, 2]) < 1e-9:  # gimbal lock: rpy_from_R's convention
         return rpy_from_R(T[:3, :3])[2]
     return math.atan2(T[1, 0], T[0, 0])

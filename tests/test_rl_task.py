@@ -159,13 +159,17 @@ def test_filter_gating_rejects_outliers():
     assert f.update(make_T(t=[0.05, 0, 0]), np.diag([1e-3] * 4))
 
 
-def test_yaw_of_is_rpy_from_R_yaw_bit_for_bit():
+def test_yaw_of_is_rpy_from_R_yaw_to_one_ulp():
+    # math.atan2 (libm) and NumPy's arctan2 agree bit for bit on some CPUs; where NumPy takes
+    # its AVX-512 kernels (seen on an AMD EPYC) they differ by at most one unit in the last place
     from uwdock.calibration.frames import rpy_from_R
     from uwdock.rl.task import yaw_of
 
     rng = np.random.default_rng(1)
     for rpy in rng.uniform(-3.2, 3.2, (2000, 3)) * [0.5, 0.45, 1.0]:
         T = make_T(R_from_rpy(*rpy), [0.0, 0.0, 0.0])
-        assert yaw_of(T) == rpy_from_R(T[:3, :3])[2]
+        ref = rpy_from_R(T[:3, :3])[2]
+        assert abs(yaw_of(T) - ref) <= np.spacing(abs(ref))
+        assert abs(math.remainder(yaw_of(T) - rpy[2], 2 * math.pi)) < 1e-12  # the yaw put in
     locked = make_T(R_from_rpy(0.3, np.pi / 2, 1.0), [0.0, 0.0, 0.0])  # gimbal lock
     assert yaw_of(locked) == rpy_from_R(locked[:3, :3])[2]
