@@ -134,6 +134,7 @@ def main() -> None:
             f"strict {a.label_other}": r["other"]["strict"],
             "mcnemar_p": r["strict_mcnemar_p"],
             "time_change_s": r["time_change_s"],
+            "collisions_change": r["collisions_change"],
         }
         for r in rows
     ]

@@ -21,18 +21,23 @@ def bench():
     sys.modules.pop("bench_docking", None)
 
 
-def _row(condition, outcomes, controller="policy", obs="camera"):
+def _row(condition, outcomes, controller="policy", obs="camera", collisions=None):
     """outcomes: (docked strictly, time to dock or None) per episode 0, 1, ..."""
+    hits = collisions or [0] * len(outcomes)
     eps = [
-        {"episode": k, "success_strict": ok, "success": ok, "time_to_dock_s": t, "collisions": 0}
-        for k, (ok, t) in enumerate(outcomes)
+        {"episode": k, "success_strict": ok, "success": ok, "time_to_dock_s": t, "collisions": c}
+        for k, ((ok, t), c) in enumerate(zip(outcomes, hits, strict=True))
     ]
     return {"condition": condition, "controller": controller, "obs": obs, "per_episode": eps}
 
 
 def test_paired_change_against_the_camera_row(bench):
-    camera = _row("camera", [(True, 10.0), (True, 11.0), (True, 12.0), (False, None)])
-    turbid = _row("turbid", [(True, 12.0), (False, None), (True, 13.0), (True, 14.0)])
+    camera = _row(
+        "camera", [(True, 10.0), (True, 11.0), (True, 12.0), (False, None)], collisions=[1, 2, 0, 1]
+    )
+    turbid = _row(
+        "turbid", [(True, 12.0), (False, None), (True, 13.0), (True, 14.0)], collisions=[3, 2, 1, 1]
+    )
     pid_camera = _row("camera", [(True, 20.0)] * 4, controller="pid")
     off = _row("camera off", [(False, None)] * 4, obs="acoustic")  # not a camera row
     (p,) = bench.paired_vs_camera([camera, turbid, pid_camera, off])
@@ -44,6 +49,9 @@ def test_paired_change_against_the_camera_row(bench):
     assert p["time_change_s"] == pytest.approx(1.5)  # (2 + 1) / 2
     lo, hi = p["time_change_ci95_s"]
     assert 1.0 <= lo <= 1.5 <= hi <= 2.0
+    assert p["collisions_change"] == pytest.approx(0.75)  # (2 + 0 + 1 + 0) / 4, every episode
+    lo, hi = p["collisions_change_ci95"]
+    assert 0.0 <= lo <= 0.75 <= hi <= 2.0
 
 
 def test_paired_change_only_on_common_episodes(bench):
