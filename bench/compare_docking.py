@@ -74,13 +74,16 @@ def _side(row: dict[str, Any]) -> dict[str, Any]:
     return {k: row.get(k) for k in keys}
 
 
-def compare(base: dict[str, Any], other: dict[str, Any]) -> list[dict[str, Any]]:
-    """Rows of ``other`` against the same (condition, controller) rows of ``base``."""
+def compare(
+    base: dict[str, Any], other: dict[str, Any], base_controller: str | None = None
+) -> list[dict[str, Any]]:
+    """Rows of ``other`` against the same (condition, controller) rows of ``base``; with
+    ``base_controller``, against ``base``'s rows of that controller (e.g. the PID's)."""
     paired_change = _bench_docking().paired_change
     index = {(r.get("condition"), r.get("controller")): r for r in base["rows"]}
     out = []
     for r in other["rows"]:
-        b = index.get((r.get("condition"), r.get("controller")))
+        b = index.get((r.get("condition"), base_controller or r.get("controller")))
         if b is None or "per_episode" not in b or "per_episode" not in r:
             continue
         change = paired_change(b["per_episode"], r["per_episode"])
@@ -113,6 +116,11 @@ def main() -> None:
     ap.add_argument("--base", type=Path, nargs="+", required=True, help="the reference side")
     ap.add_argument("--other", type=Path, nargs="+", required=True, help="compared with it")
     ap.add_argument("--name", required=True)
+    ap.add_argument(
+        "--base-controller",
+        choices=("policy", "pid"),
+        help="compare with the base side's rows of this controller (default: the same one)",
+    )
     ap.add_argument("--label-base", default="base")
     ap.add_argument("--label-other", default="other")
     ap.add_argument("--out-dir", type=Path, default=HERE / "results")
@@ -122,7 +130,7 @@ def main() -> None:
              for _, d in side["sources"]}  # fmt: skip
     if len(seeds) != 1:
         sys.exit(f"error: the benchmarks flew different seeds ({sorted(map(str, seeds))})")
-    rows = compare(base, other)
+    rows = compare(base, other, a.base_controller)
     if not rows:
         sys.exit("error: the two sides share no (condition, controller) row with episodes")
     flat = [

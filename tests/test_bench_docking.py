@@ -82,6 +82,11 @@ def test_two_policies_compared_on_their_common_rows():
     assert (row["strict_gained"], row["strict_lost"]) == (0, 1)
     assert row["strict_change"] == pytest.approx(-0.25)
     assert row["both_docked"] == 2 and row["time_change_s"] == pytest.approx(1.5)
+    # a policy against the PID's row of the base file
+    (vs_pid,) = cmp.compare({"rows": [a_em, b_pid]}, {"rows": [b_cam]}, base_controller="pid")
+    assert vs_pid["base"]["strict"] == 1.0 and vs_pid["other"]["strict"] == 0.5
+    assert (vs_pid["strict_gained"], vs_pid["strict_lost"]) == (0, 2)
+    assert vs_pid["time_change_s"] == pytest.approx(-9.0)  # 12 - 20 and 10 - 20
 
 
 def test_summary_figure_collects_every_committed_source_once():
