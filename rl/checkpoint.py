@@ -121,6 +121,12 @@ def model_bytes(model) -> bytes:
     return _repack(buf.getvalue())
 
 
+def load_model(algo_cls, data: bytes, env=None):
+    """An SB3 model from :func:`model_bytes`, on ``env`` (None: no env, to predict only), on
+    the CPU."""
+    return algo_cls.load(io.BytesIO(data), env=env, device="cpu")
+
+
 def pickle_bytes(obj: Any) -> bytes:
     """``obj`` pickled without the memo ("fast" mode), so the bytes depend on its content only,
     not on which parts happen to share objects (a loaded and a live ``VecNormalize`` differ

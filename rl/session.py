@@ -15,7 +15,6 @@ process.
 
 from __future__ import annotations
 
-import io
 import json
 import pickle
 from collections.abc import Callable
@@ -239,8 +238,3 @@ def load_vecnormalize(data: bytes, venv):
     vecnorm = pickle.loads(data)
     vecnorm.set_venv(venv)
     return vecnorm
-
-
-def load_model(algo_cls, data: bytes, env):
-    """An SB3 model from checkpoint bytes, on ``env``, on the CPU."""
-    return algo_cls.load(io.BytesIO(data), env=env, device="cpu")

@@ -41,6 +41,7 @@ from uwdock.rl.checkpoint import (
     has_legacy_checkpoints,
     latest_unit,
     list_units,
+    load_model,
     model_bytes,
     pickle_bytes,
     require_finite_policy,
@@ -50,7 +51,7 @@ from uwdock.rl.curriculum import CurriculumConfig
 from uwdock.rl.imitation import ImitationConfig, warm_start
 from uwdock.rl.observation import actor_observation_size, observation_size
 from uwdock.rl.policy_io import check_obs_dim, load_policy
-from uwdock.rl.session import TrainingSession, load_model, load_vecnormalize
+from uwdock.rl.session import TrainingSession, load_vecnormalize
 from uwdock.rl.workers import EnvWorkers
 
 _LearningRate = Annotated[float, Interval(gt=0, le=1)]

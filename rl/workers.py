@@ -17,19 +17,20 @@ What this adds to SB3's ``SubprocVecEnv``:
 
 from __future__ import annotations
 
-import io
 import multiprocessing
 import os
 import pickle
 import signal
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import gymnasium as gym
 
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.procs import die_with_parent
+from uwdock.rl.checkpoint import load_model
 from uwdock.rl.config import EnvConfig
 from uwdock.rl.env import DockingEnv
 from uwdock.rl.evaluate import SB3Controller, run_episodes
@@ -77,10 +78,11 @@ def _guarded_env(env, error_file: str, index: int):
     return Guard(env)
 
 
+@dataclass(frozen=True)
 class EvalJob:
     """Evaluation episodes of a policy snapshot, split between the env workers.
 
-    Args:
+    Attributes:
         algo_cls: the SB3 algorithm class of the snapshot.
         policy_zip: the model's bytes (:func:`rl.checkpoint.model_bytes`).
         vecnorm_pkl: its pickled observation normalisation, or None.
@@ -90,24 +92,22 @@ class EvalJob:
         n_workers: how many workers share them (worker i runs i, i + n, ...).
     """
 
-    def __init__(
-        self, algo_cls, policy_zip: bytes, vecnorm_pkl: bytes | None, env_cfg: EnvConfig,
-        n_episodes: int, seed: int, n_workers: int,
-    ) -> None:  # fmt: skip
-        self.algo_cls, self.policy_zip, self.vecnorm_pkl = algo_cls, policy_zip, vecnorm_pkl
-        self.env_cfg, self.n_episodes, self.seed, self.n_workers = (
-            env_cfg, n_episodes, seed, n_workers,
-        )  # fmt: skip
-
-    def share(self, index: int) -> list[int]:
-        return list(range(index, self.n_episodes, self.n_workers))
+    algo_cls: type
+    policy_zip: bytes
+    vecnorm_pkl: bytes | None
+    env_cfg: EnvConfig
+    n_episodes: int
+    seed: int
+    n_workers: int
 
     def rows(self, index: int) -> list[dict]:
-        model = self.algo_cls.load(io.BytesIO(self.policy_zip), device="cpu")
+        """The rows of worker ``index``'s episodes."""
+        model = load_model(self.algo_cls, self.policy_zip)
         vecnorm = pickle.loads(self.vecnorm_pkl) if self.vecnorm_pkl is not None else None
+        share = list(range(index, self.n_episodes, self.n_workers))
         res = run_episodes(
             SB3Controller(model, vecnorm), self.env_cfg, self.n_episodes, self.seed,
-            record=False, episodes=self.share(index),
+            record=False, episodes=share,
         )  # fmt: skip
         return res.episodes
 

@@ -514,6 +514,11 @@ class StaticObstacles:
         self._poses: list[tuple[float, ...]] = []
         self._boxes = np.zeros((0, 6))
 
+    def follow(self, scene: sapien.Scene) -> None:
+        """Read the statics of ``scene``'s PhysX system from now on (the same actors moved into
+        a fresh system keep their shapes: nothing is read again)."""
+        self.system = scene.physx_system
+
     def boxes(self) -> np.ndarray | None:
         """(k, 6) [min xyz, max xyz] per static shape, each grown by its contact offset; None
         when the fast path cannot stand in for ``scene.step()`` (another dynamic body or an

@@ -174,7 +174,7 @@ class VehicleBody:
         if float(scene.get_timestep()) != self.dt_s:
             raise ValueError("rebind: the new scene has another timestep")
         self.scene = scene
-        self._obstacles = StaticObstacles(scene, self.component)
+        self._obstacles.follow(scene)
 
     # ------------------------------------------------------------------ construction
 
