@@ -54,6 +54,19 @@ def git_commit(repo: Path = _REPO_ROOT) -> dict[str, Any]:
     return {"commit": commit, "dirty": bool(status) if status is not None else None}
 
 
+_GIT_AT_START: dict[str, Any] | None = None
+
+
+def git_commit_at_start() -> dict[str, Any]:
+    """:func:`git_commit` as this process first read it, before it had written any record: its
+    own outputs (a benchmark's partial results over a committed file, a second results file)
+    must not mark its later records dirty."""
+    global _GIT_AT_START
+    if _GIT_AT_START is None:
+        _GIT_AT_START = git_commit()
+    return dict(_GIT_AT_START)
+
+
 def package_versions(names: tuple[str, ...] = TRACKED_PACKAGES) -> dict[str, str | None]:
     """Installed versions of ``names`` (``None`` where not installed)."""
     out: dict[str, str | None] = {}
@@ -72,7 +85,7 @@ def provenance(
     return {
         "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
         "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]),
-        "git": git_commit(),
+        "git": git_commit_at_start(),
         "packages": package_versions(),
         "python": platform.python_version(),
         "machine": {

@@ -100,6 +100,17 @@ def test_ensure_writable_dir_fails_with_one_line(tmp_path):
         ensure_writable_dir(f / "sub")
 
 
+def test_provenance_keeps_the_tree_state_the_process_first_read(monkeypatch):
+    from uwdock.dockcore import provenance as P
+
+    states = iter([{"commit": "a" * 40, "dirty": False}, {"commit": "a" * 40, "dirty": True}])
+    monkeypatch.setattr(P, "git_commit", lambda: next(states))
+    monkeypatch.setattr(P, "_GIT_AT_START", None)
+    first = P.provenance()["git"]
+    # the process then writes over a committed results file: the tree reads dirty now
+    assert P.provenance()["git"] == first == {"commit": "a" * 40, "dirty": False}
+
+
 def test_provenance_records_config_commit_versions(tmp_path):
     rec = write_provenance(tmp_path, {"outer": Outer(steps=7)})
     on_disk = json.loads((tmp_path / "provenance.json").read_text())
