@@ -11,11 +11,15 @@ Each pipeline also carries the ArUco ``DetectorParameters`` it was designed or t
 * ``default`` (3-5 ms): noise-aware contrast stretch + 3x3 Gaussian, one candidate; ArUco
   decodes both polarities itself (``detectInvertedMarker``), one 23 px threshold window,
   sub-pixel corners.
-* ``reference_3dbm`` (5-8 ms): the published 3DBM pipeline: min-max normalise, grey, CLAHE
-  (clip 2.0, 32x32 tiles), invert, 3x3 Gaussian; OpenCV's default ArUco parameters.
-* ``threshold_sweep`` (35-120 ms): published alternative: inverse binary thresholds 90..185
-  step 5, keep the threshold with the most detections.
-* ``normalise_invert`` (2-6 ms): published alternative: min-max normalise, grey, invert.
+* ``reference_3dbm`` (5-8 ms): the published 3DBM pipeline (the authors' detector, its "CLAHE
+  method"): min-max normalise, grey (RGB2GRAY on the BGR frame, as published), CLAHE (clip 2.0,
+  32x32 tiles), float inverted rescale to [-127, 127], 3x3 binomial filter, + 127.5, clip to
+  [1, 254], uint8; OpenCV's default ArUco parameters.
+* ``threshold_sweep`` (35-120 ms): the published "iterative threshold method": inverse binary
+  thresholds 90..185 step 5 of the same normalised grey, each smoothed by a 3x3 box filter; keep
+  the threshold with the most detections.
+* ``normalise_invert`` (2-6 ms): the published "normalization method": the same grey, inverted
+  rescale, clip to [1, 254].
 * ``plain`` (2-5 ms): grey only (flat printed tags).
 
 (ms: median per 968x732 frame on one core, ``cv2.setNumThreads(1)``, synthetic 3DBM views with
@@ -68,6 +72,7 @@ __all__ = [
     "as_uint8",
     "estimate_noise_sigma",
     "get_pipeline",
+    "published_grey",
     "to_grey",
 ]
 
@@ -211,26 +216,79 @@ class NoiseAwareStretch:
         return [out]
 
 
+def published_grey(image: np.ndarray) -> np.ndarray:
+    """The published detector's grey image: min-max normalise (all channels together), then
+    OpenCV's ``COLOR_RGB2GRAY`` applied to the BGR frame, as the published code does.
+
+    The published code reads frames with OpenCV (BGR) and converts them as if they were RGB, so
+    its grey weights blue by 0.299 and red by 0.114 (the BT.601 weights swapped). The pipelines
+    named after it keep that. A grey input is only normalised.
+    """
+    norm = _minmax(as_uint8(image))
+    return norm if norm.ndim == 2 else cv2.cvtColor(norm, cv2.COLOR_RGB2GRAY)
+
+
+def _inverted_rescale(grey: np.ndarray) -> np.ndarray | None:
+    """float32 image mapping the darkest pixel to +127 and the brightest to -127 (linear), in the
+    published code's float32 arithmetic; None for a constant image (the published code divides
+    by zero there)."""
+    g = grey.astype(np.float32)
+    lo, hi = g.min(), g.max()
+    if hi == lo:
+        return None
+    scale = np.float32(254.0) / (hi - lo)  # float32, as the published (254 / (max - min))
+    return (hi - g) * scale - np.float32(127.0)
+
+
+def _to_published_uint8(x: np.ndarray) -> np.ndarray:
+    """Shift by 127.5, clip to [1, 254], truncate to uint8 (the published code's last step)."""
+    return np.clip(x + np.float32(127.5), 1.0, 254.0).astype(np.uint8)
+
+
+#: The published code's 3x3 smoothing kernel: the binomial [1 2 1] (x) [1 2 1] / 16.
+_BINOMIAL_3X3 = np.outer([1.0, 2.0, 1.0], [1.0, 2.0, 1.0]).astype(np.float32) / np.float32(16.0)
+
+
 def reference_3dbm(image: np.ndarray) -> list[np.ndarray]:
-    """Published 3DBM pipeline: min-max normalise, grey, CLAHE(2.0, 32x32), invert, 3x3 Gaussian."""
-    grey = to_grey(_minmax(as_uint8(image)))
-    grey = cv2.createCLAHE(clipLimit=2.0, tileGridSize=(32, 32)).apply(grey)
-    return [cv2.GaussianBlur(cv2.bitwise_not(grey), (3, 3), 0)]
+    """The published 3DBM pipeline ("CLAHE method"), operation by operation.
+
+    min-max normalise; grey (:func:`published_grey`: RGB2GRAY on BGR); CLAHE (clip 2.0, 32x32
+    tiles); float32 inverted min-max rescale to [-127, 127]; 3x3 binomial filter in float32
+    (``filter2D``, reflected border); + 127.5; clip to [1, 254]; truncate to uint8. A constant
+    image (no contrast) gives a uniform 127.
+    """
+    grey = cv2.createCLAHE(clipLimit=2.0, tileGridSize=(32, 32)).apply(published_grey(image))
+    inv = _inverted_rescale(grey)
+    if inv is None:
+        return [np.full_like(grey, 127)]
+    return [_to_published_uint8(cv2.filter2D(inv, -1, _BINOMIAL_3X3))]
 
 
 #: Thresholds of the published inverse-threshold sweep (grey levels).
 SWEEP_THRESHOLDS: tuple[int, ...] = tuple(range(90, 186, 5))
 
+#: The published sweep's 3x3 box filter, applied to each thresholded image (uint8 result).
+_BOX_3X3 = np.full((3, 3), 1.0 / 9.0)
+
 
 def threshold_sweep(image: np.ndarray) -> list[np.ndarray]:
-    """Published alternative: one inverse binary image per threshold in :data:`SWEEP_THRESHOLDS`."""
-    grey = to_grey(as_uint8(image))
-    return [cv2.threshold(grey, t, 255, cv2.THRESH_BINARY_INV)[1] for t in SWEEP_THRESHOLDS]
+    """The published iterative threshold method: for each threshold in
+    :data:`SWEEP_THRESHOLDS`, an inverse binary threshold of the published grey image
+    (:func:`published_grey`, min-max normalised) smoothed by a 3x3 box filter; the detector keeps
+    the candidate with the most detections (``merge="best"``)."""
+    grey = published_grey(image)
+    return [
+        cv2.filter2D(cv2.threshold(grey, t, 255, cv2.THRESH_BINARY_INV)[1], -1, _BOX_3X3)
+        for t in SWEEP_THRESHOLDS
+    ]
 
 
 def normalise_invert(image: np.ndarray) -> list[np.ndarray]:
-    """Published alternative: min-max normalise, grey, invert."""
-    return [cv2.bitwise_not(to_grey(_minmax(as_uint8(image))))]
+    """The published "normalization method": the published grey image, inverted min-max
+    rescale, + 127.5, clip to [1, 254], truncate to uint8 (no CLAHE, no blur)."""
+    grey = published_grey(image)
+    inv = _inverted_rescale(grey)
+    return [np.full_like(grey, 127) if inv is None else _to_published_uint8(inv)]
 
 
 def plain(image: np.ndarray) -> list[np.ndarray]:
@@ -293,20 +351,20 @@ PIPELINES: dict[str, Pipeline] = {
             "reference_3dbm",
             reference_3dbm,
             _OPENCV_DEFAULTS,
-            description="published 3DBM: min-max, grey, CLAHE 2.0/32x32, invert, 3x3 Gaussian",
+            description="published 3DBM: min-max, grey, CLAHE 2.0/32x32, invert, 3x3 blur",
         ),
         Pipeline(
             "threshold_sweep",
             threshold_sweep,
             _OPENCV_DEFAULTS,
             merge="best",
-            description="published: inverse thresholds 90..185 step 5, keep the best",
+            description="published: inverse thresholds 90..185 step 5, 3x3 box, keep the best",
         ),
         Pipeline(
             "normalise_invert",
             normalise_invert,
             _OPENCV_DEFAULTS,
-            description="published: min-max normalise, grey, invert",
+            description="published: min-max normalise, grey, inverted rescale",
         ),
         Pipeline("plain", plain, _OPENCV_DEFAULTS, description="grey only (flat printed tags)"),
     )

@@ -145,7 +145,9 @@ def test_every_pipeline_decodes_both_polarities_at_good_contrast(name, negative)
     found = det.detect(img)
     assert [d.marker_id for d in found] == sorted(truth)
     err = corner_errors_px(found, truth)
-    assert err.max() < (0.6 if name == "default" else 2.0), err
+    # the other polarity decodes from the smallest nested contour: ~3 px bias (module docstring)
+    bound = 0.6 if name == "default" else (2.0 if inverted is None else 3.0)
+    assert err.max() < bound, err
 
 
 def test_default_decodes_mixed_polarities_in_one_frame_with_subpixel_corners():
@@ -161,10 +163,11 @@ def test_default_decodes_mixed_polarities_in_one_frame_with_subpixel_corners():
     assert np.median(errs) < 0.4, np.median(errs)
 
 
-def test_default_beats_reference_at_low_contrast():
+def test_default_at_least_matches_reference_at_low_contrast():
     """15, 10 and 8 grey levels of contrast (x0.8 after the green cast), 2 levels of noise,
-    24-70 px markers. Measured recall default / reference: 1.00 / 1.00, 1.00 / 0.88,
-    1.00 / 0.25."""
+    24-70 px markers. Measured recall default / reference (the published pipeline, operation by
+    operation): 1.00 / 0.96, 1.00 / 0.96, 1.00 / 0.92. (Before the reference was made faithful,
+    i.e. without its second min-max rescale after CLAHE, it fell to 0.25 at 8 levels.)"""
     default = Detector(DetectorConfig(ids=DS_IDS))
     reference = Detector(DetectorConfig(pipeline="reference_3dbm", ids=DS_IDS))
     recalls = {}
@@ -176,7 +179,7 @@ def test_default_beats_reference_at_low_contrast():
         recalls[levels] = (recall(default, frames), recall(reference, frames))
     for r_default, r_reference in recalls.values():
         assert r_default >= 0.95 and r_default >= r_reference, recalls
-    assert recalls[8][0] - recalls[8][1] > 0.5, recalls
+    assert recalls[8][1] < 1.0, recalls  # the lowest contrast still costs the reference markers
 
 
 def test_adaptive_threshold_constant_is_exposed_and_matters():
