@@ -72,6 +72,7 @@ __all__ = [
     "as_uint8",
     "estimate_noise_sigma",
     "get_pipeline",
+    "impulse_fraction",
     "published_grey",
     "to_grey",
 ]
@@ -178,12 +179,42 @@ def _percentiles(grey: np.ndarray, clip_fraction: float) -> tuple[int, int]:
 # --------------------------------------------------------------------------- pipelines
 
 
+#: 3x3 ring (the 8 neighbours without the centre) for the impulse-noise test.
+_RING_3X3 = np.array([[1, 1, 1], [1, 0, 1], [1, 1, 1]], np.uint8)
+
+
+def impulse_fraction(grey: np.ndarray, levels: float, step: int = 4) -> float:
+    """Fraction of isolated extreme pixels (impulse, "salt and pepper" noise) in a grey image.
+
+    On every ``step``-th row and column, a pixel counts when it is brighter than all 8 of its
+    neighbours (in the subsample) by more than ``levels``, or darker than all by more. Edges,
+    corners and marker cells are not isolated at that spacing, impulse noise is. Measured
+    (``step`` 4, 48 levels): <= 0.03 % on synthetic DS views at full contrast, 640-1920 px, 0.6-3.5
+    m; 0.8-1.0 % with 1 % salt; 3.2-3.5 % with 5 %. Costs ~0.05 ms at 968x732.
+    """
+    s = np.ascontiguousarray(grey[::step, ::step])
+    t = int(min(max(levels, 0), 254))
+    bright = cv2.subtract(s, cv2.dilate(s, _RING_3X3)) > t
+    dark = cv2.subtract(cv2.erode(s, _RING_3X3), s) > t
+    return float(np.count_nonzero(bright | dark)) / s.size
+
+
 @dataclass(frozen=True)
 class NoiseAwareStretch:
-    """The ``default`` pipeline: grey, noise-limited contrast stretch, 3x3 Gaussian.
+    """The ``default`` pipeline: grey, (3x3 median on impulse noise), noise-limited contrast
+    stretch, 3x3 Gaussian.
 
     gain = min(255 / (p_hi - p_lo), noise_target / sigma), with p_lo, p_hi the robust min and max
     and sigma from :func:`estimate_noise_sigma`; the stretched image is centred on 128.
+
+    Impulse noise: with 1 % of the pixels white (salt), the robust maximum lands on the salt, the
+    gain collapses and the isolated white pixels break the markers' contours. When
+    :func:`impulse_fraction` exceeds ``impulse_fraction``, a 3x3 median replaces the Gaussian and
+    comes first (the statistics are then measured on the filtered image). Not always: a median
+    rounds the markers' corners (mean corner error per marker up to 0.61 px, against 0.36 px
+    with the Gaussian, on the detector tests' views). Measured on the same 24 synthetic 968x732
+    views (``bench/bench_degradations.py``): recall with 1 % / 5 % salt 0.56 / 0.23 without the
+    median, 1.00 / 1.00 with it.
 
     Attributes:
         noise_target: largest noise standard deviation allowed after the stretch (grey levels);
@@ -193,15 +224,28 @@ class NoiseAwareStretch:
         clip_fraction: fraction of pixels clipped at each end when measuring the range (-).
         blur_ksize: Gaussian kernel side (px, odd; 0 or 1 disables).
         min_sigma: floor on the noise estimate (grey levels), caps the gain on noise-free input.
+        median_ksize: median filter side used on impulse noise (px, odd; 0 or 1 disables).
+        impulse_levels: how far an isolated pixel must stand out to count as impulse noise
+            (grey levels).
+        impulse_fraction: fraction of isolated pixels above which the median is used (-).
     """
 
     noise_target: float = 12.0
     clip_fraction: float = 0.005
     blur_ksize: int = 3
     min_sigma: float = 0.25
+    median_ksize: int = 3
+    impulse_levels: float = 48.0
+    impulse_fraction: float = 0.001
 
     def __call__(self, image: np.ndarray) -> list[np.ndarray]:
         grey = to_grey(as_uint8(image))
+        blur = self.blur_ksize
+        if self.median_ksize > 1 and (
+            impulse_fraction(grey, self.impulse_levels) > self.impulse_fraction
+        ):
+            grey = cv2.medianBlur(grey, self.median_ksize)
+            blur = 0
         lo, hi = _percentiles(grey, self.clip_fraction)
         gain = 255.0 / (hi - lo)
         if self.noise_target > 0:
@@ -211,8 +255,8 @@ class NoiseAwareStretch:
         beta = 128.0 - gain * 0.5 * (lo + hi)
         lut = np.clip(np.arange(256) * gain + beta + 0.5, 0, 255).astype(np.uint8)
         out = cv2.LUT(grey, lut)
-        if self.blur_ksize > 1:
-            out = cv2.GaussianBlur(out, (self.blur_ksize, self.blur_ksize), 0)
+        if blur > 1:
+            out = cv2.GaussianBlur(out, (blur, blur), 0)
         return [out]
 
 
