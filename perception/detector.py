@@ -183,7 +183,8 @@ class Detector:
 
         Returns:
             Detections sorted by marker ID. An ID decoded in several candidate images is
-            reported once, from the candidate with the most detections (ties: the earlier one).
+            reported once, from the candidate with the most detections (ties: the earlier one),
+            or, for a pipeline that merges "first", from the earliest candidate.
             An ID seen twice in the same candidate (two physical markers) is kept twice.
 
         Raises:
@@ -193,7 +194,9 @@ class Detector:
         per_candidate = [self.detect_candidate(c) for c in self.pipeline(image)]
         if not per_candidate:
             return []
-        order = sorted(range(len(per_candidate)), key=lambda i: -len(per_candidate[i]))
+        order = list(range(len(per_candidate)))  # "first": in the pipeline's order
+        if self.pipeline.merge != "first":
+            order.sort(key=lambda i: -len(per_candidate[i]))
         if self.pipeline.merge == "best":
             order = order[:1]
         seen: set[int] = set()

@@ -258,6 +258,22 @@ def test_union_merge_keeps_ids_from_the_candidate_with_most_detections(monkeypat
     assert [d.marker_id for d in Detector(DetectorConfig(pipeline="fake")).detect(both)] == [14]
 
 
+def test_first_merge_keeps_each_id_from_the_earliest_candidate(monkeypatch):
+    rng = np.random.default_rng(7)
+    both, truth = render(rng, ids=(13, 14), negative=False, levels=200, green=False, noise=0)
+    shifted = np.roll(both, 3, axis=1)  # same markers, 3 px to the right
+    only14 = both.copy()
+    only14[:, : W // 2] = 128  # marker 13 sits in the left half of the 2x1 grid
+    fake = Pipeline("fake", lambda image: [only14, shifted], {}, "first")
+    monkeypatch.setitem(PIPELINES, "fake", fake)
+    found = {
+        d.marker_id: d.corners_px for d in Detector(DetectorConfig(pipeline="fake")).detect(both)
+    }
+    assert sorted(found) == [13, 14]
+    assert np.abs(found[14] - truth[14]).max() < 2.0  # from `only14`, though `shifted` has more
+    assert np.abs(found[13] - truth[13] - [3, 0]).max() < 2.0  # only `shifted` has 13
+
+
 # --------------------------------------------------------------------------- preprocessing
 
 
