@@ -13,7 +13,11 @@ varies from bland sand to rock (relief 0.05-0.35 of the contrast). The same
 frames go to every pipeline. Time: detection only, median of ``repeats`` runs per frame after a
 warm-up, ``cv2.setNumThreads(1)``; the table gives the median over frames and contrast levels
 and the slowest contrast level. Rate: recall = decoded visible markers / visible markers
-(markers fully inside the image), false = decoded IDs that are not visible.
+(markers fully inside the image), false = decoded IDs that are not visible. Two more rows:
+"default + prior" searches around the visible markers' corners predicted by a prior a few
+pixels off (``PRIOR_SHIFT_PX``, ``PRIOR_NOISE_PX``), the whole frame when one is missed
+(``in_regions``: the fraction of frames that needed no whole-frame search); "opencv" is plain
+OpenCV ArUco (grey, OpenCV's default parameters, both polarities), the speed reference.
 
 Part 2, PnP: the reference camera (968x732) aimed at the floor markers' centre from 1-5 m
 (tilt <= 20 deg, any yaw); true corners of the markers fully in view plus 0.5 px Gaussian noise.
@@ -133,9 +137,32 @@ def render(
 # --------------------------------------------------------------------------- part 1
 
 
+#: A prior's error in the "with prior" rows: the whole board shifted by N(0, 3 px) per axis,
+#: each corner by N(0, 0.5 px) more (a filter's DS pose a few centimetres off at 1-3.5 m).
+PRIOR_SHIFT_PX, PRIOR_NOISE_PX = 3.0, 0.5
+
+
+def _detectors() -> dict[str, tuple[Detector, bool]]:
+    """Row name -> (detector, searches from a prior)."""
+    ids = MARKER_SET.ids
+    out = {p: (Detector(DetectorConfig(pipeline=p, ids=ids)), False) for p in PIPELINES}
+    out["default + prior"] = (Detector(DetectorConfig(ids=ids)), True)
+    # plain OpenCV: grey, OpenCV's defaults, both polarities (it must decode the 3DBM negative)
+    out["opencv"] = (
+        Detector(DetectorConfig(pipeline="plain", ids=ids, detect_inverted=True)),
+        False,
+    )
+    return out
+
+
+def _predicted(truth: dict, rng: np.random.Generator) -> dict:
+    shift = rng.normal(0, PRIOR_SHIFT_PX, 2)
+    return {i: q + shift + rng.normal(0, PRIOR_NOISE_PX, q.shape) for i, q in truth.items()}
+
+
 def bench_detection(n_frames: int, repeats: int, seed: int) -> list[dict]:
     rows = []
-    detectors = {p: Detector(DetectorConfig(pipeline=p, ids=MARKER_SET.ids)) for p in PIPELINES}
+    detectors = _detectors()
     for w, h in RESOLUTIONS:
         cam = reference_camera().scaled(w, h)
         rng = np.random.default_rng(seed)
@@ -146,21 +173,27 @@ def bench_detection(n_frames: int, repeats: int, seed: int) -> list[dict]:
                 img, truth = render(random_view(rng, 1.2, 3.5, 15.0), cam, rng, level)
                 if truth:
                     frames[level].append((img, truth))
-        for name, det in detectors.items():
+        for name, (det, with_prior) in detectors.items():
             row: dict = {"resolution": f"{w}x{h}", "pipeline": name}
             ms_all, per_level_ms, false_ids, hit_frames, n_all = [], [], 0, 0, 0
+            in_regions = 0
+            prng = np.random.default_rng([seed, w])
             for level, items in frames.items():
                 hits = total = 0
                 level_ms = []
                 for img, truth in items:
-                    found = {d.marker_id for d in det.detect(img)}
+                    pred = _predicted(truth, prng) if with_prior else None
+                    found = {d.marker_id for d in det.detect(img, pred)}
+                    in_regions += det.last_search == "regions"
                     hits += len(found & set(truth))
                     total += len(truth)
                     false_ids += len(found - set(truth))
                     hit_frames += bool(found & set(truth))
                     n_all += 1
                     level_ms.append(
-                        time_call(lambda d=det, im=img: d.detect(im), repeats, 0)["median_ms"]
+                        time_call(lambda d=det, im=img, p=pred: d.detect(im, p), repeats, 0)[
+                            "median_ms"
+                        ]
                     )
                 row[f"recall@{level}"] = hits / total
                 per_level_ms.append(float(np.median(level_ms)))
@@ -169,6 +202,7 @@ def bench_detection(n_frames: int, repeats: int, seed: int) -> list[dict]:
             row["ms_worst_level"] = max(per_level_ms)
             row["frame_rate"] = hit_frames / n_all
             row["false_ids"] = false_ids
+            row["in_regions"] = in_regions / n_all if with_prior else ""
             rows.append(row)
             print(f"  {w}x{h} {name}: {row['ms_med']:.1f} ms", file=sys.stderr, flush=True)
     return rows
@@ -251,7 +285,7 @@ def main() -> None:
     t0 = time.perf_counter()
     det_rows = bench_detection(n_frames, repeats, args.seed)
     cols = ["resolution", "pipeline", "ms_med", "ms_worst_level", "frame_rate"]
-    cols += [f"recall@{lv}" for lv in LEVELS] + ["false_ids"]
+    cols += [f"recall@{lv}" for lv in LEVELS] + ["false_ids", "in_regions"]
     print("\nDetection (ms = detection only, one thread; recall = visible markers decoded)")
     print(format_table(det_rows, cols))
     pnp_rows = bench_pnp(trials, args.seed)

@@ -24,7 +24,13 @@ from uwdock.dockcore.domains import Interval
 from uwdock.dockcore.errors import DockError
 from uwdock.markers.config import MarkerId
 from uwdock.markers.dictionary import dictionary_size, get_dictionary, normalise_dictionary_name
-from uwdock.perception.preprocess import PIPELINES, Pipeline, as_uint8, get_pipeline
+from uwdock.perception.preprocess import (
+    MIN_IMAGE_PX,
+    PIPELINES,
+    Pipeline,
+    as_uint8,
+    get_pipeline,
+)
 
 __all__ = ["CORNER_REFINEMENTS", "Detection", "Detector", "DetectorConfig", "list_pipelines"]
 
@@ -65,6 +71,10 @@ class DetectorConfig:
         detect_inverted: also decode photometric negatives of the candidate image (OpenCV's
             ``detectInvertedMarker``). None: pipeline preset (True only for ``default``, whose
             candidate is not inverted).
+        roi_margin: with predicted marker corners (:meth:`Detector.detect`'s ``predicted``),
+            each search region is the predicted quad's bounding box widened on every side by
+            this fraction of its larger side (-), for the prior's error.
+        roi_min_pad_px: ... and by at least this many pixels.
     """
 
     dictionary: str = "DICT_4X4_50"
@@ -76,6 +86,8 @@ class DetectorConfig:
     ) = None
     corner_refinement: str | None = None
     detect_inverted: bool | None = None
+    roi_margin: Annotated[float, Interval(ge=0.0, le=10.0)] = 0.5
+    roi_min_pad_px: Annotated[int, Interval(ge=0, le=10000)] = 16
 
     def validate(self) -> None:
         """Raise ValueError naming the first bad field (names, IDs, the window sequence; each
@@ -161,6 +173,8 @@ class Detector:
         self.parameters = _aruco_parameters(cfg, self.pipeline)
         self._aruco = cv2.aruco.ArucoDetector(get_dictionary(self.dictionary_name), self.parameters)
         self._allowed = None if cfg.ids is None else frozenset(int(i) for i in cfg.ids)
+        #: where the last :meth:`detect` found its markers: "regions" (the prior's) or "frame"
+        self.last_search = "frame"
 
     def detect_candidate(self, grey: np.ndarray) -> list[Detection]:
         """ArUco on one preprocessed uint8 grey image; allow-listed IDs only, in OpenCV's order."""
@@ -173,13 +187,21 @@ class Detector:
                 out.append(Detection(int(marker_id), np.asarray(c, np.float64).reshape(4, 2)))
         return out
 
-    def detect(self, img_bgr: Any) -> list[Detection]:
+    def detect(
+        self, img_bgr: Any, predicted: dict[int, np.ndarray] | None = None
+    ) -> list[Detection]:
         """Detect markers in a camera image.
 
         Args:
             img_bgr: (H, W) grey or (H, W, 3) BGR (or BGRA) array, uint8, uint16 or float
                 [0, 1]. BGR is OpenCV's order: a simulator's RGB frame must be converted first
                 (``uwdock.sim.camera.Frame.img_bgr``); RGB here weights red as blue.
+            predicted: optional prior: marker ID -> (4, 2) predicted pixel corners (e.g. the
+                board projected from a filter's DS pose, or the last frame's detections). The
+                detector first searches only around the predicted markers that lie wholly in
+                the image (regions widened by ``roi_margin`` / ``roi_min_pad_px``, overlapping
+                ones merged) and returns those detections when every such marker is found;
+                otherwise, or when none is predicted in the image, it searches the whole frame.
 
         Returns:
             Detections sorted by marker ID. An ID decoded in several candidate images is
@@ -191,6 +213,16 @@ class Detector:
             DockError: None, empty, or not an image.
         """
         image = as_uint8(img_bgr)
+        self.last_search = "frame"
+        if predicted:
+            found = self._detect_in_regions(image, predicted)
+            if found is not None:
+                self.last_search = "regions"
+                return found
+        return self._detect_image(image)
+
+    def _detect_image(self, image: np.ndarray) -> list[Detection]:
+        """The pipeline's candidates of one uint8 image, detected and merged."""
         per_candidate = [self.detect_candidate(c) for c in self.pipeline(image)]
         if not per_candidate:
             return []
@@ -206,6 +238,65 @@ class Detector:
             merged.extend(new)
             seen.update(d.marker_id for d in new)
         return sorted(merged, key=lambda d: d.marker_id)
+
+    def search_regions(
+        self, shape: tuple[int, ...], predicted: dict[int, np.ndarray]
+    ) -> tuple[list[tuple[int, int, int, int]], set[int]]:
+        """Pixel boxes (x0, y0, x1, y1), end-exclusive, to search for the ``predicted`` markers
+        in an image of ``shape``, and the IDs expected there (predicted wholly in the image).
+        Overlapping boxes are merged; predictions with non-finite corners are ignored."""
+        h, w = int(shape[0]), int(shape[1])
+        boxes: list[list[int]] = []
+        expected: set[int] = set()
+        for marker_id, quad in predicted.items():
+            q = np.asarray(quad, dtype=np.float64).reshape(-1, 2)
+            if q.shape != (4, 2) or not np.isfinite(q).all():
+                continue
+            lo, hi = q.min(axis=0), q.max(axis=0)
+            if lo[0] < 0 or lo[1] < 0 or hi[0] > w - 1 or hi[1] > h - 1:
+                continue  # partly outside: not expected whole, the full frame will look
+            pad = max(self.cfg.roi_margin * float(np.max(hi - lo)), self.cfg.roi_min_pad_px)
+            x0, y0 = (int(np.floor(v - pad)) for v in lo)
+            x1, y1 = (int(np.ceil(v + pad)) + 1 for v in hi)
+            boxes.append([max(x0, 0), max(y0, 0), min(x1, w), min(y1, h)])
+            expected.add(int(marker_id))
+        merged = True
+        while merged:  # merge overlapping boxes until none overlap
+            merged = False
+            for a in range(len(boxes)):
+                for b in range(a + 1, len(boxes)):
+                    p, q = boxes[a], boxes[b]
+                    if p[0] < q[2] and q[0] < p[2] and p[1] < q[3] and q[1] < p[3]:
+                        boxes[a] = [
+                            min(p[0], q[0]),
+                            min(p[1], q[1]),
+                            max(p[2], q[2]),
+                            max(p[3], q[3]),
+                        ]
+                        del boxes[b]
+                        merged = True
+                        break
+                if merged:
+                    break
+        return [tuple(b) for b in boxes], expected  # type: ignore[misc]
+
+    def _detect_in_regions(
+        self, image: np.ndarray, predicted: dict[int, np.ndarray]
+    ) -> list[Detection] | None:
+        """Detections in the predicted regions, or None when an expected marker is missing."""
+        boxes, expected = self.search_regions(image.shape, predicted)
+        if not expected:
+            return None
+        found: dict[int, Detection] = {}
+        for x0, y0, x1, y1 in boxes:
+            if min(x1 - x0, y1 - y0) < MIN_IMAGE_PX:
+                return None
+            for d in self._detect_image(image[y0:y1, x0:x1]):
+                if d.marker_id not in found:
+                    found[d.marker_id] = Detection(d.marker_id, d.corners_px + np.array([x0, y0]))
+        if not expected <= found.keys():
+            return None
+        return sorted(found.values(), key=lambda d: d.marker_id)
 
     def __repr__(self) -> str:
         return f"Detector({self.cfg!r})"

@@ -59,9 +59,16 @@ class DSPoseConfig:
             centimetres and degrees. The env's camera source, the error-model fit and the
             deployment runner always know the attitude; ``perception eval`` knows it for
             labelled datasets that record ``T_world_body``.
+        search_from_prior: with a DS pose prior (:meth:`DSPoseEstimator.estimate`'s
+            ``T_world_ds_prior`` or ``T_cam_ds_prior``), detect first around the markers the
+            prior projects into the image, the whole frame only when one is missed
+            (:meth:`~uwdock.perception.detector.Detector.detect`'s ``predicted``). Off by
+            default: the env's camera rows and the error model were measured with whole-frame
+            detection.
     """
 
     level_ds: bool = True
+    search_from_prior: bool = False
 
 
 @dataclass(frozen=True)
@@ -161,6 +168,7 @@ class DSPoseEstimator:
         camera: CameraModel,
         T_world_cam: ArrayLike | None = None,
         T_world_ds_prior: ArrayLike | None = None,
+        T_cam_ds_prior: ArrayLike | None = None,
     ) -> DSPoseEstimate:
         """Estimate the DS pose in one image.
 
@@ -171,24 +179,45 @@ class DSPoseEstimator:
                 the frame's time; enables the level-DS refinement (``pose_cfg.level_ds``) and
                 :attr:`DSPoseEstimate.T_world_ds`.
             T_world_ds_prior: (4, 4) predicted DS pose in the same world (needs
-                ``T_world_cam``), to resolve the coplanar-marker ambiguity.
+                ``T_world_cam``), to resolve the coplanar-marker ambiguity (and, with
+                ``pose_cfg.search_from_prior``, to search around the predicted markers first).
+            T_cam_ds_prior: (4, 4) predicted DS pose in the camera frame (e.g. the previous
+                video frame's estimate); used as ``T_world_ds_prior`` is, when that is not given.
 
         Returns:
             The :class:`DSPoseEstimate`.
         """
         t0 = time.perf_counter()
         T_wc = None if T_world_cam is None else check_T(T_world_cam, "T_world_cam")
-        dets = self.detector.detect(img_bgr)
+        prior = None
+        if T_world_ds_prior is not None:
+            if T_wc is None:
+                raise ValueError("T_world_ds_prior: needs T_world_cam")
+            prior = inv_T(T_wc) @ check_T(T_world_ds_prior, "T_world_ds_prior")
+        elif T_cam_ds_prior is not None:
+            prior = check_T(T_cam_ds_prior, "T_cam_ds_prior")
+        predicted = None
+        if prior is not None and self.pose_cfg.search_from_prior:
+            predicted = self.predicted_corners(prior, camera)
+        dets = self.detector.detect(img_bgr, predicted)
         board = level = None
         if dets:
-            prior = None
-            if T_world_ds_prior is not None:
-                if T_wc is None:
-                    raise ValueError("T_world_ds_prior: needs T_world_cam")
-                prior = inv_T(T_wc) @ np.asarray(T_world_ds_prior, dtype=np.float64)
             K, dist = camera.K, camera.dist_coeffs
             board = solve_board(dets, self.corners_ds, K, dist, self.board_cfg, prior)
             if board is not None and T_wc is not None and self.pose_cfg.level_ds:
                 level = refine_level_board(board, dets, self.corners_ds, K, dist, T_wc)
         ms = (time.perf_counter() - t0) * 1e3
         return DSPoseEstimate(dets, board, level, T_wc, ms)
+
+    def predicted_corners(
+        self, T_cam_ds: np.ndarray, camera: CameraModel, min_depth_m: float = 0.05
+    ) -> dict[int, np.ndarray]:
+        """Marker ID -> (4, 2) pixel corners of the board seen from ``T_cam_ds`` (markers with a
+        corner less than ``min_depth_m`` in front of the camera left out)."""
+        out = {}
+        R, t = T_cam_ds[:3, :3], T_cam_ds[:3, 3]
+        for marker_id, corners in self.corners_ds.items():
+            p = np.asarray(corners, dtype=np.float64) @ R.T + t
+            if np.all(p[:, 2] > min_depth_m):
+                out[int(marker_id)] = camera.project(p)
+        return out

@@ -274,6 +274,49 @@ def test_first_merge_keeps_each_id_from_the_earliest_candidate(monkeypatch):
     assert np.abs(found[13] - truth[13] - [3, 0]).max() < 2.0  # only `shifted` has 13
 
 
+def test_search_from_predicted_corners_finds_the_same_markers():
+    rng = np.random.default_rng(21)
+    img, truth = render(rng, levels=60, noise=1.5, side_px=(30, 70))
+    det = Detector(DetectorConfig(ids=DS_IDS))
+    full = {d.marker_id: d.corners_px for d in det.detect(img)}
+    assert det.last_search == "frame" and sorted(full) == sorted(truth)
+    shift = np.array([4.0, -3.0])  # a prior a few pixels off
+    predicted = {i: q + shift + rng.normal(0, 0.5, q.shape) for i, q in truth.items()}
+    near = {d.marker_id: d.corners_px for d in det.detect(img, predicted)}
+    assert det.last_search == "regions" and sorted(near) == sorted(truth)
+    for i, q in near.items():
+        assert np.abs(q - truth[i]).max() < 1.0  # corners in full-image pixels
+        assert np.abs(q - full[i]).max() < 0.3
+    # a predicted marker that is not there: the whole frame is searched (and still misses it)
+    wrong = dict(predicted)
+    wrong[15] = (
+        wrong[13] + [0.0, 400.0] if wrong[13][:, 1].max() + 400 < H else wrong[13] - [0, 200]
+    )
+    blank = img.copy()
+    q = truth[15]
+    x0, y0 = np.floor(q.min(0)).astype(int) - 6
+    x1, y1 = np.ceil(q.max(0)).astype(int) + 6
+    blank[max(y0, 0) : y1, max(x0, 0) : x1] = 120  # marker 15 removed from the image
+    found = [d.marker_id for d in det.detect(blank, predicted)]
+    assert det.last_search == "frame" and 15 not in found and len(found) == len(truth) - 1
+
+
+def test_search_regions_merge_overlaps_and_skip_partial_or_invalid_predictions():
+    det = Detector(DetectorConfig(roi_margin=0.5, roi_min_pad_px=4))
+    square = np.array([[100, 100], [140, 100], [140, 140], [100, 140]], float)
+    predicted = {
+        1: square,
+        2: np.add(square, [50, 0]),  # overlaps 1's widened box: one region
+        3: np.add(square, [300, 200]),
+        4: np.add(square, [-120, 0]),  # partly left of the image: not expected
+        5: np.full((4, 2), np.nan),
+    }
+    boxes, expected = det.search_regions((480, 640, 3), predicted)
+    assert expected == {1, 2, 3}
+    assert sorted(boxes) == [(80, 80, 211, 161), (380, 280, 461, 361)]
+    assert det.search_regions((480, 640), {}) == ([], set())
+
+
 # --------------------------------------------------------------------------- preprocessing
 
 

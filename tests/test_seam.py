@@ -136,7 +136,7 @@ def test_camera_source_hands_the_detector_bgr(monkeypatch):
     rgb[..., 0], rgb[..., 1], rgb[..., 2] = 200, 90, 20  # R, G, B
     seen = []
 
-    def spy(self, img_bgr):
+    def spy(self, img_bgr, predicted=None):
         seen.append(np.array(img_bgr))
         return []
 
@@ -244,3 +244,43 @@ def test_perception_eval_and_the_camera_source_give_the_same_ds_pose(tmp_path):
         compared += 1
     assert compared >= 2
     world.close()
+
+
+def test_search_from_a_pose_prior_gives_the_whole_frame_estimate(tmp_path):
+    """Rendered frames, the estimator with ``search_from_prior``: a prior 3 cm / 2 deg off
+    (world frame, as the filter gives it, or camera frame, as the last video frame gives it)
+    finds the same markers in the predicted regions and the same level-DS pose as the whole
+    frame, within 1 cm (corners move up to ~1 px: the stretch is measured on the region)."""
+    from uwdock.calibration.frames import R_from_rpy
+    from uwdock.datasets.synth import SynthConfig, generate
+    from uwdock.perception.ds_pose import DSPoseConfig, DSPoseEstimator
+    from uwdock.perception.groundtruth import load_dataset
+
+    generate(
+        tmp_path / "ds",
+        SynthConfig(n_frames=12, seed=5, water="clear_tank", width_px=480),
+        workers=1,
+        progress=False,
+    )
+    ds = load_dataset(tmp_path / "ds")
+    camera, T_body_cam = resolve_camera(ds.camera_path)
+    whole = DSPoseEstimator.from_marker_set(MARKERS)
+    near = DSPoseEstimator.from_marker_set(MARKERS, pose_cfg=DSPoseConfig(search_from_prior=True))
+    off = make_T(R_from_rpy(0.0, 0.0, np.radians(2.0)), [0.03, -0.02, 0.01])
+    searched = []
+    for ft in ds.frames.values():
+        img = cv2.imread(str(ds.root / ft.image))
+        T_world_cam = ft.T_world_body @ T_body_cam
+        T_world_ds = T_world_cam @ ft.T_cam_ds
+        a = whole.estimate(img, camera, T_world_cam, T_world_ds @ off)
+        b = near.estimate(img, camera, T_world_cam, T_world_ds @ off)
+        searched.append(near.detector.last_search)
+        c = near.estimate(img, camera, T_cam_ds_prior=ft.T_cam_ds @ off)  # no attitude: no level
+        assert near.detector.last_search == searched[-1]
+        assert [d.marker_id for d in b.detections] == [d.marker_id for d in a.detections]
+        assert [d.marker_id for d in c.detections] == [d.marker_id for d in a.detections]
+        for d_a, d_b in zip(a.detections, b.detections, strict=True):
+            assert np.abs(d_a.corners_px - d_b.corners_px).max() < 1.5
+        if a.level is not None:
+            assert np.abs(b.T_cam_ds[:3, 3] - a.T_cam_ds[:3, 3]).max() < 0.01
+    assert "regions" in searched  # frames with the markers in view took the regions
