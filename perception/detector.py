@@ -75,6 +75,11 @@ class DetectorConfig:
             each search region is the predicted quad's bounding box widened on every side by
             this fraction of its larger side (-), for the prior's error.
         roi_min_pad_px: ... and by at least this many pixels.
+        roi_accept_fraction: the regions' detections stand when they hold at least this
+            fraction of the markers predicted in the image (and at least one); fewer, and the
+            whole frame is searched. 1 demands every predicted marker; below 1, a marker hidden
+            behind the station's structure does not cost a whole-frame search, while a prior
+            that is off finds few or none and falls back.
     """
 
     dictionary: str = "DICT_4X4_50"
@@ -88,6 +93,7 @@ class DetectorConfig:
     detect_inverted: bool | None = None
     roi_margin: Annotated[float, Interval(ge=0.0, le=10.0)] = 0.5
     roi_min_pad_px: Annotated[int, Interval(ge=0, le=10000)] = 16
+    roi_accept_fraction: Annotated[float, Interval(gt=0.0, le=1.0)] = 0.5
 
     def validate(self) -> None:
         """Raise ValueError naming the first bad field (names, IDs, the window sequence; each
@@ -200,8 +206,9 @@ class Detector:
                 board projected from a filter's DS pose, or the last frame's detections). The
                 detector first searches only around the predicted markers that lie wholly in
                 the image (regions widened by ``roi_margin`` / ``roi_min_pad_px``, overlapping
-                ones merged) and returns those detections when every such marker is found;
-                otherwise, or when none is predicted in the image, it searches the whole frame.
+                ones merged) and returns those detections when enough of them are found
+                (``roi_accept_fraction``); otherwise, or when none is predicted in the image,
+                it searches the whole frame.
 
         Returns:
             Detections sorted by marker ID. An ID decoded in several candidate images is
@@ -294,7 +301,8 @@ class Detector:
             for d in self._detect_image(image[y0:y1, x0:x1]):
                 if d.marker_id not in found:
                     found[d.marker_id] = Detection(d.marker_id, d.corners_px + np.array([x0, y0]))
-        if not expected <= found.keys():
+        hits = len(expected & found.keys())
+        if hits == 0 or hits < self.cfg.roi_accept_fraction * len(expected):
             return None
         return sorted(found.values(), key=lambda d: d.marker_id)
 

@@ -272,7 +272,11 @@ class FrameProcessor:
         self.setup = setup
 
     def process(
-        self, img_bgr: np.ndarray, camera: CameraModel, T_world_cam: np.ndarray | None = None
+        self,
+        img_bgr: np.ndarray,
+        camera: CameraModel,
+        T_world_cam: np.ndarray | None = None,
+        T_cam_ds_prior: np.ndarray | None = None,
     ) -> FrameResult:
         """Detect markers and solve the pose(s) of one BGR (or grey) image.
 
@@ -281,10 +285,14 @@ class FrameProcessor:
             camera: its camera model.
             T_world_cam: (4, 4) camera pose in a z-down gravity-aligned world (the vehicle's
                 attitude and mounting), when known: enables the level-DS refinement.
+            T_cam_ds_prior: (4, 4) predicted DS pose in the camera frame (the previous video
+                frame's), used with ``pose.search_from_prior``.
         """
         t0 = time.perf_counter()
         if self.setup.corners_ds is not None:
-            est = self.estimator.estimate(img_bgr, camera, T_world_cam)
+            est = self.estimator.estimate(
+                img_bgr, camera, T_world_cam, T_cam_ds_prior=T_cam_ds_prior
+            )
             level = est.level
             return FrameResult(
                 est.detections,
@@ -659,8 +667,13 @@ def _evaluate(
     resolver = CameraResolver(camera, note)
     records: dict[str, list[EvalRecord]] = {p: [] for p in names}
     thumbs = ThumbnailBuffer(cfg.report.contact_sheet_frames, cfg.report.thumbnail_width_px)
+    # video frames follow each other: with pose.search_from_prior, each frame searches around
+    # the previous frame's DS pose first (a corrupt frame or one without a pose drops the prior)
+    follow = cfg.pose.search_from_prior and source.kind == "video"
+    last_pose: dict[str, np.ndarray | None] = {}
     for index, name, img_bgr in _progress(source, progress, "eval"):
         if img_bgr is None:
+            last_pose.clear()
             for p in names:
                 records[p].append(EvalRecord(index, name, corrupt=True))
             continue
@@ -670,7 +683,9 @@ def _evaluate(
         if T_body_cam is not None and ft is not None and ft.T_world_body is not None:
             T_world_cam = ft.T_world_body @ T_body_cam
         for p, proc in procs.items():
-            res = proc.process(img_bgr, cam, T_world_cam)
+            res = proc.process(img_bgr, cam, T_world_cam, last_pose.get(p))
+            if follow:  # the next video frame searches around this frame's DS pose
+                last_pose[p] = res.T_cam_ds
             records[p].append(_record(index, name, res, ft))
             if p == names[0] and cfg.report.contact_sheet_frames:
                 drawn = (

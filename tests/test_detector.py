@@ -287,18 +287,20 @@ def test_search_from_predicted_corners_finds_the_same_markers():
     for i, q in near.items():
         assert np.abs(q - truth[i]).max() < 1.0  # corners in full-image pixels
         assert np.abs(q - full[i]).max() < 0.3
-    # a predicted marker that is not there: the whole frame is searched (and still misses it)
-    wrong = dict(predicted)
-    wrong[15] = (
-        wrong[13] + [0.0, 400.0] if wrong[13][:, 1].max() + 400 < H else wrong[13] - [0, 200]
-    )
+    # a predicted marker that is not there (hidden): the others stand, no whole-frame search
     blank = img.copy()
     q = truth[15]
     x0, y0 = np.floor(q.min(0)).astype(int) - 6
     x1, y1 = np.ceil(q.max(0)).astype(int) + 6
     blank[max(y0, 0) : y1, max(x0, 0) : x1] = 120  # marker 15 removed from the image
     found = [d.marker_id for d in det.detect(blank, predicted)]
-    assert det.last_search == "frame" and 15 not in found and len(found) == len(truth) - 1
+    assert det.last_search == "regions" and found == sorted(set(truth) - {15})
+    # a prior that is far off finds none of its markers: the whole frame is searched
+    far = {
+        i: np.add(q, [0.0, 200.0 if q[:, 1].mean() < H / 2 else -200.0]) for i, q in truth.items()
+    }
+    assert sorted(d.marker_id for d in det.detect(img, far)) == sorted(truth)
+    assert det.last_search == "frame"
 
 
 def test_search_regions_merge_overlaps_and_skip_partial_or_invalid_predictions():

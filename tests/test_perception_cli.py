@@ -545,3 +545,38 @@ def test_eval_level_ds_flag_overrides_the_config(run_cli, scene, tmp_path):
         assert res.code == 0, res.err
         report = json.loads((out / "report.json").read_text())
         assert report["config"]["pose"]["level_ds"] is want, args
+
+
+def test_eval_of_a_video_searching_from_the_last_pose_gives_the_same_poses(
+    run_cli, scene, tmp_path, monkeypatch
+):
+    from uwdock.perception.detector import Detector
+
+    searches = []
+    detect = Detector.detect
+
+    def spy(self, img_bgr, predicted=None):
+        out = detect(self, img_bgr, predicted)
+        searches.append(self.last_search)
+        return out
+
+    monkeypatch.setattr(Detector, "detect", spy)
+    video = tmp_path / "dive.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 5.0, (640, 480))
+    for img in scene["frames"][:6]:  # the hovering part: the last pose predicts the next
+        writer.write(img)
+    writer.release()
+    (tmp_path / "prior.toml").write_text("[pose]\nsearch_from_prior = true\n")
+    rows = {}
+    for name, extra in (("whole", ()), ("prior", ("--config", tmp_path / "prior.toml"))):
+        out = tmp_path / name
+        res = run_cli(main, "eval", video, "--camera", scene["camera"], *extra, "--out", out)
+        assert res.code == 0, res.err
+        rows[name] = _jsonl(out / "frames.jsonl")
+    # whole run: 6 whole frames; prior run: the first frame whole, the next 5 in regions (the
+    # moving part of the scene jumps 60 deg of azimuth per frame, too far for a prior)
+    assert searches == ["frame"] * 7 + ["regions"] * 5
+    for a, b in zip(rows["whole"], rows["prior"], strict=True):
+        assert a["ids"] == b["ids"] == FLOOR_IDS
+        dt = np.array(a["T_cam_ds"])[:3, 3] - np.array(b["T_cam_ds"])[:3, 3]
+        assert np.abs(dt).max() < 0.01

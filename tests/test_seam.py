@@ -249,8 +249,9 @@ def test_perception_eval_and_the_camera_source_give_the_same_ds_pose(tmp_path):
 def test_search_from_a_pose_prior_gives_the_whole_frame_estimate(tmp_path):
     """Rendered frames, the estimator with ``search_from_prior``: a prior 3 cm / 2 deg off
     (world frame, as the filter gives it, or camera frame, as the last video frame gives it)
-    finds the same markers in the predicted regions and the same level-DS pose as the whole
-    frame, within 1 cm (corners move up to ~1 px: the stretch is measured on the region)."""
+    finds the markers the whole frame finds (a region's own stretch sometimes decodes one more:
+    1 of 12 frames here) and the same level-DS pose, within 1 cm (corners move up to ~1 px: the
+    stretch is measured on the region)."""
     from uwdock.calibration.frames import R_from_rpy
     from uwdock.datasets.synth import SynthConfig, generate
     from uwdock.perception.ds_pose import DSPoseConfig, DSPoseEstimator
@@ -267,7 +268,7 @@ def test_search_from_a_pose_prior_gives_the_whole_frame_estimate(tmp_path):
     whole = DSPoseEstimator.from_marker_set(MARKERS)
     near = DSPoseEstimator.from_marker_set(MARKERS, pose_cfg=DSPoseConfig(search_from_prior=True))
     off = make_T(R_from_rpy(0.0, 0.0, np.radians(2.0)), [0.03, -0.02, 0.01])
-    searched = []
+    searched, extra = [], 0
     for ft in ds.frames.values():
         img = cv2.imread(str(ds.root / ft.image))
         T_world_cam = ft.T_world_body @ T_body_cam
@@ -277,10 +278,18 @@ def test_search_from_a_pose_prior_gives_the_whole_frame_estimate(tmp_path):
         searched.append(near.detector.last_search)
         c = near.estimate(img, camera, T_cam_ds_prior=ft.T_cam_ds @ off)  # no attitude: no level
         assert near.detector.last_search == searched[-1]
-        assert [d.marker_id for d in b.detections] == [d.marker_id for d in a.detections]
-        assert [d.marker_id for d in c.detections] == [d.marker_id for d in a.detections]
-        for d_a, d_b in zip(a.detections, b.detections, strict=True):
-            assert np.abs(d_a.corners_px - d_b.corners_px).max() < 1.5
-        if a.level is not None:
+        ids_a = [d.marker_id for d in a.detections]
+        ids_b = [d.marker_id for d in b.detections]
+        assert [d.marker_id for d in c.detections] == ids_b
+        if searched[-1] == "frame":
+            assert ids_b == ids_a
+        else:  # a region's own stretch may decode a marker the whole frame missed, never less
+            assert set(ids_a) <= set(ids_b)
+            extra += len(ids_b) - len(ids_a)
+        corners_b = {d.marker_id: d.corners_px for d in b.detections}
+        for d in a.detections:
+            assert np.abs(d.corners_px - corners_b[d.marker_id]).max() < 1.5
+        if a.level is not None and ids_a == ids_b:
             assert np.abs(b.T_cam_ds[:3, 3] - a.T_cam_ds[:3, 3]).max() < 0.01
     assert "regions" in searched  # frames with the markers in view took the regions
+    assert extra <= 2
