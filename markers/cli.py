@@ -64,6 +64,12 @@ def cli() -> None:
 )
 @click.option("--base-height-mm", type=_mm("base_height_mm"), help="Base plate thickness [10].")
 @click.option("--paper", type=click.Choice(["A4", "A3", "letter"]), help="Sheet paper size [A4].")
+@click.option(
+    "--style",
+    type=click.Choice(["solid", "published"]),
+    help="solid column with a pocket, or the published construction: a thin plate on a hollow "
+    "shell with a dark cavity, ~13 % of the material [solid].",
+)
 @config_option("TOML file overriding MarkerConfig defaults (flags override the file).")
 @out_dir_option("Output folder.", default=Path("markers_out"), show_default=True)
 @quiet_option("Print only the marker set path.")
@@ -79,6 +85,7 @@ def generate(
     base_side_mm,
     base_height_mm,
     paper,
+    style,
     config_path,
     out_dir,
     quiet,
@@ -100,6 +107,7 @@ def generate(
             "base_side_mm": base_side_mm,
             "base_height_mm": base_height_mm,
             "paper": paper,
+            "style": style,
         },
         section="marker",
     )

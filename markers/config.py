@@ -29,6 +29,9 @@ PartSideMm = Annotated[float, Interval(gt=0.0, le=2000.0)]
 #: A height or thickness of a printed part (mm): at least one 0.2 mm layer, at most 1 m.
 PartHeightMm = Annotated[float, Interval(ge=0.2, le=1000.0)]
 
+#: Construction styles of the printed marker (:func:`markers.geometry.build_solids`).
+MARKER_STYLES = ("solid", "published")
+
 #: The docking-station marker set of the reference system (reference.md, section 4).
 DS_MARKER_IDS: tuple[int, ...] = (13, 14, 15, 28, 34)
 
@@ -74,6 +77,22 @@ class MarkerConfig:
             ``size_mm`` (162 mm).
         base_height_mm: thickness of the base plate (mm, 0.2 ... 1000).
         paper: paper size of the flat printable sheet: ``A4``, ``A3`` or ``letter``.
+        style: ``solid`` (a solid column with a pocket for a thick insert; the fields above) or
+            ``published`` (the construction of the published, tank-proven marker: a thin
+            plate insert with locating tabs on a hollow shell, so the openings look into a dark
+            cavity; the fields below; ``insert_thickness_mm``, ``relief_depth_mm``, the base
+            plate fields do not apply). See :mod:`markers.geometry`.
+        plate_thickness_mm: ``published``: thickness of the insert plate (mm, 0.4 ... 20).
+        shell_wall_mm: ``published``: the shell's wall thickness (mm, 0.8 ... 50).
+        shell_floor_mm: ``published``: the shell's floor thickness (mm, 0.4 ... 50); a closed
+            floor keeps the cavity dark.
+        lip_mm: ``published``: width of the ledge the plate rests on, under the tag's border
+            cells (mm, 1 ... less than a cell).
+        lip_thickness_mm: ``published``: thickness of that ledge (mm, 0.4 ... 50).
+        post_side_mm: ``published``: side of the four corner posts inside the shell (mm, 0
+            for none); each takes a blind screw hole from below.
+        post_hole_mm: ``published``: diameter of the posts' screw holes (mm, 0 for none; less
+            than the post side minus 2 mm).
         layout: marker pose on the DS by ID (a string key): ``[x_m, y_m, z_m, yaw_deg]`` of the
             marker's face centre in the DS frame (m, each within +-100), face up, yaw in
             [-360, 360] deg. IDs not listed are placed on a grid on the DS floor.
@@ -90,6 +109,14 @@ class MarkerConfig:
     base_side_mm: PartSideMm | None = None
     base_height_mm: PartHeightMm = 10.0
     paper: str = "A4"
+    style: str = "solid"
+    plate_thickness_mm: Annotated[float, Interval(ge=0.4, le=20.0)] = 1.0
+    shell_wall_mm: Annotated[float, Interval(ge=0.8, le=50.0)] = 2.4
+    shell_floor_mm: Annotated[float, Interval(ge=0.4, le=50.0)] = 1.2
+    lip_mm: Annotated[float, Interval(ge=1.0, le=100.0)] = 4.0
+    lip_thickness_mm: Annotated[float, Interval(ge=0.4, le=50.0)] = 2.0
+    post_side_mm: Annotated[float, Interval(ge=0.0, le=200.0)] = 10.0
+    post_hole_mm: Annotated[float, Interval(ge=0.0, le=100.0)] = 3.4
     layout: dict[str, tuple[DsCoordM, DsCoordM, DsCoordM, YawDeg]] = field(
         default_factory=lambda: dict(REFERENCE_DS_LAYOUT)
     )
@@ -103,6 +130,32 @@ class MarkerConfig:
     def base_side(self) -> float:
         """Resolved base plate side (mm)."""
         return self.base_side_mm if self.base_side_mm is not None else 1.62 * self.size_mm
+
+    def _validate_published(self, cell_mm: float) -> None:
+        """The published style's fields against each other (mm)."""
+        if not self.lip_mm < cell_mm - self.clearance_mm:
+            raise ValueError(
+                f"lip_mm: the ledge must stay under the tag's border cells ({cell_mm:.2f} mm), "
+                f"got {self.lip_mm:g}"
+            )
+        inner = self.enclosure_side - 2 * self.shell_wall_mm
+        if not inner > self.size_mm + 2 * self.clearance_mm - 2 * self.lip_mm + 2.0:
+            raise ValueError(
+                f"shell_wall_mm: {self.shell_wall_mm:g} mm walls leave no cavity wider than the "
+                f"tag inside a {self.enclosure_side:g} mm shell"
+            )
+        if not self.post_hole_mm <= max(self.post_side_mm - 2.0, 0.0):
+            raise ValueError(
+                f"post_hole_mm: {self.post_hole_mm:g} mm needs posts of at least "
+                f"{self.post_hole_mm + 2:g} mm (post_side_mm is {self.post_side_mm:g})"
+            )
+        chamfer = (inner - (self.size_mm + 2 * self.clearance_mm - 2 * self.lip_mm)) / 2
+        top = self.plate_thickness_mm + self.lip_thickness_mm + chamfer
+        if not self.enclosure_height_mm >= top + self.shell_floor_mm + 2.0:
+            raise ValueError(
+                f"enclosure_height_mm: a shell of {self.enclosure_height_mm:g} mm cannot hold the "
+                f"plate, the ledge and its 45 deg chamfer ({top:.1f} mm) above a cavity"
+            )
 
     @property
     def size_m(self) -> float:
@@ -147,6 +200,12 @@ class MarkerConfig:
             )
         if not self.insert_thickness_mm < self.enclosure_height_mm:
             raise ValueError("enclosure_height_mm: must exceed insert_thickness_mm")
+        if self.style not in MARKER_STYLES:
+            raise ValueError(
+                f"style: must be one of {', '.join(MARKER_STYLES)}, got {self.style!r}"
+            )
+        if self.style == "published":
+            self._validate_published(cell_mm)
         if self.paper not in ("A4", "A3", "letter"):
             raise ValueError(f"paper: must be A4, A3 or letter, got {self.paper!r}")
         for key in self.layout:  # (each pose's length and domains are its declared type)

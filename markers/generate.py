@@ -20,8 +20,10 @@ from uwdock.markers.dictionary import marker_cells, normalise_dictionary_name
 from uwdock.markers.geometry import (
     ENCLOSURE_RGBA,
     INSERT_RGBA,
+    PRINT_RATE_MM3_PER_S,
     MarkerSolids,
     build_solids,
+    print_estimate,
     rasterise_top_view,
     render_scene,
 )
@@ -207,9 +209,12 @@ def generate(
                 atomic_write_bytes(out / mesh_names[i], render_scene(s).export(file_type="glb"))
             )
             written.append(write_preview(out / f"{stem}_preview.png", s, cfg))
+            est = print_estimate(s)
             say(
                 f"marker {i}: {stem}_insert.stl, {stem}_enclosure.stl, {stem}.glb, "
-                f"{stem}_preview.png"
+                f"{stem}_preview.png; plastic: insert {est['insert_cm3']:.0f} cm3, enclosure "
+                f"{est['enclosure_cm3']:.0f} cm3, ~{est['print_hours_estimate']:.0f} h to print "
+                f"solid at {PRINT_RATE_MM3_PER_S:g} mm3/s"
             )
         sheets = [atomic_write_bytes(out / path, data) for path, data in sheet_files]
         written.extend(sheets)

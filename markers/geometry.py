@@ -13,6 +13,18 @@ Construction (manifold3d, so every solid is manifold by construction):
 * enclosure: base plate + column, with a pocket (the seat) of depth t that holds the insert with
   ``clearance_mm`` all round; where ``relief_depth_mm < t``, black bosses (white cells shrunk by
   ``clearance/2``) rise from the pocket floor to depth ``relief_depth_mm``.
+
+The ``published`` style (``MarkerConfig.style``) follows the construction of the published,
+tank-proven marker (reference.md section 5: a thin insert over a hollow shell, its openings
+looking into a dark cavity), in our own geometry:
+
+* insert: a plate ``plate_thickness_mm`` thick with the same openings, and four locating tabs
+  (a press fit) under the tag's border cells, one per side;
+* enclosure: a hollow box ``enclosure_side`` wide and ``enclosure_height_mm`` tall with a closed
+  floor and ``shell_wall_mm`` walls: the plate lies in a pocket on a ledge ``lip_mm`` wide under
+  the border cells (slotted for the tabs); below the ledge the walls lean in at 45 deg, so the
+  box prints upright without supports; four corner posts with blind screw holes from below.
+  Seen from above, the openings look into the closed black cavity.
 """
 
 from __future__ import annotations
@@ -92,7 +104,10 @@ def white_openings(cells: np.ndarray, size_mm: float, grow_mm: float) -> mf.Cros
 
 
 def build_solids(cfg: MarkerConfig, marker_id: int) -> MarkerSolids:
-    """The insert and enclosure of marker ``marker_id`` as watertight meshes (mm, marker frame)."""
+    """The insert and enclosure of marker ``marker_id`` as watertight meshes (mm, marker frame),
+    in the config's ``style``."""
+    if cfg.style == "published":
+        return _published_solids(cfg, marker_id)
     cells = marker_cells(cfg.dictionary, marker_id)
     s, t, c = cfg.size_mm, cfg.insert_thickness_mm, cfg.clearance_mm
 
@@ -109,6 +124,76 @@ def build_solids(cfg: MarkerConfig, marker_id: int) -> MarkerSolids:
         bosses = _slab(white_openings(cells, s, -c / 2), -t, -cfg.relief_depth_mm)
         enclosure = enclosure + bosses
     return MarkerSolids(marker_id, _to_trimesh(insert), _to_trimesh(enclosure))
+
+
+def _published_solids(cfg: MarkerConfig, marker_id: int) -> MarkerSolids:
+    """The ``published`` style: a thin plate insert on a hollow shell (module docstring)."""
+    cells = marker_cells(cfg.dictionary, marker_id)
+    s, c = cfg.size_mm, cfg.clearance_mm
+    t, lip, lip_t = cfg.plate_thickness_mm, cfg.lip_mm, cfg.lip_thickness_mm
+    side, h = cfg.enclosure_side, cfg.enclosure_height_mm
+    seat = s + 2 * c  # the pocket the plate lies in
+    window = seat - 2 * lip  # the cavity's opening under the plate, inside the ledge
+    inner = side - 2 * cfg.shell_wall_mm
+    chamfer = (inner - window) / 2  # 45 deg from the walls in to the ledge: printable upright
+    z_ledge = -t - lip_t  # underside of the ledge
+    z_chamfer = z_ledge - chamfer  # where the walls start to lean in
+    z_floor = -h + cfg.shell_floor_mm
+
+    # insert: the plate with the openings, and a locating tab under each side's border cells
+    plate = _slab(_square(s) - white_openings(cells, s, +c / 2), -t, 0.0)
+    tab_len, tab_w = min(8.0, s / 4), min(2.0, lip / 2)
+    tab_off = s / 2 - lip / 2  # the tabs stand on the ledge's centre line
+    tabs = mf.Manifold()
+    for k in range(4):
+        tab = _slab(mf.CrossSection.square((tab_w, tab_len), center=True), z_ledge, -t)
+        tabs = tabs + tab.translate((tab_off, 0.0, 0.0)).rotate((0.0, 0.0, 90.0 * k))
+    insert = plate + tabs
+
+    # enclosure: a box, hollowed: pocket, ledge window, 45 deg chamfer, cavity, closed floor
+    box = _slab(_square(side), -h, 0.0)
+    pocket = _slab(_square(seat), -t, 1.0)
+    window_cut = _slab(_square(window), z_ledge - 1e-3, -t + 1e-3)
+    lean = mf.Manifold.extrude(_square(inner), chamfer, scale_top=(window / inner, window / inner))
+    lean = lean.translate((0.0, 0.0, z_chamfer))
+    cavity = _slab(_square(inner), z_floor, z_chamfer + 1e-3)
+    slots = mf.Manifold()
+    for k in range(4):  # the tabs' slots through the ledge, with clearance
+        slot_cs = mf.CrossSection.square((tab_w + 2 * c, tab_len + 2 * c), center=True)
+        slot = _slab(slot_cs, z_ledge - 1e-3, -t + 1e-3).translate((tab_off, 0.0, 0.0))
+        slots = slots + slot.rotate((0.0, 0.0, 90.0 * k))
+    shell = box - pocket - window_cut - lean - cavity - slots
+    if cfg.post_side_mm > 0:  # corner posts from the floor up into the chamfer
+        p = cfg.post_side_mm
+        q = inner / 2 - p / 2
+        for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1)):
+            post = _slab(_square(p), z_floor - 1e-3, z_chamfer + 1e-3).translate(
+                (sx * q, sy * q, 0)
+            )
+            shell = shell + post
+            if cfg.post_hole_mm > 0:
+                depth = min(20.0, z_chamfer - (-h) - 1.0)
+                hole = mf.Manifold.cylinder(depth + 1.0, cfg.post_hole_mm / 2, circular_segments=24)
+                shell = shell - hole.translate((sx * q, sy * q, -h - 1.0))
+    return MarkerSolids(marker_id, _to_trimesh(insert), _to_trimesh(shell))
+
+
+#: Extrusion rate of the print-time estimate (mm^3 / s): a 0.4 mm nozzle laying 0.2 mm layers
+#: at 100 mm/s, parts printed solid.
+PRINT_RATE_MM3_PER_S = 8.0
+
+
+def print_estimate(solids: MarkerSolids) -> dict[str, float]:
+    """Plastic volume (cm^3) of each part and an estimated print time (h) at
+    :data:`PRINT_RATE_MM3_PER_S`, printed solid (a slicer's infill prints sparser and faster)."""
+    v_insert = float(solids.insert.volume) / 1e3
+    v_enclosure = float(solids.enclosure.volume) / 1e3
+    hours = (v_insert + v_enclosure) * 1e3 / PRINT_RATE_MM3_PER_S / 3600.0
+    return {
+        "insert_cm3": v_insert,
+        "enclosure_cm3": v_enclosure,
+        "print_hours_estimate": hours,
+    }
 
 
 def render_scene(solids: MarkerSolids) -> trimesh.Scene:

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from uwdock.dockcore.config import load_config
+from uwdock.dockcore.config import load_config, validated
 from uwdock.dockcore.errors import ConfigError, DockError
 from uwdock.markers import cli
 from uwdock.markers.config import DS_MARKER_IDS, MarkerConfig
@@ -22,7 +22,7 @@ from uwdock.markers.dictionary import (
     normalise_dictionary_name,
 )
 from uwdock.markers.generate import file_stem, generate
-from uwdock.markers.geometry import build_solids, rasterise_top_view
+from uwdock.markers.geometry import build_solids, print_estimate, rasterise_top_view
 from uwdock.markers.markerset import (
     T_ds_marker_face_up,
     load_marker_set,
@@ -478,3 +478,74 @@ def test_generate_says_whether_the_mesh_check_ran(run_cli, tmp_path, monkeypatch
     with pytest.raises(DockError, match=r"the mesh check needs open3d: pip install"):
         generate(MarkerConfig(ids=(13,)), tmp_path / "d", check_meshes=True)
     assert not (tmp_path / "d").exists()
+
+
+# --------------------------------------------------------------------------- published style
+
+
+def test_published_style_decodes_from_its_own_parts_and_passes_the_mesh_check():
+    cfg = MarkerConfig(style="published")
+    for marker_id in DS_MARKER_IDS:
+        s = build_solids(cfg, marker_id)
+        # from above: the white plate over the shell, whose openings look into the black cavity
+        half = 0.7 * cfg.size_mm
+        top = rasterise_top_view([(s.enclosure, 0), (s.insert, 255)], PX_PER_MM, half, 128)
+        det = cv2.aruco.ArucoDetector(
+            cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50),
+            cv2.aruco.DetectorParameters(),
+        )
+        corners, ids, _ = det.detectMarkers(255 - top)
+        assert ids is not None and ids.ravel().tolist() == [marker_id]
+        px = np.array([[-50, 50], [50, 50], [50, -50], [-50, -50]], float)
+        expected = np.stack([(px[:, 0] + half) * PX_PER_MM, (half - px[:, 1]) * PX_PER_MM], 1)
+        assert np.abs(corners[0][0] - expected).max() <= 1.0
+        # the parts meet only on the ledge and in the slots: no overlap
+        assert (to_manifold(s.insert) ^ to_manifold(s.enclosure)).volume() < 1e-3
+        assert s.insert.bounds[1, 2] == pytest.approx(0.0)  # flush with the shell's top
+        assert s.enclosure.bounds[1, 2] == pytest.approx(0.0)
+        reports = check_printable(
+            {"insert.stl": _stl(s.insert), "enclosure.stl": _stl(s.enclosure)}
+        )
+        assert [r.ok for r in reports] == [True, True], [r.problems for r in reports]
+
+
+def test_published_style_uses_under_30_percent_of_the_solid_enclosure_material():
+    solid = print_estimate(build_solids(MarkerConfig(), 13))
+    published = print_estimate(build_solids(MarkerConfig(style="published"), 13))
+    # the solid column: 126^2 x 98 + 162^2 x 10 mm^3 minus the 5 mm pocket, ~1,768 cm^3
+    assert solid["enclosure_cm3"] == pytest.approx(
+        (126.0**2 * 98 + 162.0**2 * 10 - 100.2**2 * 5) / 1e3, rel=1e-3
+    )
+    assert published["enclosure_cm3"] < 0.3 * solid["enclosure_cm3"]
+    assert 150 < published["enclosure_cm3"] < 350  # walls, ledge, chamfer, floor, posts
+    assert published["print_hours_estimate"] < 0.3 * solid["print_hours_estimate"]
+
+
+def test_published_cavity_is_closed_and_dark_below_the_openings():
+    """Looking straight down an opening, the first surface below the plate is the shell's own
+    floor (black), not the ground: a ray through a white cell hits the enclosure at the floor."""
+    cfg = MarkerConfig(style="published")
+    s = build_solids(cfg, 13)
+    cells = marker_cells(cfg.dictionary, 13)
+    a = cfg.size_mm / cells.shape[0]
+    r, c = np.argwhere(~cells)[0]  # a white cell: an opening in the plate
+    x, y = -cfg.size_mm / 2 + (c + 0.5) * a, cfg.size_mm / 2 - (r + 0.5) * a
+    probe = mf.Manifold.cube((0.5, 0.5, 200.0), center=True).translate((x, y, 0.0))
+    assert (to_manifold(s.insert) ^ probe).volume() == 0.0  # nothing of the plate: an opening
+    below = to_manifold(s.enclosure) ^ probe  # the first enclosure surface under it: the floor
+    assert below.bounding_box()[5] == pytest.approx(-cfg.enclosure_height_mm + cfg.shell_floor_mm)
+
+
+@pytest.mark.parametrize(
+    ("fields", "message"),
+    [
+        ({"style": "hollow"}, "style"),
+        ({"style": "published", "lip_mm": 20.0}, "lip_mm"),
+        ({"style": "published", "shell_wall_mm": 20.0}, "shell_wall_mm"),
+        ({"style": "published", "post_hole_mm": 9.0}, "post_hole_mm"),
+        ({"style": "published", "enclosure_height_mm": 15.0}, "enclosure_height_mm"),
+    ],
+)
+def test_published_style_config_is_validated(fields, message):
+    with pytest.raises(ConfigError, match=message):
+        validated(MarkerConfig(**fields))
