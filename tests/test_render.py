@@ -12,6 +12,8 @@ import cv2
 import numpy as np
 import pytest
 
+from uwdock.perception.detector import Detector, DetectorConfig
+
 sapien = pytest.importorskip("sapien")
 
 from uwdock.calibration.camera import REFERENCE_T_BODYFRD_CAMCV, CameraModel, reference_camera  # noqa: E402
@@ -79,16 +81,11 @@ def _insert_outline(grey: np.ndarray, around_px: np.ndarray, half_px: int) -> np
 
 
 def _negative_aruco(rgb: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
-    """The reference 3DBM preprocessing (normalise, grey, CLAHE, invert, blur) + ArUco."""
-    grey = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
-    norm = cv2.normalize(grey, None, 0, 255, cv2.NORM_MINMAX)
-    inv = 255 - cv2.createCLAHE(clipLimit=2.0, tileGridSize=(32, 32)).apply(norm)
-    inv = cv2.GaussianBlur(inv, (3, 3), 0)
-    det = cv2.aruco.ArucoDetector(
-        cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50), cv2.aruco.DetectorParameters()
-    )
-    corners, ids, _ = det.detectMarkers(inv)
-    return [c.reshape(4, 2) for c in corners], (np.empty(0, int) if ids is None else ids.ravel())
+    """The project's detector (``default`` pipeline) on the rendered frame, converted to BGR as
+    every caller does; all IDs."""
+    det = Detector(DetectorConfig())
+    found = det.detect(np.ascontiguousarray(rgb[..., ::-1]))
+    return [d.corners_px for d in found], np.array([d.marker_id for d in found], int)
 
 
 # ----------------------------------------------------------------------------- DS geometry
@@ -206,6 +203,7 @@ def test_distorted_camera_matches_project_markers(rs) -> None:
     m = cv2.moments(_insert_outline(grey, gt.centre_px, 28), binaryImage=True)
     centroid = np.array([m["m10"] / m["m00"], m["m01"] / m["m00"]])
     assert np.linalg.norm(centroid - gt.centre_px) < 1.0
+    rig.set_lamp(False)  # its lamp would light the later tests' scenes too
     _use(rs, rs.rig)
 
 
