@@ -39,6 +39,24 @@ def test_stage_two_only_raises_the_collision_penalty():
     assert one.ppo == two.ppo
 
 
+def test_proxy_precision_recipe_only_adds_r_precision():
+    """The proxy recipe that reaches the paper's figure in three seeds is the large-batch one
+    plus r_precision (the error-model recipe's values); nothing else differs."""
+    load = lambda n: load_config(TrainConfig, ROOT / "configs" / n, section="train")  # noqa: E731
+    batch = load("scratch_proxy_batch_ppo.toml")
+    precise = load("scratch_proxy_precision_ppo.toml")
+    em = load("scratch_error_model_precision_ppo.toml")
+    assert batch.env.reward.precision_gain == 0.0
+    assert precise.env.reward.precision_gain == em.env.reward.precision_gain == 1.0
+    assert precise.env.reward.precision_scale_m == em.env.reward.precision_scale_m
+    reward = replace(
+        precise.env.reward,
+        precision_gain=batch.env.reward.precision_gain,
+        precision_scale_m=batch.env.reward.precision_scale_m,
+    )
+    assert replace(precise, env=replace(precise.env, reward=reward)) == batch
+
+
 def test_shipped_policy_is_the_from_scratch_recipe():
     """The shipped policy (the main job's) was trained by the committed stage-2 config, from a
     clean tree, from stage 1's best/, with no imitation, and loads as a finite policy."""
