@@ -241,12 +241,19 @@ def test_threshold_sweep_reports_each_id_once():
     assert ids == sorted(set(ids)) == sorted(truth)
 
 
-def test_union_merge_keeps_ids_from_the_candidate_with_most_detections(monkeypatch):
+def _merge_views(only14_of: str):
+    """Markers 13 and 14 (``both``), the same 3 px to the right (``shifted``), and ``both`` or
+    ``shifted`` with marker 13 blanked (``only14``)."""
     rng = np.random.default_rng(7)
     both, truth = render(rng, ids=(13, 14), negative=False, levels=200, green=False, noise=0)
-    shifted = np.roll(both, 3, axis=1)  # same markers, 3 px to the right
-    only14 = shifted.copy()
+    shifted = np.roll(both, 3, axis=1)
+    only14 = (shifted if only14_of == "shifted" else both).copy()
     only14[:, : W // 2] = 128  # marker 13 sits in the left half of the 2x1 grid
+    return both, truth, shifted, only14
+
+
+def test_union_merge_keeps_ids_from_the_candidate_with_most_detections(monkeypatch):
+    both, truth, shifted, only14 = _merge_views("shifted")
     fake = Pipeline("fake", lambda image: [only14, both, shifted], {}, "union")
     monkeypatch.setitem(PIPELINES, "fake", fake)
     found = Detector(DetectorConfig(pipeline="fake")).detect(both)
@@ -259,11 +266,7 @@ def test_union_merge_keeps_ids_from_the_candidate_with_most_detections(monkeypat
 
 
 def test_first_merge_keeps_each_id_from_the_earliest_candidate(monkeypatch):
-    rng = np.random.default_rng(7)
-    both, truth = render(rng, ids=(13, 14), negative=False, levels=200, green=False, noise=0)
-    shifted = np.roll(both, 3, axis=1)  # same markers, 3 px to the right
-    only14 = both.copy()
-    only14[:, : W // 2] = 128  # marker 13 sits in the left half of the 2x1 grid
+    both, truth, shifted, only14 = _merge_views("both")
     fake = Pipeline("fake", lambda image: [only14, shifted], {}, "first")
     monkeypatch.setitem(PIPELINES, "fake", fake)
     found = {
