@@ -131,6 +131,13 @@ class MarkerConfig:
         """Resolved base plate side (mm)."""
         return self.base_side_mm if self.base_side_mm is not None else 1.62 * self.size_mm
 
+    def shell_mm(self) -> tuple[float, float, float]:
+        """``published`` style: the shell's inner side, the window under the plate (inside the
+        ledge) and the height of the 45 deg chamfer between them (mm)."""
+        inner = self.enclosure_side - 2 * self.shell_wall_mm
+        window = self.size_mm + 2 * self.clearance_mm - 2 * self.lip_mm
+        return inner, window, (inner - window) / 2
+
     def _validate_published(self, cell_mm: float) -> None:
         """The published style's fields against each other (mm)."""
         if not self.lip_mm < cell_mm - self.clearance_mm:
@@ -138,8 +145,8 @@ class MarkerConfig:
                 f"lip_mm: the ledge must stay under the tag's border cells ({cell_mm:.2f} mm), "
                 f"got {self.lip_mm:g}"
             )
-        inner = self.enclosure_side - 2 * self.shell_wall_mm
-        if not inner > self.size_mm + 2 * self.clearance_mm - 2 * self.lip_mm + 2.0:
+        inner, window, chamfer = self.shell_mm()
+        if not inner > window + 2.0:
             raise ValueError(
                 f"shell_wall_mm: {self.shell_wall_mm:g} mm walls leave no cavity wider than the "
                 f"tag inside a {self.enclosure_side:g} mm shell"
@@ -149,7 +156,6 @@ class MarkerConfig:
                 f"post_hole_mm: {self.post_hole_mm:g} mm needs posts of at least "
                 f"{self.post_hole_mm + 2:g} mm (post_side_mm is {self.post_side_mm:g})"
             )
-        chamfer = (inner - (self.size_mm + 2 * self.clearance_mm - 2 * self.lip_mm)) / 2
         top = self.plate_thickness_mm + self.lip_thickness_mm + chamfer
         if not self.enclosure_height_mm >= top + self.shell_floor_mm + 2.0:
             raise ValueError(

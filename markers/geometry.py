@@ -126,6 +126,13 @@ def build_solids(cfg: MarkerConfig, marker_id: int) -> MarkerSolids:
     return MarkerSolids(marker_id, _to_trimesh(insert), _to_trimesh(enclosure))
 
 
+def _four_sides(part: mf.Manifold) -> mf.Manifold:
+    """``part`` and its copies turned 90, 180 and 270 deg about the marker's z axis."""
+    return mf.Manifold.batch_boolean(
+        [part.rotate((0.0, 0.0, 90.0 * k)) for k in range(4)], mf.OpType.Add
+    )
+
+
 def _published_solids(cfg: MarkerConfig, marker_id: int) -> MarkerSolids:
     """The ``published`` style: a thin plate insert on a hollow shell (module docstring)."""
     cells = marker_cells(cfg.dictionary, marker_id)
@@ -133,9 +140,8 @@ def _published_solids(cfg: MarkerConfig, marker_id: int) -> MarkerSolids:
     t, lip, lip_t = cfg.plate_thickness_mm, cfg.lip_mm, cfg.lip_thickness_mm
     side, h = cfg.enclosure_side, cfg.enclosure_height_mm
     seat = s + 2 * c  # the pocket the plate lies in
-    window = seat - 2 * lip  # the cavity's opening under the plate, inside the ledge
-    inner = side - 2 * cfg.shell_wall_mm
-    chamfer = (inner - window) / 2  # 45 deg from the walls in to the ledge: printable upright
+    # the cavity's opening inside the ledge, and 45 deg from the walls in to it: prints upright
+    inner, window, chamfer = cfg.shell_mm()
     z_ledge = -t - lip_t  # underside of the ledge
     z_chamfer = z_ledge - chamfer  # where the walls start to lean in
     z_floor = -h + cfg.shell_floor_mm
@@ -144,11 +150,8 @@ def _published_solids(cfg: MarkerConfig, marker_id: int) -> MarkerSolids:
     plate = _slab(_square(s) - white_openings(cells, s, +c / 2), -t, 0.0)
     tab_len, tab_w = min(8.0, s / 4), min(2.0, lip / 2)
     tab_off = s / 2 - lip / 2  # the tabs stand on the ledge's centre line
-    tabs = mf.Manifold()
-    for k in range(4):
-        tab = _slab(mf.CrossSection.square((tab_w, tab_len), center=True), z_ledge, -t)
-        tabs = tabs + tab.translate((tab_off, 0.0, 0.0)).rotate((0.0, 0.0, 90.0 * k))
-    insert = plate + tabs
+    tab = _slab(mf.CrossSection.square((tab_w, tab_len), center=True), z_ledge, -t)
+    insert = plate + _four_sides(tab.translate((tab_off, 0.0, 0.0)))
 
     # enclosure: a box, hollowed: pocket, ledge window, 45 deg chamfer, cavity, closed floor
     box = _slab(_square(side), -h, 0.0)
@@ -157,12 +160,9 @@ def _published_solids(cfg: MarkerConfig, marker_id: int) -> MarkerSolids:
     lean = mf.Manifold.extrude(_square(inner), chamfer, scale_top=(window / inner, window / inner))
     lean = lean.translate((0.0, 0.0, z_chamfer))
     cavity = _slab(_square(inner), z_floor, z_chamfer + 1e-3)
-    slots = mf.Manifold()
-    for k in range(4):  # the tabs' slots through the ledge, with clearance
-        slot_cs = mf.CrossSection.square((tab_w + 2 * c, tab_len + 2 * c), center=True)
-        slot = _slab(slot_cs, z_ledge - 1e-3, -t + 1e-3).translate((tab_off, 0.0, 0.0))
-        slots = slots + slot.rotate((0.0, 0.0, 90.0 * k))
-    shell = box - pocket - window_cut - lean - cavity - slots
+    slot_cs = mf.CrossSection.square((tab_w + 2 * c, tab_len + 2 * c), center=True)
+    slot = _slab(slot_cs, z_ledge - 1e-3, -t + 1e-3).translate((tab_off, 0.0, 0.0))
+    shell = box - pocket - window_cut - lean - cavity - _four_sides(slot)  # the tabs' slots
     if cfg.post_side_mm > 0:  # corner posts from the floor up into the chamfer
         p = cfg.post_side_mm
         q = inner / 2 - p / 2

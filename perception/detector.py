@@ -268,29 +268,25 @@ class Detector:
             boxes.append([max(x0, 0), max(y0, 0), min(x1, w), min(y1, h)])
             expected.add(int(marker_id))
         merged = True
-        while merged:  # merge overlapping boxes until none overlap
-            merged = False
-            for a in range(len(boxes)):
-                for b in range(a + 1, len(boxes)):
-                    p, q = boxes[a], boxes[b]
-                    if p[0] < q[2] and q[0] < p[2] and p[1] < q[3] and q[1] < p[3]:
-                        boxes[a] = [
-                            min(p[0], q[0]),
-                            min(p[1], q[1]),
-                            max(p[2], q[2]),
-                            max(p[3], q[3]),
-                        ]
-                        del boxes[b]
+        while merged:  # union overlapping boxes until none overlap
+            merged, out = False, []
+            for box in boxes:
+                for k, o in enumerate(out):
+                    if box[0] < o[2] and o[0] < box[2] and box[1] < o[3] and o[1] < box[3]:
+                        out[k] = [min(box[0], o[0]), min(box[1], o[1]), max(box[2], o[2]),
+                                  max(box[3], o[3])]  # fmt: skip
                         merged = True
                         break
-                if merged:
-                    break
+                else:
+                    out.append(box)
+            boxes = out
         return [tuple(b) for b in boxes], expected  # type: ignore[misc]
 
     def _detect_in_regions(
         self, image: np.ndarray, predicted: dict[int, np.ndarray]
     ) -> list[Detection] | None:
-        """Detections in the predicted regions, or None when an expected marker is missing."""
+        """Detections in the predicted regions, or None when too few of the expected markers
+        are found there (``roi_accept_fraction``) or none is expected."""
         boxes, expected = self.search_regions(image.shape, predicted)
         if not expected:
             return None

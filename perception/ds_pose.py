@@ -61,7 +61,7 @@ class DSPoseConfig:
             labelled datasets that record ``T_world_body``.
         search_from_prior: with a DS pose prior (:meth:`DSPoseEstimator.estimate`'s
             ``T_world_ds_prior`` or ``T_cam_ds_prior``), detect first around the markers the
-            prior projects into the image, the whole frame only when one is missed
+            prior projects into the image, the whole frame only when too few are found
             (:meth:`~uwdock.perception.detector.Detector.detect`'s ``predicted``). Off by
             default: the env's camera rows and the error model were measured with whole-frame
             detection.

@@ -166,14 +166,16 @@ def estimate_noise_sigma(grey: np.ndarray, row_step: int = 8) -> float:
     return float(median / (0.6745 * np.sqrt(6.0)))
 
 
-def _percentiles(grey: np.ndarray, clip_fraction: float) -> tuple[int, int]:
+def _percentiles(grey: np.ndarray, clip_fraction: float) -> tuple[int, int, int]:
     """Grey levels below which ``clip_fraction`` and above which ``clip_fraction`` of a 1/16
-    pixel sample lie (a robust min and max)."""
+    pixel sample lie (a robust min and max), and its median, from one histogram."""
     sample = np.ascontiguousarray(grey[::4, ::4])
     cum = np.cumsum(cv2.calcHist([sample], [0], None, [256], [0, 256]).ravel())
-    lo = int(np.searchsorted(cum, clip_fraction * cum[-1]))
-    hi = int(np.searchsorted(cum, (1.0 - clip_fraction) * cum[-1]))
-    return lo, max(hi, lo + 1)
+    lo, hi, median = (
+        int(v)
+        for v in np.searchsorted(cum, cum[-1] * np.array([clip_fraction, 1.0 - clip_fraction, 0.5]))
+    )
+    return lo, max(hi, lo + 1), median
 
 
 # --------------------------------------------------------------------------- pipelines
@@ -265,14 +267,13 @@ class NoiseAwareStretch:
         ):
             grey = cv2.medianBlur(grey, self.median_ksize)
             blur = 0
-        lo, hi = _percentiles(grey, self.clip_fraction)
+        lo, hi, median = _percentiles(grey, self.clip_fraction)
         gain_range = 255.0 / (hi - lo)
         gain_noise = np.inf
         if self.noise_target > 0:
             gain_noise = self.noise_target / max(estimate_noise_sigma(grey), self.min_sigma)
         out = [self._stretch(grey, min(gain_range, gain_noise), 0.5 * (lo + hi), blur)]
         if self.second_gain_ratio > 0 and gain_noise > self.second_gain_ratio * gain_range:
-            median, _ = _percentiles(grey, 0.5)
             below, above = max(median - lo, 1), max(hi - median, 1)
             lopsided = max(below, above) > self.second_gain_ratio * min(below, above)
             if lopsided or hi - lo < 128:  # not a full-contrast frame (those decode as they are)
@@ -302,14 +303,14 @@ def published_grey(image: np.ndarray) -> np.ndarray:
     return norm if norm.ndim == 2 else cv2.cvtColor(norm, cv2.COLOR_RGB2GRAY)
 
 
-def _inverted_rescale(grey: np.ndarray) -> np.ndarray | None:
+def _inverted_rescale(grey: np.ndarray) -> np.ndarray:
     """float32 image mapping the darkest pixel to +127 and the brightest to -127 (linear), in the
-    published code's float32 arithmetic; None for a constant image (the published code divides
-    by zero there)."""
+    published code's float32 arithmetic; zeros for a constant image (the published code divides
+    by zero there), which the last step turns into a uniform 127."""
     g = grey.astype(np.float32)
     lo, hi = g.min(), g.max()
     if hi == lo:
-        return None
+        return np.zeros_like(g)
     scale = np.float32(254.0) / (hi - lo)  # float32, as the published (254 / (max - min))
     return (hi - g) * scale - np.float32(127.0)
 
@@ -332,10 +333,7 @@ def reference_3dbm(image: np.ndarray) -> list[np.ndarray]:
     image (no contrast) gives a uniform 127.
     """
     grey = cv2.createCLAHE(clipLimit=2.0, tileGridSize=(32, 32)).apply(published_grey(image))
-    inv = _inverted_rescale(grey)
-    if inv is None:
-        return [np.full_like(grey, 127)]
-    return [_to_published_uint8(cv2.filter2D(inv, -1, _BINOMIAL_3X3))]
+    return [_to_published_uint8(cv2.filter2D(_inverted_rescale(grey), -1, _BINOMIAL_3X3))]
 
 
 #: Thresholds of the published inverse-threshold sweep (grey levels).
@@ -360,9 +358,7 @@ def threshold_sweep(image: np.ndarray) -> list[np.ndarray]:
 def normalise_invert(image: np.ndarray) -> list[np.ndarray]:
     """The published "normalization method": the published grey image, inverted min-max
     rescale, + 127.5, clip to [1, 254], truncate to uint8 (no CLAHE, no blur)."""
-    grey = published_grey(image)
-    inv = _inverted_rescale(grey)
-    return [np.full_like(grey, 127) if inv is None else _to_published_uint8(inv)]
+    return [_to_published_uint8(_inverted_rescale(published_grey(image)))]
 
 
 def plain(image: np.ndarray) -> list[np.ndarray]:
