@@ -81,6 +81,10 @@ class DetectorConfig:
             (True only for ``default``).
         rescue_max_quads: most rejected quads read again per candidate image (largest
             first); bounds the cost on noisy frames.
+        rescue_min_side_px: rejected quads with a mean side below this are not read again
+            (px). ArUco's own size floor is relative to the image (3 % of its larger side),
+            so in the small crops of a prior search it hands back noise specks of 1-2 px a
+            side (median perimeter 5 px, ~35 a frame at 1080p).
         roi_accept_fraction: the regions' detections stand when they hold at least this
             fraction of the markers predicted in the image (and at least one); fewer, and the
             whole frame is searched. 1 demands every predicted marker; below 1, a marker hidden
@@ -102,6 +106,7 @@ class DetectorConfig:
     roi_accept_fraction: Annotated[float, Interval(gt=0.0, le=1.0)] = 0.5
     rescue_rejected: bool | None = None
     rescue_max_quads: Annotated[int, Interval(ge=0, le=10000)] = 16
+    rescue_min_side_px: Annotated[float, Interval(ge=0.0, le=10000.0)] = 16.0
 
     def validate(self) -> None:
         """Raise ValueError naming the first bad field (names, IDs, the window sequence; each
@@ -212,10 +217,15 @@ class Detector:
         self, grey: np.ndarray, rejected: tuple[np.ndarray, ...], have: set[int]
     ) -> list[Detection]:
         """Rejected quads decoded by :class:`perception.rescue.QuadReader`, largest first."""
-        quads = [np.asarray(r, np.float32).reshape(4, 2) for r in rejected]
-        quads.sort(key=lambda q: -cv2.arcLength(q, True))
+        sized = []
+        for r in rejected:
+            q = np.asarray(r, np.float32).reshape(4, 2)
+            perimeter = cv2.arcLength(q, True)
+            if perimeter >= 4.0 * self.cfg.rescue_min_side_px:
+                sized.append((perimeter, q))
+        sized.sort(key=lambda pq: -pq[0])
         out = []
-        for q in quads[: self.cfg.rescue_max_quads]:
+        for _, q in sized[: self.cfg.rescue_max_quads]:
             got = self._reader.read(grey, q)  # type: ignore[union-attr]
             if got is None or got[0] in have:
                 continue
