@@ -120,6 +120,13 @@ def _make_env_fn(
             signal.signal(signal.SIGINT, signal.SIG_IGN)
             signal.signal(signal.SIGTERM, signal.SIG_DFL)
             die_with_parent(parent)
+            # one thread per worker, and never the thread pool the parent had when it forked:
+            # a forked child that enters the inherited OpenMP pool waits on it forever (seen:
+            # both eval workers stuck in torch's orthogonal_ while loading the policy, after
+            # the parent had run multi-threaded torch ops)
+            import torch
+
+            torch.set_num_threads(1)
         from stable_baselines3.common.monitor import Monitor
 
         try:
