@@ -1,4 +1,5 @@
-"""``calibration``: camera intrinsics, the camera-to-vehicle extrinsics, the reference camera."""
+"""``calibration``: camera intrinsics, the camera-to-vehicle extrinsics, the reference camera,
+and camera files of ROS (camera_info) and Kalibr (camchain) in and out."""
 
 from __future__ import annotations
 
@@ -15,7 +16,14 @@ from uwdock.calibration.extrinsics import (
     write_extrinsics,
     write_reference_camera,
 )
+from uwdock.calibration.formats import (
+    EXPORT_FORMATS,
+    IMPORT_FORMATS,
+    export_camera_file,
+    import_camera_file,
+)
 from uwdock.calibration.intrinsics import IntrinsicsConfig, calibrate_intrinsics, write_outputs
+from uwdock.dockcore.bags import resolve_image_topic
 from uwdock.dockcore.cli import DomainType, domain_type, field_type, run_group
 from uwdock.dockcore.config import load_config
 from uwdock.dockcore.domains import Interval
@@ -86,6 +94,11 @@ def cli() -> None:
     show_default=True,
 )
 @quiet_option("Print only the camera file path; no progress bar.")
+@click.option(
+    "--topic",
+    help="Image topic when SOURCE is a ROS bag (.bag, .db3, .mcap or a ROS 2 folder); "
+    "without it the bag's topics are listed and its only image topic is read.",
+)
 def intrinsics(
     source,
     pattern,
@@ -103,8 +116,10 @@ def intrinsics(
     name,
     out_path,
     quiet,
+    topic,
 ) -> None:
-    """Calibrate K and distortion from SOURCE: a folder of images or a video of the target.
+    """Calibrate K and distortion from SOURCE: a folder of images, a video or a ROS bag of the
+    target.
 
     Chessboard sizes count inner corners, ChArUco sizes count squares. Blurred views and
     near-duplicates are rejected, a seeded fraction is held out and its reprojection error
@@ -128,7 +143,10 @@ def intrinsics(
         },
         section="intrinsics",
     )
-    result = calibrate_intrinsics(source, cfg, name=name, progress=False if quiet else None)
+    topic = resolve_image_topic(source, topic, lambda m: click.echo(f"note: {m}", err=True))
+    result = calibrate_intrinsics(
+        source, cfg, name=name, progress=False if quiet else None, topic=topic
+    )
     for note in result.notes:
         click.echo(f"note: {note}", err=True)
     paths, kept_T = write_outputs(result, out_path)
@@ -219,6 +237,90 @@ def reference_camera(out_path, width, height) -> None:
         f"wrote {yaml_path} and {json_path}: {cam.width_px}x{cam.height_px} px, "
         f"f {cam.fx_px:.3f} px, HFOV {cam.hfov_deg:.2f} deg"
     )
+
+
+_SOURCE_LABELS = {
+    "ros": "ROS camera_info",
+    "camera_info": "ROS CameraInfo message",
+    "kalibr": "Kalibr camchain",
+}
+
+
+@cli.command(name="import")
+@click.argument("source", type=click.Path(path_type=Path))
+@click.option(
+    "--format",
+    "fmt",
+    type=click.Choice(IMPORT_FORMATS),
+    default="auto",
+    show_default=True,
+    help="SOURCE's format: ros (camera_calibration's ost.yaml, or a CameraInfo message saved "
+    "by rostopic echo), kalibr (camchain), or auto: told apart by the keys.",
+)
+@click.option(
+    "--cam",
+    "cam_key",
+    default="cam0",
+    show_default=True,
+    help="Kalibr: the camera of the camchain (cam0, cam1, ...).",
+)
+@out_file_option(
+    "Camera file (.yaml + .json twin); an existing file's T_body_cam is kept.",
+    default=Path("camera.yaml"),
+    show_default=True,
+)
+def import_(source, fmt, cam_key, out_path) -> None:
+    """Convert SOURCE, a ROS camera_info YAML or a Kalibr camchain, into a camera file.
+
+    Intrinsics only. Kalibr's T_cam_imu (the IMU frame in the camera frame) is printed, not
+    written: T_body_cam = T_body_imu @ inv(T_cam_imu) needs where the IMU sits in the body
+    frame; set it with `calibration extrinsics set`.
+    """
+    imported, (yaml_path, json_path), kept_T = import_camera_file(source, out_path, fmt, cam_key)
+    for note in imported.notes:
+        click.echo(f"note: {note}", err=True)
+    cam = imported.camera
+    click.echo(
+        f"read {source} ({_SOURCE_LABELS[imported.source_format]}): "
+        f"{cam.width_px}x{cam.height_px} px  fx {cam.fx_px:.3f} px  fy {cam.fy_px:.3f} px  "
+        f"cx {cam.cx_px:.3f} px  cy {cam.cy_px:.3f} px  "
+        f"dist [{', '.join(f'{d:.5f}' for d in cam.dist)}]"
+    )
+    if imported.T_cam_imu is not None:
+        click.echo("T_cam_imu (IMU frame in the camera frame, m), not written:")
+        for row in imported.T_cam_imu:
+            click.echo("  " + "  ".join(f"{v:+.9f}" for v in row))
+    if kept_T:
+        click.echo(f"kept T_body_cam from the existing {out_path}")
+    click.echo(f"wrote {yaml_path} and {json_path}")
+
+
+@cli.command()
+@click.argument("camera_file", type=click.Path(path_type=Path))
+@click.option(
+    "--format",
+    "fmt",
+    type=click.Choice(EXPORT_FORMATS),
+    required=True,
+    help="ros: camera_info YAML (plumb_bob or rational_polynomial); kalibr: a one-camera "
+    "camchain (pinhole-radtan, k3 and higher must be zero).",
+)
+@out_file_option("YAML file to write (.yaml or .yml).", required=True)
+@click.option(
+    "--rostopic",
+    default="/cam0/image_raw",
+    show_default=True,
+    help="Kalibr: the image topic written into the camchain.",
+)
+def export(camera_file, fmt, out_path, rostopic) -> None:
+    """Write the intrinsics of CAMERA_FILE as ROS camera_info YAML or a Kalibr camchain.
+
+    T_body_cam is not exported: camera_info has no extrinsics, and Kalibr's T_cam_imu is
+    relative to the IMU, not the body frame.
+    """
+    path, model = export_camera_file(camera_file, out_path, fmt, rostopic=rostopic)
+    label = "ROS camera_info" if fmt == "ros" else "Kalibr camchain (cam0, pinhole)"
+    click.echo(f"wrote {path}: {label}, distortion model {model}")
 
 
 def main() -> None:

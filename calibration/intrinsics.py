@@ -13,6 +13,7 @@ ChArUco board (OpenCV's conventions; see :mod:`calibration.patterns`).
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import math
 import os
 import sys
@@ -37,6 +38,7 @@ from uwdock.calibration.patterns import (
     spread_subset,
     view_quad_px,
 )
+from uwdock.dockcore.bags import Bag, is_bag
 from uwdock.dockcore.config import to_dict, validated
 from uwdock.dockcore.domains import Interval, Seed
 from uwdock.dockcore.errors import DockError
@@ -115,6 +117,18 @@ class IntrinsicsConfig:
             corners; a chessboard is all or nothing).
         subpix_win_px: largest half window of the sub-pixel corner search (px, 2 ... 100).
         video_max_frames: most frames sampled (evenly) from a video input (1 ... 100000).
+        corner_method: chessboard corners by ``classic`` (``findChessboardCorners`` +
+            ``cornerSubPix``), ``sb`` (``findChessboardCornersSB``) or ``auto``: both, each
+            calibrated, and the one with the lower hold-out error kept (the classic one when
+            nothing is held out); both errors go into the report. ChArUco has one detector.
+        outlier_ratio: after each fit, the calibration view with the largest reprojection
+            error is rejected (reason ``outlier``) and the fit repeated while that error exceeds
+            this multiple of the median of the other views' (and ``outlier_min_px``), as long
+            as ``MIN_VIEWS`` remain; 0 disables. A view with a mis-detected or moved corner
+            pulls K toward itself: on real tank frames one view at ~6x the median error moved
+            fx by ~8 % and doubled the RMS.
+        outlier_min_px: views at or below this error are never outliers (px; sub-pixel
+            corners on a sharp board reach ~0.1 px, so a ratio alone would flag noise).
     """
 
     pattern: str = "chessboard"
@@ -131,6 +145,9 @@ class IntrinsicsConfig:
     seed: Seed = 0
     distortion_model: Literal["k1k2", "k1k2k3", "k1k2p1p2", "k1k2p1p2k3", "rational"] = "k1k2p1p2k3"
     min_corners: Annotated[int, Interval(ge=4, le=100 * 100)] = 8
+    corner_method: Literal["auto", "classic", "sb"] = "auto"
+    outlier_ratio: Annotated[float, Interval(ge=0.0, le=1000.0)] = 3.0
+    outlier_min_px: Annotated[float, Interval(ge=0.0, le=1000.0)] = 0.5
     subpix_win_px: Annotated[int, Interval(ge=2, le=100)] = 11
     video_max_frames: Annotated[int, Interval(ge=1, le=100_000)] = 300
 
@@ -175,6 +192,7 @@ class IntrinsicsConfig:
             legacy_charuco=self.legacy_charuco,
             subpix_win_px=self.subpix_win_px,
             min_corners=self.min_corners,
+            corner_method="sb" if self.corner_method == "sb" else "classic",
         )
 
 
@@ -186,7 +204,9 @@ class ViewRecord:
         name: file name (folder input) or ``frame_<index>`` (video input).
         status: ``calibration``, ``holdout`` or ``rejected``.
         reason: why a view was rejected (``unreadable``, ``too_small``, ``size_mismatch``,
-            ``no_pattern``, ``blurred``, ``duplicate``, ``over_cap``), else None.
+            ``no_pattern``, ``blurred``, ``duplicate``, ``over_cap``, ``outlier``), else None.
+        detail: for an outlier, its error against the others' median and the fit's K before
+            and after its rejection.
         n_corners: corners found (0 without a detection).
         blur_px: pattern edge width (px), None without a detection.
         error_px: RMS reprojection error of the view (px) for calibration and hold-out views.
@@ -198,6 +218,7 @@ class ViewRecord:
     n_corners: int = 0
     blur_px: float | None = None
     error_px: float | None = None
+    detail: str | None = None
     detection: Detection | None = field(default=None, repr=False)
     quad_px: np.ndarray | None = field(default=None, repr=False)
 
@@ -210,6 +231,7 @@ class ViewRecord:
             "n_corners": self.n_corners,
             "blur_px": _round(self.blur_px),
             "error_px": _round(self.error_px),
+            "detail": self.detail,
         }
 
 
@@ -225,6 +247,8 @@ class IntrinsicsResult:
         config: the configuration used.
         source: the input path.
         notes: one-line remarks for the user (e.g. a ChArUco border too thin).
+        corner_methods: with ``corner_method = "auto"`` on a chessboard, each method's
+            ``{"rms_px", "holdout_rms_px", "views"}`` and which was ``"chosen"``; else None.
     """
 
     camera: CameraModel
@@ -234,6 +258,7 @@ class IntrinsicsResult:
     config: IntrinsicsConfig
     source: str
     notes: list[str] = field(default_factory=list)
+    corner_methods: dict[str, Any] | None = None
 
     def counts(self) -> dict[str, Any]:
         """Views read / with the pattern / used / held out / rejected (by reason)."""
@@ -265,6 +290,7 @@ class IntrinsicsResult:
             "std_intrinsics": {k: _round(v) for k, v in self.std_intrinsics.items()},
             "per_view": [v.as_dict() for v in self.views],
             "notes": list(self.notes),
+            "corner_methods": self.corner_methods,
             "config": to_dict(self.config),
         }
 
@@ -319,14 +345,45 @@ def _video_frames(
     return total, frames()
 
 
-def iter_views(
-    source: str | os.PathLike[str], video_max_frames: int = 300
+def _bag_frames(
+    path: Path, topic: str, max_frames: int
 ) -> tuple[int, Iterator[tuple[str, np.ndarray | None]]]:
-    """The views of an input: an image folder (sorted by name) or a video file (sampled).
+    """(views expected, views) of a bag's image topic: every ``stride``-th message, at most
+    ``max_frames``, greyscale; an undecodable message is a view None."""
+    with Bag(path) as bag:
+        count = bag.topic(topic, ("image",)).count
+    stride = max(1, math.ceil(count / max_frames))
+    total = min(max_frames, math.ceil(count / stride))
+
+    def frames() -> Iterator[tuple[str, np.ndarray | None]]:
+        with Bag(path) as bag:
+            n = 0
+            for k, (_, image) in enumerate(bag.images(topic)):
+                if k % stride or n >= total:
+                    continue
+                if image is not None:
+                    if image.dtype == np.uint16:  # as imread's GRAYSCALE flag does
+                        image = (image >> 8).astype(np.uint8)
+                    if image.ndim == 3:
+                        image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+                yield f"frame_{k:06d}", image
+                n += 1
+
+    return total, frames()
+
+
+def iter_views(
+    source: str | os.PathLike[str], video_max_frames: int = 300, topic: str | None = None
+) -> tuple[int, Iterator[tuple[str, np.ndarray | None]]]:
+    """The views of an input: an image folder (sorted by name), a video file (sampled) or a
+    ROS bag's image topic (sampled, :mod:`dockcore.bags`).
 
     Args:
-        source: folder of images (``IMAGE_SUFFIXES``) or a video file ``cv2.VideoCapture`` reads.
-        video_max_frames: most frames taken from a video, evenly spaced over its length.
+        source: folder of images (``IMAGE_SUFFIXES``), a video file ``cv2.VideoCapture`` reads,
+            or a bag (``.bag``, ``.db3``, ``.mcap``, ROS 2 folder).
+        video_max_frames: most frames taken from a video or bag, evenly spaced over its length.
+        topic: a bag's image topic (required for a bag: see
+            :func:`dockcore.bags.resolve_image_topic`).
 
     Returns:
         (expected number of views, iterator of (name, greyscale uint8 image or None for a file
@@ -336,6 +393,10 @@ def iter_views(
         DockError: missing input, a folder without images, an unreadable video.
     """
     path = Path(source)
+    if path.exists() and is_bag(path):
+        if topic is None:
+            raise DockError(f"{path} is a bag: name its image topic (--topic)")
+        return _bag_frames(path, topic, video_max_frames)
     if path.is_dir():
         files = sorted(
             p for p in path.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
@@ -457,14 +518,17 @@ def calibrate_intrinsics(
     cfg: IntrinsicsConfig | None = None,
     name: str = "camera",
     progress: bool | None = False,
+    topic: str | None = None,
 ) -> IntrinsicsResult:
-    """Calibrate a camera from an image folder or a video of a chessboard / ChArUco board.
+    """Calibrate a camera from an image folder, a video or a ROS bag of a chessboard / ChArUco
+    board.
 
     Args:
-        source: image folder or video file (see :func:`iter_views`).
+        source: image folder, video file or bag (see :func:`iter_views`).
         cfg: configuration (defaults: 9 x 6 inner-corner chessboard, 25 mm squares).
         name: camera name written into the camera file.
         progress: tqdm progress bar on stderr: True, False, or None (only on a terminal).
+        topic: a bag's image topic.
 
     Returns:
         The calibrated camera, the hold-out error and one record per view.
@@ -474,8 +538,10 @@ def calibrate_intrinsics(
             ``MIN_VIEWS`` usable views, or a calibration OpenCV rejects.
     """
     cfg = validated(cfg or IntrinsicsConfig())
+    if cfg.corner_method == "auto" and cfg.pattern == "chessboard":
+        return _best_corner_method(source, cfg, name, progress, topic)
     detector = cfg.detector()
-    total, views = iter_views(source, cfg.video_max_frames)
+    total, views = iter_views(source, cfg.video_max_frames, topic)
     records, size = _inspect(views, total, cfg, detector, progress)
     if size is None:
         raise DockError(f"none of the {len(records)} images in {source} could be decoded")
@@ -497,18 +563,7 @@ def calibrate_intrinsics(
             f"only {len(cal)} usable views of {len(records)}, need at least {MIN_VIEWS} "
             f"(rejected: {detail})"
         )
-    obj = [r.detection.object_m.reshape(-1, 1, 3) for r in cal]
-    img = [r.detection.image_px.reshape(-1, 1, 2) for r in cal]
-    try:
-        rms, K, dist, _, _, std_in, _, per_view = cv2.calibrateCameraExtended(
-            obj, img, size, None, None, flags=_DIST_FLAGS[cfg.distortion_model]
-        )
-    except cv2.error as exc:
-        text = " ".join(str(exc).split()).split(" error: ", 1)[-1]
-        raise DockError(f"calibration failed: {text}") from None
-    dist = dist.reshape(-1)
-    for rec, err in zip(cal, per_view.reshape(-1), strict=True):
-        rec.error_px = float(err)
+    rms, K, dist, std_in = _fit_rejecting_outliers(cal, size, cfg)
     sq_sum, n_pts = 0.0, 0
     for rec in (r for r in kept if r.status == "holdout"):
         rec.error_px, sq = _holdout_error(rec.detection, K, dist)
@@ -528,9 +583,138 @@ def calibrate_intrinsics(
     )
     std = std_in.reshape(-1)
     std_named = {k: float(std[i]) for i, k in enumerate(_STD_NAMES[: 4 + n_dist])}
-    return IntrinsicsResult(
-        camera, holdout, records, std_named, cfg, str(source), list(detector.notes)
+    notes = list(detector.notes)
+    for rec in records:
+        if rec.reason == "outlier":
+            notes.append(f"{rec.name} rejected as an outlier: {rec.detail}")
+    if holdout is not None and holdout > HOLDOUT_WARN_RATIO * rms:
+        notes.append(
+            f"warning: the hold-out error {holdout:.3f} px is {holdout / rms:.1f}x the fit's "
+            f"{rms:.3f} px: the model does not generalise (too few or too similar views, or a "
+            "distortion model with too many terms)"
+        )
+    empty = uncovered_corners([r for r in kept if r.status == "calibration"], size)
+    if empty:
+        notes.append(
+            f"warning: no calibration view covers the image's {', '.join(empty)} corner"
+            f"{'s' if len(empty) > 1 else ''}: distortion there is extrapolated; add views "
+            "with the board in those corners"
+        )
+    return IntrinsicsResult(camera, holdout, records, std_named, cfg, str(source), notes)
+
+
+def _best_corner_method(
+    source: str | os.PathLike[str],
+    cfg: IntrinsicsConfig,
+    name: str,
+    progress: bool | None,
+    topic: str | None,
+) -> IntrinsicsResult:
+    """Calibrate with the classic and the sector-based chessboard corners; keep the one with
+    the lower hold-out error (classic when nothing is held out or only it succeeds)."""
+    results: dict[str, IntrinsicsResult] = {}
+    failures: dict[str, str] = {}
+    for method in ("classic", "sb"):
+        try:
+            results[method] = calibrate_intrinsics(
+                source, dataclasses.replace(cfg, corner_method=method), name, progress, topic
+            )
+        except DockError as exc:
+            failures[method] = str(exc)
+    if not results:
+        raise DockError(failures["classic"])
+    held = {m: r.holdout_rms_px for m, r in results.items() if r.holdout_rms_px is not None}
+    chosen = min(held, key=lambda m: held[m]) if len(held) == 2 else next(iter(results))
+    best = results[chosen]
+    table: dict[str, Any] = {"chosen": chosen}
+    for m in ("classic", "sb"):
+        r = results.get(m)
+        table[m] = (
+            {"failed": failures[m]}
+            if r is None
+            else {
+                "rms_px": _round(r.camera.rms_px),
+                "holdout_rms_px": _round(r.holdout_rms_px),
+                "views": r.counts()["calibration"],
+            }
+        )
+    why = (
+        f"lower hold-out error: {held[chosen]:.3f} against {max(held.values()):.3f} px"
+        if len(held) == 2
+        else "the only one"
+        if len(results) == 1
+        else "nothing held out to compare"
     )
+    best.notes.insert(0, f"chessboard corners: {chosen} ({why})")
+    best.corner_methods = table
+    best.config = cfg
+    return best
+
+
+#: Hold-out error above this multiple of the fit's RMS is warned about.
+HOLDOUT_WARN_RATIO = 2.0
+
+#: Image corners checked for coverage: a corner region is this fraction of each side.
+CORNER_REGION_FRAC = 0.2
+
+
+def uncovered_corners(views: list[ViewRecord], size: tuple[int, int]) -> list[str]:
+    """Image corners (``top-left`` ...) where no calibration view has a detected pattern corner
+    within ``CORNER_REGION_FRAC`` of both sides."""
+    w, h = size
+    pts = [r.detection.image_px.reshape(-1, 2) for r in views if r.detection is not None]
+    if not pts:
+        return []
+    p = np.concatenate(pts)
+    fx, fy = CORNER_REGION_FRAC * w, CORNER_REGION_FRAC * h
+    left, right = p[:, 0] < fx, p[:, 0] > w - fx
+    top, bottom = p[:, 1] < fy, p[:, 1] > h - fy
+    regions = {
+        "top-left": top & left,
+        "top-right": top & right,
+        "bottom-left": bottom & left,
+        "bottom-right": bottom & right,
+    }
+    return [name for name, inside in regions.items() if not inside.any()]
+
+
+def _calibrate(cal: list[ViewRecord], size: tuple[int, int], cfg: IntrinsicsConfig):
+    obj = [r.detection.object_m.reshape(-1, 1, 3) for r in cal]  # type: ignore[union-attr]
+    img = [r.detection.image_px.reshape(-1, 1, 2) for r in cal]  # type: ignore[union-attr]
+    try:
+        rms, K, dist, _, _, std_in, _, per_view = cv2.calibrateCameraExtended(
+            obj, img, size, None, None, flags=_DIST_FLAGS[cfg.distortion_model]
+        )
+    except cv2.error as exc:
+        text = " ".join(str(exc).split()).split(" error: ", 1)[-1]
+        raise DockError(f"calibration failed: {text}") from None
+    return float(rms), K, dist.reshape(-1), std_in, per_view.reshape(-1)
+
+
+def _fit_rejecting_outliers(cal: list[ViewRecord], size: tuple[int, int], cfg: IntrinsicsConfig):
+    """Fit, then reject the worst view while it is an outlier (``cfg.outlier_ratio``); the
+    rejected records get status ``rejected``, reason ``outlier`` and a detail. Returns (rms,
+    K, dist, std) of the last fit; sets ``error_px`` of the views kept."""
+    views = list(cal)
+    while True:
+        rms, K, dist, std_in, per_view = _calibrate(views, size, cfg)
+        for rec, err in zip(views, per_view, strict=True):
+            rec.error_px = float(err)
+        if cfg.outlier_ratio <= 0 or len(views) <= MIN_VIEWS:
+            return rms, K, dist, std_in
+        worst = int(np.argmax(per_view))
+        others = float(np.median(np.delete(per_view, worst)))
+        err = float(per_view[worst])
+        if err <= cfg.outlier_min_px or err <= cfg.outlier_ratio * others:
+            return rms, K, dist, std_in
+        rec = views.pop(worst)
+        rec.status, rec.reason = "rejected", "outlier"
+        rms2, K2, *_ = _calibrate(views, size, cfg)
+        rec.detail = (
+            f"{err:.2f} px, {err / max(others, 1e-12):.1f}x the other views' median "
+            f"{others:.2f} px; without it fx {K[0, 0]:.1f} -> {K2[0, 0]:.1f} px, RMS "
+            f"{rms:.3f} -> {rms2:.3f} px"
+        )
 
 
 # --------------------------------------------------------------------------- outputs

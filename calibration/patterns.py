@@ -90,6 +90,9 @@ class PatternDetector:
         subpix_win_px: largest half window of ``cv2.cornerSubPix`` (px); it shrinks for small
             squares to stay inside one square.
         sb_fallback: try ``cv2.findChessboardCornersSB`` when the classic chessboard finder fails.
+        corner_method: chessboard corners from ``"classic"`` (``findChessboardCorners`` +
+            ``cornerSubPix``, with the SB fallback) or ``"sb"`` (``findChessboardCornersSB``
+            alone, OpenCV's sector-based finder, sub-pixel by itself).
         min_corners: ChArUco views with fewer corners count as "pattern not found".
 
     Attributes:
@@ -112,6 +115,7 @@ class PatternDetector:
         subpix_win_px: int = 11,
         sb_fallback: bool = True,
         min_corners: int = 6,
+        corner_method: str = "classic",
     ) -> None:
         if pattern not in PATTERNS:
             raise DockError(f"unknown pattern {pattern!r} (use one of: {', '.join(PATTERNS)})")
@@ -121,6 +125,9 @@ class PatternDetector:
         self.square_m = float(square_m)
         self.subpix_win_px = int(subpix_win_px)
         self.sb_fallback = bool(sb_fallback)
+        if corner_method not in ("classic", "sb"):
+            raise DockError(f"unknown corner method {corner_method!r} (use classic or sb)")
+        self.corner_method = corner_method
         self.min_corners = int(min_corners)
         if pattern == "chessboard":
             grid = np.mgrid[0 : self.cols, 0 : self.rows].T.reshape(-1, 2)  # row-major
@@ -195,10 +202,12 @@ class PatternDetector:
         flags = (
             cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_FAST_CHECK
         )
-        found, corners = cv2.findChessboardCorners(gray, size, flags=flags)
+        found, corners = False, None
+        if self.corner_method == "classic":
+            found, corners = cv2.findChessboardCorners(gray, size, flags=flags)
         if found:
             corners = self._refine(gray, corners)
-        elif self.sb_fallback:
+        elif self.sb_fallback or self.corner_method == "sb":
             found, corners = cv2.findChessboardCornersSB(
                 gray, size, flags=cv2.CALIB_CB_NORMALIZE_IMAGE
             )

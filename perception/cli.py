@@ -5,14 +5,17 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import click
 
 from uwdock.calibration.camera import load_camera, resolve_camera
+from uwdock.calibration.formats import camera_from_camera_info_msg
+from uwdock.dockcore.bags import Bag, camera_info_topic_for, resolve_image_topic
 from uwdock.dockcore.bench import format_table
 from uwdock.dockcore.cli import domain_type, run_group
 from uwdock.dockcore.config import load_config
+from uwdock.dockcore.domains import Interval
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.options import (
     command_group,
@@ -24,7 +27,12 @@ from uwdock.dockcore.options import (
 from uwdock.markers.config import MarkerSideM
 from uwdock.perception.detector import list_pipelines
 from uwdock.perception.evaluate import PerceptionConfig, resolve_markers, run_detect, run_eval
-from uwdock.perception.groundtruth import is_dataset, load_dataset, load_ground_truth
+from uwdock.perception.groundtruth import (
+    is_dataset,
+    load_dataset,
+    load_ground_truth,
+    truth_from_bag,
+)
 from uwdock.perception.report_plots import COMPARE_COLUMNS
 
 
@@ -49,6 +57,28 @@ def _camera(path: Path | None):
         return None
 
     return load_camera(path)[0]
+
+
+def _bag_camera(input_path: Path, topic: str | None):
+    """The camera of a bag's image topic from its ``camera_info`` topic (noted), or None when
+    the bag has none."""
+    if topic is None:
+        return None
+    with Bag(input_path) as bag:
+        info = camera_info_topic_for(topic, bag.topics())
+        if info is None:
+            return None
+        cam = camera_from_camera_info_msg(bag.camera_info(info))
+    _note(f"camera from the bag's {info} ({cam.width_px}x{cam.height_px})")
+    return cam
+
+
+def _topic_option(fn):
+    return click.option(
+        "--topic",
+        help="Image topic when INPUT is a ROS bag (.bag, .db3, .mcap or a ROS 2 folder); "
+        "without it the bag's topics are listed and its only image topic is read.",
+    )(fn)
 
 
 def _marker_options(fn):
@@ -89,6 +119,7 @@ def _camera_option(help_text: str):
 @_camera_option("Camera file [default: the reference camera scaled to the frames].")
 @out_dir_option(default=Path("perception_detect"), show_default=True)
 @click.option("--no-annotate", is_flag=True, help="Write only detections.jsonl/.csv.")
+@_topic_option
 def detect(
     input_path,
     markers_path,
@@ -100,25 +131,31 @@ def detect(
     camera_path,
     out_dir,
     no_annotate,
+    topic,
 ) -> None:
-    """Detect markers in INPUT (an image, a folder of images or a video) and solve the DS pose.
+    """Detect markers in INPUT (an image, a folder of images, a video or a ROS bag's image
+    topic) and solve the DS pose.
 
-    Writes detections.jsonl and detections.csv (one row per frame) and annotated images, or
-    annotated.mp4 for a video, into --out.
+    Writes detections.jsonl and detections.csv (one row per frame; a bag's rows carry the
+    frame's stamp_ns) and annotated images, or annotated.mp4 for a video or bag, into --out.
+    A bag's camera comes from its camera_info topic unless --camera is given.
     """
     cfg = _config(config_path, pipeline)
     setup = resolve_markers(markers_path, dictionary, marker_size_m)
     if dictionary is not None and marker_size_m is None:
         _note("no --marker-size-m: markers are detected but no pose is solved")
+    topic = resolve_image_topic(input_path, topic, _note)
+    camera = _camera(camera_path) if camera_path is not None else _bag_camera(input_path, topic)
     result = run_detect(
         input_path,
         out_dir,
         setup,
-        _camera(camera_path),
+        camera,
         cfg,
         annotate_frames=not no_annotate,
         progress=False if quiet else None,
         note=_note,
+        topic=topic,
     )
     if quiet:
         click.echo(str(Path(out_dir) / "detections.jsonl"))
@@ -172,6 +209,19 @@ def _print_summary(report: dict[str, Any], out_dir: Path) -> None:
     help="Re-solve the board with the DS level where a frame's label gives the vehicle attitude "
     "(T_world_body), as the env's camera source does [default: on, or [pose] level_ds].",
 )
+@_topic_option
+@click.option(
+    "--pose-topic",
+    help="Ground truth from a bag: a pose topic (PoseStamped, PoseWithCovarianceStamped, "
+    "TransformStamped or Odometry) holding T_cam_ds, matched to frames by time.",
+)
+@click.option(
+    "--pose-tolerance-ms",
+    type=domain_type(Annotated[float, Interval(gt=0.0, le=60_000.0)]),
+    default=10.0,
+    show_default=True,
+    help="Largest time between a frame and the pose it is matched to (ms).",
+)
 @out_dir_option(required=True)
 @json_option("Print report.json to stdout.")
 def eval_cmd(
@@ -186,10 +236,14 @@ def eval_cmd(
     gt_path,
     compare,
     level_ds,
+    topic,
+    pose_topic,
+    pose_tolerance_ms,
     out_dir,
     as_json,
 ) -> None:
-    """Evaluate detection and DS pose on INPUT (images, a video, or a labelled dataset folder).
+    """Evaluate detection and DS pose on INPUT (images, a video, a ROS bag's image topic, or a
+    labelled dataset folder).
 
     Writes report.json (rates, time, reprojection error; with ground truth: pose error
     percentiles, binned by range and viewing angle, jitter on static stretches), frames.jsonl,
@@ -212,12 +266,23 @@ def eval_cmd(
             markers_path = ds.marker_set_path
         if gt_path is None:
             truth, truth_source = ds.frames, str(input_path)
-    if camera_path is None:
+    topic = resolve_image_topic(input_path, topic, _note)
+    if pose_topic is not None and topic is None:
+        raise DockError("--pose-topic is for bags; INPUT is not one")
+    if pose_topic is not None and gt_path is not None:
+        raise DockError("give either --ground-truth or --pose-topic, not both")
+    bag_camera = _bag_camera(input_path, topic) if camera_path is None else None
+    if camera_path is None and bag_camera is None:
         raise DockError("--camera is required (the camera file of INPUT's frames)")
     camera, T_body_cam = resolve_camera(camera_path)  # the mounting: reference when unstated
+    if bag_camera is not None:
+        camera = bag_camera
     setup = resolve_markers(markers_path, dictionary, marker_size_m)
     if gt_path is not None:
         truth, truth_source = load_ground_truth(gt_path), str(gt_path)
+    if pose_topic is not None:
+        truth = truth_from_bag(input_path, topic, pose_topic, pose_tolerance_ms)
+        truth_source = f"{input_path}:{pose_topic}"
     report = run_eval(
         frames_path,
         out_dir,
@@ -230,6 +295,7 @@ def eval_cmd(
         progress=False if (quiet or as_json) else None,
         note=_note,
         T_body_cam=T_body_cam,
+        topic=topic,
     )
     if as_json:
         click.echo(json.dumps(report, indent=2))

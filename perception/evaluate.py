@@ -423,6 +423,7 @@ def run_detect(
     annotate_frames: bool = True,
     progress: bool | None = None,
     note: Note = _silent,
+    topic: str | None = None,
 ) -> dict[str, Any]:
     """Detect markers (and poses) in every frame of an input; write the per-frame results.
 
@@ -440,6 +441,7 @@ def run_detect(
         annotate_frames: write annotated frames.
         progress: tqdm bar on stderr: True, False, or None (only on a terminal).
         note: receives one-line remarks for stderr.
+        topic: the image topic when ``input_path`` is a bag (each row then has ``stamp_ns``).
 
     Returns:
         Counts (``frames``, ``corrupt_frames``, ``frames_with_detection``, ``frames_with_pose``,
@@ -453,7 +455,7 @@ def run_detect(
     """
     cfg = validated(cfg or PerceptionConfig())
     proc = FrameProcessor(setup, cfg.detector, cfg.board, cfg.pose)
-    source = open_frames(input_path)
+    source = open_frames(input_path, topic)
     try:
         with claim_output_dir(out_dir, "perception detect") as out:
             counts, outputs = _detect_frames(
@@ -480,7 +482,7 @@ def _detect_frames(
     """The frame loop of :func:`run_detect` in a claimed folder: (counts, paths written)."""
     resolver = CameraResolver(camera, note)
     video = None
-    if annotate_frames and source.kind == "video":
+    if annotate_frames and source.kind in ("video", "bag"):
         video = AnnotatedVideoWriter(out / "annotated.mp4", source.fps or 10.0)
     counts: dict[str, int] = dict.fromkeys(
         ("frames", "frames_with_detection", "frames_with_pose", "markers_detected_total"), 0
@@ -505,6 +507,8 @@ def _detect_frames(
                             drawn = _draw(image, res, cam, setup, cfg.report, name)
                             video = _emit(video, out, name, drawn, outputs)
                     row = detection_row(index, name, res)
+                    if source.kind == "bag":
+                        row["stamp_ns"] = source.timestamps_ns[index]
                     fj.write(json.dumps(row, separators=(",", ":")) + "\n")
                     writer.writerow(detection_csv_row(row))
             if counts["frames"] == 0:
@@ -551,7 +555,7 @@ def _truth_lookup(
     if truth is None:
         return lambda index, name: None
     by_name = {Path(ft.image).name: ft for ft in truth.values() if ft.image}
-    if by_name and kind != "video":
+    if by_name and kind in ("folder", "image"):
         return lambda index, name: by_name.get(name)
     return lambda index, name: truth.get(index)
 
@@ -595,6 +599,7 @@ def run_eval(
     progress: bool | None = None,
     note: Note = _silent,
     T_body_cam: np.ndarray | None = None,
+    topic: str | None = None,
 ) -> dict[str, Any]:
     """Evaluate one or more pipelines on the same frames; write the report.
 
@@ -617,6 +622,9 @@ def run_eval(
         T_body_cam: (4, 4) camera mounting ``T_bodyfrd_camcv``; with it, frames whose ground
             truth records the vehicle pose (``T_world_body``) are estimated with the level-DS
             refinement (``cfg.pose.level_ds``), as the env's camera source does.
+        topic: the image topic when ``input_path`` is a bag (``frames.jsonl`` rows then have
+            ``stamp_ns``; ground truth from a pose topic:
+            :func:`perception.groundtruth.truth_from_bag`).
 
     Returns:
         The report (also written as ``report.json``).
@@ -637,7 +645,7 @@ def run_eval(
         for p in names
     }
     T_bc = None if T_body_cam is None else check_T(T_body_cam, "T_body_cam")
-    source = open_frames(input_path)
+    source = open_frames(input_path, topic)
     try:
         with claim_output_dir(out_dir, "perception eval") as out:
             return _evaluate(
@@ -669,7 +677,7 @@ def _evaluate(
     thumbs = ThumbnailBuffer(cfg.report.contact_sheet_frames, cfg.report.thumbnail_width_px)
     # video frames follow each other: with pose.search_from_prior, each frame searches around
     # the previous frame's DS pose first (a corrupt frame or one without a pose drops the prior)
-    follow = cfg.pose.search_from_prior and source.kind == "video"
+    follow = cfg.pose.search_from_prior and source.kind in ("video", "bag")
     last_pose: dict[str, np.ndarray | None] = {}
     for index, name, img_bgr in _progress(source, progress, "eval"):
         if img_bgr is None:
@@ -727,7 +735,14 @@ def _evaluate(
         "provenance": provenance({"perception": cfg}, extra),
         "plots": [],
     }
-    _write_jsonl(out / "frames.jsonl", (r.to_json() for r in main))
+    stamps = source.timestamps_ns  # a bag's frame times
+    _write_jsonl(
+        out / "frames.jsonl",
+        (
+            {**r.to_json(), "stamp_ns": stamps[k]} if stamps else r.to_json()
+            for k, r in enumerate(main)
+        ),
+    )
     atomic_write_json(out / "report.json", report)
     if rows is not None:
         atomic_write_json(

@@ -67,6 +67,7 @@ from numpy.typing import ArrayLike
 
 from uwdock.calibration.camera import CameraModel
 from uwdock.calibration.frames import R_from_quat_wxyz, pos_quat_from_T, transform_points
+from uwdock.dockcore.bags import Bag, nearest_in_time
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_path, atomic_write_json, read_text
 from uwdock.markers.view import markers_in_view
@@ -595,3 +596,47 @@ def load_ground_truth(path: str | os.PathLike[str]) -> dict[int, FrameTruth]:
     raise DockError(
         f"ground truth must be a dataset folder, a labels .jsonl or a pose .csv: {path}"
     )
+
+
+# --------------------------------------------------------------------------- bag pose topic
+
+
+def truth_from_bag(
+    path: str | os.PathLike[str],
+    image_topic: str,
+    pose_topic: str,
+    tolerance_ms: float = 10.0,
+) -> dict[int, FrameTruth]:
+    """Frame index -> ground truth from a bag's pose topic (:mod:`dockcore.bags`).
+
+    Each pose message is ``T_cam_ds`` (the DS in the OpenCV camera frame, m), like the pose CSV.
+    Frame k (the image topic's k-th message) takes the pose whose time is nearest its own
+    (header stamps where present) when within ``tolerance_ms``; frames without one have no
+    ground truth.
+
+    Raises:
+        DockError: a missing topic or one of another type, a non-finite pose or one without a
+            unit quaternion, a non-positive tolerance, or no frame within the tolerance of a
+            pose (one line naming the bag).
+    """
+    if not (math.isfinite(tolerance_ms) and tolerance_ms > 0):
+        raise DockError(f"pose tolerance must be a positive number of ms, got {tolerance_ms!r}")
+    with Bag(path) as bag:
+        bag.topic(image_topic, ("image",))
+        stamps, poses = bag.poses(pose_topic)
+        frames = bag.stamps(image_topic)
+    tol_ns = round(tolerance_ms * 1e6)
+    out: dict[int, FrameTruth] = {}
+    for k, t in enumerate(frames):
+        j = nearest_in_time(stamps, t, tol_ns)
+        if j is not None:
+            T = poses[j]
+            out[k] = FrameTruth(
+                frame=k, T_cam_ds=T, range_m=range_m(T), view_angle_deg=view_angle_deg(T)
+            )
+    if not out:
+        raise DockError(
+            f"no frame of {image_topic} in {Path(path).name} lies within {tolerance_ms:g} ms of a "
+            f"pose on {pose_topic} ({len(poses)} poses, {len(frames)} frames)"
+        )
+    return out

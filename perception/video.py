@@ -14,6 +14,10 @@ Inputs:
       the index a ground-truth CSV refers to); other files are ignored;
     * a Motion-JPEG AVI with an index: frame k is the k-th indexed frame, decoded on its own
       (:mod:`perception.avi`), so damage to one frame cannot shift the others;
+    * a ROS bag (``.bag``, ``.db3``, ``.mcap`` or a ROS 2 recording folder,
+      :mod:`dockcore.bags`) with an image topic: frame k is the topic's k-th message in
+      recorded order, named ``frame_000000`` ...; its time (header stamp, ns) is kept in
+      :attr:`FrameSource.timestamps_ns`;
     * anything else is opened with ``cv2.VideoCapture``: frame index = stream position (from
       the decoded frames' timestamps when they are consistent, else decode order), names
       ``frame_000000`` ...
@@ -43,6 +47,7 @@ import cv2
 import numpy as np
 
 from uwdock.calibration.camera import CameraModel
+from uwdock.dockcore.bags import Bag, is_bag
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_write_bytes
 from uwdock.dockcore.media import (
@@ -88,12 +93,14 @@ class FrameSource:
 
     Attributes:
         path: the input as given.
-        kind: "image", "folder" or "video".
+        kind: "image", "folder", "video" or "bag".
         total: number of frames expected (a video's container count may be wrong or 0), or None.
         fps: a video's frame rate (Hz) when the container states one, else None.
         corrupt: frames that could not be decoded so far (yielded as None).
         warnings: one-line remarks about the input found while reading it (frames too small,
             frames missing from a video), for the caller to show.
+        topic: a bag's image topic, else None.
+        timestamps_ns: a bag's frame times (ns), filled as the frames are read.
     """
 
     path: Path
@@ -107,8 +114,13 @@ class FrameSource:
     _first: np.ndarray | None = field(default=None, repr=False)
     _leading: int = field(default=0, repr=False)
     _avi: AviIndex | None = field(default=None, repr=False)
+    topic: str | None = None
+    timestamps_ns: list[int] = field(default_factory=list)
 
     def __iter__(self) -> Iterator[Frame]:
+        if self.kind == "bag":
+            yield from self._bag()
+            return
         if self.kind == "video":
             yield from (self._indexed() if self._avi is not None else self._video())
             return
@@ -133,6 +145,17 @@ class FrameSource:
             self._cap.release()
             self._cap, self._first = None, None
         self._avi = None
+
+    def _bag(self) -> Iterator[Frame]:
+        """A bag's image topic, message by message (:mod:`dockcore.bags`)."""
+        with Bag(self.path) as bag:
+            for k, (stamp_ns, image) in enumerate(bag.images(str(self.topic))):
+                if image is not None and min(image.shape[:2]) < MIN_IMAGE_PX:
+                    image = None
+                if image is None:
+                    self.corrupt += 1
+                self.timestamps_ns.append(stamp_ns)
+                yield k, f"frame_{k:06d}", image
 
     def _indexed(self) -> Iterator[Frame]:
         """A Motion-JPEG AVI frame by frame through its index (:mod:`perception.avi`): frame k
@@ -260,18 +283,30 @@ def _open_video(path: Path) -> FrameSource:
     )
 
 
-def open_frames(path: str | os.PathLike[str]) -> FrameSource:
-    """Open an image, a folder of images or a video (see the module docstring).
+def open_frames(path: str | os.PathLike[str], topic: str | None = None) -> FrameSource:
+    """Open an image, a folder of images, a video or a bag's image ``topic`` (see the module
+    docstring; :func:`dockcore.bags.resolve_image_topic` picks the topic).
 
     Raises:
         DockError: one line when the path is missing, a folder holds no image files, a single
-            image cannot be decoded, or a video cannot be opened or has no decodable frame.
-            Corrupt images in a folder and corrupt frames in a video are not errors: they are
-            yielded as None and counted in :attr:`FrameSource.corrupt`.
+            image cannot be decoded, a video cannot be opened or has no decodable frame, or a
+            bag has no such image topic (or none was named). Corrupt images in a folder and
+            corrupt frames in a video or bag are not errors: they are yielded as None and
+            counted in :attr:`FrameSource.corrupt`.
     """
     path = Path(path)
     if not path.exists():
         raise DockError(f"input not found: {path}")
+    if is_bag(path):
+        if topic is None:
+            raise DockError(f"{path} is a bag: name its image topic (--topic)")
+        with Bag(path) as bag:
+            t = bag.topic(topic, ("image",))
+            stamps = np.array(bag.stamps(topic, limit=30), np.int64)  # the rate, cheaply
+        fps = None
+        if stamps.size > 1 and np.median(np.diff(stamps)) > 0:
+            fps = 1e9 / float(np.median(np.diff(stamps)))
+        return FrameSource(path, "bag", t.count, fps, topic=topic)
     if path.is_dir():
         files = sorted(
             p for p in path.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES

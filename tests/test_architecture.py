@@ -37,6 +37,8 @@ HEAVY_OPTIONAL = frozenset(
         # (0.2-0.4 s: sheets, previews, plots)
         "trimesh",
         "scipy",
+        # ROS bags: ~0.1 s (rosbags.highlevel with its type stores), only when a bag is read
+        "rosbags",
         "torch",
         "stable_baselines3",
         "sapien",

@@ -472,3 +472,74 @@ def test_cli_reference_camera(run_cli, tmp_path):
     assert (cam2.width_px, cam2.height_px) == (484, 366)
     assert cam2.fx_px == pytest.approx(reference_camera().fx_px / 2, rel=1e-12)
     assert cam2.hfov_deg == pytest.approx(55.0, abs=1e-9)
+
+
+# --------------------------------------------------------------------------- outlier views
+
+
+def _warped(img: np.ndarray, amplitude_px: float) -> np.ndarray:
+    """The view under a smooth non-rigid warp (up to ``amplitude_px``): its corners move by a
+    few pixels in a way no board pose explains (a frame where the board flexed, or the lens
+    refocused)."""
+    h, w = img.shape[:2]
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    dx = amplitude_px * np.sin(2 * np.pi * yy / (0.6 * h))
+    dy = amplitude_px * np.cos(2 * np.pi * xx / (0.7 * w))
+    return cv2.remap(img, xx + dx, yy + dy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+
+def test_a_view_with_perturbed_corners_is_rejected_and_K_recovered(rays, tmp_path):
+    views = chessboard_views(rays, 22, seed=1)
+    views[7] = _warped(views[7], 4.0)
+    folder = write_folder(tmp_path / "cb", views)
+    cfg = dataclasses.replace(CB_CFG, holdout_fraction=0.0)  # every view in the fit
+    res = calibrate_intrinsics(folder, cfg)
+    rejected = [v for v in res.views if v.reason == "outlier"]
+    assert [v.name for v in rejected] == ["view_007.png"]
+    assert "x the other views' median" in rejected[0].detail
+    assert any("view_007.png rejected as an outlier" in n for n in res.notes)
+    assert_K_recovered(res.camera)
+    assert res.report()["per_view"][7]["reason"] == "outlier"
+    assert res.report()["std_intrinsics"]["fx_px"] > 0  # the intrinsics' standard deviations
+    # without the rejection the warped view drags the fit: a higher RMS, K further off
+    kept = calibrate_intrinsics(folder, dataclasses.replace(cfg, outlier_ratio=0.0))
+    assert kept.camera.rms_px > 2 * res.camera.rms_px
+    err = lambda c: abs(c.fx_px - 800.0) + abs(c.fy_px - 800.0)  # noqa: E731
+    assert err(kept.camera) > err(res.camera)
+
+
+def test_clean_views_lose_nothing_and_uncovered_corners_are_warned(cb_folder):
+    from uwdock.calibration.intrinsics import ViewRecord, uncovered_corners
+    from uwdock.calibration.patterns import Detection
+
+    res = calibrate_intrinsics(cb_folder, CB_CFG)
+    assert not [v for v in res.views if v.reason == "outlier"]
+    # the synthetic views keep the board away from the image's corners: warned
+    assert any("no calibration view covers the image's" in n for n in res.notes)
+
+    def view(*pts):
+        p = np.array(pts, np.float32)
+        return ViewRecord("v", detection=Detection(p, np.zeros((len(p), 3), np.float32),
+                                                   np.arange(len(p), dtype=np.int32)))  # fmt: skip
+
+    size = (W_PX, H_PX)
+    corners = view((10, 10), (630, 10), (10, 470), (630, 470))
+    assert uncovered_corners([corners], size) == []
+    centre = view((320, 240), (300, 200))
+    assert uncovered_corners([centre], size) == [
+        "top-left", "top-right", "bottom-left", "bottom-right"]  # fmt: skip
+    assert uncovered_corners([centre, view((600, 20))], size) == [
+        "top-left", "bottom-left", "bottom-right"]  # fmt: skip
+
+
+def test_chessboard_corner_method_is_chosen_by_held_out_error(cb_folder):
+    res = calibrate_intrinsics(cb_folder, CB_CFG)  # corner_method "auto"
+    table = res.report()["corner_methods"]
+    held = {m: table[m]["holdout_rms_px"] for m in ("classic", "sb")}
+    assert all(v is not None and v > 0 for v in held.values())
+    assert table["chosen"] == min(held, key=held.get)
+    assert res.holdout_rms_px == pytest.approx(held[table["chosen"]], abs=1e-6)
+    assert res.notes[0].startswith(f"chessboard corners: {table['chosen']} (lower hold-out error")
+    one = calibrate_intrinsics(cb_folder, dataclasses.replace(CB_CFG, corner_method="sb"))
+    assert one.report()["corner_methods"] is None
+    assert one.holdout_rms_px == pytest.approx(held["sb"], abs=1e-6)

@@ -39,19 +39,23 @@ COMMANDS: dict[str, tuple[str, dict[str, str]]] = {
     "perception": (
         "Perception: 3DBM detection and docking-station pose from the marker board.",
         {
-            "detect": "Detect markers in INPUT (an image, a folder of images or a video) and "
-            "solve the DS pose.",
-            "eval": "Evaluate detection and DS pose on INPUT (images, a video, or a labelled "
-            "dataset folder).",
+            "detect": "Detect markers in INPUT (an image, a folder of images, a video or a ROS "
+            "bag's image topic) and solve the DS pose.",
+            "eval": "Evaluate detection and DS pose on INPUT (images, a video, a ROS bag's image "
+            "topic, or a labelled dataset folder).",
             "pipelines": "List the preprocessing pipelines.",
         },
     ),
     "calibration": (
         "Calibration: camera intrinsics and the camera-to-vehicle extrinsics.",
         {
+            "export": "Write the intrinsics of CAMERA_FILE as ROS camera_info YAML or a Kalibr "
+            "camchain.",
             "extrinsics": "Show or set T_body_cam (camera cv frame in body FRD) in a camera file.",
-            "intrinsics": "Calibrate K and distortion from SOURCE: a folder of images or a "
-            "video of the target.",
+            "import": "Convert SOURCE, a ROS camera_info YAML or a Kalibr camchain, into a "
+            "camera file.",
+            "intrinsics": "Calibrate K and distortion from SOURCE: a folder of images, a video "
+            "or a ROS bag of the target.",
             "reference-camera": "Write the reference Girona downward camera (968x732, 55 deg "
             "HFOV) with its T_body_cam.",
         },
