@@ -223,57 +223,31 @@ def bench_loop(n_poses: int, repeats: int, seed: int, physics_ms: float) -> list
 
 
 def bench_range(altitudes: np.ndarray, draws: int, seed: int, width_px: int) -> list[dict]:
-    from uwdock.perception.detector import Detector, DetectorConfig
-    from uwdock.sim.docking_station import DockingStationConfig
-    from uwdock.sim.render import make_render_scene
-    from uwdock.sim.water import PRESET_ORDER, PRESETS, apply_water
+    """Section (d) through the tank report's own function
+    (:func:`uwdock.datasets.tank_report.detection_ranges`), so the two cannot drift apart."""
+    from uwdock.datasets.tank_report import TankReportConfig, detection_ranges
+    from uwdock.sim.water import PRESET_ORDER, PRESETS
 
-    cam = scaled_to_width(reference_camera(), width_px)
-    rs = make_render_scene(DockingStationConfig(tank_depth_m=12.0), camera_model=cam)
-    ms = rs.ds.marker_set
-    detector = Detector(DetectorConfig(ids=ms.ids))
-    # cam_cv: x = DS +y, y = DS -x, z = down (DS frame is NED-like with z down)
-    R_ds_cam = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
-    counts = {p: [] for p in PRESET_ORDER}
-    truth = []
-    for alt in altitudes:
-        T_world_cam = rs.ds.T_worldned_ds @ make_T(R_ds_cam, [0.0, 0.0, -float(alt)])
-        res = rs.render(T_worldned_camcv=T_world_cam)
-        truth.append(sum(p.visible for p in rs.ground_truth(res).values()))
-        for name in PRESET_ORDER:
-            n = []
-            for d in range(draws):
-                rng = np.random.default_rng([seed, d, int(alt * 10)])
-                img = apply_water(res.rgb, res.range_m, PRESETS[name], rng)
-                n.append(len(detector.detect(cv2.cvtColor(img, cv2.COLOR_RGB2BGR))))
-            counts[name].append(statistics.median(n))
-    rows = []
-    for name in PRESET_ORDER:
-        c = np.asarray(counts[name])
-
-        def max_alt(k: int, c=c) -> float | None:
-            ok = altitudes[c >= k]
-            return float(ok.max()) if ok.size else None
-
-        rows.append(
-            {
-                "width": f"{cam.width_px}x{cam.height_px}",
-                "water": name,
-                "max_alt_3_markers_m": max_alt(3),
-                "max_alt_1_marker_m": max_alt(1),
-                "detected_by_altitude": " ".join(f"{v:g}" for v in c),
-            }
-        )
-    rows.append(
-        {
-            "width": f"{cam.width_px}x{cam.height_px}",
-            "water": "(visible)",
-            "max_alt_3_markers_m": None,
-            "max_alt_1_marker_m": None,
-            "detected_by_altitude": " ".join(str(v) for v in truth),
-        }
+    step = float(altitudes[1] - altitudes[0]) if altitudes.size > 1 else 1.0
+    cfg = TankReportConfig(
+        altitude_min_m=float(altitudes[0]),
+        altitude_max_m=float(altitudes[-1]),
+        altitude_step_m=step,
+        draws=draws,
+        seed=seed,
     )
-    return rows
+    cam = scaled_to_width(reference_camera(), width_px)
+    rows = detection_ranges(cam, {p: PRESETS[p] for p in PRESET_ORDER}, cfg)
+    return [
+        {
+            "width": r["width"],
+            "water": r["water"],
+            "max_alt_3_markers_m": r["max_alt_3_markers_m"],
+            "max_alt_1_marker_m": r["max_alt_1_marker_m"],
+            "detected_by_altitude": " ".join(f"{v:g}" for v in r["decoded_median"]),
+        }
+        for r in rows
+    ]
 
 
 def render_device() -> str:

@@ -7,11 +7,14 @@ from pathlib import Path
 
 import click
 
+from uwdock.calibration.camera import resolve_camera
 from uwdock.datasets.loaders import load_pose_track_csv
 from uwdock.datasets.synth import SynthConfig, generate
+from uwdock.datasets.tank_report import TankReportConfig, detection_ranges, plot_ranges
 from uwdock.dockcore.cli import domain_type, field_type, run_group
 from uwdock.dockcore.config import load_config
 from uwdock.dockcore.errors import DockError
+from uwdock.dockcore.io import atomic_write_json
 from uwdock.dockcore.options import (
     command_group,
     config_option,
@@ -21,10 +24,13 @@ from uwdock.dockcore.options import (
     seed_option,
     workers_option,
 )
-from uwdock.sim.water import water_choice
+from uwdock.dockcore.outdir import claim_output_dir
+from uwdock.dockcore.provenance import write_provenance
+from uwdock.sim.water import PRESET_ORDER, PRESETS, WaterConfig, water_choice
 
 #: Configs whose fields the options override (imported when an option is first used).
 _SYNTH = "uwdock.datasets.synth:SynthConfig"
+_TANK = "uwdock.datasets.tank_report:TankReportConfig"
 
 
 @command_group()
@@ -181,6 +187,84 @@ def render(
             f"rendered {len(result.rendered)} of {result.frames} frames into {result.out_dir} "
             f"in {result.seconds:.1f} s"
         )
+
+
+@cli.command(name="tank-report")
+@out_dir_option("Output folder (tank_report.json, tank_report.png, provenance).", required=True)
+@click.option("--camera", "camera_file", type=click.Path(dir_okay=False),
+              help="Camera file [default: the reference camera].")  # fmt: skip
+@click.option(
+    "--water",
+    "water_names",
+    help="Comma-separated water presets [default: clear_tank,coastal,turbid,very_turbid].",
+)
+@click.option(
+    "--water-file",
+    "water_files",
+    multiple=True,
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="A water file (TOML, [water] table of sim.water.WaterConfig fields); repeatable.",
+)
+@click.option("--markers", "marker_set_path", type=click.Path(dir_okay=False), help="Marker set.")
+@click.option("--altitude-max-m", type=field_type(_TANK, "altitude_max_m"),
+              help="Highest camera altitude above the DS floor [10 m].")  # fmt: skip
+@click.option("--altitude-step-m", type=field_type(_TANK, "altitude_step_m"),
+              help="Altitude step: the resolution of the ranges [0.5 m].")  # fmt: skip
+@click.option("--draws", type=field_type(_TANK, "draws"), help="Noise draws per altitude [5].")
+@seed_option(field_type(_TANK, "seed"), "Seed of the noise draws [0].")
+@json_option("Print the rows as JSON.")
+@quiet_option("No progress; print only the report path.")
+def tank_report(
+    out_dir, camera_file, water_names, water_files, marker_set_path, altitude_max_m,
+    altitude_step_m, draws, seed, as_json, quiet,
+) -> None:  # fmt: skip
+    """Predict how far above the docking station your camera decodes 1 and 3 of its markers in
+    your water: renders the DS straight below the camera at each altitude and runs the
+    detector (rendered, not guessed)."""
+    cfg = load_config(
+        TankReportConfig,
+        None,
+        overrides={
+            "altitude_max_m": altitude_max_m,
+            "altitude_step_m": altitude_step_m,
+            "draws": draws,
+            "seed": seed,
+        },
+    )
+    names = [n.strip() for n in (water_names or "").split(",") if n.strip()]
+    if not names and not water_files:
+        names = list(PRESET_ORDER)
+    waters = {}
+    for n in names:
+        if n not in PRESETS:
+            raise DockError(f"unknown water preset {n!r}; known: {', '.join(PRESET_ORDER)}")
+        waters[n] = PRESETS[n]
+    for f in water_files:
+        waters[f.stem] = load_config(WaterConfig, f, section="water")
+    camera, _ = resolve_camera(camera_file)
+    progress = None if quiet or as_json else (
+        lambda alt: click.echo(f"  rendered altitude {alt:.2f} m", err=True))  # fmt: skip
+    rows = detection_ranges(camera, waters, cfg, marker_set_path, progress)
+    with claim_output_dir(out_dir, "datasets tank-report") as out:
+        path = atomic_write_json(out / "tank_report.json", {"rows": rows})
+        plot_ranges(rows, out / "tank_report.png")
+        write_provenance(out, {"tank_report": cfg}, {"camera": camera_file,
+                         "waters": {k: str(v) for k, v in waters.items()}})  # fmt: skip
+    if as_json:
+        click.echo(json.dumps(rows, indent=2))
+    elif quiet:
+        click.echo(str(path))
+    else:
+        for r in rows[:-1]:
+            click.echo(
+                f"{r['water']:>12s} ({r['width']}): 3 markers up to "
+                f"{_alt(r['max_alt_3_markers_m'])}, 1 marker up to {_alt(r['max_alt_1_marker_m'])}"
+            )
+        click.echo(f"wrote {path} and tank_report.png")
+
+
+def _alt(v: float | None) -> str:
+    return "never" if v is None else f"{v:g} m"
 
 
 def main() -> None:

@@ -67,6 +67,9 @@ COMMANDS: dict[str, tuple[str, dict[str, str]]] = {
             "poses: the ``synth`` engine fed with explicit vehicle poses (``--poses``) or a few "
             "random ones.",
             "synth": "Render a labelled dataset of the docking station from random AUV poses.",
+            "tank-report": "Predict how far above the docking station your camera decodes 1 and "
+            "3 of its markers in your water: renders the DS straight below the camera at each "
+            "altitude and runs the detector (rendered, not guessed).",
         },
     ),
     "sim": (
