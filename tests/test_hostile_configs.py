@@ -26,6 +26,7 @@ def _roots() -> list[type]:
     """The configs a user loads from TOML (``--config``) or that commands build from flags."""
     from uwdock.calibration.intrinsics import IntrinsicsConfig
     from uwdock.datasets.synth import SynthConfig
+    from uwdock.datasets.tank_report import TankReportConfig
     from uwdock.markers.config import MarkerConfig
     from uwdock.perception.evaluate import PerceptionConfig
     from uwdock.rl.baselines import PIDConfig
@@ -41,6 +42,7 @@ def _roots() -> list[type]:
         IntrinsicsConfig,
         PerceptionConfig,
         SynthConfig,
+        TankReportConfig,
         TrainConfig,
         ErrorModelConfig,
         EpisodeVideoConfig,
