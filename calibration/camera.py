@@ -50,6 +50,7 @@ __all__ = [
     "resolve_camera",
     "save_camera",
     "scaled_to_width",
+    "twin_paths",
 ]
 
 #: Version written into (and accepted from) camera files.
@@ -285,7 +286,7 @@ REFERENCE_T_BODYFRD_CAMCV = _reference_extrinsics()
 # ---------------------------------------------------------------------------- camera file
 
 
-def _twin_paths(path: str | os.PathLike[str]) -> tuple[Path, Path]:
+def twin_paths(path: str | os.PathLike[str]) -> tuple[Path, Path]:
     """(yaml_path, json_path) for a camera file path ending in .yaml, .yml or .json."""
     path = Path(path)
     suffix = path.suffix.lower()
@@ -315,7 +316,7 @@ def save_camera(
     """
     cam.validate()
     T = None if T_body_cam is None else check_T(T_body_cam, "T_body_cam")
-    yaml_path, json_path = _twin_paths(path)
+    yaml_path, json_path = twin_paths(path)
 
     with atomic_path(yaml_path) as tmp:
         fs = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_FORMAT_YAML)

@@ -47,7 +47,13 @@ from numpy.typing import ArrayLike
 from ruamel.yaml import YAML
 from ruamel.yaml.error import MarkedYAMLError, YAMLError
 
-from uwdock.calibration.camera import MAX_IMAGE_PX, CameraModel, load_camera, save_camera
+from uwdock.calibration.camera import (
+    MAX_IMAGE_PX,
+    CameraModel,
+    load_camera,
+    save_camera,
+    twin_paths,
+)
 from uwdock.calibration.frames import check_T
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_write_text, read_text
@@ -510,12 +516,6 @@ def read_camera_yaml(
     return camera_from_ros(doc, where)
 
 
-def _twins(path: Path) -> tuple[Path, Path]:
-    """The two files :func:`save_camera` writes for ``path``, resolved."""
-    yaml_path = path if path.suffix.lower() in (".yaml", ".yml") else path.with_suffix(".yaml")
-    return yaml_path.resolve(), path.with_suffix(".json").resolve()
-
-
 def import_camera_file(
     source: str | os.PathLike[str],
     out: str | os.PathLike[str],
@@ -541,7 +541,7 @@ def import_camera_file(
         DockError: one line: the source is malformed, or ``out`` would overwrite it.
     """
     source, out = Path(source), Path(out)
-    if source.resolve() in _twins(out):
+    if source.resolve() in {p.resolve() for p in twin_paths(out)}:
         raise DockError(f"--out {out} would overwrite the file being imported, {source}")
     imported = read_camera_yaml(source, fmt, cam_key)
     T = None
@@ -699,7 +699,7 @@ def export_camera_file(
         raise DockError(f"format must be one of {', '.join(EXPORT_FORMATS)}, got {_show(fmt)}")
     if out.suffix.lower() not in (".yaml", ".yml"):
         raise DockError(f"--out must end in .yaml or .yml: {out}")
-    if out.resolve() in _twins(camera_file):
+    if out.resolve() in {p.resolve() for p in twin_paths(camera_file)}:
         raise DockError(f"--out {out} would overwrite the camera file {camera_file}")
     cam, _ = load_camera(camera_file)
     where = str(camera_file)

@@ -15,7 +15,8 @@ the ROS 2 Humble type store (standard ``sensor_msgs`` / ``geometry_msgs`` / ``na
 * Camera info: ``sensor_msgs/CameraInfo`` as a plain dict (``width``, ``height``, ``k``, ``d``,
   ``distortion_model``, ``r``, ``p``); ``calibration.formats`` turns it into a camera model.
 * Poses: ``geometry_msgs/PoseStamped``, ``PoseWithCovarianceStamped``, ``TransformStamped`` and
-  ``nav_msgs/Odometry`` as (time ns, 4x4 T) pairs.
+  ``nav_msgs/Odometry`` as times and (position, quaternion) rows; ``perception.groundtruth``
+  turns them into poses with the pose CSV's rules.
 
 Every failure to open or read a bag is a one-line :class:`DockError` naming the file.
 
@@ -263,19 +264,24 @@ class Bag:
                 }
         raise DockError(f"topic {name!r} of bag {self.path.name} holds no readable CameraInfo")
 
-    def poses(self, name: str) -> tuple[np.ndarray, list[np.ndarray]]:
-        """(sorted times ns, 4x4 poses) of a pose topic; unreadable messages are skipped.
+    def poses(self, name: str) -> tuple[np.ndarray, np.ndarray]:
+        """(sorted times ns (N,), poses (N, 7): x, y, z (m), qw, qx, qy, qz) of a pose topic;
+        unreadable messages are skipped.
 
         Raises:
-            DockError: not a pose topic, or a pose that is not finite or has no unit quaternion.
+            DockError: not a pose topic.
         """
         self.topic(name, ("pose",))
-        items = []
-        for stamp, msg in self._messages(name):
-            if msg is not None:
-                items.append((stamp, pose_msg_to_T(msg, f"{self.path.name} {name}")))
-        items.sort(key=lambda it: it[0])
-        return np.array([s for s, _ in items], np.int64), [T for _, T in items]
+        items = sorted(
+            (
+                (stamp, pose_msg_values(msg))
+                for stamp, msg in self._messages(name)
+                if msg is not None
+            ),
+            key=lambda it: it[0],
+        )
+        stamps = np.array([s for s, _ in items], np.int64)
+        return stamps, np.array([v for _, v in items], float).reshape(-1, 7)
 
 
 def resolve_image_topic(
@@ -403,29 +409,14 @@ def decode_image_msg(msg: Any, topic: str = "") -> np.ndarray | None:
     return np.ascontiguousarray(image)
 
 
-def pose_msg_to_T(msg: Any, where: str) -> np.ndarray:
-    """4x4 pose of a ``PoseStamped``, ``PoseWithCovarianceStamped``, ``TransformStamped`` or
-    ``Odometry`` message (translation in m).
-
-    Raises:
-        DockError: a non-finite value or a quaternion whose norm is not 1 (within 1e-3).
-    """
-    from scipy.spatial.transform import Rotation
-
+def pose_msg_values(msg: Any) -> np.ndarray:
+    """Position (m) and orientation quaternion (w, x, y, z) of a ``PoseStamped``,
+    ``PoseWithCovarianceStamped``, ``TransformStamped`` or ``Odometry`` message, as 7 floats
+    (unchecked: the caller owns the rule for a valid pose)."""
     if hasattr(msg, "transform"):
         t, q = msg.transform.translation, msg.transform.rotation
     else:
         pose = msg.pose
         pose = getattr(pose, "pose", pose)  # WithCovariance and Odometry nest one level more
         t, q = pose.position, pose.orientation
-    xyz = np.array([t.x, t.y, t.z], float)
-    quat = np.array([q.x, q.y, q.z, q.w], float)
-    if not (np.isfinite(xyz).all() and np.isfinite(quat).all()):
-        raise DockError(f"{where}: a pose is not finite")
-    norm = float(np.linalg.norm(quat))
-    if abs(norm - 1.0) > 1e-3:
-        raise DockError(f"{where}: a pose's quaternion has norm {norm:.6g}, not 1")
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_quat(quat / norm).as_matrix()
-    T[:3, 3] = xyz
-    return T
+    return np.array([t.x, t.y, t.z, q.w, q.x, q.y, q.z], float)

@@ -481,7 +481,16 @@ def _csv_row(row: Mapping[str, Any], where: str) -> FrameTruth:
     frame = values[0]
     if frame < 0 or frame != int(frame):
         raise DockError(f"{where}: frame must be an integer >= 0, got {row.get('frame')!r}")
-    q = np.array(values[4:8])
+    return _pose_truth(int(frame), np.array(values[1:8]), where)
+
+
+def _pose_truth(frame: int, pos_quat: np.ndarray, where: str) -> FrameTruth:
+    """Ground truth from a position (m) and a (qw, qx, qy, qz) quaternion (a pose CSV row or a
+    bag's pose message): a quaternion whose norm is off by more than ``QUAT_NORM_TOL`` is an
+    error, one within it is normalised."""
+    if not np.isfinite(pos_quat).all():
+        raise DockError(f"{where}: the pose is not finite")
+    q = pos_quat[3:7]
     norm = float(np.linalg.norm(q))
     if not abs(norm - 1.0) <= QUAT_NORM_TOL:
         raise DockError(
@@ -490,10 +499,8 @@ def _csv_row(row: Mapping[str, Any], where: str) -> FrameTruth:
         )
     T = np.eye(4)
     T[:3, :3] = R_from_quat_wxyz(q)
-    T[:3, 3] = values[1:4]
-    return FrameTruth(
-        frame=int(frame), T_cam_ds=T, range_m=range_m(T), view_angle_deg=view_angle_deg(T)
-    )
+    T[:3, 3] = pos_quat[:3]
+    return FrameTruth(frame=frame, T_cam_ds=T, range_m=range_m(T), view_angle_deg=view_angle_deg(T))
 
 
 # --------------------------------------------------------------------------- dataset folder
@@ -630,10 +637,7 @@ def truth_from_bag(
     for k, t in enumerate(frames):
         j = nearest_in_time(stamps, t, tol_ns)
         if j is not None:
-            T = poses[j]
-            out[k] = FrameTruth(
-                frame=k, T_cam_ds=T, range_m=range_m(T), view_angle_deg=view_angle_deg(T)
-            )
+            out[k] = _pose_truth(k, poses[j], f"{Path(path).name} {pose_topic} message {j}")
     if not out:
         raise DockError(
             f"no frame of {image_topic} in {Path(path).name} lies within {tolerance_ms:g} ms of a "
