@@ -6,11 +6,20 @@ import json
 from pathlib import Path
 
 import click
+from tqdm import tqdm
 
 from uwdock.calibration.camera import resolve_camera
 from uwdock.datasets.loaders import load_pose_track_csv
 from uwdock.datasets.synth import SynthConfig, generate
 from uwdock.datasets.tank_report import TankReportConfig, detection_ranges, plot_ranges
+from uwdock.datasets.water_fit import (
+    FitWaterConfig,
+    fit_water,
+    plot_fit,
+    sample_frames,
+    write_water_file,
+)
+from uwdock.dockcore.bags import resolve_image_topic
 from uwdock.dockcore.cli import domain_type, field_type, run_group
 from uwdock.dockcore.config import load_config
 from uwdock.dockcore.errors import DockError
@@ -26,11 +35,15 @@ from uwdock.dockcore.options import (
 )
 from uwdock.dockcore.outdir import claim_output_dir
 from uwdock.dockcore.provenance import write_provenance
+from uwdock.markers.markerset import load_marker_set
+from uwdock.perception.video import open_frames
+from uwdock.sim.docking_station import DockingStationConfig, resolve_marker_set
 from uwdock.sim.water import PRESET_ORDER, PRESETS, WaterConfig, water_choice
 
 #: Configs whose fields the options override (imported when an option is first used).
 _SYNTH = "uwdock.datasets.synth:SynthConfig"
 _TANK = "uwdock.datasets.tank_report:TankReportConfig"
+_FIT = "uwdock.datasets.water_fit:FitWaterConfig"
 
 
 @command_group()
@@ -51,8 +64,8 @@ def cli() -> None:
 )
 @click.option(
     "--water",
-    help="Water preset (clear_tank, coastal, turbid, very_turbid), "
-    "'random' (a draw per frame) or 'none' [default: random].",
+    help="Water preset (clear_tank, coastal, turbid, very_turbid), a water file (.toml, from "
+    "`sim fit-water`), 'random' (a draw per frame) or 'none' [default: random].",
 )
 @workers_option(
     domain_type("uwdock.datasets.synth:Workers"),
@@ -140,7 +153,9 @@ def synth(
     "roll_deg,pitch_deg,yaw_deg (DS origin at 0,0,4.98); optional sequence,step,time_s columns "
     "(e.g. from `rl trajectories`) are recorded in dataset.json.",
 )
-@click.option("--water", help="Water preset, 'random' or 'none' [default: none].")
+@click.option(
+    "--water", help="Water preset, a water file (.toml), 'random' or 'none' [default: none]."
+)
 @click.option(
     "--width",
     "width_px",
@@ -261,6 +276,119 @@ def tank_report(
                 f"{_alt(r['max_alt_3_markers_m'])}, 1 marker up to {_alt(r['max_alt_1_marker_m'])}"
             )
         click.echo(f"wrote {path} and tank_report.png")
+
+
+@cli.command(name="fit-water")
+@click.argument("frames", type=click.Path(path_type=Path))
+@click.option(
+    "--camera",
+    "camera_file",
+    required=True,
+    type=click.Path(dir_okay=False),
+    help="Camera file of the frames (calibrated in water).",
+)
+@click.option(
+    "--target",
+    type=click.Choice(["chessboard", "markers"]),
+    help="What the frames show: a chessboard or the DS marker board [chessboard].",
+)
+@click.option("--cols", type=field_type(_FIT, "cols"), help="Chessboard inner corners per row [8].")
+@click.option(
+    "--rows", type=field_type(_FIT, "rows"), help="Chessboard inner corners per column [6]."
+)
+@click.option(
+    "--square-mm", type=field_type(_FIT, "square_mm"), help="Chessboard square side [100 mm]."
+)
+@click.option(
+    "--markers",
+    "marker_set_path",
+    type=click.Path(dir_okay=False),
+    help="Marker set file (--target markers) [default: the reference DS set].",
+)
+@click.option(
+    "--no-lamp",
+    "no_lamp",
+    is_flag=True,
+    help="The target is lit by daylight or tank lights, not a lamp beside the camera.",
+)
+@click.option("--base", help="Preset whose blur the water file keeps [coastal].")
+@click.option("--topic", help="Image topic when FRAMES is a ROS bag (listed when left out).")
+@config_option("TOML overriding FitWaterConfig ([fit_water] table; flags override it).")
+@out_dir_option("Output folder (water.toml, fit_water.json, fit_water.png, provenance).",
+                required=True)  # fmt: skip
+@json_option("Print the fit's summary as JSON.")
+@quiet_option("No progress; print only the water file's path.")
+def fit_water_cmd(
+    frames, camera_file, target, cols, rows, square_mm, marker_set_path, no_lamp, base, topic,
+    config_path, out_dir, as_json, quiet,
+) -> None:  # fmt: skip
+    """Fit the underwater model's attenuation, backscatter and veiling light per channel to
+    frames of a known target (a chessboard or the DS marker board) seen at several ranges;
+    writes a water file that every --water option takes.
+
+    The target is posed by PnP in each frame; its black and white patches at the ranges seen
+    give the direct signal and the backscatter per channel. Film it from as near as the
+    target fits the image to as far as it is still found, across the whole image.
+    """
+    cfg = load_config(
+        FitWaterConfig,
+        config_path,
+        section="fit_water",
+        overrides={
+            "target": target,
+            "cols": cols,
+            "rows": rows,
+            "square_mm": square_mm,
+            "artificial_light": False if no_lamp else None,
+            "base": base,
+        },
+    )
+    camera, _ = resolve_camera(camera_file)
+    ms = None
+    if cfg.target == "markers":
+        ms = (load_marker_set(marker_set_path) if marker_set_path
+              else resolve_marker_set(DockingStationConfig(), None, None))  # fmt: skip
+    topic = resolve_image_topic(frames, topic, lambda m: click.echo(f"note: {m}", err=True))
+    source = open_frames(frames, topic)
+    show = not (quiet or as_json)
+    with tqdm(total=source.total, unit="frame", desc="fit-water", disable=not show) as bar:
+        samples = sample_frames(source, camera, cfg, ms, progress=lambda _n: bar.update(1))
+    for w in source.warnings:
+        click.echo(f"warning: {w}", err=True)
+    fit = fit_water(samples, cfg)
+    with claim_output_dir(out_dir, "sim fit-water") as out:
+        water_path = write_water_file(fit, out / "water.toml", str(frames))
+        summary = fit.summary()
+        atomic_write_json(out / "fit_water.json", summary)
+        plot_fit(fit, out / "fit_water.png")
+        write_provenance(out, {"fit_water": cfg}, {"frames": str(frames), "camera": camera_file,
+                         "topic": topic, "marker_set": marker_set_path})  # fmt: skip
+    for w in fit.warnings:
+        click.echo(f"warning: {w}", err=True)
+    if as_json:
+        click.echo(json.dumps(summary, indent=2))
+        return
+    if quiet:
+        click.echo(str(water_path))
+        return
+    p = fit.params
+    click.echo(
+        f"{len(samples)} patches in {samples.frames_used} of {samples.frames_read} frames, "
+        f"ranges {fit.range_m[0]:.2f}-{fit.range_m[1]:.2f} m"
+    )
+    for b, unit in (("beta_D", "/m"), ("beta_B", "/m"), ("B_inf", "")):
+        vals = ", ".join(f"{v:.4g} (+-{100 * e:.0f} %)" for v, e in zip(p[b], fit.rel_std[b],
+                                                                         strict=True))  # fmt: skip
+        click.echo(f"  {b:7s} R, G, B: {vals}{unit}")
+    click.echo(
+        f"  vignetting {fit.vignetting:.3f}; noise: {fit.water.photons_at_white:.4g} photons at "
+        f"white, read {fit.water.read_noise:.4f}"
+    )
+    click.echo(
+        f"residual {fit.residual_rms_8bit:.2f} grey levels (RMS); contrast error R/G/B "
+        + " / ".join(f"{100 * e:.1f} %" for e in fit.contrast_error)
+    )
+    click.echo(f"wrote {water_path}, fit_water.json, fit_water.png")
 
 
 def _alt(v: float | None) -> str:

@@ -41,6 +41,7 @@ Example:
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import math
@@ -83,7 +84,14 @@ from uwdock.sim.camera import SimCamera
 from uwdock.sim.docking_station import DockingStationConfig, resolve_marker_set
 from uwdock.sim.domains import TANK_SIZE_M
 from uwdock.sim.render import RenderConfig, make_render_scene, project_markers
-from uwdock.sim.water import PRESETS, WaterConfig, WaterRandomisation
+from uwdock.sim.water import (
+    PRESETS,
+    WaterConfig,
+    WaterRandomisation,
+    is_water_file,
+    load_water_file,
+    resolve_water,
+)
 
 __all__ = [
     "PoseSamplingConfig",
@@ -192,7 +200,8 @@ class SynthConfig:
     Attributes:
         n_frames: number of frames (1 ... 10^6).
         seed: base seed (0 ... 2^32 - 1); frame k uses ``SeedSequence([seed, k])``.
-        water: a water preset name (``sim.water.PRESETS``), "random" (a fresh
+        water: a water preset name (``sim.water.PRESETS``), a water file (``*.toml`` with a
+            ``[water]`` table, e.g. from ``sim fit-water``), "random" (a fresh
             :class:`WaterRandomisation` draw per frame) or "none" (the clean render).
         water_randomisation: ranges of the per-frame draw when ``water = "random"``.
         camera_file: camera YAML/JSON (intrinsics and ``T_body_cam``; a file without
@@ -219,10 +228,15 @@ class SynthConfig:
 
     def validate(self) -> None:
         """Raise ValueError naming the first invalid field."""
-        if self.water not in (*PRESETS, "random", "none"):
+        if is_water_file(self.water):
+            try:
+                load_water_file(self.water)
+            except DockError as exc:
+                raise ValueError(f"water: {exc}") from None
+        elif self.water not in (*PRESETS, "random", "none"):
             raise ValueError(
                 f"water: unknown preset {self.water[:100]!r}; known: {', '.join(PRESETS)}, "
-                "random, none"
+                "random, none or a water file (*.toml)"
             )
         if not (self.width_px == 0 or self.width_px >= 16):
             raise ValueError(f"width_px: must be 0 or >= 16, got {self.width_px}")
@@ -349,10 +363,18 @@ def _ds_config(cfg: SynthConfig) -> DockingStationConfig:
     return DockingStationConfig(marker_set_path=cfg.marker_set_path)
 
 
+@functools.lru_cache(maxsize=8)
+def _fixed_water(spec: str) -> WaterConfig:
+    """A preset or a water file (read once per process)."""
+    w = resolve_water(spec)
+    assert w is not None  # "none" is handled by the caller
+    return w
+
+
 def _water_for_frame(cfg: SynthConfig, rng: np.random.Generator) -> tuple[WaterConfig | None, dict]:
     if cfg.water == "none":
         return None, {}
-    w = cfg.water_randomisation.sample(rng) if cfg.water == "random" else PRESETS[cfg.water]
+    w = cfg.water_randomisation.sample(rng) if cfg.water == "random" else _fixed_water(cfg.water)
     return w, {"preset": cfg.water, **to_dict(w)}
 
 

@@ -37,7 +37,7 @@ from uwdock.rl.train import TrainConfig, run_config
 from uwdock.rl.train import train as run
 from uwdock.rl.trajectories import record_pid_trajectories
 from uwdock.sim.usbl import USBL_PRESETS
-from uwdock.sim.water import PRESETS, water_choice
+from uwdock.sim.water import resolve_water, water_choice
 
 #: The config whose fields the options override (imported when an option is first used).
 _TRAIN = "uwdock.rl.train:TrainConfig"
@@ -47,6 +47,13 @@ _VIDEO = "uwdock.rl.episode:EpisodeVideoConfig"
 #: ``rl episode``'s values of EnvConfig fields that neither a flag nor ``--config`` sets.
 _EPISODE_DEFAULTS = {"episode_s": 30.0, "camera_width_px": 484}
 OBS_CHOICES = click.Choice(list(get_args(ObsSourceName)))
+#: ``--water``: the water of the camera sources (``EnvConfig.water_preset``).
+WATER_OPTION = click.option(
+    "--water",
+    "water",
+    help="Water of the downward camera (obs camera / error-model): a preset or a water file "
+    "(.toml, `sim fit-water`) [the config's, clear_tank].",
+)
 #: ``--usbl``: the acoustic positioning model (``EnvConfig.usbl.preset``).
 USBL_OPTION = click.option(
     "--usbl",
@@ -72,6 +79,7 @@ def cli() -> None:
     help="Fitted error model file (for --obs error-model).",
 )
 @USBL_OPTION
+@WATER_OPTION
 @click.option("--algo", type=click.Choice(["ppo", "sac"]), help="Algorithm [ppo].")
 @click.option("--steps", type=field_type(_TRAIN, "total_steps"), help="Total env steps.")
 @click.option("--envs", type=field_type(_TRAIN, "n_envs"), help="Parallel environments.")
@@ -91,7 +99,7 @@ def cli() -> None:
 )
 @out_dir_option("Run folder.", required=True)
 def train(
-    config_path, obs, error_model, usbl, algo, steps, envs, seed, init_policy, resume,
+    config_path, obs, error_model, usbl, water, algo, steps, envs, seed, init_policy, resume,
     allow_config_change, out_dir,
 ) -> None:  # fmt: skip
     """Train a docking policy (PPO with the paper's hyperparameters by default).
@@ -103,6 +111,7 @@ def train(
         "obs_source": obs,
         "error_model_path": str(error_model) if error_model else None,
         "usbl": {"preset": usbl} if usbl else None,
+        "water_preset": water_choice(water) if water else None,
     }
     overrides = {
         "algo": algo,
@@ -141,6 +150,7 @@ def train(
 @click.option("--obs", type=OBS_CHOICES, default="camera", show_default=True)
 @click.option("--error-model", "error_model", type=click.Path(path_type=Path))
 @USBL_OPTION
+@WATER_OPTION
 @config_option("TOML overriding EnvConfig.")
 @seed_option(domain_type(Seed), default=1000, show_default=True)
 @click.option(
@@ -170,6 +180,7 @@ def eval_cmd(
     obs,
     error_model,
     usbl,
+    water,
     config_path,
     seed,
     videos,
@@ -194,6 +205,7 @@ def eval_cmd(
             "error_model_path": em,
             "terminate_on": terminate_on,
             "usbl": {"preset": usbl} if usbl else None,
+            "water_preset": water_choice(water) if water else None,
         },
     )
     # the policy's observation layout and action scaling come from its own run config
@@ -270,7 +282,11 @@ def _fmt_rho(rho: list[float]) -> str:
 )
 @click.option("--controller", type=click.Choice(["pid"]), default="pid", show_default=True)
 @seed_option(domain_type(Seed), "Env reset seed.", default=0, show_default=True)
-@click.option("--water", help="Water of the downward view: a preset or 'none' [coastal].")
+@click.option(
+    "--water",
+    help="Water of the downward view: a preset, a water file (.toml, `sim fit-water`) or 'none' "
+    "[coastal].",
+)
 @click.option(
     "--seconds",
     type=field_type(_ENV, "episode_s"),
@@ -325,7 +341,7 @@ def episode(
                     policy,
                     out,
                     seed=seed,
-                    water=None if water_name == "none" else PRESETS[water_name],
+                    water=resolve_water(water_name),
                     water_name=water_name,
                     cfg=video_cfg,
                     on_step=lambda _k: bar.update(1),

@@ -53,6 +53,7 @@ from uwdock.sim.domains import RGB, TANK_SIZE_M, Friction, TankSide_m
 __all__ = [
     "DockingStation",
     "DockingStationConfig",
+    "build_chessboard",
     "build_docking_station",
     "build_tank",
     "default_T_worldned_ds",
@@ -588,3 +589,49 @@ def build_tank(
         lid.local_pose = _local_pose(make_T(t=[0.0, 0.0, -t / 2]))
         body.physx.attach(lid)
     return body.build(scene, sapien_pose(np.eye(4)), "tank")
+
+
+def build_chessboard(
+    scene: sapien.Scene,
+    cols: int,
+    rows: int,
+    square_m: float,
+    T_worldned_board: ArrayLike,
+    white_rgb: RGB = (0.80, 0.80, 0.80),
+    black_rgb: RGB = (0.03, 0.03, 0.03),
+    thickness_m: float = 0.004,
+) -> sapien.Entity:
+    """A flat chessboard target (visual only): a calibration board under water, for the
+    water fit (``sim fit-water``) and calibration tests.
+
+    The board frame is OpenCV's chessboard object frame (``calibration.patterns``): origin at
+    the first inner corner, x along the ``cols`` inner corners, y along the ``rows``, z into the
+    board (the printed face is the plane z = 0, seen from -z). The ``(cols + 1) x (rows + 1)``
+    squares alternate, the corner square black; each is a box of ``thickness_m`` behind the
+    face.
+
+    Args:
+        scene: the scene.
+        cols: inner corners along x (>= 2).
+        rows: inner corners along y (>= 2).
+        square_m: square side (m).
+        T_worldned_board: board frame in world NED (e.g. on the tank floor, face up: z down).
+        white_rgb: linear albedo of the white squares.
+        black_rgb: linear albedo of the black squares.
+        thickness_m: depth of the squares behind the face (m).
+
+    Returns:
+        The static board entity.
+    """
+    if int(cols) < 2 or int(rows) < 2 or not 0.0 < float(square_m) <= 10.0:
+        raise ValueError(f"chessboard: need >= 2 x 2 inner corners and 0 < square <= 10 m, got "
+                         f"{cols} x {rows}, {square_m} m")  # fmt: skip
+    T = check_T(T_worldned_board, "T_worldned_board")
+    body = _StaticBody(sapien.physx.PhysxMaterial(0.5, 0.5, 0.0))
+    materials = (_render_material(black_rgb, 0.9), _render_material(white_rgb, 0.9))
+    s, h = float(square_m), float(thickness_m) / 2.0
+    for i in range(int(cols) + 1):
+        for j in range(int(rows) + 1):
+            centre = [(i - 0.5) * s, (j - 0.5) * s, h]
+            body.box(centre, [s / 2, s / 2, h], materials[(i + j) % 2], collision=False)
+    return body.build(scene, sapien_pose(T), "chessboard")

@@ -32,7 +32,13 @@ import sapien
 from numpy.typing import ArrayLike
 
 from uwdock.calibration.camera import REFERENCE_T_BODYFRD_CAMCV, CameraModel, reference_camera
-from uwdock.calibration.frames import T_CAMCV_CAMSAPIEN, check_T, inv_T, transform_points
+from uwdock.calibration.frames import (
+    T_CAMCV_CAMSAPIEN,
+    check_T,
+    inv_T,
+    make_T,
+    transform_points,
+)
 from uwdock.dockcore.config import check_fields, validated
 from uwdock.dockcore.domains import Interval
 from uwdock.dockcore.errors import DockError
@@ -41,6 +47,7 @@ from uwdock.markers.view import markers_in_view
 from uwdock.sim.docking_station import (
     DockingStation,
     DockingStationConfig,
+    build_chessboard,
     build_docking_station,
     build_tank,
     sapien_pose,
@@ -53,6 +60,7 @@ __all__ = [
     "RenderConfig",
     "RenderResult",
     "RenderScene",
+    "board_views",
     "make_render_scene",
     "project_markers",
 ]
@@ -466,3 +474,45 @@ def make_render_scene(
     ds = build_docking_station(scene, ds_cfg, marker_set, T_worldned_ds, cache_dir)
     rig = CameraRig(scene, camera_model, T_bodyfrd_camcv, render_cfg)
     return RenderScene(scene, ds, tank, rig)
+
+
+def board_views(
+    altitudes_m: ArrayLike,
+    cols: int = 8,
+    rows: int = 6,
+    square_m: float = 0.06,
+    white_rgb: tuple[float, float, float] = (0.6, 0.6, 0.6),
+    render_cfg: RenderConfig | None = None,
+    camera_model: CameraModel | None = None,
+    seed: int = 0,
+    max_tilt_deg: float = 10.0,
+) -> list[RenderResult]:
+    """A chessboard on the tank floor seen by the lamp-lit camera from each altitude (in air:
+    apply :func:`sim.water.apply_water` to the results), as a diver films a board to fit the
+    water (``sim fit-water``): the camera looks down with a seeded tilt of up to
+    ``max_tilt_deg`` per axis and a sideways offset that moves the board across the image.
+
+    The board (:func:`sim.docking_station.build_chessboard`) follows OpenCV's chessboard
+    object frame; ``white_rgb`` and the lamp should keep the near views below white in air (the
+    renderer clips before the water is applied, where no camera would notice)."""
+    from scipy.spatial.transform import Rotation  # half a second to import, only needed here
+
+    alts = np.asarray(altitudes_m, dtype=float).ravel()
+    depth = max(8.0, float(alts.max(initial=0.0)) + 2.0)
+    ds_cfg = DockingStationConfig(tank_depth_m=depth)
+    render_cfg = validated(render_cfg or RenderConfig())
+    scene = sapien.Scene()
+    scene.ambient_light = list(render_cfg.ambient_rgb)
+    build_tank(scene, ds_cfg)
+    half = np.array([cols / 2.0, rows / 2.0]) * square_m
+    build_chessboard(scene, cols, rows, square_m, make_T(None, [-half[0], -half[1], depth - 1e-3]),
+                     white_rgb=white_rgb)  # fmt: skip
+    rig = CameraRig(scene, camera_model, None, render_cfg)
+    rng = np.random.default_rng(seed)
+    out = []
+    for alt in alts:
+        R = Rotation.from_euler("xyz", rng.uniform(-max_tilt_deg, max_tilt_deg, 3), degrees=True)
+        off = rng.uniform(-0.3, 0.3, 2) * alt
+        T = make_T(R.as_matrix(), [off[0], off[1], depth - float(alt)])
+        out.append(rig.render(T_worldned_camcv=T))
+    return out

@@ -47,6 +47,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import os
 import threading
 from dataclasses import dataclass
 from typing import Annotated
@@ -54,7 +55,7 @@ from typing import Annotated
 import cv2
 import numpy as np
 
-from uwdock.dockcore.config import check_fields
+from uwdock.dockcore.config import check_fields, load_config
 from uwdock.dockcore.domains import Fraction, Interval
 from uwdock.dockcore.errors import DockError
 from uwdock.sim.domains import RGB as ColourRGB
@@ -67,7 +68,11 @@ __all__ = [
     "WaterConfig",
     "WaterRandomisation",
     "apply_water",
+    "is_water_file",
+    "load_water_file",
     "preset",
+    "resolve_water",
+    "water_choice",
 ]
 
 RGB = tuple[float, float, float]
@@ -192,13 +197,42 @@ def preset(name: str, **changes: object) -> WaterConfig:
     return cfg
 
 
+def is_water_file(spec: str) -> bool:
+    """True when a water argument names a water file (``*.toml``, e.g. from ``sim fit-water``)
+    rather than a preset."""
+    return str(spec).lower().endswith(".toml")
+
+
+def load_water_file(path: str | os.PathLike[str]) -> WaterConfig:
+    """The ``[water]`` table of a TOML file (fields of :class:`WaterConfig`; those left out keep
+    their defaults), validated. Raises a one-line :class:`ConfigError` (a missing file, bad
+    TOML, an unknown key or a value outside its domain)."""
+    return load_config(WaterConfig, path, section="water")
+
+
+def resolve_water(spec: str | None) -> WaterConfig | None:
+    """The water a command's argument or a config's ``water_preset`` names: a preset, a water
+    file (``*.toml``) or "none" (None)."""
+    if spec is None or spec == "none":
+        return None
+    if is_water_file(spec):
+        return load_water_file(spec)
+    return preset(spec)
+
+
 def water_choice(name: str | None, allow_random: bool = False) -> str:
-    """A command's water argument checked: a preset name, "none" (None too) or, where the
-    command draws a water per frame, "random". Raises a one-line :class:`DockError` otherwise."""
+    """A command's water argument checked: a preset name, a water file (``*.toml``, read and
+    validated here), "none" (None too) or, where the command draws a water per frame,
+    "random". Raises a one-line :class:`DockError` otherwise."""
     name = name or "none"
+    if is_water_file(name):
+        load_water_file(name)
+        return name
     known = [*PRESETS, *(["random"] if allow_random else []), "none"]
     if name not in known:
-        raise DockError(f"unknown water preset {name!r}; known: {', '.join(known)}")
+        raise DockError(
+            f"unknown water preset {name!r}; known: {', '.join(known)} or a water file (.toml)"
+        )
     return name
 
 

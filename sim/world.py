@@ -25,7 +25,7 @@ from uwdock.sim.docking_station import DockingStationConfig, build_docking_stati
 from uwdock.sim.physics import VehicleBody, make_physics_scene
 from uwdock.sim.render import make_render_scene
 from uwdock.sim.vehicle import Current
-from uwdock.sim.water import preset
+from uwdock.sim.water import resolve_water
 from uwdock.sim.world_config import WorldConfig
 
 __all__ = ["DockingWorld", "WorldConfig"]
@@ -60,7 +60,7 @@ class DockingWorld:
                 scene=scene,
                 surface_lid=True,
             )
-            self.camera = SimCamera(self.render_scene.rig, preset(cfg.water_preset))
+            self.camera = SimCamera(self.render_scene.rig, resolve_water(cfg.water_preset))
             self.scene = scene
             self.ds = self.render_scene.ds
         else:

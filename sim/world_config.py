@@ -12,9 +12,10 @@ from dataclasses import dataclass, field
 from typing import Annotated
 
 from uwdock.dockcore.domains import Interval
+from uwdock.dockcore.errors import DockError
 from uwdock.sim.domains import TANK_SIZE_M, TankSide_m
 from uwdock.sim.vehicle import CurrentConfig, VehicleConfig, VehicleRandomisation
-from uwdock.sim.water import PRESET_ORDER
+from uwdock.sim.water import PRESET_ORDER, is_water_file, load_water_file
 
 __all__ = ["MIN_CAMERA_WIDTH_PX", "WorldConfig"]
 
@@ -34,8 +35,9 @@ class WorldConfig:
         camera_file: camera YAML/JSON (None: the reference camera and mounting).
         camera_width_px: render width (px): the camera's intrinsics are scaled to it
             (:func:`uwdock.calibration.camera.resolve_camera`); 0 keeps the file's size.
-        water_preset: water between the camera and the scene (a :mod:`uwdock.sim.water`
-            preset name).
+        water_preset: water between the camera and the scene: a :mod:`uwdock.sim.water` preset
+            name or a water file (``*.toml`` with a ``[water]`` table, e.g. from
+            ``sim fit-water``).
         randomise_vehicle: draw the vehicle's parameters (and thruster placement) per episode.
         camera_mount_error_m: the camera's true mounting differs from its calibration by a
             translation drawn per episode, each camera axis uniform within +- this (m); the
@@ -68,7 +70,13 @@ class WorldConfig:
                 f"camera_width_px: must be 0 or >= {MIN_CAMERA_WIDTH_PX}, "
                 f"got {self.camera_width_px}"
             )
-        if self.water_preset not in PRESET_ORDER:
+        if is_water_file(self.water_preset):
+            try:
+                load_water_file(self.water_preset)
+            except DockError as exc:
+                raise ValueError(f"water_preset: {exc}") from None
+        elif self.water_preset not in PRESET_ORDER:
             raise ValueError(
-                f"water_preset: unknown {self.water_preset!r} (known: {', '.join(PRESET_ORDER)})"
+                f"water_preset: unknown {self.water_preset!r} (known: {', '.join(PRESET_ORDER)} "
+                "or a water file, *.toml)"
             )

@@ -27,6 +27,7 @@ def _roots() -> list[type]:
     from uwdock.calibration.intrinsics import IntrinsicsConfig
     from uwdock.datasets.synth import SynthConfig
     from uwdock.datasets.tank_report import TankReportConfig
+    from uwdock.datasets.water_fit import FitWaterConfig
     from uwdock.markers.config import MarkerConfig
     from uwdock.perception.evaluate import PerceptionConfig
     from uwdock.rl.baselines import PIDConfig
@@ -43,6 +44,7 @@ def _roots() -> list[type]:
         PerceptionConfig,
         SynthConfig,
         TankReportConfig,
+        FitWaterConfig,
         TrainConfig,
         ErrorModelConfig,
         EpisodeVideoConfig,

@@ -91,17 +91,36 @@ def test_lazy_listing_is_the_groups_own(run_cli, group):
     the console script, ``uwdock <group>`` and the group's module."""
     real = importlib.import_module(f"uwdock.{group}.cli")
     help_text, summaries = uwdock_cli.COMMANDS[group]
-    assert sorted(summaries) == sorted(real.cli.commands)
+    lent = uwdock_cli.LENT.get(group, {})
+    assert sorted(set(summaries) - set(lent)) == sorted(real.cli.commands)
     assert help_text == inspect.cleandoc(real.cli.help or "")
     for name, text in summaries.items():
+        owner = importlib.import_module(f"uwdock.{lent[name]}.cli") if name in lent else real
         ours = click.Command(name, help=text).get_short_help_str(10_000)
-        assert ours == real.cli.commands[name].get_short_help_str(10_000), (group, name)
+        assert ours == owner.cli.commands[name].get_short_help_str(10_000), (group, name)
     alone = run_cli(real.main, "--help")
     lazy = run_cli(getattr(uwdock_cli, group), "--help")
     umbrella = run_cli(uwdock_cli.main, group, "--help")
     assert alone.code == lazy.code == umbrella.code == 0
-    assert lazy.out == alone.out
-    assert umbrella.out.split("Usage:")[1].split(None, 2)[2] == alone.out.split(None, 2)[2]
+
+    if lent:  # the lazy group lists the lent commands too (the column widths follow)
+        head = lazy.out.split("Commands:")[0]
+        assert head == alone.out.split("Commands:")[0]
+        listed = [r.split()[0] for r in lazy.out.split("Commands:")[1].splitlines() if r.strip()]
+        assert listed == sorted(summaries)
+    else:
+        assert lazy.out == alone.out
+    assert umbrella.out.split("Usage:")[1].split(None, 2)[2] == lazy.out.split(None, 2)[2]
+
+
+def test_a_lent_command_is_the_lending_groups_own(run_cli):
+    """``sim fit-water`` (the umbrella joins sim and datasets) runs ``datasets fit-water``."""
+    for group, lent in uwdock_cli.LENT.items():
+        for name, owner in lent.items():
+            via = run_cli(getattr(uwdock_cli, group), name, "--help")
+            own = run_cli(getattr(uwdock_cli, owner), name, "--help")
+            assert via.code == own.code == 0
+            assert via.out.split(None, 3)[3] == own.out.split(None, 3)[3]  # past "Usage: x y"
 
 
 def test_lazy_group_runs_the_command_and_refuses_an_unknown_one(run_cli):

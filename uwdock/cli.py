@@ -22,6 +22,19 @@ EXTRAS: dict[str, str | None] = {
 }
 
 
+#: ``fit-water``'s summary: the command is ``datasets``' (it crosses the sim -> perception seam)
+#: and ``sim`` lends it (:data:`LENT`), so ``sim fit-water`` is the same command.
+FIT_WATER = (
+    "Fit the underwater model's attenuation, backscatter and veiling light per channel to "
+    "frames of a known target (a chessboard or the DS marker board) seen at several ranges; "
+    "writes a water file that every --water option takes."
+)
+
+#: group -> {command: the group whose module defines it}: commands a group shows as its own
+#: although another group's module defines them (the architecture keeps ``sim`` below
+#: ``perception``; the umbrella, above both, joins them).
+LENT: dict[str, dict[str, str]] = {"sim": {"fit-water": "datasets"}}
+
 #: command group -> (its help text, {command: the first paragraph of its help}): what
 #: ``<group> --help`` shows without importing the group's module (``uwdock.<group>.cli``, which
 #: imports everything its commands use). ``tests/test_uwdock_cli.py`` checks it word for word
@@ -66,6 +79,7 @@ COMMANDS: dict[str, tuple[str, dict[str, str]]] = {
             "render": "Render images (+ labels.jsonl in the dataset format) for given or random "
             "poses: the ``synth`` engine fed with explicit vehicle poses (``--poses``) or a few "
             "random ones.",
+            "fit-water": FIT_WATER,
             "synth": "Render a labelled dataset of the docking station from random AUV poses.",
             "tank-report": "Predict how far above the docking station your camera decodes 1 and "
             "3 of its markers in your water: renders the DS straight below the camera at each "
@@ -77,6 +91,7 @@ COMMANDS: dict[str, tuple[str, dict[str, str]]] = {
         "Rendered frames for given poses: `datasets render`; a docking episode video: "
         "`rl episode`.",
         {
+            "fit-water": FIT_WATER,
             "water": "List the water presets, clearest first: attenuation and backscatter per "
             "channel (1/m), veiling light and forward-scatter blur.",
         },
@@ -137,7 +152,8 @@ class LazyGroup(click.Group):
     def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
         if cmd_name not in COMMANDS[self.name][1]:
             return None
-        return load_group(self.name).get_command(ctx, cmd_name)
+        owner = LENT.get(self.name, {}).get(cmd_name, self.name)
+        return load_group(owner).get_command(ctx, cmd_name)
 
     def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
         """The listing click writes for the loaded group (same truncation), from the table."""

@@ -1,0 +1,239 @@
+"""The water fitted to a tank (``sim fit-water``): from frames rendered by SAPIEN with known water
+(a chessboard on the tank floor filmed from 0.7 to 6 m, noise on), the fit recovers the water
+model's parameters, the sensor noise and the vignetting, and its modelled contrast matches the
+frames'; the water file it writes is taken wherever a water preset is."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from uwdock import cli as uwdock_cli
+from uwdock.calibration.camera import save_camera
+from uwdock.calibration.frames import make_T
+from uwdock.datasets.water_fit import (
+    FitWaterConfig,
+    PatchSamples,
+    _expected,
+    estimate_noise,
+    fit_water,
+    sample_frames,
+)
+from uwdock.dockcore.config import read_toml
+from uwdock.dockcore.errors import DockError
+from uwdock.sim.docking_station import DockingStationConfig
+from uwdock.sim.render import RenderConfig, board_views, make_render_scene
+from uwdock.sim.water import PRESETS, WaterConfig, apply_water, load_water_file, water_choice
+from uwdock.sim.world_config import WorldConfig
+
+#: The films: a 9 x 7-square board of 60 mm squares, lamp dimmed so the nearest white stays
+#: below white in air (the renderer clips before the water, where no camera would see it).
+ALTITUDES_M = np.arange(0.7, 6.01, 0.1)
+RENDER = RenderConfig(lamp_intensity=2.0)
+FIT = FitWaterConfig(square_mm=60.0)
+#: The fit must recover each parameter the frames determine within this (relative) ...
+TOL_REL = 0.10
+#: ... and the modelled contrast must match the frames' within this, per channel.
+TOL_CONTRAST = 0.05
+#: The veiling light and the backscatter coefficient are determined separately when the
+#: backscatter changes by at least this much (linear, white = 1) between the nearest and the
+#: farthest patch seen and bends by as much away from its initial slope; otherwise only the
+#: backscatter curve over the ranges seen is (in clear water, the product B_inf * beta_B), and
+#: that curve is what is checked.
+DETERMINED_CHANGE = 0.03
+
+
+@pytest.fixture(scope="module")
+def renders():
+    return board_views(ALTITUDES_M, square_m=0.06, render_cfg=RENDER, seed=0)
+
+
+def _frames(renders, water: WaterConfig):
+    for i, r in enumerate(renders):
+        img = apply_water(r.rgb, r.range_m, water, np.random.default_rng(i))
+        yield i, f"f{i:03d}", cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
+
+
+def _backscatter(b_inf, beta_b, r):
+    return np.asarray(b_inf)[None, :] * (1.0 - np.exp(-np.asarray(beta_b)[None, :] * r[:, None]))
+
+
+@pytest.mark.render
+@pytest.mark.parametrize("name", ["clear_tank", "coastal", "turbid", "very_turbid"])
+def test_fit_recovers_the_rendered_water(renders, name):
+    truth = PRESETS[name]
+    samples = sample_frames(_frames(renders, truth), renders[0].camera, FIT)
+    fit = fit_water(samples, FIT)
+    lo, hi = fit.range_m
+    assert lo < 1.0 and hi - lo > 1.0, fit.range_m  # the board is found over a range of distances
+    got = {k: np.asarray(v) for k, v in fit.params.items()}
+    # the direct signal's attenuation: every channel, every water
+    rel = np.abs(got["beta_D"] - truth.beta_D_rgb) / np.asarray(truth.beta_D_rgb)
+    assert (rel <= TOL_REL).all(), (name, got["beta_D"], truth.beta_D_rgb)
+    # veiling light and backscatter coefficient where the ranges seen determine them
+    b_inf, beta_b = np.asarray(truth.B_inf_rgb), np.asarray(truth.beta_B_rgb)
+    change = b_inf * np.abs(np.exp(-beta_b * lo) - np.exp(-beta_b * hi))
+    # the two separate only where the curve bends: its departure from its initial slope
+    bend = b_inf * (beta_b * hi - (1.0 - np.exp(-beta_b * hi)))
+    for c in np.flatnonzero((change >= DETERMINED_CHANGE) & (bend >= DETERMINED_CHANGE)):
+        for key in ("B_inf", "beta_B"):
+            want = getattr(truth, f"{key}_rgb")[c]
+            assert abs(got[key][c] - want) <= TOL_REL * want, (name, key, c, got[key][c], want)
+    # the backscatter curve itself over the ranges seen, every channel
+    r = np.linspace(lo, hi, 20)
+    want = _backscatter(truth.B_inf_rgb, truth.beta_B_rgb, r)
+    have = _backscatter(got["B_inf"], got["beta_B"], r)
+    assert (np.abs(have - want) <= np.maximum(0.05 * want, 0.003)).all(), name
+    # the camera: vignetting and noise
+    assert abs(fit.vignetting - truth.vignetting) <= TOL_REL * truth.vignetting
+    assert abs(fit.water.photons_at_white - truth.photons_at_white) <= TOL_REL * 2000.0
+    assert abs(fit.water.read_noise - truth.read_noise) <= TOL_REL * truth.read_noise
+    # what a reader of the plot sees: modelled contrast against the frames', by range
+    assert max(fit.contrast_error) <= TOL_CONTRAST, fit.contrast_error
+    assert fit.residual_rms_8bit < 1.5
+
+
+def test_expected_value_of_a_clipped_noisy_signal_matches_monte_carlo():
+    rng = np.random.default_rng(0)
+    for m, photons, read in [(0.0005, 2000.0, 0.003), (0.01, 2000.0, 0.003), (0.3, 500.0, 0.0)]:
+        sd = math.sqrt(m / photons + read**2)
+        mc = np.maximum(m + sd * rng.standard_normal(2_000_000), 0.0).mean()
+        assert _expected(np.array([m]), photons, read)[0] == pytest.approx(mc, rel=2e-3, abs=2e-6)
+    # no noise: the signal itself
+    assert _expected(np.array([0.2]), None, 0.0)[0] == pytest.approx(0.2)
+
+
+def _synthetic_samples(n: int, photons: float, read: float, seed: int = 0) -> PatchSamples:
+    """Patches whose spread is the Poisson-Gaussian noise of ``k`` pixels each."""
+    rng = np.random.default_rng(seed)
+    m = rng.uniform(0.02, 0.7, (n, 3))
+    k = 81
+    var = np.empty_like(m)
+    for i in range(n):
+        x = m[i] + np.sqrt(m[i] / photons + read**2) * rng.standard_normal((k, 3))
+        disp = np.rint(255 * np.clip(x, 0, 1) ** (1 / 2.2)) / 255  # the camera's 8 bits
+        var[i] = (disp**2.2).var(axis=0, ddof=1)
+    z = np.zeros(n)
+    return PatchSamples(np.zeros(n, int), np.ones(n, bool), m, var, z, z, z, z)
+
+
+@pytest.mark.parametrize("photons,read", [(2000.0, 0.003), (500.0, 0.006), (20000.0, 0.002)])
+def test_sensor_noise_is_read_from_the_patches(photons, read):
+    got_p, got_r = estimate_noise(_synthetic_samples(400, photons, read), 2.2)
+    assert got_p == pytest.approx(photons, rel=0.10)
+    assert got_r == pytest.approx(read, rel=0.15)
+
+
+@pytest.fixture(scope="module")
+def coastal_folder(renders, tmp_path_factory) -> tuple[Path, Path]:
+    """The coastal films as a folder of PNGs and the camera file, as a user would have them."""
+    folder = tmp_path_factory.mktemp("films")
+    for _, name, img in _frames(renders, PRESETS["coastal"]):
+        cv2.imwrite(str(folder / f"{name}.png"), img)
+    yaml_path, _ = save_camera(folder.parent / "camera.yaml", renders[0].camera)
+    return folder, Path(yaml_path)
+
+
+@pytest.mark.render
+def test_cli_writes_a_water_file_every_water_option_takes(coastal_folder, tmp_path, run_cli):
+    folder, camera = coastal_folder
+    out = tmp_path / "fit"
+    res = run_cli(
+        uwdock_cli.sim, "fit-water", folder, "--camera", camera, "--square-mm", "60",
+        "--out", out, "--json",
+    )  # fmt: skip
+    assert res.code == 0, res.err
+    summary = json.loads(res.out)
+    assert summary["frames_used"] >= 20 and summary["residual_rms_8bit"] < 1.5
+    assert max(summary["contrast_error"].values()) <= TOL_CONTRAST
+    water = load_water_file(out / "water.toml")
+    truth = PRESETS["coastal"]
+    assert np.allclose(water.beta_D_rgb, truth.beta_D_rgb, rtol=TOL_REL)
+    assert water.blur_sigma_per_m == truth.blur_sigma_per_m  # the base preset's blur
+    assert read_toml(out / "water.toml")["water"]["gamma"] == 2.2
+    assert (out / "fit_water.png").stat().st_size > 10_000
+    assert json.loads((out / "provenance.json").read_text())
+    # taken wherever a preset is: commands' --water, the env's water_preset
+    path = str(out / "water.toml")
+    assert water_choice(path) == path
+    WorldConfig(water_preset=path).validate()
+    res = run_cli(
+        uwdock_cli.datasets, "render", "--out", tmp_path / "ds", "--n", "2", "--water", path,
+        "--width", "160", "--quiet",
+    )  # fmt: skip
+    assert res.code == 0, res.err
+    label = json.loads((tmp_path / "ds/labels.jsonl").read_text().splitlines()[0])
+    assert label["water"]["preset"] == path
+    assert label["water"]["beta_D_rgb"] == pytest.approx(list(water.beta_D_rgb))
+
+
+def test_a_bad_water_file_is_a_one_line_error(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[water]\nbeta_D_rgb = [0.1, nan, 0.2]\n")
+    with pytest.raises(DockError) as exc:
+        water_choice(str(bad))
+    assert "\n" not in str(exc.value) and "beta_D_rgb" in str(exc.value)
+    with pytest.raises(ValueError, match="water_preset"):
+        WorldConfig(water_preset=str(tmp_path / "missing.toml")).validate()
+    bad.write_bytes(b"\xff\xfe[water]\n")
+    with pytest.raises(DockError):
+        load_water_file(bad)
+
+
+def test_frames_without_the_target_or_from_one_distance_are_refused(renders):
+    blank = [(i, f"b{i}", np.full((732, 968, 3), 90, np.uint8)) for i in range(3)]
+    with pytest.raises(DockError, match="black and white patches"):
+        fit_water(sample_frames(blank, renders[0].camera, FIT), FIT)
+    near = [f for f in _frames(renders[:3], PRESETS["coastal"])]  # 0.7-0.9 m
+    with pytest.raises(DockError, match="spanning"):
+        fit_water(sample_frames(near, renders[0].camera, FIT), FIT)
+    small = [(0, "small", np.zeros((100, 120, 3), np.uint8))]
+    with pytest.raises(DockError, match="camera file"):
+        sample_frames(small, renders[0].camera, FIT)
+    mid = list(_frames(renders[20:21], PRESETS["coastal"]))  # 2.7 m: the whole board in view
+    s = sample_frames([(0, "corrupt", None), *mid], renders[0].camera, FIT)
+    assert s.frames_read == 2 and s.frames_corrupt == 1 and s.frames_used == 1
+
+
+def test_cli_bad_inputs_fail_with_one_line(coastal_folder, tmp_path, run_cli):
+    folder, camera = coastal_folder
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    cases = [
+        (empty, "--camera", camera),  # no images
+        (folder, "--camera", tmp_path / "none.yaml"),  # no camera file
+        (folder, "--camera", camera, "--square-mm", "nan"),
+        (folder, "--camera", camera, "--target", "markers", "--markers", tmp_path / "no.toml"),
+    ]
+    for args in cases:
+        res = run_cli(uwdock_cli.sim, "fit-water", *args, "--out", tmp_path / "o")
+        assert res.code != 0, args
+        assert res.err.strip().count("\n") == 0, res.err
+
+
+@pytest.mark.render
+def test_marker_board_target_runs_and_reports_its_residual(tmp_path):
+    """The DS's own markers as the target: posed by the DS pose estimator, white border cells
+    against the black enclosure ring. The rendered 3D markers are shaded (bevelled enclosure,
+    averaged normals), so they fit far worse than a flat board; here it only has to run and
+    report its residual (the README gives the measured shortfall)."""
+    rs = make_render_scene(DockingStationConfig(tank_depth_m=10.0), render_cfg=RENDER)
+    R = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    frames = []
+    for i, alt in enumerate(np.arange(1.0, 4.01, 0.5)):
+        res = rs.render(T_worldned_camcv=rs.ds.T_worldned_ds @ make_T(R, [0.1, 0.1, -alt]))
+        img = apply_water(res.rgb, res.range_m, PRESETS["coastal"], np.random.default_rng(i))
+        frames.append((i, str(i), cv2.cvtColor(img, cv2.COLOR_RGB2BGR)))
+    cfg = dataclasses.replace(FIT, target="markers")
+    samples = sample_frames(frames, res.camera, cfg, rs.ds.marker_set)
+    fit = fit_water(samples, cfg)
+    assert samples.frames_used >= 5 and len(samples.groups) > 50
+    summary = fit.summary()
+    assert math.isfinite(summary["residual_rms_8bit"]) and summary["patches"] == len(samples)
+    assert all(math.isfinite(e) for e in summary["contrast_error"].values())
