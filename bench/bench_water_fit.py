@@ -32,6 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from uwdock.calibration.frames import make_T
 from uwdock.datasets.water_fit import FitWaterConfig, fit_water, plot_fit, sample_frames
 from uwdock.dockcore.bench import format_table, save_results
+from uwdock.dockcore.errors import DockError
 from uwdock.sim.docking_station import DockingStationConfig
 from uwdock.sim.render import RenderConfig, board_views, make_render_scene
 from uwdock.sim.water import PRESET_ORDER, PRESETS, apply_water
@@ -84,7 +85,13 @@ def board_rows(seeds: list[int], presets: list[str], figure: Path | None) -> lis
         for name in presets:
             t0 = time.perf_counter()
             samples = sample_frames(_frames(renders, PRESETS[name], seed), renders[0].camera, FIT)
-            fit = fit_water(samples, FIT)
+            try:
+                fit = fit_water(samples, FIT)
+            except DockError as exc:  # e.g. the board found over too short a range of distances
+                rows.append({"water": name, "target": "chessboard", "film_seed": seed,
+                             "refused": str(exc)})  # fmt: skip
+                print(f"board seed {seed} {name:>12}: refused: {exc}", flush=True)
+                continue
             rows.append(_row(name, "chessboard", seed, fit, samples, time.perf_counter() - t0))
             print(f"board seed {seed} {name:>12}: beta_D max error "
                   f"{rows[-1]['beta_D_max_err_%']:.1f} %", flush=True)  # fmt: skip
@@ -129,7 +136,7 @@ def main() -> None:
     cols = ["water", "target", "film_seed", "frames", "range_m", "beta_D_err_%", "B_inf_err_%",
             "beta_B_err_%", "contrast_err_%", "residual_8bit", "vignetting", "photons",
             "read_noise"]  # fmt: skip
-    print(format_table(rows, cols))
+    print(format_table([r for r in rows if "refused" not in r], cols))
     config = {
         "altitudes_m": [round(float(a_), 2) for a_ in ALTITUDES_M],
         "board": "9 x 7 squares of 60 mm, white 0.6, black 0.03",

@@ -21,6 +21,7 @@ Example:
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -490,7 +491,8 @@ def board_views(
     """A chessboard on the tank floor seen by the lamp-lit camera from each altitude (in air:
     apply :func:`sim.water.apply_water` to the results), as a diver films a board to fit the
     water (``sim fit-water``): the camera looks down with a seeded tilt of up to
-    ``max_tilt_deg`` per axis and a sideways offset that moves the board across the image.
+    ``max_tilt_deg`` per axis and a seeded sideways offset that moves the board across the
+    image as far as it still fits in view.
 
     The board (:func:`sim.docking_station.build_chessboard`) follows OpenCV's chessboard
     object frame; ``white_rgb`` and the lamp should keep the near views below white in air (the
@@ -508,11 +510,16 @@ def board_views(
     build_chessboard(scene, cols, rows, square_m, make_T(None, [-half[0], -half[1], depth - 1e-3]),
                      white_rgb=white_rgb)  # fmt: skip
     rig = CameraRig(scene, camera_model, None, render_cfg)
+    cam = rig.camera
+    # half the view at 1 m (m), less the tilt's reach: the board moves only where it still fits
+    view = np.array([cam.width_px / (2 * cam.fx_px), cam.height_px / (2 * cam.fy_px)])
+    view -= math.tan(math.radians(max_tilt_deg))
     rng = np.random.default_rng(seed)
     out = []
     for alt in alts:
         R = Rotation.from_euler("xyz", rng.uniform(-max_tilt_deg, max_tilt_deg, 3), degrees=True)
-        off = rng.uniform(-0.3, 0.3, 2) * alt
+        room = np.maximum(view * alt - half, 0.0)
+        off = rng.uniform(-1.0, 1.0, 2) * room
         T = make_T(R.as_matrix(), [off[0], off[1], depth - float(alt)])
         out.append(rig.render(T_worldned_camcv=T))
     return out
