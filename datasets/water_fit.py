@@ -570,11 +570,14 @@ class WaterFit:
     def summary(self) -> dict[str, Any]:
         """What the report JSON holds (no per-patch arrays)."""
         s = self.samples
+        p = self.params
+        separable = backscatter_separable(p["B_inf"], p["beta_B"], *self.range_m)
         return {
             "water": to_dict(self.water),
             "params": {k: list(v) for k, v in self.params.items()},
             "rel_std": {k: list(v) for k, v in self.rel_std.items()},
             "vignetting": self.vignetting,
+            "backscatter_separable": dict(zip(CHANNELS, separable, strict=True)),
             "residual_rms": self.residual_rms,
             "residual_rms_8bit": self.residual_rms_8bit,
             "contrast_error": dict(zip(CHANNELS, self.contrast_error, strict=True)),
@@ -639,6 +642,26 @@ def contrast_error(
         num += n * np.abs(modelled[m].mean(axis=0) - measured[m].mean(axis=0))
         den += n * np.abs(measured[m].mean(axis=0))
     return tuple(float(a / max(d, 1e-12)) for a, d in zip(num, den, strict=True))  # type: ignore[return-value]
+
+
+#: Change and bend (linear, white = 1) the backscatter must show over the ranges seen for its
+#: veiling light and coefficient to be told apart (on rendered films, below it the fit's
+#: standard errors understate their error several times).
+SEPARABLE_CHANGE = 0.03
+
+
+def backscatter_separable(
+    B_inf: np.ndarray, beta_B: np.ndarray, r_min_m: float, r_max_m: float
+) -> list[bool]:
+    """Per channel, whether ``B_inf`` and ``beta_B`` are determined separately by patches from
+    ``r_min_m`` to ``r_max_m``: the backscatter ``B_inf (1 - exp(-beta_B r))`` must change by
+    :data:`SEPARABLE_CHANGE` over those ranges *and* bend by as much away from its initial
+    slope ``B_inf beta_B r`` (in clear water only the product is seen; in turbid water a
+    backscatter already saturated at the nearest range hides its coefficient)."""
+    B_inf, beta_B = np.asarray(B_inf, float), np.asarray(beta_B, float)
+    change = B_inf * np.abs(np.exp(-beta_B * r_min_m) - np.exp(-beta_B * r_max_m))
+    bend = B_inf * (beta_B * r_max_m - (1.0 - np.exp(-beta_B * r_max_m)))
+    return [bool(v) for v in (change >= SEPARABLE_CHANGE) & (bend >= SEPARABLE_CHANGE)]
 
 
 def _start(s: PatchSamples, water: WaterConfig, vig: float) -> np.ndarray:
@@ -720,20 +743,35 @@ def fit_water(samples: PatchSamples, cfg: FitWaterConfig | None = None) -> Water
     disp_m = 255.0 * (np.clip(model, 1e-6, None) ** (1.0 / cfg.gamma))
     cerr = contrast_error(*_contrast(s, model))
     warnings = []
+    r_lo, r_hi = float(s.range_m.min()), float(s.range_m.max())
+    separable = backscatter_separable(p["B_inf"], p["beta_B"], r_lo, r_hi)
     for c, ch in enumerate(CHANNELS):
+        b_inf, beta_b = params["B_inf"][c], params["beta_B"][c]
+        if b_inf >= 0.01 and not separable[c]:
+            why = (
+                "is saturated already at the nearest range: film nearer"
+                if beta_b * r_lo > 2.0
+                else "hardly bends: film farther"
+            )
+            warnings.append(
+                f"B_inf and beta_B of {ch} are not separable over {r_lo:.2f}-{r_hi:.2f} m (the "
+                f"backscatter {why}); only its curve over these ranges is determined "
+                f"(B_inf * beta_B = {b_inf * beta_b:.3g}/m)"
+            )
         for b in ("beta_D", "beta_B", "B_inf"):
-            if rel_std[b][c] > 0.25 and not (b == "beta_B" and params["B_inf"][c] < 0.01):
-                saturated = b != "beta_D" and params["beta_B"][c] * s.range_m.min() > 2.0
-                advice = (
-                    f"its backscatter is saturated already at the nearest range "
-                    f"({s.range_m.min():.2f} m): film nearer"
-                    if saturated
-                    else "film over a wider range of distances"
-                )
+            if b != "beta_D" and (b_inf < 0.01 or not separable[c]):
+                continue  # no backscatter to speak of, or said above
+            if rel_std[b][c] > 0.25:
                 warnings.append(
                     f"{b} {ch} = {params[b][c]:.3g} is poorly determined by these frames "
-                    f"(+-{100 * rel_std[b][c]:.0f} %; {advice})"
+                    f"(+-{100 * rel_std[b][c]:.0f} %): film over a wider range of distances"
                 )
+    if cfg.target == "markers":
+        warnings.append(
+            "the marker board is an approximate target (small 3D markers, shaded): on rendered "
+            "films its attenuation came out 18-173 % off where a chessboard's was within 10 % "
+            "(bench/results/water_fit.json); film a flat chessboard for the water file"
+        )
     base = PRESETS[cfg.base]
     water = dataclasses.replace(
         base,

@@ -85,6 +85,14 @@ def test_fit_recovers_the_rendered_water(renders, name):
         for key in ("B_inf", "beta_B"):
             want = getattr(truth, f"{key}_rgb")[c]
             assert abs(got[key][c] - want) <= TOL_REL * want, (name, key, c, got[key][c], want)
+    # a veiling light or backscatter coefficient off by more is never given silently
+    separable = fit.summary()["backscatter_separable"]
+    for c, ch in enumerate("RGB"):
+        for key in ("B_inf", "beta_B"):
+            want = getattr(truth, f"{key}_rgb")[c]
+            if truth.B_inf_rgb[c] >= 0.01 and abs(got[key][c] - want) > TOL_REL * want:
+                assert not separable[ch], (name, key, ch)
+                assert any(f"of {ch} are not separable" in w for w in fit.warnings)
     # the backscatter curve itself over the ranges seen, every channel
     r = np.linspace(lo, hi, 20)
     want = _backscatter(truth.B_inf_rgb, truth.beta_B_rgb, r)
@@ -237,3 +245,24 @@ def test_marker_board_target_runs_and_reports_its_residual(tmp_path):
     summary = fit.summary()
     assert math.isfinite(summary["residual_rms_8bit"]) and summary["patches"] == len(samples)
     assert all(math.isfinite(e) for e in summary["contrast_error"].values())
+
+
+@pytest.mark.render
+def test_rl_eval_and_train_take_a_water_file(tmp_path, run_cli):
+    """``rl eval --water FILE`` flies camera episodes through the file's water (recorded in the
+    summary's config); a malformed file stops ``rl train`` with one line."""
+    water = tmp_path / "tank.toml"
+    water.write_text("[water]\nbeta_D_rgb = [0.4, 0.2, 0.3]\nB_inf_rgb = [0.05, 0.3, 0.25]\n")
+    env_cfg = tmp_path / "env.toml"
+    env_cfg.write_text("episode_s = 1.0\ncamera_width_px = 160\n")
+    res = run_cli(
+        uwdock_cli.rl, "eval", "--policy", "pid", "--episodes", "1", "--obs", "camera",
+        "--videos", "", "--water", water, "--config", env_cfg, "--out", tmp_path / "e",
+    )  # fmt: skip
+    assert res.code == 0, res.err
+    config = json.loads((tmp_path / "e" / "summary.json").read_text())["config"]
+    assert config["water_preset"] == str(water)
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[water]\nB_inf_rgb = [2.0, 0.3, 0.25]\n")
+    res = run_cli(uwdock_cli.rl, "train", "--water", bad, "--steps", "64", "--out", tmp_path / "t")
+    assert res.code == 2 and res.err.strip().count("\n") == 0 and "B_inf_rgb" in res.err
