@@ -25,6 +25,7 @@ from uwdock.dockcore.config import load_config
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_write_json
 from uwdock.dockcore.options import (
+    backend_options,
     command_group,
     config_option,
     json_option,
@@ -69,8 +70,9 @@ def cli() -> None:
 )
 @workers_option(
     domain_type("uwdock.datasets.synth:Workers"),
-    "Worker processes (the output is the same for any number).",
+    "Worker processes or Ray actors (the output is the same for any number).",
 )
+@backend_options("the same bytes either way")
 @seed_option(field_type(_SYNTH, "seed"), "Base seed [default: 0].")
 @click.option(
     "--camera",
@@ -94,8 +96,8 @@ def cli() -> None:
 @quiet_option("No progress bar; print only the folder.")
 @json_option("Print a JSON summary.")
 def synth(
-    n_frames, out_dir, water, workers, seed, camera_file, width_px, marker_set_path,
-    config_path, quiet, as_json,
+    n_frames, out_dir, water, workers, backend, ray_address, seed, camera_file, width_px,
+    marker_set_path, config_path, quiet, as_json,
 ) -> None:  # fmt: skip
     """Render a labelled dataset of the docking station from random AUV poses.
 
@@ -115,7 +117,14 @@ def synth(
         },
         section="synth",
     )
-    result = generate(out_dir, cfg, workers=workers, progress=False if quiet or as_json else None)
+    result = generate(
+        out_dir,
+        cfg,
+        workers=workers,
+        progress=False if quiet or as_json else None,
+        backend=backend,
+        ray_address=ray_address,
+    )
     summary = {
         "out_dir": str(result.out_dir),
         "frames": result.frames,
@@ -167,10 +176,11 @@ def synth(
 @click.option("--camera", "camera_file", type=click.Path(dir_okay=False), help="Camera file.")
 @click.option("--markers", "marker_set_path", type=click.Path(dir_okay=False), help="Marker set.")
 @workers_option(domain_type("uwdock.datasets.synth:Workers"))
+@backend_options("the same bytes either way")
 @quiet_option("No progress bar; print only the folder.")
 def render(
     out_dir, n_frames, poses_csv, water, width_px, seed, camera_file, marker_set_path, workers,
-    quiet,
+    backend, ray_address, quiet,
 ) -> None:  # fmt: skip
     """Render images (+ labels.jsonl in the dataset format) for given or random poses: the
     ``synth`` engine fed with explicit vehicle poses (``--poses``) or a few random ones."""
@@ -194,6 +204,8 @@ def render(
         progress=False if quiet else None,
         tool="datasets render",
         sequences=sequences,
+        backend=backend,
+        ray_address=ray_address,
     )
     if quiet:
         click.echo(str(result.out_dir))

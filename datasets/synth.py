@@ -45,7 +45,6 @@ import functools
 import hashlib
 import json
 import math
-import multiprocessing as mp
 import os
 import re
 import shutil
@@ -69,7 +68,7 @@ from uwdock.dockcore.domains import Fraction, Interval, Seed, check, split_annot
 from uwdock.dockcore.errors import ConfigError, DockError
 from uwdock.dockcore.io import atomic_path, atomic_write_bytes, atomic_write_json
 from uwdock.dockcore.outdir import claim_output_dir
-from uwdock.dockcore.procs import die_with_parent
+from uwdock.dockcore.pool import PoolConfig, worker_pool
 from uwdock.dockcore.provenance import write_provenance
 from uwdock.markers.markerset import MarkerSet, save_marker_set
 from uwdock.perception.groundtruth import (
@@ -457,15 +456,25 @@ class FrameRenderer:
         )
         return frame.img_bgr(), frame_truth_to_json(truth)
 
-    def write(self, out_dir: Path, k: int) -> int:
-        """Render frame k and write its image, then its partial label (both atomically)."""
+    def encoded(self, k: int) -> tuple[bytes, dict[str, Any]]:
+        """Render frame k: its PNG file's bytes and its ``labels.jsonl`` object."""
         bgr, label = self.frame(k)
         ok, png = cv2.imencode(".png", bgr)
         if not ok:  # pragma: no cover - OpenCV encodes any uint8 BGR image
             raise DockError(f"PNG encoding of frame {k} failed")
-        atomic_write_bytes(out_dir / "images" / IMAGE_NAME.format(k), png.tobytes())
-        atomic_write_text_line(out_dir / _PARTIAL / f"{k:06d}.json", label)
-        return k
+        return png.tobytes(), label
+
+    def write(self, out_dir: Path, k: int) -> int:
+        """Render frame k and write its image, then its partial label (both atomically)."""
+        return _write_frame(out_dir, k, *self.encoded(k))
+
+
+def _write_frame(out_dir: Path, k: int, png: bytes, label: dict[str, Any]) -> int:
+    """Frame k's image, then its partial label, each written atomically (so a frame whose
+    partial label exists is complete)."""
+    atomic_write_bytes(out_dir / "images" / IMAGE_NAME.format(k), png)
+    atomic_write_text_line(out_dir / _PARTIAL / f"{k:06d}.json", label)
+    return k
 
 
 def atomic_write_text_line(path: Path, obj: dict[str, Any]) -> None:
@@ -481,12 +490,18 @@ def _jsonl_line(obj: dict[str, Any]) -> str:
 # ----------------------------------------------------------------------------- workers
 
 
-def _worker_frame(args: tuple[dict[str, Any], str, list | None, int]) -> int:
-    """Pool task: render frame k (the worker process keeps its scene, see ``_SCENES``)."""
-    cfg_dict, out_dir, poses, k = args
-    cfg = from_dict(SynthConfig, cfg_dict)
-    renderer = FrameRenderer(cfg, None if poses is None else np.asarray(poses))
-    return renderer.write(Path(out_dir), k)
+class FrameWorker:
+    """A pool worker (:func:`dockcore.pool.worker_pool`): its renderer (scene built once) turns
+    frame indices into PNG bytes and labels, which the caller writes (so Ray workers on other
+    machines need no shared folder)."""
+
+    def __init__(self, cfg_dict: dict[str, Any], poses: list | None) -> None:
+        cfg = from_dict(SynthConfig, cfg_dict)
+        self.renderer = FrameRenderer(cfg, None if poses is None else np.asarray(poses))
+
+    def render(self, k: int) -> tuple[bytes, dict[str, Any]]:
+        """Frame k: PNG bytes and label."""
+        return self.renderer.encoded(int(k))
 
 
 # ----------------------------------------------------------------------------- the run
@@ -682,27 +697,26 @@ def _render_all(
     out_dir: Path,
     cfg: SynthConfig,
     todo: Sequence[int],
-    workers: int,
+    pool_cfg: PoolConfig,
     poses: np.ndarray | None,
     on_frame: Callable[[int], None],
 ) -> None:
     if not todo:
         return
-    if workers <= 1 or len(todo) == 1:
+    if pool_cfg.backend == "local" and (pool_cfg.workers <= 1 or len(todo) == 1):
         renderer = FrameRenderer(cfg, poses)
         for k in todo:
             on_frame(renderer.write(out_dir, k))
         return
-    # 'spawn': SAPIEN/Vulkan must not be forked after initialisation. Each worker dies with
-    # this process, even when it is killed with SIGKILL (no renderer is left running).
-    ctx = mp.get_context("spawn")
-    cfg_dict = to_dict(cfg)
+    # local: 'spawn' processes (SAPIEN/Vulkan must not be forked after initialisation), each
+    # dying with this process even when it is killed with SIGKILL; ray: actors. Either way the
+    # frames come back here and are written as they arrive, in any order.
+    if pool_cfg.backend == "local":
+        pool_cfg = dataclasses.replace(pool_cfg, workers=min(pool_cfg.workers, len(todo)))
     pose_list = None if poses is None else np.asarray(poses).tolist()
-    tasks = [(cfg_dict, str(out_dir), pose_list, k) for k in todo]
-    pool = ctx.Pool(min(workers, len(todo)), initializer=die_with_parent, initargs=(os.getpid(),))
-    with pool:
-        for k in pool.imap_unordered(_worker_frame, tasks, chunksize=1):
-            on_frame(k)
+    with worker_pool(pool_cfg, FrameWorker, (to_dict(cfg), pose_list)) as pool:
+        for k, (png, label) in pool.imap_unordered("render", todo):
+            on_frame(_write_frame(out_dir, k, png, label))
 
 
 def camera_outside_tank(
@@ -762,6 +776,8 @@ def generate(
     progress: bool | None = None,
     tool: str = "datasets synth",
     sequences: FrameSequences | None = None,
+    backend: str = "local",
+    ray_address: str | None = None,
 ) -> SynthResult:
     """Render a labelled dataset into ``out_dir`` (resuming an interrupted run).
 
@@ -773,8 +789,8 @@ def generate(
     Args:
         out_dir: the dataset folder (created).
         cfg: the dataset config.
-        workers: worker processes (1 ... 64; 1 renders in this process). The output does not
-            depend on it.
+        workers: worker processes or Ray actors (1 ... 64; 1 local worker renders in this
+            process). The output does not depend on it.
         poses: optional (N, 4, 4) vehicle poses ``T_world_body`` (body FRD in world NED, the DS
             on the tank floor at the centre, see ``default_T_worldned_ds``); N must equal
             ``cfg.n_frames``.
@@ -782,6 +798,9 @@ def generate(
         tool: the command claiming the folder (``"datasets synth"``, ``"sim render"``).
         sequences: optional sequence labels of the given poses (which frames follow each other
             in time, :mod:`uwdock.datasets.sequences`); written to ``dataset.json``.
+        backend: ``"local"`` (processes) or ``"ray"`` (Ray actors,
+            :mod:`uwdock.dockcore.pool`): the same bytes either way.
+        ray_address: the Ray cluster to use (None: a local Ray instance for the job).
 
     Returns:
         A :class:`SynthResult`.
@@ -796,6 +815,11 @@ def generate(
     reason = check(workers, int, split_annotated(Workers)[1], "workers")
     if reason:
         raise ConfigError(reason)
+    pool_cfg = PoolConfig(backend, workers, ray_address)
+    try:
+        pool_cfg.validate()
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
     pose_arr = _checked_poses(poses, cfg.n_frames)
     if sequences is not None and (pose_arr is None or len(sequences) != cfg.n_frames):
         raise DockError(f"sequences: need one label per given pose ({cfg.n_frames})")
@@ -825,7 +849,7 @@ def generate(
                 rendered.append(k)
                 bar.update(1)
 
-            _render_all(out, cfg, todo, workers, pose_arr, on_frame)
+            _render_all(out, cfg, todo, pool_cfg, pose_arr, on_frame)
         _assemble(out, n, old_lines)
         extra = {} if sequences is None else {"sequences": sequences.to_json()}
         write_dataset_json(

@@ -111,3 +111,25 @@ def workers_option(
     kwargs.setdefault("default", 1)
     kwargs.setdefault("show_default", True)
     return click.option("--workers", type=type_, help=help_text, **kwargs)
+
+
+def backend_options(what: str) -> Decorator:
+    """``--backend local|ray`` (-> ``backend``) and ``--ray-address`` (-> ``ray_address``): where
+    the workers of ``--workers`` run (:mod:`dockcore.pool`)."""
+
+    def decorate(f: Callable[..., Any]) -> Callable[..., Any]:
+        f = click.option(
+            "--ray-address",
+            "ray_address",
+            help="With --backend ray: a running Ray cluster's address ('auto': the one this "
+            "machine belongs to) [default: a local Ray instance for the job].",
+        )(f)
+        return click.option(
+            "--backend",
+            type=click.Choice(["local", "ray"]),
+            default="local",
+            show_default=True,
+            help=f"Where the workers run: local processes or Ray actors ({what}).",
+        )(f)
+
+    return decorate

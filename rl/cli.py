@@ -15,6 +15,7 @@ from uwdock.dockcore.domains import Count, Interval, Seed
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_write_json
 from uwdock.dockcore.options import (
+    backend_options,
     command_group,
     config_option,
     out_dir_option,
@@ -97,10 +98,11 @@ def cli() -> None:
     is_flag=True,
     help="With --resume: accept --config/flags that change the run's config (recorded).",
 )
+@backend_options("the same rollouts; a run may be resumed on either")
 @out_dir_option("Run folder.", required=True)
 def train(
     config_path, obs, error_model, usbl, water, algo, steps, envs, seed, init_policy, resume,
-    allow_config_change, out_dir,
+    allow_config_change, backend, ray_address, out_dir,
 ) -> None:  # fmt: skip
     """Train a docking policy (PPO with the paper's hyperparameters by default).
 
@@ -135,6 +137,8 @@ def train(
         resume=resume,
         init_policy=str(init_policy) if init_policy else None,
         allow_config_change=allow_config_change,
+        backend=backend,
+        ray_address=ray_address,
     )
     click.echo(f"policy: {final}")
 
@@ -171,8 +175,10 @@ def train(
 @click.option("--stress-episodes", type=domain_type(Count), default=20, show_default=True)
 @workers_option(
     domain_type(Annotated[int, Interval(ge=1, le=256)]),
-    "Evaluation processes (episodes are split; results do not depend on it).",
+    "Evaluation processes or Ray actors (episodes are handed out one at a time; results do "
+    "not depend on it).",
 )
+@backend_options("the same rows and summary either way")
 @out_dir_option(None, required=True)
 def eval_cmd(
     policy,
@@ -188,6 +194,8 @@ def eval_cmd(
     stress,
     stress_episodes,
     workers,
+    backend,
+    ray_address,
     out_dir,
 ) -> None:
     """Evaluate a policy (or the PID baseline) over seeded episodes."""
@@ -229,6 +237,8 @@ def eval_cmd(
         stress=stress,
         stress_episodes=stress_episodes,
         workers=workers,
+        backend=backend,
+        ray_address=ray_address,
     )
     click.echo(
         f"success {summary['success_rate']:.1%} (strict "

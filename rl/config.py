@@ -89,7 +89,11 @@ class EnvConfig:
             detectable from the approach altitude at a quarter of the render cost (>= 50
             control steps/s on one core); fit the error model from frames of the same camera.
         water_preset: water for the camera source (a ``sim.water`` preset: "clear_tank",
-            "coastal", "turbid", "very_turbid").
+            "coastal", "turbid", "very_turbid", or a water file ``*.toml`` from
+            ``sim fit-water``).
+        water_device: None runs the water model with numpy/OpenCV on the CPU (the default);
+            a torch device ("cuda", "cuda:1", "cpu") runs it with torch there
+            (:mod:`uwdock.sim.water_torch`: the same image within one grey level).
         marker_set_path: marker set file (None: the default DS set, generated into a cache).
         task: success criteria and docking geometry.
         reward: reward constants.
@@ -137,6 +141,7 @@ class EnvConfig:
     camera_file: str | None = None
     camera_width_px: Annotated[int, Interval(ge=0, le=8192)] = 480
     water_preset: str = "clear_tank"
+    water_device: str | None = None
     marker_set_path: str | None = None
     task: DockingTaskConfig = field(default_factory=DockingTaskConfig)
     reward: RewardConfig = field(default_factory=RewardConfig)
@@ -156,6 +161,7 @@ class EnvConfig:
             camera_file=self.camera_file,
             camera_width_px=self.camera_width_px,
             water_preset=self.water_preset,
+            water_device=self.water_device,
             randomise_vehicle=self.randomise_vehicle,
             camera_mount_error_m=self.camera_mount_error_m,
             camera_mount_error_deg=self.camera_mount_error_deg,

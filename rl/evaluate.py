@@ -3,10 +3,7 @@
 from __future__ import annotations
 
 import math
-import multiprocessing as mp
-import os
-import time
-from concurrent.futures import ProcessPoolExecutor
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -14,7 +11,8 @@ from typing import Any, Protocol
 import numpy as np
 
 from uwdock.dockcore.errors import DockError
-from uwdock.dockcore.procs import die_with_parent
+from uwdock.dockcore.io import atomic_write_bytes
+from uwdock.dockcore.pool import PoolConfig, worker_pool
 from uwdock.rl.config import EnvConfig
 from uwdock.rl.env import DockingEnv
 from uwdock.rl.episode_media import write_frames_sheet, write_video
@@ -193,45 +191,63 @@ def _episode(
     return row, tr
 
 
-#: The progress queue of an evaluation worker process (set by :func:`_init_worker`).
-_PROGRESS = None
+class EpisodeWorker:
+    """A pool worker (:func:`dockcore.pool.worker_pool`): the policy and an env, built once,
+    running single seeded episodes. A filmed episode's video and frame sheet come back as file
+    bytes (the caller writes them), so Ray workers on other machines need no shared folder.
+
+    Args:
+        policy_spec: what :func:`~uwdock.rl.policy_io.load_controller` loads.
+        env_cfg: the evaluation env.
+        seed: seed of episode 0 (episode k: ``seed + k``).
+        record: keep per-step traces.
+        video_episodes: the episodes filmed.
+        encode_films: return a filmed episode as MP4 and JPEG bytes; False keeps its frames in
+            the trace (``EpisodeTrace.frames``).
+    """
+
+    def __init__(
+        self,
+        policy_spec: str,
+        env_cfg: EnvConfig,
+        seed: int,
+        record: bool,
+        video_episodes: tuple[int, ...],
+        encode_films: bool = True,
+    ) -> None:
+        _one_thread()
+        self.ctrl, vecnorm, _ = load_controller(policy_spec, env_cfg)
+        self.ctrl = _as_controller(self.ctrl, vecnorm)
+        self.env_cfg, self.seed, self.record = env_cfg, int(seed), bool(record)
+        self.video_episodes = tuple(int(v) for v in video_episodes)
+        self.encode_films = bool(encode_films)
+        self.env = DockingEnv(env_cfg, render_mode="rgb_array" if video_episodes else None)
+
+    def episode(self, k: int) -> tuple[dict[str, Any], EpisodeTrace, dict[str, bytes]]:
+        """Episode k: its row, its trace and, when filmed, ``{file name: bytes}``."""
+        k = int(k)
+        row, tr = _episode(self.env, self.ctrl, k, self.seed, self.record, k in self.video_episodes)
+        files: dict[str, bytes] = {}
+        if tr.frames and self.encode_films:
+            dt_s = 1.0 / self.env_cfg.control_hz  # frames are taken after each control step
+            with tempfile.TemporaryDirectory(prefix="uwdock-film-") as tmp:
+                video = write_video(tr.frames, Path(tmp) / f"camera_ep{k}.mp4")
+                sheet = write_frames_sheet(
+                    tr.frames, Path(tmp) / f"camera_ep{k}_frames.jpg", dt_s, first_s=dt_s
+                )
+                for path in (video, sheet):
+                    if path is not None:
+                        files[path.name] = path.read_bytes()
+            tr.frames = []
+        return row, tr, files
 
 
-def _init_worker(parent_pid: int, queue) -> None:
-    """Evaluation worker set-up: die with the evaluation (any signal), report progress."""
-    global _PROGRESS
-    die_with_parent(parent_pid)
-    _PROGRESS = queue
+def _one_thread() -> None:
+    """One torch thread per worker: the workers are the parallelism (and a forked or spawned
+    worker must not wait on a thread pool it inherited, see ``rl.workers``)."""
+    import torch  # heavy; only the evaluation workers need it here
 
-
-def _worker(
-    policy_spec: str,
-    env_cfg: EnvConfig,
-    n: int,
-    seed: int,
-    indices: list[int],
-    record: bool,
-    video_episodes: tuple[int, ...],
-    video_dir: str | None,
-):
-    def tick(done: int, total: int) -> None:
-        if _PROGRESS is not None:
-            _PROGRESS.put(1)
-
-    ctrl, vecnorm, _ = load_controller(policy_spec, env_cfg)
-    res = run_episodes(
-        ctrl,
-        env_cfg,
-        n,
-        seed,
-        vecnorm=vecnorm,
-        record=record,
-        video_episodes=video_episodes,
-        episodes=indices,
-        video_dir=video_dir,
-        progress=tick,
-    )
-    return res.episodes, res.traces
+    torch.set_num_threads(1)
 
 
 def run_episodes_parallel(
@@ -244,10 +260,13 @@ def run_episodes_parallel(
     video_episodes: tuple[int, ...] = (),
     video_dir: str | None = None,
     progress=None,
+    backend: str = "local",
+    ray_address: str | None = None,
 ) -> EvalResult:
-    """:func:`run_episodes` split over ``workers`` processes (each loads the policy and builds
-    its own simulator); the result is the same as in one process."""
-    if workers <= 1:
+    """:func:`run_episodes` over ``workers`` processes or Ray actors (each loads the policy and
+    builds its own simulator once), the episodes handed out one at a time to whichever worker is
+    free (:mod:`dockcore.pool`); the result is the same as in one process."""
+    if backend == "local" and (workers <= 1 or n_episodes <= 1):
         ctrl, vecnorm, _ = load_controller(policy_spec, env_cfg)
         return run_episodes(
             ctrl,
@@ -260,48 +279,20 @@ def run_episodes_parallel(
             progress,
             video_dir=video_dir,
         )
-    ctx = mp.get_context("spawn")
-    # a plain queue handed over at process start (no Manager process that could outlive us)
-    queue = ctx.SimpleQueue() if progress is not None else None
-    chunks = [list(range(w, n_episodes, workers)) for w in range(workers)]
-    with ProcessPoolExecutor(
-        max_workers=workers,
-        mp_context=ctx,
-        initializer=_init_worker,
-        initargs=(os.getpid(), queue),
-    ) as pool:
-        futs = [
-            pool.submit(
-                _worker,
-                policy_spec,
-                env_cfg,
-                n_episodes,
-                seed,
-                c,
-                record,
-                tuple(v for v in video_episodes if v in c),
-                video_dir,
-            )
-            for c in chunks
-            if c
-        ]
-        done = 0
-        while queue is not None and done < n_episodes:
-            if not queue.empty():
-                queue.get()
-                done += 1
-                progress(done, n_episodes)
-            elif all(f.done() for f in futs):
-                break  # a failed worker: its exception comes from result() below
-            else:
-                time.sleep(0.05)
-        parts = [f.result() for f in futs]
-    pairs = sorted(
-        ((r, t) for rows, traces in parts for r, t in zip(rows, traces, strict=True)),
-        key=lambda p: p[0]["episode"],
-    )
-    rows = [p[0] for p in pairs]
-    return EvalResult(summarise(rows), rows, [p[1] for p in pairs])
+    if backend == "local":
+        workers = min(workers, n_episodes)
+    pool_cfg = PoolConfig(backend, workers, ray_address)
+    args = (policy_spec, env_cfg, seed, record, tuple(video_episodes), video_dir is not None)
+    results: dict[int, tuple[dict[str, Any], EpisodeTrace]] = {}
+    with worker_pool(pool_cfg, EpisodeWorker, args) as pool:
+        for k, (row, trace, files) in pool.imap_unordered("episode", range(n_episodes)):
+            for name, data in files.items():
+                atomic_write_bytes(Path(str(video_dir)) / name, data)
+            results[k] = (row, trace)
+            if progress is not None:
+                progress(len(results), n_episodes)
+    rows = [results[k][0] for k in range(n_episodes)]
+    return EvalResult(summarise(rows), rows, [results[k][1] for k in range(n_episodes)])
 
 
 def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:

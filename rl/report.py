@@ -16,6 +16,7 @@ from uwdock.dockcore.config import replace, to_dict
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_path, atomic_write_json, atomic_write_text
 from uwdock.dockcore.outdir import claim_output_dir
+from uwdock.dockcore.pool import PoolConfig
 from uwdock.dockcore.provenance import provenance
 from uwdock.rl.config import EnvConfig, check_env_files
 from uwdock.rl.env import SOURCE_CLASSES
@@ -147,8 +148,9 @@ STRESS_THRUSTER_ERRORS_M = (0.0, 0.02, 0.05)
 
 
 def stress_tables(
-    policy: str, env_cfg: EnvConfig, episodes: int, seed: int, workers: int = 1
-) -> dict[str, list[dict[str, Any]]]:
+    policy: str, env_cfg: EnvConfig, episodes: int, seed: int, workers: int = 1,
+    backend: str = "local", ray_address: str | None = None,
+) -> dict[str, list[dict[str, Any]]]:  # fmt: skip
     """Graded stress: current speed (random direction), water preset, thruster placement.
 
     One progress bar over all rows, its label naming the row being run."""
@@ -175,6 +177,7 @@ def stress_tables(
             res = run_episodes_parallel(
                 policy, cfg, episodes, seed, workers=workers, record=False,
                 progress=lambda k, n, done=done: bar.update(done + k - bar.n),
+                backend=backend, ray_address=ray_address,
             )  # fmt: skip
             out[table].append({name: value, **_short(res.summary)})
     finally:
@@ -203,13 +206,24 @@ def evaluate_to_folder(
     stress: bool = False,
     stress_episodes: int = 20,
     workers: int = 1,
+    backend: str = "local",
+    ray_address: str | None = None,
 ) -> dict[str, Any]:
     """Run the evaluation and write the report folder; returns the summary.
+
+    ``workers`` processes (``backend = "local"``) or Ray actors (``"ray"``, on a local Ray
+    instance or the cluster at ``ray_address``) run the episodes, handed out one at a time; the
+    rows and the summary do not depend on either.
 
     Everything is checked (counts, filmed episodes, the policy file and its observation
     layout) before the folder is claimed (``rl eval``) and anything is written."""
     if episodes < 1 or workers < 1:
         raise DockError(f"need episodes >= 1 and workers >= 1, got {episodes} and {workers}")
+    pool = PoolConfig(backend, workers, ray_address)
+    try:
+        pool.validate()
+    except ValueError as exc:
+        raise DockError(str(exc)) from None
     bad = [k for k in video_episodes if not 0 <= k < episodes]
     if bad:
         raise DockError(f"--videos: episode {bad[0]} is not among the {episodes} episodes")
@@ -218,7 +232,7 @@ def evaluate_to_folder(
     with claim_output_dir(out_dir, "rl eval") as out:
         return _evaluate_into(
             out, policy, label, env_cfg, episodes, seed, video_episodes, stress,
-            stress_episodes, workers,
+            stress_episodes, pool,
         )  # fmt: skip
 
 
@@ -232,8 +246,9 @@ def _evaluate_into(
     video_episodes: tuple[int, ...],
     stress: bool,
     stress_episodes: int,
-    workers: int,
+    pool: PoolConfig,
 ) -> dict[str, Any]:
+    workers = pool.workers
     bar = tqdm(total=episodes, desc=f"eval {env_cfg.obs_source}", unit="ep")
     t0 = time.perf_counter()
     try:
@@ -247,6 +262,8 @@ def _evaluate_into(
             video_episodes=video_episodes,
             video_dir=str(out),
             progress=lambda k, n: bar.update(k - bar.n),
+            backend=pool.backend,
+            ray_address=pool.ray_address,
         )
     finally:
         bar.close()
@@ -259,6 +276,7 @@ def _evaluate_into(
         "wall_clock_s": wall,
         "control_steps_per_s": steps / wall,
         "workers": workers,
+        "backend": pool.backend,
     }
     atomic_write_text(out / "episodes.csv", _csv(res.episodes))
     plot_trajectories(res.traces, res.episodes, out / "trajectories_top.png")
@@ -267,7 +285,9 @@ def _evaluate_into(
             ok = "docked" if res.episodes[k]["success"] else "not docked"
             plot_traces(res.traces[k], out / f"traces_ep{k}.png", f"episode {k} ({ok})")
     if stress:
-        summary["stress"] = stress_tables(policy, env_cfg, stress_episodes, seed, workers)
+        summary["stress"] = stress_tables(
+            policy, env_cfg, stress_episodes, seed, workers, pool.backend, pool.ray_address
+        )
     record = provenance({"env": env_cfg}, extra={"summary": summary})
     atomic_write_json(
         out / "summary.json", {**summary, "config": to_dict(env_cfg), "provenance": record}

@@ -34,6 +34,7 @@ from uwdock.dockcore.domains import Count, Fraction, Interval, Seed
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_write_bytes, atomic_write_json, atomic_write_text
 from uwdock.dockcore.outdir import claim_output_dir
+from uwdock.dockcore.pool import PoolConfig
 from uwdock.dockcore.provenance import git_commit, write_provenance
 from uwdock.rl import asymmetric
 from uwdock.rl.callbacks import training_callback
@@ -51,6 +52,7 @@ from uwdock.rl.curriculum import CurriculumConfig
 from uwdock.rl.imitation import ImitationConfig, warm_start
 from uwdock.rl.observation import actor_observation_size, observation_size
 from uwdock.rl.policy_io import check_obs_dim, load_policy
+from uwdock.rl.ray_envs import RayEnvWorkers
 from uwdock.rl.session import TrainingSession, load_vecnormalize
 from uwdock.rl.workers import EnvWorkers
 
@@ -283,6 +285,8 @@ def train(
     init_policy: str | None = None,
     allow_config_change: bool = False,
     note: Callable[[str], None] = _stderr_note,
+    backend: str = "local",
+    ray_address: str | None = None,
 ) -> Path:
     """Train (or resume) into ``run_dir``; returns the final policy path.
 
@@ -300,12 +304,21 @@ def train(
         init_policy: start from this policy's weights (fine-tuning; not with ``resume``).
         allow_config_change: resume with a config that differs from the run's.
         note: where one-line notes go (stderr by default).
+        backend: where the ``cfg.n_envs`` env workers run: ``"local"`` processes or ``"ray"``
+            actors (:mod:`rl.ray_envs`; the same rollouts). Not part of the run's config: a
+            run may be resumed on either.
+        ray_address: the Ray cluster (None: a local Ray instance with ``n_envs`` CPUs).
 
     Raises:
         DockError: a bad config, a run folder that does not fit the request, a damaged or
             non-finite policy, a failed environment worker.
     """
     cfg = validated(cfg)
+    pool = PoolConfig(backend, cfg.n_envs, ray_address)
+    try:
+        pool.validate()
+    except ValueError as exc:
+        raise DockError(str(exc)) from None
     if resume and init_policy:
         raise DockError("--init-policy starts a new run; it cannot be combined with --resume")
     check_env_files(cfg.env)
@@ -339,7 +352,7 @@ def train(
             write_provenance(run, {"train": cfg})
         done.unlink(missing_ok=True)
         _note_rollout_rounding(cfg, note)
-        return _run(cfg, run, unit, init, progress, note)
+        return _run(cfg, run, unit, init, progress, note, pool)
 
 
 def _log_resume(run: Path, unit, changed: list[str], cfg: TrainConfig) -> None:
@@ -357,7 +370,7 @@ def _log_resume(run: Path, unit, changed: list[str], cfg: TrainConfig) -> None:
         atomic_write_text(run / "config.toml", dumps_toml({"train": cfg}))
 
 
-def _run(cfg: TrainConfig, run: Path, unit, init, progress: bool, note) -> Path:
+def _run(cfg: TrainConfig, run: Path, unit, init, progress: bool, note, pool: PoolConfig) -> Path:
     import torch
     from stable_baselines3 import PPO, SAC
     from stable_baselines3.common.vec_env import VecNormalize
@@ -365,7 +378,10 @@ def _run(cfg: TrainConfig, run: Path, unit, init, progress: bool, note) -> Path:
     torch.set_num_threads(1)
     algo_cls = PPO if cfg.algo == "ppo" else SAC
     gamma = cfg.ppo.gamma if cfg.algo == "ppo" else cfg.sac.gamma
-    workers = EnvWorkers(cfg.env, cfg.n_envs, cfg.seed)
+    if pool.backend == "ray":
+        workers: Any = RayEnvWorkers(cfg.env, cfg.n_envs, cfg.seed, pool.ray_address)
+    else:
+        workers = EnvWorkers(cfg.env, cfg.n_envs, cfg.seed)
     session = None
     try:
         venv = workers.venv

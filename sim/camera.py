@@ -28,6 +28,7 @@ from numpy.typing import ArrayLike
 from uwdock.calibration.camera import CameraModel
 from uwdock.sim.render import CameraRig, RenderResult
 from uwdock.sim.water import WaterConfig, apply_water
+from uwdock.sim.water_torch import apply_water_torch
 
 __all__ = ["Frame", "SimCamera"]
 
@@ -64,11 +65,17 @@ class SimCamera:
     Args:
         rig: the SAPIEN camera (:class:`uwdock.sim.render.CameraRig`), posed by the vehicle.
         water: water and sensor model applied to each capture; None: the image in air.
+        water_device: None applies the water with numpy/OpenCV (:func:`sim.water.apply_water`);
+            a torch device ("cuda", "cpu") with torch there
+            (:func:`sim.water_torch.apply_water_torch`, the same image within one grey level).
     """
 
-    def __init__(self, rig: CameraRig, water: WaterConfig | None = None) -> None:
+    def __init__(
+        self, rig: CameraRig, water: WaterConfig | None = None, water_device: str | None = None
+    ) -> None:
         self.rig = rig
         self.water = water
+        self.water_device = water_device
 
     @property
     def model(self) -> CameraModel:
@@ -102,5 +109,10 @@ class SimCamera:
         """
         w = self.water if water is KEEP else water
         res = self.rig.render(T_world_body)
-        img = res.rgb if w is None else apply_water(res.rgb, res.range_m, w, rng)
+        if w is None:
+            img = res.rgb
+        elif self.water_device is None:
+            img = apply_water(res.rgb, res.range_m, w, rng)
+        else:
+            img = apply_water_torch(res.rgb, res.range_m, w, rng, device=self.water_device)
         return Frame(img, res.range_m, res.T_worldned_camcv, res.camera)

@@ -411,10 +411,17 @@ def _unit_noise(height: int, width: int, rng: np.random.Generator) -> tuple[np.n
     detector; the draw is fully determined by ``rng``.
     """
     bank = _noise_bank(height, width)
+    dy, dx, sign = _noise_draw(rng)
+    z = bank[dy : dy + height, dx : dx + 3 * width].reshape(height, width, 3)
+    return z, sign
+
+
+def _noise_draw(rng: np.random.Generator) -> tuple[int, int, float]:
+    """One frame's draw from ``rng`` for :func:`_unit_noise` (shared with ``sim.water_torch``):
+    the row offset, the element offset into :func:`_noise_bank` and the sign (+1.0 or -1.0)."""
     m = _NOISE_MARGIN_PX
     dy, dx, sign = (int(v) for v in rng.integers(0, (m, 3 * m, 2)))
-    z = bank[dy : dy + height, dx : dx + 3 * width].reshape(height, width, 3)
-    return z, (1.0 if sign else -1.0)
+    return dy, dx, (1.0 if sign else -1.0)
 
 
 def _blur_level(img: np.ndarray, sigma_px: float, dst: np.ndarray) -> np.ndarray:
@@ -579,9 +586,15 @@ def apply_water(
     result = cv2.convertScaleAbs(out, alpha=255.0)  # out >= 0: rounds and saturates to uint8
 
     if cfg.jpeg_quality is not None:
-        bgr = cv2.cvtColor(result, cv2.COLOR_RGB2BGR)
-        ok, buf = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, int(cfg.jpeg_quality)])
-        if not ok:  # pragma: no cover - OpenCV always encodes a valid uint8 image
-            raise RuntimeError("JPEG encoding failed")
-        result = cv2.cvtColor(cv2.imdecode(buf, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+        result = _jpeg_roundtrip(result, int(cfg.jpeg_quality))
     return result
+
+
+def _jpeg_roundtrip(rgb_uint8: np.ndarray, quality: int) -> np.ndarray:
+    """(H, W, 3) uint8 RGB encoded as JPEG with ``quality`` and decoded (shared with
+    ``sim.water_torch``)."""
+    bgr = cv2.cvtColor(rgb_uint8, cv2.COLOR_RGB2BGR)
+    ok, buf = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, quality])
+    if not ok:  # pragma: no cover - OpenCV always encodes a valid uint8 image
+        raise RuntimeError("JPEG encoding failed")
+    return cv2.cvtColor(cv2.imdecode(buf, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)

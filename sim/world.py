@@ -60,7 +60,9 @@ class DockingWorld:
                 scene=scene,
                 surface_lid=True,
             )
-            self.camera = SimCamera(self.render_scene.rig, resolve_water(cfg.water_preset))
+            self.camera = SimCamera(
+                self.render_scene.rig, resolve_water(cfg.water_preset), cfg.water_device
+            )
             self.scene = scene
             self.ds = self.render_scene.ds
         else:

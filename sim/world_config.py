@@ -8,6 +8,7 @@ and builds this config from them (``EnvConfig.world``).
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 from typing import Annotated
 
@@ -38,6 +39,8 @@ class WorldConfig:
         water_preset: water between the camera and the scene: a :mod:`uwdock.sim.water` preset
             name or a water file (``*.toml`` with a ``[water]`` table, e.g. from
             ``sim fit-water``).
+        water_device: None: the water model in numpy/OpenCV on the CPU; a torch device
+            ("cuda", "cpu"): :func:`uwdock.sim.water_torch.apply_water_torch` there.
         randomise_vehicle: draw the vehicle's parameters (and thruster placement) per episode.
         camera_mount_error_m: the camera's true mounting differs from its calibration by a
             translation drawn per episode, each camera axis uniform within +- this (m); the
@@ -55,6 +58,7 @@ class WorldConfig:
     camera_file: str | None = None
     camera_width_px: Annotated[int, Interval(ge=0, le=8192)] = 480
     water_preset: str = "clear_tank"
+    water_device: str | None = None
     randomise_vehicle: bool = True
     camera_mount_error_m: Annotated[float, Interval(ge=0, le=0.5)] = 0.0
     camera_mount_error_deg: Annotated[float, Interval(ge=0, le=45)] = 0.0
@@ -69,6 +73,13 @@ class WorldConfig:
             raise ValueError(
                 f"camera_width_px: must be 0 or >= {MIN_CAMERA_WIDTH_PX}, "
                 f"got {self.camera_width_px}"
+            )
+        if self.water_device is not None and not re.fullmatch(
+            r"(cpu|cuda(:\d+)?|mps)", str(self.water_device)
+        ):
+            raise ValueError(
+                f"water_device: must be None, 'cpu', 'cuda', 'cuda:N' or 'mps', got "
+                f"{str(self.water_device)[:40]!r}"
             )
         if is_water_file(self.water_preset):
             try:

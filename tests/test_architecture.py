@@ -51,6 +51,7 @@ HEAVY_OPTIONAL = frozenset(
         "matplotlib",
         "mpl_toolkits",
         "av",  # FFmpeg's libraries, loaded only where a video is written
+        "ray",  # the uwdock[ray] extra, only for --backend ray (dockcore.pool)
     }
 )
 

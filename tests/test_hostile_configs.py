@@ -28,6 +28,7 @@ def _roots() -> list[type]:
     from uwdock.datasets.synth import SynthConfig
     from uwdock.datasets.tank_report import TankReportConfig
     from uwdock.datasets.water_fit import FitWaterConfig
+    from uwdock.dockcore.pool import PoolConfig
     from uwdock.markers.config import MarkerConfig
     from uwdock.perception.evaluate import PerceptionConfig
     from uwdock.rl.baselines import PIDConfig
@@ -45,6 +46,7 @@ def _roots() -> list[type]:
         SynthConfig,
         TankReportConfig,
         FitWaterConfig,
+        PoolConfig,
         TrainConfig,
         ErrorModelConfig,
         EpisodeVideoConfig,

@@ -1,0 +1,266 @@
+"""Worker pools for the jobs that split into independent tasks: local processes or Ray actors.
+
+The heavy jobs (a dataset's frames, an evaluation's episodes) are tasks that a *worker object*
+does one at a time, keeping what is costly to build (a SAPIEN scene, a policy and its env)
+between tasks. :func:`worker_pool` starts ``workers`` of them and hands out the tasks
+dynamically, one at a time to whichever worker is free, so a worker stuck on long tasks does
+not leave the others idle:
+
+* ``backend = "local"``: processes on this machine (``spawn``: SAPIEN must not be forked), each
+  dying with the parent whatever killed it (:func:`dockcore.procs.die_with_parent`);
+* ``backend = "ray"``: Ray actors (``ray``, the ``uwdock[ray]`` extra), on a local Ray instance
+  started for the job or on the cluster at ``ray_address``. A worker whose actor is lost (its
+  process killed, its node gone) is replaced by a fresh actor and its unfinished tasks are
+  handed out again, so the job completes; each task's result is yielded exactly once.
+
+Tasks must be deterministic functions of their item (a frame index, an episode index) for the
+results not to depend on the backend or the number of workers. Results travel back to the
+caller, which writes them (so a cluster needs no shared folder).
+
+Example:
+    >>> with worker_pool(PoolConfig("ray", 4), FrameWorker, (cfg_dict,)) as pool:
+    ...     for k, (png, label) in pool.imap_unordered("render", range(100)):
+    ...         write(k, png, label)
+"""
+
+from __future__ import annotations
+
+import atexit
+import multiprocessing as mp
+import os
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import Annotated, Any
+
+from uwdock.dockcore.domains import Interval
+from uwdock.dockcore.errors import DockError
+from uwdock.dockcore.procs import die_with_parent
+
+__all__ = ["BACKENDS", "PoolConfig", "WorkerPool", "actor_cpus", "start_ray", "worker_pool"]
+
+#: The pool backends.
+BACKENDS = ("local", "ray")
+
+#: Tasks handed to one Ray actor ahead of its results (hides the round trip).
+_RAY_IN_FLIGHT = 2
+
+
+@dataclass(frozen=True)
+class PoolConfig:
+    """Where a job's workers run.
+
+    Attributes:
+        backend: ``"local"`` (processes on this machine) or ``"ray"`` (Ray actors).
+        workers: number of workers (processes or actors), 1-1024.
+        ray_address: ``backend = "ray"``: the address of a running Ray cluster
+            (``ray start --head`` prints it; ``"auto"`` finds the one this machine belongs to);
+            None starts a local Ray instance with ``workers`` CPUs for the job.
+    """
+
+    backend: str = "local"
+    workers: Annotated[int, Interval(ge=1, le=1024)] = 2
+    ray_address: str | None = None
+
+    def validate(self) -> None:
+        """Raise ValueError naming the first bad field."""
+        if self.backend not in BACKENDS:
+            raise ValueError(f"backend: must be one of {', '.join(BACKENDS)}, got {self.backend!r}")
+        if isinstance(self.workers, bool) or not 1 <= int(self.workers) <= 1024:
+            raise ValueError(f"workers: must be an integer in [1, 1024], got {self.workers!r}")
+        if self.ray_address is not None and self.backend != "ray":
+            raise ValueError("ray_address: only with backend = 'ray'")
+
+
+class WorkerPool:
+    """Started workers; :meth:`imap_unordered` runs tasks on them (see the module docstring)."""
+
+    def imap_unordered(self, method: str, items: Iterable[Any]) -> Iterator[tuple[Any, Any]]:
+        """Call ``worker.<method>(item)`` for every item on a free worker; yield ``(item,
+        result)`` pairs as they complete. A task's exception is raised here (the pool is then
+        shut down by the context manager)."""
+        raise NotImplementedError  # pragma: no cover - interface
+
+    def close(self) -> None:
+        """Stop the workers."""
+
+
+# ----------------------------------------------------------------------------- local processes
+
+#: The worker object of a local worker process (built by :func:`_init_local`).
+_WORKER: Any = None
+
+
+def _init_local(parent_pid: int, factory: Callable[..., Any], args: tuple) -> None:
+    global _WORKER
+    die_with_parent(parent_pid)
+    _WORKER = factory(*args)
+
+
+def _call_local(method: str, item: Any) -> Any:
+    return getattr(_WORKER, method)(item)
+
+
+class _LocalPool(WorkerPool):
+    def __init__(self, workers: int, factory: Callable[..., Any], args: tuple) -> None:
+        self._ex = ProcessPoolExecutor(
+            max_workers=workers,
+            mp_context=mp.get_context("spawn"),
+            initializer=_init_local,
+            initargs=(os.getpid(), factory, args),
+        )
+
+    def imap_unordered(self, method: str, items: Iterable[Any]) -> Iterator[tuple[Any, Any]]:
+        futures = {self._ex.submit(_call_local, method, item): item for item in items}
+        pending = set(futures)
+        while pending:
+            done, pending = wait(pending, return_when=FIRST_COMPLETED)
+            for fut in done:
+                yield futures[fut], fut.result()
+
+    def close(self) -> None:
+        self._ex.shutdown(wait=True, cancel_futures=True)
+
+
+# ----------------------------------------------------------------------------- Ray actors
+
+
+def start_ray(ray: Any, cpus: int, address: str | None) -> None:
+    """Connect this process to Ray once: the cluster at ``address``, or a local instance with
+    ``cpus`` CPUs (kept for the process's later pools, shut down at exit). Raises a one-line
+    :class:`DockError` when it cannot be started or reached."""
+    if ray.is_initialized():
+        return
+    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # no network calls home
+    kwargs: dict[str, Any] = {
+        "include_dashboard": False,
+        "log_to_driver": False,
+        "configure_logging": False,
+    }
+    try:
+        if address is None:
+            ray.init(num_cpus=cpus, **kwargs)
+        else:
+            ray.init(address=address, **kwargs)
+    except Exception as exc:  # ConnectionError, RuntimeError, ValueError ...
+        where = "a local Ray instance" if address is None else f"Ray at {address!r}"
+        raise DockError(f"cannot start {where}: {' '.join(str(exc).split())}") from None
+    atexit.register(ray.shutdown)
+
+
+def actor_cpus(ray: Any, actors: int) -> float:
+    """CPUs each of ``actors`` actors asks for: one, or an equal share when the Ray instance has
+    fewer CPUs than actors (so they all start instead of waiting for a free CPU forever)."""
+    total = float(ray.cluster_resources().get("CPU", 1.0))
+    return 1.0 if total >= actors else max(total / actors, 0.01)
+
+
+class _Host:
+    """A Ray actor holding one worker object."""
+
+    def __init__(self, factory: Callable[..., Any], args: tuple) -> None:
+        self.worker = factory(*args)
+
+    def call(self, method: str, item: Any) -> Any:
+        return getattr(self.worker, method)(item)
+
+    def pid(self) -> int:
+        return os.getpid()
+
+
+class _RayPool(WorkerPool):
+    def __init__(
+        self, workers: int, factory: Callable[..., Any], args: tuple, address: str | None
+    ) -> None:
+        import ray  # the uwdock[ray] extra; only the Ray backend needs it
+
+        self._ray = ray
+        start_ray(ray, workers, address)
+        self._actor_cls = ray.remote(num_cpus=actor_cpus(ray, workers))(_Host)
+        self._factory, self._args = factory, args
+        self.actors = [self._new_actor() for _ in range(workers)]
+        self.replaced = 0
+
+    def _new_actor(self) -> Any:
+        return self._actor_cls.remote(self._factory, self._args)
+
+    def actor_pids(self) -> list[int]:
+        """The process ids of the current actors (tests kill one)."""
+        return self._ray.get([a.pid.remote() for a in self.actors])
+
+    def imap_unordered(self, method: str, items: Iterable[Any]) -> Iterator[tuple[Any, Any]]:
+        ray = self._ray
+        queue = deque(items)
+        running: dict[Any, tuple[int, Any]] = {}  # object ref -> (actor slot, item)
+        load = [0] * len(self.actors)
+
+        def fill() -> None:
+            for slot in range(len(self.actors)):
+                while queue and load[slot] < _RAY_IN_FLIGHT:
+                    item = queue.popleft()
+                    running[self.actors[slot].call.remote(method, item)] = (slot, item)
+                    load[slot] += 1
+
+        fill()
+        while running:
+            ready, _ = ray.wait(list(running), num_returns=1)
+            ref = ready[0]
+            slot, item = running.pop(ref)
+            load[slot] -= 1
+            try:
+                result = ray.get(ref)
+            except ray.exceptions.RayActorError:
+                # the actor is gone (killed, its node lost): a fresh one takes its slot, and
+                # every task it still had goes back to the queue (never yielded twice: a task
+                # is yielded only from its own result)
+                queue.appendleft(item)
+                lost = [r for r, (s, _) in running.items() if s == slot]
+                for r in lost:
+                    queue.appendleft(running.pop(r)[1])
+                load[slot] = 0
+                self._ray.kill(self.actors[slot], no_restart=True)
+                self.actors[slot] = self._new_actor()
+                self.replaced += 1
+            except ray.exceptions.RayTaskError as exc:  # the task raised: raise its own error
+                cause = getattr(exc, "cause", None)
+                raise (cause if isinstance(cause, Exception) else exc) from None
+            else:
+                yield item, result
+            fill()
+
+    def close(self) -> None:
+        for a in self.actors:
+            try:
+                self._ray.kill(a, no_restart=True)
+            except Exception:  # an actor already gone
+                pass
+
+
+@contextmanager
+def worker_pool(
+    cfg: PoolConfig, factory: Callable[..., Any], args: tuple = ()
+) -> Iterator[WorkerPool]:
+    """Start ``cfg.workers`` workers, each holding ``factory(*args)`` (a picklable class or
+    function importable by the workers), and stop them on exit (an exception included).
+
+    Raises:
+        DockError: the Ray backend without the ``ray`` package, or a Ray instance that cannot
+            be started or reached.
+    """
+    cfg.validate()
+    if cfg.backend == "ray":
+        try:
+            import ray  # noqa: F401 - only to say what is missing
+        except ModuleNotFoundError:
+            raise DockError(
+                "--backend ray needs the Python package 'ray' (pip install 'uwdock[ray]')"
+            ) from None
+        pool: WorkerPool = _RayPool(cfg.workers, factory, args, cfg.ray_address)
+    else:
+        pool = _LocalPool(cfg.workers, factory, args)
+    try:
+        yield pool
+    finally:
+        pool.close()

@@ -1,0 +1,238 @@
+"""The jobs on Ray (``--backend ray``, :mod:`uwdock.dockcore.pool`) against the local pool, on a
+local Ray instance with 2 CPUs: byte-identical datasets, identical evaluation rows and summary, a
+killed Ray worker replaced with nothing lost or duplicated, a killed driver resumed."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from uwdock.dockcore.config import replace
+from uwdock.dockcore.errors import DockError
+from uwdock.dockcore.pool import PoolConfig, worker_pool
+
+ray = pytest.importorskip("ray")
+psutil = pytest.importorskip("psutil")
+
+from uwdock import cli as uwdock_cli  # noqa: E402 - after the skips
+from uwdock.datasets.synth import SynthConfig, generate  # noqa: E402
+from uwdock.rl.config import EnvConfig  # noqa: E402
+from uwdock.rl.evaluate import run_episodes_parallel  # noqa: E402
+
+#: Files a run writes about itself (its owner's pid, its own timing): not part of the data.
+RUN_FILES = {".uwdock-owner.json", "provenance.json"}
+CFG = SynthConfig(n_frames=8, water="coastal", width_px=160, seed=5)
+
+
+def _files(folder: Path) -> dict[str, bytes]:
+    return {
+        str(p.relative_to(folder)): p.read_bytes()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file() and p.name not in RUN_FILES
+    }
+
+
+@pytest.fixture(scope="module")
+def local_dataset(tmp_path_factory) -> dict[str, bytes]:
+    out = tmp_path_factory.mktemp("local") / "ds"
+    generate(out, CFG, workers=2, progress=False)
+    return _files(out)
+
+
+def _host_pids() -> list[int]:
+    """The processes of this machine's Ray actors hosting pool workers."""
+    pids = []
+    for p in psutil.process_iter(["pid", "cmdline"]):
+        cmd = " ".join(p.info["cmdline"] or ())
+        if "ray::_Host" in cmd:
+            pids.append(p.info["pid"])
+    return pids
+
+
+@pytest.mark.render
+def test_ray_dataset_equals_the_local_one_file_by_file(local_dataset, tmp_path):
+    out = tmp_path / "ray"
+    res = generate(out, CFG, workers=2, progress=False, backend="ray")
+    assert sorted(res.rendered) == list(range(CFG.n_frames))
+    got = _files(out)
+    assert sorted(got) == sorted(local_dataset)
+    assert [k for k in got if got[k] != local_dataset[k]] == []
+
+
+@pytest.mark.render
+def test_a_killed_ray_worker_is_replaced_and_nothing_is_lost_or_duplicated(local_dataset, tmp_path):
+    cfg = replace(CFG, n_frames=16)
+    out = tmp_path / "killed"
+    result: dict[str, object] = {}
+
+    def run() -> None:
+        try:
+            result["res"] = generate(out, cfg, workers=2, progress=False, backend="ray")
+        except BaseException as exc:  # reported by the assertion below
+            result["error"] = exc
+
+    thread = threading.Thread(target=run)
+    thread.start()
+    killed = None
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and thread.is_alive():
+        images = list((out / "images").glob("*.png")) if (out / "images").exists() else []
+        pids = _host_pids()
+        if len(images) >= 2 and pids:
+            killed = pids[0]
+            os.kill(killed, signal.SIGKILL)
+            break
+        time.sleep(0.1)
+    thread.join(300)
+    assert killed is not None, "the run ended before a worker could be killed"
+    assert "error" not in result, result.get("error")
+    labels = (out / "labels.jsonl").read_text().splitlines()
+    assert [json.loads(line)["frame"] for line in labels] == list(range(16))  # once each
+    # the first 8 frames are the 8-frame dataset's: same seed, same bytes
+    got = _files(out)
+    for name, data in local_dataset.items():
+        if name.startswith("images/"):
+            assert got[name] == data, name
+    assert killed not in _host_pids()
+
+
+@pytest.mark.render
+def test_a_killed_driver_resumes_without_redoing_finished_frames(local_dataset, tmp_path):
+    out = tmp_path / "resumed"
+    code = (
+        "from uwdock.datasets.synth import SynthConfig, generate\n"
+        "if __name__ == '__main__':\n"
+        f"    generate({str(out)!r}, SynthConfig(n_frames=8, water='coastal', width_px=160, "
+        "seed=5), workers=2, progress=False, backend='ray')\n"
+    )
+    proc = subprocess.Popen([sys.executable, "-c", code], stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and proc.poll() is None:
+        partial = list((out / ".partial").glob("*.json")) if (out / ".partial").exists() else []
+        if len(partial) >= 2:
+            break
+        time.sleep(0.05)
+    proc.kill()
+    proc.wait()
+    # a frame is finished once its partial label is written (after its image)
+    done_before = {int(p.stem) for p in (out / ".partial").glob("*.json")}
+    assert done_before
+    res = generate(out, CFG, workers=2, progress=False, backend="ray")
+    assert set(res.rendered).isdisjoint(done_before)
+    assert set(res.rendered) | done_before == set(range(CFG.n_frames))
+    assert _files(out) == local_dataset
+
+
+@pytest.mark.render
+def test_ray_evaluation_gives_the_local_rows_and_summary(tmp_path, run_cli):
+    env = tmp_path / "env.toml"
+    env.write_text("episode_s = 15.0\n")
+    common = ["eval", "--policy", "pid", "--episodes", "4", "--obs", "proxy", "--videos", "",
+              "--workers", "2", "--config", env]  # fmt: skip
+    a = run_cli(uwdock_cli.rl, *common, "--out", tmp_path / "local")
+    b = run_cli(uwdock_cli.rl, *common, "--backend", "ray", "--out", tmp_path / "ray")
+    assert a.code == 0 and b.code == 0, (a.err, b.err)
+    sa = json.loads((tmp_path / "local/summary.json").read_text())
+    sb = json.loads((tmp_path / "ray/summary.json").read_text())
+    timing = {"wall_clock_s", "control_steps_per_s", "backend", "provenance"}  # the run's own
+    assert {k: v for k, v in sa.items() if k not in timing} == {
+        k: v for k, v in sb.items() if k not in timing
+    }
+    assert sb["backend"] == "ray" and sa["backend"] == "local"
+    csv = [(tmp_path / f"{b}/episodes.csv").read_bytes() for b in ("local", "ray")]
+    assert csv[0] == csv[1]
+
+
+def test_evaluation_rows_do_not_depend_on_the_number_of_workers():
+    """Episodes are handed out one at a time (no static split): any worker count, same rows."""
+    cfg = replace(EnvConfig(), obs_source="proxy", episode_s=10.0)
+    one = run_episodes_parallel("pid", cfg, 5, 7, workers=1, record=False)
+    three = run_episodes_parallel("pid", cfg, 5, 7, workers=3, record=False)
+    assert one.episodes == three.episodes and one.summary == three.summary
+
+
+def test_without_ray_the_backend_is_a_one_line_error(monkeypatch):
+    monkeypatch.setitem(sys.modules, "ray", None)  # import ray -> ModuleNotFoundError
+    with pytest.raises(DockError, match=r"uwdock\[ray\]"):
+        with worker_pool(PoolConfig("ray", 2), dict):
+            pass
+
+
+def test_pool_config_is_checked():
+    for bad in (PoolConfig("spark", 2), PoolConfig("local", 0), PoolConfig("local", 2, "auto")):
+        with pytest.raises(ValueError):
+            bad.validate()
+
+
+TRAIN = """\
+n_envs = 2
+total_steps = 256
+checkpoint_every = 128
+eval_every = 128
+eval_episodes = 2
+[env]
+episode_s = 4.0
+obs_privileged = true
+[curriculum]
+steps = 192
+spawn_scale_start = 0.3
+[ppo]
+n_steps = 32
+batch_size = 64
+n_epochs = 2
+"""
+_SKIP = ("tb/", "provenance.json", "resume_log.jsonl", ".uwdock", "eval_history.png")
+
+
+def _digest(run: Path) -> dict[str, bytes]:
+    return {
+        p.relative_to(run).as_posix(): p.read_bytes()
+        for p in sorted(run.rglob("*"))
+        if p.is_file() and not p.relative_to(run).as_posix().startswith(_SKIP)
+    }
+
+
+def _rl(*args) -> list[str]:
+    return [sys.executable, "-c", "from uwdock.cli import rl; rl()", *map(str, args)]
+
+
+@pytest.mark.render
+def test_training_on_ray_env_workers_resumes_and_equals_the_local_run(tmp_path):
+    """Env workers as Ray actors behind SB3's VecEnv: killed after its first checkpoint and
+    resumed (on Ray), the run equals an uninterrupted local run file by file (checkpoints,
+    evaluation history, best/, the final policy)."""
+    cfg = tmp_path / "train.toml"
+    cfg.write_text(TRAIN)
+    local = tmp_path / "local"
+    done = subprocess.run(_rl("train", "--config", cfg, "--out", local), capture_output=True,
+                          text=True, timeout=300)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    run = tmp_path / "ray"
+    proc = subprocess.Popen(
+        _rl("train", "--config", cfg, "--out", run, "--backend", "ray"),
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    deadline = time.monotonic() + 240
+    while time.monotonic() < deadline and proc.poll() is None:
+        if (run / "checkpoints" / "step_0000000128").exists():
+            break
+        time.sleep(0.05)
+    proc.kill()
+    _, err = proc.communicate(timeout=60)
+    assert "Traceback" not in err, err[-2000:]
+    resumed = subprocess.run(_rl("train", "--out", run, "--resume", "--backend", "ray"),
+                             capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    log = [json.loads(line) for line in (run / "resume_log.jsonl").read_text().splitlines()]
+    assert log and log[-1]["from_step"] >= 128  # it went on from a checkpoint
+    a, b = _digest(local), _digest(run)
+    assert sorted(a) == sorted(b)
+    assert [k for k in a if a[k] != b[k]] == []
