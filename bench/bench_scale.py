@@ -3,24 +3,24 @@
 Usage::
 
     python bench/bench_scale.py [--workers 1,2] [--repeats 3] [--frames 40] [--episodes 12]
-        [--train-steps 2048] [--ray-address ADDRESS]
+        [--train-steps 2048] [--jobs synth,eval,train]
 
-Three jobs, each on ``--workers`` workers with the local pool and with Ray
-(``uwdock.dockcore.pool``; ``rl.ray_envs`` for training), the median of ``--repeats`` runs:
+Each timing is one whole command run as a user runs it (a fresh process: imports, workers
+started, each building its SAPIEN scene or env, the work, the files written), the median of
+``--repeats``:
 
-* ``datasets synth``: ``--frames`` frames at 480 px with random water (frames/s);
-* ``rl eval``: the PID baseline over ``--episodes`` camera episodes at 480 px, 20 s each
+* ``datasets synth --n FRAMES --width 480 --water random`` (frames/s);
+* ``rl eval --policy pid --obs camera`` over ``--episodes`` episodes of 20 s at 480 px
   (episodes/s and control steps/s);
-* ``rl train``: PPO on the proxy source with ``n_envs`` = workers for ``--train-steps`` env
-  steps (env steps/s).
+* ``rl train`` (PPO, proxy source, ``--envs`` = workers, ``--train-steps`` env steps, no
+  checkpoints or evaluations in between) (env steps/s).
 
-Ray runs on a local instance with as many CPUs as workers, started once before the timings (a
-cluster user's instance is already up; its start time is reported on its own), or on the
-cluster at ``--ray-address``. Each timing includes starting the workers (processes or actors,
-each building its SAPIEN scene). The rows also give Ray's overhead against the local pool at
-the same worker count, and, for the evaluation, the balance of the work: the makespan of the
-episodes as handed out (one at a time to a free worker) against the old static split
-(``range(w, n, workers)``) and the ideal, in control steps.
+Each command runs with ``--backend local`` and with ``--backend ray --ray-address`` of a Ray
+instance started once beforehand with ``ray start --head`` (as on a cluster, where the instance
+is up before the jobs; its start time is reported on its own). The rows give Ray's overhead
+against the local pool at the same worker count and, for the evaluation, the balance of the
+work: the makespan of its episodes as handed out now (one at a time to a free worker) against
+the old static split (``range(w, n, workers)``) and the ideal, in control steps.
 
 Writes ``bench/results/scale.json`` (rows + machine, commit, packages).
 """
@@ -28,8 +28,12 @@ Writes ``bench/results/scale.json`` (rows + machine, commit, packages).
 from __future__ import annotations
 
 import argparse
+import csv
 import heapq
+import os
+import shutil
 import statistics
+import subprocess
 import sys
 import tempfile
 import time
@@ -37,83 +41,97 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from uwdock.datasets.synth import SynthConfig, generate
 from uwdock.dockcore.bench import format_table, save_results
-from uwdock.dockcore.config import replace
-from uwdock.dockcore.pool import start_ray
-from uwdock.rl.config import EnvConfig
-from uwdock.rl.evaluate import run_episodes_parallel
-from uwdock.rl.train import TrainConfig, train
+
+BIN = Path(sys.executable).parent
+TRAIN_TOML = """\
+checkpoint_every = 1000000000
+eval_every = 0
+[env]
+obs_source = "proxy"
+"""
 
 
-def _median_time(fn, repeats: int) -> tuple[float, list[float], object]:
-    times, out = [], None
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times), times, out
+def _run(cmd: list[str]) -> float:
+    t0 = time.perf_counter()
+    done = subprocess.run(cmd, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    if done.returncode != 0:
+        raise SystemExit(f"{' '.join(cmd)} failed:\n{done.stderr[-2000:]}")
+    return wall
 
 
-def synth_row(backend: str, workers: int, frames: int, repeats: int, address) -> dict:
-    cfg = SynthConfig(n_frames=frames, water="random", width_px=480, seed=11)
+def _backend(backend: str, address: str) -> list[str]:
+    return ["--backend", "ray", "--ray-address", address] if backend == "ray" else []
 
-    def once():
+
+def _timed(make_cmd, repeats: int) -> tuple[float, list[float], Path]:
+    """Median wall time of ``repeats`` runs of ``make_cmd(out_dir)``; the last out dir kept."""
+    times, keep = [], Path(tempfile.mkdtemp(prefix="bench-scale-keep-"))
+    for i in range(repeats):
         with tempfile.TemporaryDirectory(prefix="bench-scale-") as tmp:
-            generate(Path(tmp) / "ds", cfg, workers=workers, progress=False, backend=backend,
-                     ray_address=address)  # fmt: skip
+            out = Path(tmp) / "out"
+            times.append(_run(make_cmd(out)))
+            if i == repeats - 1:
+                shutil.rmtree(keep)
+                shutil.copytree(out, keep)
+    return statistics.median(times), times, keep
 
-    wall, runs, _ = _median_time(once, repeats)
-    return {"job": "synth", "backend": backend, "workers": workers, "units": frames,
-            "wall_s": round(wall, 2), "runs_s": [round(t, 2) for t in runs],
-            "per_s": round(frames / wall, 2), "unit": "frames"}  # fmt: skip
+
+def synth_row(backend: str, w: int, a, address: str) -> dict:
+    def cmd(out: Path) -> list[str]:
+        return [str(BIN / "datasets"), "synth", "--n", str(a.frames), "--width", "480",
+                "--water", "random", "--workers", str(w), "--out", str(out), "--quiet",
+                *_backend(backend, address)]  # fmt: skip
+
+    wall, runs, keep = _timed(cmd, a.repeats)
+    shutil.rmtree(keep, ignore_errors=True)
+    return {"job": "synth", "backend": backend, "workers": w, "units": a.frames,
+            "unit": "frames", "wall_s": round(wall, 2), "runs_s": [round(t, 2) for t in runs],
+            "per_s": round(a.frames / wall, 2)}  # fmt: skip
 
 
 def _makespans(steps: list[int], workers: int) -> dict:
-    """Makespan (control steps) of the episodes split statically, handed out dynamically (in
-    order, to the first free worker), and the ideal."""
+    """Makespan (control steps) of the episodes split statically, handed out in order to the
+    first free worker, and the ideal."""
     static = max(sum(steps[w::workers]) for w in range(workers))
     free = [0] * workers
-    heapq.heapify(free)
     for s in steps:
         heapq.heappush(free, heapq.heappop(free) + s)
     return {"static": static, "dynamic": max(free), "ideal": sum(steps) / workers}
 
 
-def eval_row(backend: str, workers: int, episodes: int, repeats: int, address) -> dict:
-    cfg = replace(EnvConfig(), obs_source="camera", camera_width_px=480, episode_s=20.0)
+def eval_row(backend: str, w: int, a, address: str, env_toml: Path) -> dict:
+    def cmd(out: Path) -> list[str]:
+        return [str(BIN / "rl"), "eval", "--policy", "pid", "--obs", "camera",
+                "--episodes", str(a.episodes), "--seed", "3000", "--videos", "",
+                "--config", str(env_toml), "--workers", str(w), "--out", str(out),
+                *_backend(backend, address)]  # fmt: skip
 
-    def once():
-        return run_episodes_parallel("pid", cfg, episodes, 3000, workers=workers, record=False,
-                                     backend=backend, ray_address=address)  # fmt: skip
-
-    wall, runs, res = _median_time(once, repeats)
-    steps = [r["steps"] for r in res.episodes]
-    span = _makespans(steps, workers)
-    return {"job": "eval", "backend": backend, "workers": workers, "units": episodes,
-            "wall_s": round(wall, 2), "runs_s": [round(t, 2) for t in runs],
-            "per_s": round(episodes / wall, 3), "unit": "episodes",
+    wall, runs, keep = _timed(cmd, a.repeats)
+    with (keep / "episodes.csv").open() as fh:
+        steps = [int(r["steps"]) for r in csv.DictReader(fh)]
+    shutil.rmtree(keep, ignore_errors=True)
+    span = _makespans(steps, w)
+    return {"job": "eval", "backend": backend, "workers": w, "units": a.episodes,
+            "unit": "episodes", "wall_s": round(wall, 2), "runs_s": [round(t, 2) for t in runs],
+            "per_s": round(a.episodes / wall, 3),
             "control_steps_per_s": round(sum(steps) / wall, 1),
             "makespan_static_steps": span["static"], "makespan_dynamic_steps": span["dynamic"],
-            "makespan_ideal_steps": round(span["ideal"], 1),
-            "success_rate": res.summary["success_rate"]}  # fmt: skip
+            "makespan_ideal_steps": round(span["ideal"], 1)}  # fmt: skip
 
 
-def train_row(backend: str, workers: int, steps: int, repeats: int, address) -> dict:
-    cfg = replace(
-        TrainConfig(), n_envs=workers, total_steps=steps, checkpoint_every=10**9, eval_every=0,
-        seed=5, env=replace(EnvConfig(), obs_source="proxy"),
-    )  # fmt: skip
+def train_row(backend: str, w: int, a, address: str, train_toml: Path) -> dict:
+    def cmd(out: Path) -> list[str]:
+        return [str(BIN / "rl"), "train", "--config", str(train_toml), "--envs", str(w),
+                "--steps", str(a.train_steps), "--seed", "5", "--out", str(out),
+                *_backend(backend, address)]  # fmt: skip
 
-    def once():
-        with tempfile.TemporaryDirectory(prefix="bench-scale-") as tmp:
-            train(cfg, Path(tmp) / "run", progress=False, note=lambda _m: None, backend=backend,
-                  ray_address=address)  # fmt: skip
-
-    wall, runs, _ = _median_time(once, repeats)
-    return {"job": "train", "backend": backend, "workers": workers, "units": steps,
-            "wall_s": round(wall, 2), "runs_s": [round(t, 2) for t in runs],
-            "per_s": round(steps / wall, 1), "unit": "env steps"}  # fmt: skip
+    wall, runs, keep = _timed(cmd, a.repeats)
+    shutil.rmtree(keep, ignore_errors=True)
+    return {"job": "train", "backend": backend, "workers": w, "units": a.train_steps,
+            "unit": "env steps", "wall_s": round(wall, 2), "runs_s": [round(t, 2) for t in runs],
+            "per_s": round(a.train_steps / wall, 1)}  # fmt: skip
 
 
 def main() -> None:
@@ -124,40 +142,51 @@ def main() -> None:
     ap.add_argument("--episodes", type=int, default=12)
     ap.add_argument("--train-steps", type=int, default=2048)
     ap.add_argument("--jobs", default="synth,eval,train")
-    ap.add_argument("--ray-address", default=None)
     ap.add_argument("--out-dir", type=Path, default=None)
     a = ap.parse_args()
     counts = [int(w) for w in a.workers.split(",")]
-    import ray
-
+    work = Path(tempfile.mkdtemp(prefix="bench-scale-cfg-"))
+    env_toml, train_toml = work / "env.toml", work / "train.toml"
+    env_toml.write_text("episode_s = 20.0\ncamera_width_px = 480\n")
+    train_toml.write_text(TRAIN_TOML)
+    port = 6391
+    address = "auto"  # the instance `ray start` just started on this machine
+    env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0"}
     t0 = time.perf_counter()
-    start_ray(ray, max(counts), a.ray_address)
+    subprocess.run([str(BIN / "ray"), "start", "--head", "--port", str(port), "--num-cpus",
+                    str(max(counts)), "--include-dashboard=false", "--disable-usage-stats"],
+                   check=True, capture_output=True, env=env)  # fmt: skip
     ray_start_s = time.perf_counter() - t0
-    print(f"Ray instance up in {ray_start_s:.1f} s", flush=True)
-
-    def run(job: str, backend: str, w: int) -> dict:
-        address = a.ray_address if backend == "ray" else None
-        if job == "synth":
-            return synth_row(backend, w, a.frames, a.repeats, address)
-        if job == "eval":
-            return eval_row(backend, w, a.episodes, a.repeats, address)
-        return train_row(backend, w, a.train_steps, a.repeats, address)
-
+    print(f"Ray head up in {ray_start_s:.1f} s (port {port})", flush=True)
     rows = []
-    for job in a.jobs.split(","):
-        for w in counts:
-            local = run(job, "local", w)
-            remote = run(job, "ray", w)
-            remote["ray_overhead_%"] = round(100.0 * (remote["wall_s"] / local["wall_s"] - 1), 1)
-            rows += [local, remote]
-            print(f"{job} x{w}: local {local['per_s']} / ray {remote['per_s']} {local['unit']}/s "
-                  f"(overhead {remote['ray_overhead_%']} %)", flush=True)  # fmt: skip
+    try:
+        for job in a.jobs.split(","):
+            for w in counts:
+                pair = []
+                for backend in ("local", "ray"):
+                    if job == "synth":
+                        pair.append(synth_row(backend, w, a, address))
+                    elif job == "eval":
+                        pair.append(eval_row(backend, w, a, address, env_toml))
+                    else:
+                        pair.append(train_row(backend, w, a, address, train_toml))
+                local, remote = pair
+                remote["ray_overhead_%"] = round(
+                    100.0 * (remote["wall_s"] / local["wall_s"] - 1), 1
+                )
+                rows += pair
+                print(f"{job} x{w}: local {local['per_s']} / ray {remote['per_s']} "
+                      f"{local['unit']}/s (overhead {remote['ray_overhead_%']} %)",
+                      flush=True)  # fmt: skip
+    finally:
+        subprocess.run([str(BIN / "ray"), "stop", "--force"], capture_output=True, env=env)
+        shutil.rmtree(work, ignore_errors=True)
     cols = ["job", "backend", "workers", "units", "unit", "wall_s", "per_s", "ray_overhead_%"]
     print(format_table(rows, cols))
     config = {
         "workers": counts, "repeats": a.repeats, "frames": a.frames, "episodes": a.episodes,
-        "train_steps": a.train_steps, "ray_address": a.ray_address,
-        "ray_instance_start_s": round(ray_start_s, 2),
+        "train_steps": a.train_steps, "ray_head_start_s": round(ray_start_s, 2),
+        "note": "each timing is a whole command in a fresh process",
     }  # fmt: skip
     print(save_results("scale", rows, config, a.out_dir))
 
