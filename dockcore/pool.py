@@ -141,7 +141,7 @@ def start_ray(ray: Any, cpus: int, address: str | None) -> None:
     }
     try:
         if address is None:
-            ray.init(num_cpus=cpus, **kwargs)
+            ray.init(address="local", num_cpus=cpus, **kwargs)  # a new instance, always
         else:
             ray.init(address=address, **kwargs)
     except Exception as exc:  # ConnectionError, RuntimeError, ValueError ...

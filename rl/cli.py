@@ -34,6 +34,7 @@ from uwdock.rl.error_model import ErrorModelConfig, fit_error_model, save_error_
 from uwdock.rl.export import export_onnx
 from uwdock.rl.policy_io import policy_env_settings, policy_error_model
 from uwdock.rl.report import evaluate_to_folder
+from uwdock.rl.sweep import SweepConfig, parse_grid, run_sweep
 from uwdock.rl.train import TrainConfig, run_config
 from uwdock.rl.train import train as run
 from uwdock.rl.trajectories import record_pid_trajectories
@@ -141,6 +142,64 @@ def train(
         ray_address=ray_address,
     )
     click.echo(f"policy: {final}")
+
+
+@cli.command()
+@config_option("TOML of the base TrainConfig ([train] table, as for rl train).")
+@click.option(
+    "--seeds", default="0,1,2", show_default=True, help="Training seeds, comma-separated."
+)
+@click.option(
+    "--set",
+    "grid",
+    multiple=True,
+    help="A TrainConfig field and its values, FIELD=V1,V2 (e.g. ppo.learning_rate=1e-4,3e-4); "
+    "repeatable: the sweep is every seed times every combination.",
+)
+@click.option(
+    "--concurrent",
+    type=domain_type(Annotated[int, Interval(ge=0, le=10_000)]),
+    default=0,
+    show_default=True,
+    help="Trials at once (0: as many as the CPUs allow).",
+)
+@click.option(
+    "--ray-address",
+    "ray_address",
+    help="A running Ray cluster ('auto': the one this machine belongs to) [default: a local Ray "
+    "instance].",
+)
+@out_dir_option("Sweep folder: one run folder per trial, sweep.json, sweep_summary.json.",
+                required=True)  # fmt: skip
+def sweep(config_path, seeds, grid, concurrent, ray_address, out_dir) -> None:
+    """Sweep whole training runs over seeds and config values with Ray Tune, each trial a run
+    folder that resumes from its own checkpoints.
+
+    Run again with the same arguments after an interruption, the sweep goes on where it
+    stopped: finished trials are kept, the others resume.
+    """
+    try:
+        seed_list = tuple(int(s, 10) for s in seeds.split(",") if s.strip())
+    except ValueError:
+        raise DockError(f"--seeds must be comma-separated integers, got '{seeds}'") from None
+    base = load_config(TrainConfig, config_path, section="train")
+    cfg = SweepConfig(seeds=seed_list, max_concurrent_trials=concurrent)
+    try:
+        cfg.validate()
+    except ValueError as exc:
+        raise DockError(str(exc)) from None
+    summary = run_sweep(
+        base, cfg, parse_grid(grid), out_dir, ray_address,
+        note=lambda m: click.echo(f"note: {m}", err=True),
+    )  # fmt: skip
+    for name, s in summary.items():
+        best = s.get("best_eval") or {}
+        strict = best.get("success_rate_strict")
+        shown = (
+            "no evaluation" if strict is None else f"best strict {strict:.0%} at {best['step']:,}"
+        )
+        click.echo(f"{name}: {'done' if s['done'] else 'not done'}, {shown}")
+    click.echo(f"wrote {Path(out_dir) / 'sweep_summary.json'}")
 
 
 @cli.command("eval")

@@ -236,3 +236,49 @@ def test_training_on_ray_env_workers_resumes_and_equals_the_local_run(tmp_path):
     a, b = _digest(local), _digest(run)
     assert sorted(a) == sorted(b)
     assert [k for k in a if a[k] != b[k]] == []
+
+
+SWEEP = """\
+n_envs = 1
+total_steps = 128
+checkpoint_every = 64
+eval_every = 64
+eval_episodes = 1
+[env]
+episode_s = 3.0
+[ppo]
+n_steps = 32
+batch_size = 32
+n_epochs = 1
+"""
+
+
+@pytest.mark.render
+def test_a_sweep_runs_each_trial_as_its_own_resumable_run(tmp_path, run_cli):
+    """``rl sweep`` through Ray Tune: 2 seeds x 2 learning rates, each trial a run folder equal
+    to ``rl train`` of the same config; run again, nothing is trained twice."""
+    base = tmp_path / "base.toml"
+    base.write_text(SWEEP)
+    out = tmp_path / "sweep"
+    args = ["sweep", "--config", base, "--seeds", "0,1", "--set", "ppo.learning_rate=0.0003,0.001",
+            "--out", out]  # fmt: skip
+    res = run_cli(uwdock_cli.rl, *args)
+    assert res.code == 0, res.err[-2000:]
+    summary = json.loads((out / "sweep_summary.json").read_text())
+    assert sorted(summary) == sorted(
+        f"seed{s}_learning_rate={lr}" for s in (0, 1) for lr in ("0.0003", "0.001")
+    )
+    assert all(t["done"] and t["steps"] == 128 for t in summary.values())
+    # a trial is the plain run of its config
+    direct = tmp_path / "direct"
+    cfg = tmp_path / "direct.toml"
+    cfg.write_text(SWEEP.replace("n_epochs = 1", "n_epochs = 1\nlearning_rate = 0.001") + "")
+    res = run_cli(uwdock_cli.rl, "train", "--config", cfg, "--seed", "1", "--out", direct)
+    assert res.code == 0, res.err[-2000:]
+    a, b = _digest(direct), _digest(out / "seed1_learning_rate=0.001")
+    assert [k for k in a if a[k] != b.get(k)] == []
+    # again: every trial is complete, nothing is trained again
+    stamps = {p: p.stat().st_mtime_ns for p in out.rglob("policy.zip")}
+    res = run_cli(uwdock_cli.rl, *args)
+    assert res.code == 0, res.err[-2000:]
+    assert {p: p.stat().st_mtime_ns for p in out.rglob("policy.zip")} == stamps

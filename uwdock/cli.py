@@ -106,6 +106,8 @@ COMMANDS: dict[str, tuple[str, dict[str, str]]] = {
             "export": "Export a policy to ONNX (observation normalisation included).",
             "fit-error-model": "Fit the image-derived error model from a labelled dataset "
             "(`datasets synth`).",
+            "sweep": "Sweep whole training runs over seeds and config values with Ray Tune, each "
+            "trial a run folder that resumes from its own checkpoints.",
             "train": "Train a docking policy (PPO with the paper's hyperparameters by default).",
             "trajectories": "Record the PID baseline's docking trajectories as a pose CSV with "
             "sequence, step and time columns (`datasets render --poses` renders them): frames "
