@@ -34,6 +34,7 @@ def _roots() -> list[type]:
     from uwdock.rl.baselines import PIDConfig
     from uwdock.rl.episode import EpisodeVideoConfig
     from uwdock.rl.error_model import ErrorModelConfig
+    from uwdock.rl.sweep import SweepConfig
     from uwdock.rl.train import TrainConfig
     from uwdock.sim.docking_station import DockingStationConfig
     from uwdock.sim.water import WaterConfig
@@ -47,6 +48,7 @@ def _roots() -> list[type]:
         TankReportConfig,
         FitWaterConfig,
         PoolConfig,
+        SweepConfig,
         TrainConfig,
         ErrorModelConfig,
         EpisodeVideoConfig,
