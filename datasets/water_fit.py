@@ -56,10 +56,14 @@ __all__ = [
     "FitWaterConfig",
     "PatchSamples",
     "WaterFit",
+    "backscatter_separable",
+    "contrast_error",
+    "estimate_noise",
     "fit_water",
     "plot_fit",
     "sample_frames",
     "water_toml",
+    "write_water_file",
 ]
 
 CHANNELS = ("R", "G", "B")
