@@ -68,7 +68,7 @@ from uwdock.dockcore.domains import Fraction, Interval, Seed, check, split_annot
 from uwdock.dockcore.errors import ConfigError, DockError
 from uwdock.dockcore.io import atomic_path, atomic_write_bytes, atomic_write_json
 from uwdock.dockcore.outdir import claim_output_dir
-from uwdock.dockcore.pool import PoolConfig, worker_pool
+from uwdock.dockcore.pool import PoolConfig, preflight, worker_pool
 from uwdock.dockcore.provenance import write_provenance
 from uwdock.markers.markerset import MarkerSet, save_marker_set
 from uwdock.perception.groundtruth import (
@@ -820,6 +820,7 @@ def generate(
         pool_cfg.validate()
     except ValueError as exc:
         raise ConfigError(str(exc)) from None
+    preflight(pool_cfg)  # before anything is written
     pose_arr = _checked_poses(poses, cfg.n_frames)
     if sequences is not None and (pose_arr is None or len(sequences) != cfg.n_frames):
         raise DockError(f"sequences: need one label per given pose ({cfg.n_frames})")

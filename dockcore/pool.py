@@ -28,6 +28,7 @@ from __future__ import annotations
 import atexit
 import multiprocessing as mp
 import os
+import socket
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -37,9 +38,18 @@ from typing import Annotated, Any
 
 from uwdock.dockcore.domains import Interval
 from uwdock.dockcore.errors import DockError
+from uwdock.dockcore.media import quiet_native_stderr
 from uwdock.dockcore.procs import die_with_parent
 
-__all__ = ["BACKENDS", "PoolConfig", "WorkerPool", "actor_cpus", "start_ray", "worker_pool"]
+__all__ = [
+    "BACKENDS",
+    "PoolConfig",
+    "WorkerPool",
+    "actor_cpus",
+    "preflight",
+    "start_ray",
+    "worker_pool",
+]
 
 #: The pool backends.
 BACKENDS = ("local", "ray")
@@ -127,6 +137,35 @@ class _LocalPool(WorkerPool):
 # ----------------------------------------------------------------------------- Ray actors
 
 
+def preflight(cfg: PoolConfig) -> None:
+    """Check, before a command writes anything, that its backend can run: the Ray package for
+    ``backend = "ray"``, and a reachable head at an explicit ``ray_address`` (a TCP connection
+    within 5 s; ``"auto"`` and ``ray://`` client addresses are left to Ray). Raises a one-line
+    :class:`DockError`."""
+    cfg.validate()
+    if cfg.backend != "ray":
+        return
+    try:
+        import ray  # noqa: F401 - only to say what is missing
+    except ModuleNotFoundError:
+        raise DockError(
+            "--backend ray needs the Python package 'ray' (pip install 'uwdock[ray]')"
+        ) from None
+    address = cfg.ray_address
+    if address is None or address in ("auto", "local") or "://" in address:
+        return
+    host, sep, port = address.rpartition(":")
+    if not sep or not port.isdigit():
+        raise DockError(f"--ray-address: expected HOST:PORT, 'auto' or ray://..., got {address!r}")
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=5.0).close()
+    except OSError as exc:
+        raise DockError(
+            f"cannot reach Ray at {address!r} ({exc.strerror or exc}): is `ray start --head` "
+            "running there?"
+        ) from None
+
+
 def start_ray(ray: Any, cpus: int, address: str | None) -> None:
     """Connect this process to Ray once: the cluster at ``address``, or a local instance with
     ``cpus`` CPUs (kept for the process's later pools, shut down at exit). Raises a one-line
@@ -140,10 +179,13 @@ def start_ray(ray: Any, cpus: int, address: str | None) -> None:
         "configure_logging": False,
     }
     try:
-        if address is None:
-            ray.init(address="local", num_cpus=cpus, **kwargs)  # a new instance, always
-        else:
-            ray.init(address=address, **kwargs)
+        # Ray's native client retries a wrong address once a second for ~20 s, each retry a
+        # warning on file descriptor 2: its reason is in the one line below instead
+        with quiet_native_stderr():
+            if address is None:
+                ray.init(address="local", num_cpus=cpus, **kwargs)  # a new instance, always
+            else:
+                ray.init(address=address, **kwargs)
     except Exception as exc:  # ConnectionError, RuntimeError, ValueError ...
         where = "a local Ray instance" if address is None else f"Ray at {address!r}"
         raise DockError(f"cannot start {where}: {' '.join(str(exc).split())}") from None
@@ -249,14 +291,8 @@ def worker_pool(
         DockError: the Ray backend without the ``ray`` package, or a Ray instance that cannot
             be started or reached.
     """
-    cfg.validate()
+    preflight(cfg)
     if cfg.backend == "ray":
-        try:
-            import ray  # noqa: F401 - only to say what is missing
-        except ModuleNotFoundError:
-            raise DockError(
-                "--backend ray needs the Python package 'ray' (pip install 'uwdock[ray]')"
-            ) from None
         pool: WorkerPool = _RayPool(cfg.workers, factory, args, cfg.ray_address)
     else:
         pool = _LocalPool(cfg.workers, factory, args)

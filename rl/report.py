@@ -16,7 +16,7 @@ from uwdock.dockcore.config import replace, to_dict
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_path, atomic_write_json, atomic_write_text
 from uwdock.dockcore.outdir import claim_output_dir
-from uwdock.dockcore.pool import PoolConfig
+from uwdock.dockcore.pool import PoolConfig, preflight
 from uwdock.dockcore.provenance import provenance
 from uwdock.rl.config import EnvConfig, check_env_files
 from uwdock.rl.env import SOURCE_CLASSES
@@ -224,6 +224,7 @@ def evaluate_to_folder(
         pool.validate()
     except ValueError as exc:
         raise DockError(str(exc)) from None
+    preflight(pool)  # before the folder is claimed
     bad = [k for k in video_episodes if not 0 <= k < episodes]
     if bad:
         raise DockError(f"--videos: episode {bad[0]} is not among the {episodes} episodes")

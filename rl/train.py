@@ -34,7 +34,7 @@ from uwdock.dockcore.domains import Count, Fraction, Interval, Seed
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_write_bytes, atomic_write_json, atomic_write_text
 from uwdock.dockcore.outdir import claim_output_dir
-from uwdock.dockcore.pool import PoolConfig
+from uwdock.dockcore.pool import PoolConfig, preflight
 from uwdock.dockcore.provenance import git_commit, write_provenance
 from uwdock.rl import asymmetric
 from uwdock.rl.callbacks import training_callback
@@ -319,6 +319,7 @@ def train(
         pool.validate()
     except ValueError as exc:
         raise DockError(str(exc)) from None
+    preflight(pool)  # before the run folder is claimed
     if resume and init_policy:
         raise DockError("--init-policy starts a new run; it cannot be combined with --resume")
     check_env_files(cfg.env)
