@@ -39,7 +39,7 @@ from uwdock.dockcore.provenance import write_provenance
 from uwdock.markers.markerset import load_marker_set
 from uwdock.perception.video import open_frames
 from uwdock.sim.docking_station import DockingStationConfig, resolve_marker_set
-from uwdock.sim.water import PRESET_ORDER, PRESETS, WaterConfig, water_choice
+from uwdock.sim.water import PRESET_ORDER, PRESETS, load_water_file, water_choice
 
 #: Configs whose fields the options override (imported when an option is first used).
 _SYNTH = "uwdock.datasets.synth:SynthConfig"
@@ -267,7 +267,7 @@ def tank_report(
             raise DockError(f"unknown water preset {n!r}; known: {', '.join(PRESET_ORDER)}")
         waters[n] = PRESETS[n]
     for f in water_files:
-        waters[f.stem] = load_config(WaterConfig, f, section="water")
+        waters[f.stem] = load_water_file(f)
     camera, _ = resolve_camera(camera_file)
     progress = None if quiet or as_json else (
         lambda alt: click.echo(f"  rendered altitude {alt:.2f} m", err=True))  # fmt: skip

@@ -84,12 +84,10 @@ from uwdock.sim.docking_station import DockingStationConfig, resolve_marker_set
 from uwdock.sim.domains import TANK_SIZE_M
 from uwdock.sim.render import RenderConfig, make_render_scene, project_markers
 from uwdock.sim.water import (
-    PRESETS,
     WaterConfig,
     WaterRandomisation,
-    is_water_file,
-    load_water_file,
     resolve_water,
+    water_spec_error,
 )
 
 __all__ = [
@@ -227,16 +225,9 @@ class SynthConfig:
 
     def validate(self) -> None:
         """Raise ValueError naming the first invalid field."""
-        if is_water_file(self.water):
-            try:
-                load_water_file(self.water)
-            except DockError as exc:
-                raise ValueError(f"water: {exc}") from None
-        elif self.water not in (*PRESETS, "random", "none"):
-            raise ValueError(
-                f"water: unknown preset {self.water[:100]!r}; known: {', '.join(PRESETS)}, "
-                "random, none or a water file (*.toml)"
-            )
+        why = water_spec_error(self.water, allow_random=True)
+        if why is not None:
+            raise ValueError(f"water: {why}")
         if not (self.width_px == 0 or self.width_px >= 16):
             raise ValueError(f"width_px: must be 0 or >= 16, got {self.width_px}")
         try:

@@ -22,8 +22,9 @@ few starts). Their standard errors come from the Jacobian.
 
 Needs ranges: the target must be seen at several ranges (a spread of 1 m or more), and the
 backscatter coefficient of a channel is only separable from its veiling light when
-``beta_B r`` reaches ~1 over the ranges seen: in clear water the product ``B_inf * beta_B`` is
-what the frames determine, and the report says so through the standard errors.
+the backscatter changes and bends over the ranges seen (:func:`backscatter_separable`): in clear
+water only the product ``B_inf * beta_B`` is determined, and the report says so in a warning
+(there the Jacobian's standard errors understate the error several times).
 
 It lives in ``datasets``: it crosses the sim -> perception seam (the water model of ``sim``,
 the detector and PnP of ``perception``); ``sim fit-water`` is its command.
@@ -42,6 +43,7 @@ import cv2
 import numpy as np
 
 from uwdock.calibration.camera import CameraModel
+from uwdock.calibration.frames import make_T
 from uwdock.calibration.patterns import PatternDetector
 from uwdock.dockcore.config import check_fields, dumps_toml, to_dict
 from uwdock.dockcore.domains import Interval
@@ -50,7 +52,7 @@ from uwdock.dockcore.io import atomic_path, atomic_write_text
 from uwdock.markers.dictionary import bits_per_side
 from uwdock.markers.markerset import MarkerSet
 from uwdock.perception.ds_pose import DSPoseEstimator
-from uwdock.sim.water import PRESETS, WaterConfig
+from uwdock.sim.water import PRESETS, WaterConfig, _decode_lut
 
 __all__ = [
     "FitWaterConfig",
@@ -214,6 +216,10 @@ class _Target:
     def pose(self, img_bgr: np.ndarray, camera: CameraModel) -> np.ndarray | None:
         raise NotImplementedError  # pragma: no cover - interface
 
+    def usable(self, k: int) -> bool:
+        """Whether patch ``k`` is sampled in the frame last posed (all of them by default)."""
+        return True
+
 
 def _grid(fraction: float, n: int = 9) -> np.ndarray:
     """(n*n, 2) offsets in [-fraction/2, fraction/2]^2 (units of the patch side)."""
@@ -260,14 +266,7 @@ class _Chessboard(_Target):
         )  # fmt: skip
         if not ok:
             return None
-        return _T(rvec, tvec)
-
-
-def _T(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3] = cv2.Rodrigues(np.asarray(rvec, np.float64))[0]
-    T[:3, 3] = np.asarray(tvec, np.float64).ravel()
-    return T
+        return make_T(cv2.Rodrigues(rvec)[0], tvec.ravel())
 
 
 class _MarkerBoard(_Target):
@@ -329,7 +328,7 @@ class _MarkerBoard(_Target):
         return est.T_cam_ds
 
     def usable(self, k: int) -> bool:
-        """Only the patches of markers decoded in the current frame are sampled."""
+        """Only the patches of markers decoded in the frame last posed are sampled."""
         return any(k in self._by_marker[m] for m in self._seen)
 
 
@@ -338,10 +337,6 @@ def _cells_per_side(dictionary: str) -> int:
 
 
 # ----------------------------------------------------------------------------- sampling
-
-
-def _linear_lut(gamma: float) -> np.ndarray:
-    return ((np.arange(256, dtype=np.float64) / 255.0) ** gamma).astype(np.float32)
 
 
 def _sample_frame(
@@ -356,17 +351,23 @@ def _sample_frame(
     h, w = img_bgr.shape[:2]
     R, t = T_cam_target[:3, :3], T_cam_target[:3, 3]
     lamp = np.asarray(cfg.lamp_offset_camcv_m, float)
-    rvec = cv2.Rodrigues(R)[0]
-    dist = np.asarray(camera.dist, np.float64)
-    rows, saturated = [], 0
-    for k, p in enumerate(target.patches()):
-        if isinstance(target, _MarkerBoard) and not target.usable(k):
-            continue
+    patches = [(k, p) for k, p in enumerate(target.patches()) if target.usable(k)]
+    rows: list[dict[str, Any]] = []
+    if not patches:
+        return rows, 0
+    # every sample point of the frame projected in one call, then split per patch
+    points = np.concatenate([p.points_m for _, p in patches])
+    projected, _ = cv2.projectPoints(
+        points, cv2.Rodrigues(R)[0], t, camera.K, np.asarray(camera.dist, np.float64)
+    )
+    per_patch = np.split(
+        projected.reshape(-1, 2), np.cumsum([len(p.points_m) for _, p in patches])[:-1]
+    )
+    saturated = 0
+    for (k, p), px in zip(patches, per_patch, strict=True):
         pts_cam = (R @ p.points_m.T).T + t
         if (pts_cam[:, 2] <= 0.05).any():
             continue
-        px, _ = cv2.projectPoints(p.points_m, rvec, t, camera.K, dist)
-        px = px.reshape(-1, 2)
         inside = (px[:, 0] >= 1) & (px[:, 0] <= w - 2) & (px[:, 1] >= 1) & (px[:, 1] <= h - 2)
         if not inside.all():
             continue
@@ -426,18 +427,19 @@ def sample_frames(
         target: _Target = _MarkerBoard(cfg, marker_set)
     else:
         target = _Chessboard(cfg)
-    lut = _linear_lut(cfg.gamma)
+    lut = _decode_lut(float(cfg.gamma))  # the water model's own uint8 -> linear table
     cols: dict[str, list] = {k: [] for k in ("frame", "white", "rgb", "var", "range_m",
                                              "lamp_m", "cos", "rho2")}  # fmt: skip
     groups: list[tuple[int, list[int]]] = []
-    out = PatchSamples(*(np.zeros(0) for _ in range(8)))
+    names: dict[int, str] = {}
+    read = corrupt = saturated = 0
     neighbours = target.neighbours()
     for index, name, img in frames:
-        out.frames_read += 1
+        read += 1
         if progress is not None:
-            progress(out.frames_read)
+            progress(read)
         if img is None:
-            out.frames_corrupt += 1
+            corrupt += 1
             continue
         if img.ndim != 3 or img.shape[2] != 3:
             raise DockError(f"{name}: the water fit needs colour frames, got shape {img.shape}")
@@ -450,7 +452,7 @@ def sample_frames(
         if T is None:
             continue
         rows, sat = _sample_frame(img, camera, target, T, cfg, lut)
-        out.dropped_saturated += sat
+        saturated += sat
         if not rows:
             continue
         if any(r["white"] is None for r in rows):  # chessboard: the brighter parity is white
@@ -459,8 +461,7 @@ def sample_frames(
             white_parity = 0 if lum[0] > lum[1] else 1
             for r in rows:
                 r["white"] = r["parity"] == white_parity
-        out.frames_used += 1
-        out.names[int(index)] = str(name)
+        names[int(index)] = str(name)
         base = len(cols["frame"])
         row_of = {r["k"]: base + n for n, r in enumerate(rows)}
         for r in rows:
@@ -473,16 +474,22 @@ def sample_frames(
                 blacks = [row_of[q] for q in nb if q in row_of and not cols["white"][row_of[q]]]
                 if blacks:
                     groups.append((row_of[k], blacks))
-    out.frame = np.asarray(cols["frame"], int)
-    out.white = np.asarray(cols["white"], bool)
-    out.rgb = np.asarray(cols["rgb"], float).reshape(-1, 3)
-    out.var = np.asarray(cols["var"], float).reshape(-1, 3)
-    out.range_m = np.asarray(cols["range_m"], float)
-    out.lamp_m = np.asarray(cols["lamp_m"], float)
-    out.cos_lamp = np.asarray(cols["cos"], float)
-    out.rho2 = np.asarray(cols["rho2"], float)
-    out.groups = groups
-    return out
+    return PatchSamples(
+        frame=np.asarray(cols["frame"], int),
+        white=np.asarray(cols["white"], bool),
+        rgb=np.asarray(cols["rgb"], float).reshape(-1, 3),
+        var=np.asarray(cols["var"], float).reshape(-1, 3),
+        range_m=np.asarray(cols["range_m"], float),
+        lamp_m=np.asarray(cols["lamp_m"], float),
+        cos_lamp=np.asarray(cols["cos"], float),
+        rho2=np.asarray(cols["rho2"], float),
+        groups=groups,
+        names=names,
+        frames_read=read,
+        frames_used=len(names),
+        frames_corrupt=corrupt,
+        dropped_saturated=saturated,
+    )
 
 
 # ----------------------------------------------------------------------------- the noise
@@ -545,6 +552,9 @@ class WaterFit:
             neighbours) by range (:func:`contrast_error`).
         range_m: (min, max) range of the patches (m).
         samples: the patches used.
+        config: the fit's settings.
+        separable: per channel, whether B_inf and beta_B are told apart over the ranges seen
+            (:func:`backscatter_separable`).
         warnings: one-line remarks (ranges too narrow, parameters not determined).
     """
 
@@ -558,6 +568,7 @@ class WaterFit:
     range_m: tuple[float, float]
     samples: PatchSamples
     config: FitWaterConfig
+    separable: tuple[bool, bool, bool] = (True, True, True)
     warnings: list[str] = field(default_factory=list)
     _x: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
 
@@ -574,14 +585,12 @@ class WaterFit:
     def summary(self) -> dict[str, Any]:
         """What the report JSON holds (no per-patch arrays)."""
         s = self.samples
-        p = self.params
-        separable = backscatter_separable(p["B_inf"], p["beta_B"], *self.range_m)
         return {
             "water": to_dict(self.water),
             "params": {k: list(v) for k, v in self.params.items()},
             "rel_std": {k: list(v) for k, v in self.rel_std.items()},
             "vignetting": self.vignetting,
-            "backscatter_separable": dict(zip(CHANNELS, separable, strict=True)),
+            "backscatter_separable": dict(zip(CHANNELS, self.separable, strict=True)),
             "residual_rms": self.residual_rms,
             "residual_rms_8bit": self.residual_rms_8bit,
             "contrast_error": dict(zip(CHANNELS, self.contrast_error, strict=True)),
@@ -800,6 +809,7 @@ def fit_water(samples: PatchSamples, cfg: FitWaterConfig | None = None) -> Water
         range_m=(float(s.range_m.min()), float(s.range_m.max())),
         samples=s,
         config=cfg,
+        separable=tuple(separable),  # type: ignore[arg-type]
         warnings=warnings,
         _x=x,
     )

@@ -46,6 +46,7 @@ __all__ = [
     "PoolConfig",
     "WorkerPool",
     "actor_cpus",
+    "import_ray",
     "preflight",
     "start_ray",
     "worker_pool",
@@ -137,6 +138,17 @@ class _LocalPool(WorkerPool):
 # ----------------------------------------------------------------------------- Ray actors
 
 
+def import_ray() -> Any:
+    """The ``ray`` module, or a one-line :class:`DockError` saying how to install it."""
+    try:
+        import ray  # the uwdock[ray] extra; only the Ray backend needs it
+    except ModuleNotFoundError:
+        raise DockError(
+            "--backend ray needs the Python package 'ray' (pip install 'uwdock[ray]')"
+        ) from None
+    return ray
+
+
 def preflight(cfg: PoolConfig) -> None:
     """Check, before a command writes anything, that its backend can run: the Ray package for
     ``backend = "ray"``, and a reachable head at an explicit ``ray_address`` (a TCP connection
@@ -145,12 +157,7 @@ def preflight(cfg: PoolConfig) -> None:
     cfg.validate()
     if cfg.backend != "ray":
         return
-    try:
-        import ray  # noqa: F401 - only to say what is missing
-    except ModuleNotFoundError:
-        raise DockError(
-            "--backend ray needs the Python package 'ray' (pip install 'uwdock[ray]')"
-        ) from None
+    import_ray()
     address = cfg.ray_address
     if address is None or address in ("auto", "local") or "://" in address:
         return
@@ -208,17 +215,12 @@ class _Host:
     def call(self, method: str, item: Any) -> Any:
         return getattr(self.worker, method)(item)
 
-    def pid(self) -> int:
-        return os.getpid()
-
 
 class _RayPool(WorkerPool):
     def __init__(
         self, workers: int, factory: Callable[..., Any], args: tuple, address: str | None
     ) -> None:
-        import ray  # the uwdock[ray] extra; only the Ray backend needs it
-
-        self._ray = ray
+        ray = self._ray = import_ray()
         start_ray(ray, workers, address)
         self._actor_cls = ray.remote(num_cpus=actor_cpus(ray, workers))(_Host)
         self._factory, self._args = factory, args
@@ -227,10 +229,6 @@ class _RayPool(WorkerPool):
 
     def _new_actor(self) -> Any:
         return self._actor_cls.remote(self._factory, self._args)
-
-    def actor_pids(self) -> list[int]:
-        """The process ids of the current actors (tests kill one)."""
-        return self._ray.get([a.pid.remote() for a in self.actors])
 
     def imap_unordered(self, method: str, items: Iterable[Any]) -> Iterator[tuple[Any, Any]]:
         ray = self._ray
@@ -287,11 +285,14 @@ def worker_pool(
     """Start ``cfg.workers`` workers, each holding ``factory(*args)`` (a picklable class or
     function importable by the workers), and stop them on exit (an exception included).
 
+    The commands call :func:`preflight` before they write anything; this only starts (or
+    joins) Ray.
+
     Raises:
         DockError: the Ray backend without the ``ray`` package, or a Ray instance that cannot
             be started or reached.
     """
-    preflight(cfg)
+    cfg.validate()
     if cfg.backend == "ray":
         pool: WorkerPool = _RayPool(cfg.workers, factory, args, cfg.ray_address)
     else:

@@ -124,11 +124,7 @@ def run_episodes(
         for done_count, k in enumerate(todo, start=1):
             row, tr = _episode(env, ctrl, k, seed, record, k in video_episodes)
             if video_dir is not None and tr.frames:
-                write_video(tr.frames, Path(video_dir) / f"camera_ep{k}.mp4")
-                dt_s = 1.0 / env_cfg.control_hz  # frames are taken after each control step
-                sheet = Path(video_dir) / f"camera_ep{k}_frames.jpg"
-                write_frames_sheet(tr.frames, sheet, dt_s, first_s=dt_s)
-                tr.frames = []
+                _write_film(tr, k, env_cfg, Path(video_dir))
             rows.append(row)
             traces.append(tr)
             if progress is not None:
@@ -229,17 +225,21 @@ class EpisodeWorker:
         row, tr = _episode(self.env, self.ctrl, k, self.seed, self.record, k in self.video_episodes)
         files: dict[str, bytes] = {}
         if tr.frames and self.encode_films:
-            dt_s = 1.0 / self.env_cfg.control_hz  # frames are taken after each control step
             with tempfile.TemporaryDirectory(prefix="uwdock-film-") as tmp:
-                video = write_video(tr.frames, Path(tmp) / f"camera_ep{k}.mp4")
-                sheet = write_frames_sheet(
-                    tr.frames, Path(tmp) / f"camera_ep{k}_frames.jpg", dt_s, first_s=dt_s
-                )
-                for path in (video, sheet):
-                    if path is not None:
-                        files[path.name] = path.read_bytes()
-            tr.frames = []
+                files = {
+                    p.name: p.read_bytes() for p in _write_film(tr, k, self.env_cfg, Path(tmp))
+                }
         return row, tr, files
+
+
+def _write_film(tr: EpisodeTrace, k: int, env_cfg: EnvConfig, folder: Path) -> list[Path]:
+    """Episode k's camera frames as ``camera_ep<k>.mp4`` and a frame sheet in ``folder``; the
+    frames are dropped from the trace. Returns the files written."""
+    dt_s = 1.0 / env_cfg.control_hz  # frames are taken after each control step
+    video = write_video(tr.frames, folder / f"camera_ep{k}.mp4")
+    sheet = write_frames_sheet(tr.frames, folder / f"camera_ep{k}_frames.jpg", dt_s, first_s=dt_s)
+    tr.frames = []
+    return [p for p in (video, sheet) if p is not None]
 
 
 def _one_thread() -> None:

@@ -16,15 +16,13 @@ node) stops training with one line; ``rl train --resume`` goes on from the newes
 from __future__ import annotations
 
 import functools
-import os
 import pickle
 from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 
-from uwdock.dockcore.errors import DockError
-from uwdock.dockcore.pool import actor_cpus, start_ray
+from uwdock.dockcore.pool import actor_cpus, import_ray, start_ray
 from uwdock.rl.config import EnvConfig
 from uwdock.rl.workers import WorkerError, _make_env_fn, _reason
 
@@ -87,9 +85,6 @@ class _EnvHost:
 
     def close(self) -> None:
         self.env.close()
-
-    def pid(self) -> int:
-        return os.getpid()
 
 
 @functools.cache
@@ -207,10 +202,6 @@ def _ray_vec_env_class() -> type:
                 ]
             )
 
-        def actor_pids(self) -> list[int]:
-            """The process ids of the env actors (tests kill one)."""
-            return self._get([a.pid.remote() for a in self.actors])
-
     return RayVecEnv
 
 
@@ -227,13 +218,7 @@ class RayEnvWorkers:
     def __init__(
         self, env_cfg: EnvConfig, n_envs: int, seed: int, ray_address: str | None = None
     ) -> None:
-        try:
-            import ray
-        except ModuleNotFoundError:
-            raise DockError(
-                "--backend ray needs the Python package 'ray' (pip install 'uwdock[ray]')"
-            ) from None
-        start_ray(ray, n_envs, ray_address)
+        start_ray(import_ray(), n_envs, ray_address)
         self.venv = RayVecEnv(env_cfg, n_envs, seed)
 
     def worker_errors(self) -> list[str]:

@@ -225,10 +225,14 @@ def run_sweep(
             )
     atomic_write_json(old, {"trials": plan, "seeds": list(cfg.seeds), "grid": dict(grid)})
     start_ray(ray, max(t.config.n_envs + 1 for t in trials), ray_address)
-    bundles = [{"CPU": 1.0}] * (1 + (base.n_envs if base.n_envs > 1 else 0))
-    trainable = tune.with_resources(
-        tune.with_parameters(_run_trial, plan=plan), tune.PlacementGroupFactory(bundles)
-    )
+    n_envs = {t.name: t.config.n_envs for t in trials}  # a grid may change it per trial
+
+    def resources(config: dict[str, Any]) -> Any:
+        """One CPU for the learner, one per env worker when they are Ray actors."""
+        n = n_envs[config["trial"]]
+        return tune.PlacementGroupFactory([{"CPU": 1.0}] * (1 + (n if n > 1 else 0)))
+
+    trainable = tune.with_resources(tune.with_parameters(_run_trial, plan=plan), resources)
     stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y%m%dT%H%M%S")
     tuner = tune.Tuner(
         trainable,

@@ -73,6 +73,7 @@ __all__ = [
     "preset",
     "resolve_water",
     "water_choice",
+    "water_spec_error",
 ]
 
 RGB = tuple[float, float, float]
@@ -220,19 +221,30 @@ def resolve_water(spec: str | None) -> WaterConfig | None:
     return preset(spec)
 
 
+def water_spec_error(spec: str, allow_random: bool = False, allow_none: bool = True) -> str | None:
+    """Why ``spec`` names no water, or None when it does: a preset name, a water file
+    (``*.toml``, read and validated here), "none" (``allow_none``) or "random"
+    (``allow_random``, where a water is drawn per frame). The one check behind every water
+    argument and config field (commands, ``WorldConfig``, ``SynthConfig``)."""
+    if is_water_file(spec):
+        try:
+            load_water_file(spec)
+        except DockError as exc:
+            return str(exc)
+        return None
+    known = [*PRESETS, *(["random"] if allow_random else []), *(["none"] if allow_none else [])]
+    if spec in known:
+        return None
+    return f"unknown {str(spec)[:100]!r} (known: {', '.join(known)} or a water file, *.toml)"
+
+
 def water_choice(name: str | None, allow_random: bool = False) -> str:
-    """A command's water argument checked: a preset name, a water file (``*.toml``, read and
-    validated here), "none" (None too) or, where the command draws a water per frame,
-    "random". Raises a one-line :class:`DockError` otherwise."""
+    """A command's water argument checked (:func:`water_spec_error`; None is "none"). Raises
+    a one-line :class:`DockError` naming what is wrong."""
     name = name or "none"
-    if is_water_file(name):
-        load_water_file(name)
-        return name
-    known = [*PRESETS, *(["random"] if allow_random else []), "none"]
-    if name not in known:
-        raise DockError(
-            f"unknown water preset {name!r}; known: {', '.join(known)} or a water file (.toml)"
-        )
+    why = water_spec_error(name, allow_random)
+    if why is not None:
+        raise DockError(f"water: {why}")
     return name
 
 

@@ -13,10 +13,9 @@ from dataclasses import dataclass, field
 from typing import Annotated
 
 from uwdock.dockcore.domains import Interval
-from uwdock.dockcore.errors import DockError
 from uwdock.sim.domains import TANK_SIZE_M, TankSide_m
 from uwdock.sim.vehicle import CurrentConfig, VehicleConfig, VehicleRandomisation
-from uwdock.sim.water import PRESET_ORDER, is_water_file, load_water_file
+from uwdock.sim.water import water_spec_error
 
 __all__ = ["MIN_CAMERA_WIDTH_PX", "WorldConfig"]
 
@@ -81,13 +80,6 @@ class WorldConfig:
                 f"water_device: must be None, 'cpu', 'cuda', 'cuda:N' or 'mps', got "
                 f"{str(self.water_device)[:40]!r}"
             )
-        if is_water_file(self.water_preset):
-            try:
-                load_water_file(self.water_preset)
-            except DockError as exc:
-                raise ValueError(f"water_preset: {exc}") from None
-        elif self.water_preset not in PRESET_ORDER:
-            raise ValueError(
-                f"water_preset: unknown {self.water_preset!r} (known: {', '.join(PRESET_ORDER)} "
-                "or a water file, *.toml)"
-            )
+        why = water_spec_error(self.water_preset, allow_none=False)
+        if why is not None:
+            raise ValueError(f"water_preset: {why}")
