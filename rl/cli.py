@@ -100,10 +100,19 @@ def cli() -> None:
     help="With --resume: accept --config/flags that change the run's config (recorded).",
 )
 @backend_options("the same rollouts; a run may be resumed on either")
+@click.option(
+    "--envs-per-worker",
+    "envs_per_worker",
+    type=domain_type(Annotated[int, Interval(ge=1, le=256)]),
+    default=1,
+    show_default=True,
+    help="Envs each worker process (or Ray actor) holds, sharing its renderer, torch and "
+    "memory; with Ray, one round trip per worker and step (the same rollouts).",
+)
 @out_dir_option("Run folder.", required=True)
 def train(
     config_path, obs, error_model, usbl, water, algo, steps, envs, seed, init_policy, resume,
-    allow_config_change, backend, ray_address, out_dir,
+    allow_config_change, backend, ray_address, envs_per_worker, out_dir,
 ) -> None:  # fmt: skip
     """Train a docking policy (PPO with the paper's hyperparameters by default).
 
@@ -140,6 +149,7 @@ def train(
         allow_config_change=allow_config_change,
         backend=backend,
         ray_address=ray_address,
+        envs_per_worker=envs_per_worker,
     )
     click.echo(f"policy: {final}")
 

@@ -54,7 +54,7 @@ from uwdock.rl.observation import actor_observation_size, observation_size
 from uwdock.rl.policy_io import check_obs_dim, load_policy
 from uwdock.rl.ray_envs import RayEnvWorkers
 from uwdock.rl.session import TrainingSession, load_vecnormalize
-from uwdock.rl.workers import EnvWorkers
+from uwdock.rl.vec_envs import EnvWorkers, env_groups
 
 _LearningRate = Annotated[float, Interval(gt=0, le=1)]
 _Width = Annotated[int, Interval(ge=1, le=4096)]  # units in a hidden layer
@@ -287,6 +287,7 @@ def train(
     note: Callable[[str], None] = _stderr_note,
     backend: str = "local",
     ray_address: str | None = None,
+    envs_per_worker: int = 1,
 ) -> Path:
     """Train (or resume) into ``run_dir``; returns the final policy path.
 
@@ -307,14 +308,23 @@ def train(
         backend: where the ``cfg.n_envs`` env workers run: ``"local"`` processes or ``"ray"``
             actors (:mod:`rl.ray_envs`; the same rollouts). Not part of the run's config: a
             run may be resumed on either.
-        ray_address: the Ray cluster (None: a local Ray instance with ``n_envs`` CPUs).
+        ray_address: the Ray cluster (None: a local Ray instance with a CPU per worker).
+        envs_per_worker: envs each worker process or actor holds, sharing its renderer
+            (:mod:`rl.vec_envs`; the same rollouts). Not part of the run's config either.
 
     Raises:
         DockError: a bad config, a run folder that does not fit the request, a damaged or
             non-finite policy, a failed environment worker.
     """
     cfg = validated(cfg)
-    pool = PoolConfig(backend, cfg.n_envs, ray_address)
+    if (
+        isinstance(envs_per_worker, bool)
+        or not isinstance(envs_per_worker, int)
+        or not (1 <= envs_per_worker <= 256)
+    ):
+        raise DockError(f"envs_per_worker: must be an integer in [1, 256], got {envs_per_worker!r}")
+    workers = len(env_groups(cfg.n_envs, envs_per_worker))
+    pool = PoolConfig(backend, workers, ray_address)
     try:
         pool.validate()
     except ValueError as exc:
@@ -353,7 +363,7 @@ def train(
             write_provenance(run, {"train": cfg})
         done.unlink(missing_ok=True)
         _note_rollout_rounding(cfg, note)
-        return _run(cfg, run, unit, init, progress, note, pool)
+        return _run(cfg, run, unit, init, progress, note, pool, envs_per_worker)
 
 
 def _log_resume(run: Path, unit, changed: list[str], cfg: TrainConfig) -> None:
@@ -371,7 +381,9 @@ def _log_resume(run: Path, unit, changed: list[str], cfg: TrainConfig) -> None:
         atomic_write_text(run / "config.toml", dumps_toml({"train": cfg}))
 
 
-def _run(cfg: TrainConfig, run: Path, unit, init, progress: bool, note, pool: PoolConfig) -> Path:
+def _run(
+    cfg: TrainConfig, run: Path, unit, init, progress: bool, note, pool: PoolConfig, per_worker: int
+) -> Path:
     import torch
     from stable_baselines3 import PPO, SAC
     from stable_baselines3.common.vec_env import VecNormalize
@@ -380,9 +392,9 @@ def _run(cfg: TrainConfig, run: Path, unit, init, progress: bool, note, pool: Po
     algo_cls = PPO if cfg.algo == "ppo" else SAC
     gamma = cfg.ppo.gamma if cfg.algo == "ppo" else cfg.sac.gamma
     if pool.backend == "ray":
-        workers: Any = RayEnvWorkers(cfg.env, cfg.n_envs, cfg.seed, pool.ray_address)
+        workers: Any = RayEnvWorkers(cfg.env, cfg.n_envs, cfg.seed, pool.ray_address, per_worker)
     else:
-        workers = EnvWorkers(cfg.env, cfg.n_envs, cfg.seed)
+        workers = EnvWorkers(cfg.env, cfg.n_envs, cfg.seed, per_worker)
     session = None
     try:
         venv = workers.venv

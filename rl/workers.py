@@ -1,6 +1,7 @@
-"""The training environments: ``n_envs`` docking envs, in worker processes when more than one.
+"""What runs in a training env worker: the env, built once, and the report of its failure.
 
-What this adds to SB3's ``SubprocVecEnv``:
+The learner's side (the vectorised env over the workers) is :mod:`rl.vec_envs` (local
+processes) and :mod:`rl.ray_envs` (Ray actors). What a worker adds to SB3's own:
 
 * **one line for a worker's failure**: an env that cannot be built (a typo in a file name, a
   damaged error model) or fails during a step (a simulator blow-up) writes its one-line reason
@@ -17,12 +18,9 @@ What this adds to SB3's ``SubprocVecEnv``:
 
 from __future__ import annotations
 
-import multiprocessing
 import os
 import pickle
 import signal
-import tempfile
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -142,77 +140,3 @@ def _make_env_fn(
         return env if error_file is None else _guarded_env(env, error_file, index)
 
     return make
-
-
-class EnvWorkers:
-    """The vectorised training env and the files its workers report failures in.
-
-    Attributes:
-        venv: the SB3 VecEnv (``DummyVecEnv`` for one env, else ``SubprocVecEnv``).
-    """
-
-    def __init__(self, env_cfg: EnvConfig, n_envs: int, seed: int) -> None:
-        from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
-
-        self._dir = None
-        if n_envs == 1:
-            self.venv = DummyVecEnv([_make_env_fn(env_cfg, seed, 0, None, None)])
-            return
-        self._dir = tempfile.TemporaryDirectory(prefix="uwdock-workers-")
-        parent = os.getpid()
-        fns = [
-            _make_env_fn(env_cfg, seed + i, i, str(Path(self._dir.name) / f"env{i}.err"), parent)
-            for i in range(n_envs)
-        ]
-        before = set(multiprocessing.active_children())
-        try:
-            self.venv = SubprocVecEnv(fns, start_method="fork" if os.name == "posix" else "spawn")
-        except (EOFError, ConnectionError) as exc:
-            # the half-built VecEnv is gone: find its workers among this process's children
-            self._orphans = [p for p in multiprocessing.active_children() if p not in before]
-            self.raise_worker_error(exc)
-
-    def _processes(self) -> list:
-        venv = getattr(self, "venv", None)
-        return list(getattr(venv, "processes", []) or []) + list(getattr(self, "_orphans", []))
-
-    def worker_errors(self) -> list[str]:
-        """The reasons written by failed workers so far."""
-        if self._dir is None:
-            return []
-        out = []
-        for p in sorted(Path(self._dir.name).glob("env*.err")):
-            text = p.read_text(encoding="utf-8", errors="replace").strip()
-            if text:
-                out.append(text)
-        return out
-
-    def raise_worker_error(self, exc: BaseException) -> None:
-        """Raise a :class:`WorkerError` with the workers' reasons (``exc``: what the parent
-        saw, used when no worker left a reason)."""
-        deadline = time.monotonic() + 3.0  # let the other failing workers write their reason
-        for p in self._processes():
-            p.join(timeout=max(0.0, deadline - time.monotonic()))
-        reasons = self.worker_errors()
-        self.close(force=True)
-        what = "; ".join(reasons) if reasons else f"a worker process died ({_reason(exc)})"
-        raise WorkerError(f"environment worker failed: {what}") from None
-
-    def close(self, force: bool = False) -> None:
-        """Close the envs; with ``force`` (or if they do not answer), terminate the workers."""
-        venv = getattr(self, "venv", None)
-        procs = self._processes()
-        if venv is not None and not force:
-            try:
-                venv.close()
-            except Exception:
-                force = True
-        for p in procs:  # workers hold nothing worth flushing: SIGKILL the ones still there
-            if not force:
-                p.join(timeout=2.0)
-            if p.is_alive():
-                p.kill()
-                p.join(timeout=2.0)
-        if self._dir is not None:
-            self._dir.cleanup()
-            self._dir = None

@@ -568,7 +568,7 @@ def test_training_evaluation_on_the_env_workers_equals_one_process(tmp_path):
 
     from uwdock.rl.session import EVAL_SEED, TrainingSession
     from uwdock.rl.train import TrainConfig
-    from uwdock.rl.workers import EnvWorkers
+    from uwdock.rl.vec_envs import EnvWorkers
 
     cfg = TrainConfig(env=replace(SHORT, terminate_on="strict"), eval_episodes=5, n_envs=2)
     workers = EnvWorkers(cfg.env, 2, seed=0)

@@ -209,8 +209,8 @@ def _rl(*args) -> list[str]:
 @pytest.mark.render
 def test_training_on_ray_env_workers_resumes_and_equals_the_local_run(tmp_path):
     """Env workers as Ray actors behind SB3's VecEnv: killed after its first checkpoint and
-    resumed (on Ray), the run equals an uninterrupted local run file by file (checkpoints,
-    evaluation history, best/, the final policy)."""
+    resumed (on Ray, now both envs in one actor), the run equals an uninterrupted local run file
+    by file (checkpoints, evaluation history, best/, the final policy)."""
     cfg = tmp_path / "train.toml"
     cfg.write_text(TRAIN)
     local = tmp_path / "local"
@@ -230,7 +230,8 @@ def test_training_on_ray_env_workers_resumes_and_equals_the_local_run(tmp_path):
     proc.kill()
     _, err = proc.communicate(timeout=60)
     assert "Traceback" not in err, err[-2000:]
-    resumed = subprocess.run(_rl("train", "--out", run, "--resume", "--backend", "ray"),
+    resumed = subprocess.run(_rl("train", "--out", run, "--resume", "--backend", "ray",
+                                 "--envs-per-worker", 2),
                              capture_output=True, text=True, timeout=300)  # fmt: skip
     assert resumed.returncode == 0, resumed.stderr[-2000:]
     log = [json.loads(line) for line in (run / "resume_log.jsonl").read_text().splitlines()]

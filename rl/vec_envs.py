@@ -1,0 +1,451 @@
+"""The learner's vectorised training env over local worker processes, one env or several each.
+
+:class:`EnvWorkers` holds ``n_envs`` docking envs: in this process for one env (SB3's
+``DummyVecEnv``), else in worker processes (:mod:`rl.workers`: failures as one line, no
+orphans, the periodic evaluation's shares), one env each (SB3's ``SubprocVecEnv``) or, with
+``envs_per_worker = K``, ``K`` each (:class:`GroupedVecEnv` over :class:`PipeHosts`).
+
+Several envs per worker (``rl train --envs-per-worker K``): with one env per worker, every
+worker process loads torch, SAPIEN and OpenCV and opens its own render device (on a GPU each
+holds its own Vulkan and CUDA context; on a cluster each costs a process's memory; on Ray every
+env step is a round trip to one actor). A worker here holds an :class:`EnvGroup` of ``K`` envs
+that share the process: its SAPIEN renderer (one render device per process; each env keeps its
+own scene), its torch and its imports. A step sends a group all its envs' actions at once and
+gets their results back in one message.
+
+Every env is built exactly as the one-env workers build theirs (:func:`rl.workers._make_env_fn`:
+``Monitor(DockingEnv)``, first reset with ``seed + i``) and answers SB3's worker commands with
+``SubprocVecEnv``'s semantics (auto-reset with ``terminal_observation``,
+``TimeLimit.truncated``, seeds and options used once). The envs share no random state, so the
+rollouts, checkpoints and evaluations do not depend on ``K`` or on the backend (tests). The Ray
+backend (:mod:`rl.ray_envs`) puts the same groups in Ray actors.
+"""
+
+from __future__ import annotations
+
+import functools
+import multiprocessing
+import os
+import pickle
+import signal
+import tempfile
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from uwdock.dockcore.procs import die_with_parent
+from uwdock.rl.config import EnvConfig
+from uwdock.rl.workers import WorkerError, _make_env_fn, _reason, _report_and_exit
+
+__all__ = ["EnvGroup", "EnvWorkers", "GroupedVecEnv", "PipeHosts", "env_groups"]
+
+
+def env_groups(n_envs: int, envs_per_worker: int) -> list[list[int]]:
+    """The env indices each worker holds: consecutive runs of ``envs_per_worker`` (the last
+    one shorter when it does not divide ``n_envs``)."""
+    k = max(1, min(int(envs_per_worker), int(n_envs)))
+    return [list(range(s, min(s + k, n_envs))) for s in range(0, n_envs, k)]
+
+
+class EnvGroup:
+    """The envs of one worker (see the module docstring); its methods take the envs' *slots*
+    (their positions in the group) and return one result per env.
+
+    Args:
+        indices: the envs' indices in the whole vectorised env.
+
+    Attributes:
+        current: the index of the env being called (a failure names it).
+    """
+
+    def __init__(self, indices: Sequence[int]) -> None:
+        self.indices = [int(i) for i in indices]
+        self.current = self.indices[0]
+        self.envs: list[Any] = []
+
+    def build(self, env_cfg: EnvConfig, seed: int) -> None:
+        """Build the envs (env ``i`` first reset with ``seed + i``)."""
+        for i in self.indices:
+            self.current = i
+            self.envs.append(_make_env_fn(env_cfg, seed + i, i, None, None)())
+
+    def _env(self, slot: int) -> Any:
+        self.current = self.indices[slot]
+        return self.envs[slot]
+
+    def spaces(self) -> bytes:
+        # pickled here and unpickled by the learner: the same bytes whatever the transport
+        # (Ray's hands arrays back read-only, which would pickle into checkpoints differently)
+        env = self._env(0)
+        return pickle.dumps((env.observation_space, env.action_space))
+
+    def step(self, actions: Sequence[np.ndarray]) -> list[tuple[Any, float, bool, dict, dict]]:
+        out = []
+        for slot, action in enumerate(actions):
+            env = self._env(slot)
+            obs, reward, terminated, truncated, info = env.step(action)
+            done = terminated or truncated
+            info["TimeLimit.truncated"] = truncated and not terminated
+            reset_info: dict = {}
+            if done:
+                info["terminal_observation"] = obs
+                obs, reset_info = env.reset()
+            out.append((obs, reward, done, info, reset_info))
+        return out
+
+    def reset(self, seeds: Sequence[int | None], options: Sequence[dict | None]) -> list:
+        out = []
+        for slot, (seed, opts) in enumerate(zip(seeds, options, strict=True)):
+            env = self._env(slot)
+            out.append(env.reset(seed=seed, **({"options": opts} if opts else {})))
+        return out
+
+    def env_method(self, slots: Sequence[int], name: str, args: tuple, kwargs: dict) -> list:
+        out = []
+        for slot in slots:
+            env = self._env(slot)
+            if name == "evaluate_share":  # this env's share of the periodic evaluation
+                out.append(args[0].rows(self.indices[slot]))
+            else:
+                out.append(env.get_wrapper_attr(name)(*args, **kwargs))
+        return out
+
+    def get_attr(self, slots: Sequence[int], name: str) -> list:
+        return [self._env(s).get_wrapper_attr(name) for s in slots]
+
+    def has_attr(self, slots: Sequence[int], name: str) -> list[bool]:
+        out = []
+        for s in slots:
+            try:
+                self._env(s).get_wrapper_attr(name)
+            except AttributeError:
+                out.append(False)
+            else:
+                out.append(True)
+        return out
+
+    def set_attr(self, slots: Sequence[int], name: str, value: Any) -> list[None]:
+        for s in slots:
+            setattr(self._env(s), name, value)
+        return [None] * len(slots)
+
+    def is_wrapped(self, slots: Sequence[int], wrapper_class: type) -> list[bool]:
+        from stable_baselines3.common.env_util import is_wrapped
+
+        return [is_wrapped(self._env(s), wrapper_class) for s in slots]
+
+    def render(self, slots: Sequence[int]) -> list:
+        return [self._env(s).render() for s in slots]
+
+    def close(self) -> None:
+        for slot in range(len(self.envs)):
+            self._env(slot).close()
+
+
+class Hosts(Protocol):
+    """Where the groups live: call a group's method without waiting, then wait for results."""
+
+    def submit(self, worker: int, method: str, *args: Any) -> Any:
+        """Start ``group.<method>(*args)`` on ``worker``; returns a handle for :meth:`gather`."""
+
+    def gather(self, handles: Sequence[Any]) -> list[Any]:
+        """The results of the handles' calls, in order (a failure raises)."""
+
+    def shutdown(self) -> None:
+        """Stop the workers (after their groups were closed, or when they cannot answer)."""
+
+
+# ----------------------------------------------------------------------------- local processes
+
+
+def _group_worker(
+    conn: Any, parent_end: Any, env_cfg: EnvConfig, seed: int, indices: list[int],
+    error_dir: str, parent: int,
+) -> None:  # fmt: skip
+    """A local worker process: build the group, then answer the learner's calls until
+    ``close``. A failure writes ``env{i}.err`` (its one-line reason) and ends the process; the
+    learner, finding the pipe closed, reads the reason (:class:`rl.workers.EnvWorkers`)."""
+    parent_end.close()
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent alone handles signals
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    die_with_parent(parent)
+    import torch  # one thread per worker (see rl.workers._make_env_fn)
+
+    torch.set_num_threads(1)
+    group = EnvGroup(indices)
+    try:
+        group.build(env_cfg, seed)
+        while True:
+            try:
+                method, args = conn.recv()
+            except EOFError:  # the learner is gone
+                return
+            if method == "close":
+                group.close()
+                conn.send(None)
+                return
+            conn.send(getattr(group, method)(*args))
+    except Exception as exc:
+        _report_and_exit(str(Path(error_dir) / f"env{group.current}.err"), group.current, exc)
+
+
+class PipeHosts:
+    """The groups in forked local processes, one pipe each (the local backend with
+    ``envs_per_worker > 1``).
+
+    Args:
+        env_cfg: the training env.
+        seed: env ``i`` is first reset with ``seed + i``.
+        groups: the env indices of each worker (:func:`env_groups`).
+        error_dir: where a failing worker writes ``env{i}.err``.
+
+    Attributes:
+        processes: the worker processes.
+    """
+
+    def __init__(
+        self, env_cfg: EnvConfig, seed: int, groups: list[list[int]], error_dir: str
+    ) -> None:
+        ctx = multiprocessing.get_context("fork" if os.name == "posix" else "spawn")
+        self.conns: list[Any] = []
+        self.processes: list[Any] = []
+        parent = os.getpid()
+        for indices in groups:
+            here, there = ctx.Pipe()
+            p = ctx.Process(
+                target=_group_worker,
+                args=(there, here, env_cfg, seed, indices, error_dir, parent),
+                daemon=True,
+            )
+            p.start()
+            there.close()
+            self.conns.append(here)
+            self.processes.append(p)
+
+    def submit(self, worker: int, method: str, *args: Any) -> int:
+        self.conns[worker].send((method, args))
+        return worker
+
+    def gather(self, handles: Sequence[int]) -> list[Any]:
+        # a dead worker: EOFError / ConnectionError, which the trainer turns into its reason
+        return [self.conns[w].recv() for w in handles]
+
+    def shutdown(self) -> None:
+        for c in self.conns:
+            c.close()
+
+
+# ----------------------------------------------------------------------------- the learner's side
+
+
+@functools.cache
+def _grouped_vec_env_class() -> type:
+    """:class:`GroupedVecEnv`'s class, made on first use (SB3 is imported only then)."""
+    from stable_baselines3.common.vec_env import VecEnv
+    from stable_baselines3.common.vec_env.subproc_vec_env import _stack_obs
+
+    class GroupedVecEnv(VecEnv):
+        """``n_envs`` envs in groups on workers behind SB3's ``VecEnv`` (module docstring).
+
+        Args:
+            hosts: the workers (:class:`PipeHosts` or :class:`rl.ray_envs.RayHosts`).
+            groups: the env indices each worker holds (:func:`env_groups`).
+        """
+
+        def __init__(self, hosts: Hosts, groups: list[list[int]]) -> None:
+            self.hosts = hosts
+            self.groups = groups
+            self._where = [(w, s) for w, g in enumerate(groups) for s in range(len(g))]
+            self.waiting = False
+            self.closed = False
+            self._pending: list[Any] = []
+            spaces = hosts.gather([hosts.submit(0, "spaces")])[0]
+            obs_space, act_space = pickle.loads(spaces)
+            super().__init__(len(self._where), obs_space, act_space)
+
+        @property
+        def processes(self) -> list[Any]:
+            """The local worker processes (none on Ray)."""
+            return list(getattr(self.hosts, "processes", []))
+
+        def _by_group(self, method: str, per_env: Sequence[Any] | None, *args: Any) -> list:
+            """Call ``method`` once per group, with its envs' share of ``per_env`` first."""
+            handles = []
+            for w, g in enumerate(self.groups):
+                share = () if per_env is None else ([per_env[i] for i in g],)
+                handles.append(self.hosts.submit(w, method, *share, *args))
+            return handles
+
+        def _per_env(self, method: str, indices: Any, *args: Any) -> list[Any]:
+            """``group.<method>(slots, *args)`` for the given envs, results in their order."""
+            idx = list(self._get_indices(indices))
+            by_worker: dict[int, list[int]] = {}
+            for i in idx:
+                by_worker.setdefault(self._where[i][0], []).append(i)
+            handles = [
+                self.hosts.submit(w, method, [self._where[i][1] for i in envs], *args)
+                for w, envs in by_worker.items()
+            ]
+            found: dict[int, Any] = {}
+            for envs, res in zip(by_worker.values(), self.hosts.gather(handles), strict=True):
+                found.update(zip(envs, res, strict=True))
+            return [found[i] for i in idx]
+
+        def step_async(self, actions: np.ndarray) -> None:
+            self._pending = self._by_group("step", actions)
+            self.waiting = True
+
+        def step_wait(self):
+            results = [r for rs in self.hosts.gather(self._pending) for r in rs]
+            self.waiting = False
+            obs, rews, dones, infos, self.reset_infos = zip(*results, strict=True)
+            return _stack_obs(obs, self.observation_space), np.stack(rews), np.stack(dones), infos
+
+        def reset(self):
+            handles = []
+            for w, g in enumerate(self.groups):
+                seeds = [self._seeds[i] for i in g]
+                handles.append(self.hosts.submit(w, "reset", seeds, [self._options[i] for i in g]))
+            results = [r for rs in self.hosts.gather(handles) for r in rs]
+            obs, self.reset_infos = zip(*results, strict=True)
+            self._reset_seeds()
+            self._reset_options()
+            return _stack_obs(obs, self.observation_space)
+
+        def close(self) -> None:
+            if self.closed:
+                return
+            try:
+                if self.waiting:
+                    self.hosts.gather(self._pending)
+                self.hosts.gather(self._by_group("close", None))
+            except Exception:  # a worker already gone: nothing to flush
+                pass
+            self.hosts.shutdown()
+            self.closed = True
+
+        def get_images(self) -> Sequence[np.ndarray | None]:
+            return self._per_env("render", None)
+
+        def has_attr(self, attr_name: str) -> bool:
+            return all(self._per_env("has_attr", None, attr_name))
+
+        def get_attr(self, attr_name: str, indices=None) -> list[Any]:
+            return self._per_env("get_attr", indices, attr_name)
+
+        def set_attr(self, attr_name: str, value: Any, indices=None) -> None:
+            self._per_env("set_attr", indices, attr_name, value)
+
+        def env_method(
+            self, method_name: str, *method_args, indices=None, **method_kwargs
+        ) -> list[Any]:
+            return self._per_env("env_method", indices, method_name, method_args, method_kwargs)
+
+        def env_is_wrapped(self, wrapper_class: type, indices=None) -> list[bool]:
+            return self._per_env("is_wrapped", indices, wrapper_class)
+
+    return GroupedVecEnv
+
+
+def GroupedVecEnv(hosts: Hosts, groups: list[list[int]]) -> Any:
+    """An SB3 ``VecEnv`` over the env groups of ``hosts`` (see the module docstring)."""
+    return _grouped_vec_env_class()(hosts, groups)
+
+
+# ----------------------------------------------------------------------------- the trainer's handle
+
+
+class EnvWorkers:
+    """The vectorised training env and the files its workers report failures in.
+
+    Args:
+        env_cfg: the training env.
+        n_envs: number of envs.
+        seed: env ``i`` is first reset with ``seed + i``.
+        envs_per_worker: envs each worker process holds (module docstring).
+
+    Attributes:
+        venv: the SB3 VecEnv (``DummyVecEnv`` for one env, ``SubprocVecEnv`` for one env per
+            worker, else :class:`GroupedVecEnv`).
+    """
+
+    def __init__(
+        self, env_cfg: EnvConfig, n_envs: int, seed: int, envs_per_worker: int = 1
+    ) -> None:
+        from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+
+        self._dir = None
+        if n_envs == 1:
+            self.venv = DummyVecEnv([_make_env_fn(env_cfg, seed, 0, None, None)])
+            return
+        self._dir = tempfile.TemporaryDirectory(prefix="uwdock-workers-")
+        groups = env_groups(n_envs, envs_per_worker)
+        if len(groups) < n_envs:
+            self._hosts = PipeHosts(env_cfg, seed, groups, self._dir.name)
+            try:
+                self.venv = GroupedVecEnv(self._hosts, groups)
+            except (EOFError, ConnectionError) as exc:
+                self.raise_worker_error(exc)
+            return
+        parent = os.getpid()
+        fns = [
+            _make_env_fn(env_cfg, seed + i, i, str(Path(self._dir.name) / f"env{i}.err"), parent)
+            for i in range(n_envs)
+        ]
+        before = set(multiprocessing.active_children())
+        try:
+            self.venv = SubprocVecEnv(fns, start_method="fork" if os.name == "posix" else "spawn")
+        except (EOFError, ConnectionError) as exc:
+            # the half-built VecEnv is gone: find its workers among this process's children
+            self._orphans = [p for p in multiprocessing.active_children() if p not in before]
+            self.raise_worker_error(exc)
+
+    def _processes(self) -> list:
+        venv = getattr(self, "venv", None)
+        hosts = getattr(self, "_hosts", None)
+        procs = hosts.processes if hosts is not None else getattr(venv, "processes", None)
+        return list(procs or []) + list(getattr(self, "_orphans", []))
+
+    def worker_errors(self) -> list[str]:
+        """The reasons written by failed workers so far."""
+        if self._dir is None:
+            return []
+        out = []
+        for p in sorted(Path(self._dir.name).glob("env*.err")):
+            text = p.read_text(encoding="utf-8", errors="replace").strip()
+            if text:
+                out.append(text)
+        return out
+
+    def raise_worker_error(self, exc: BaseException) -> None:
+        """Raise a :class:`WorkerError` with the workers' reasons (``exc``: what the parent
+        saw, used when no worker left a reason)."""
+        deadline = time.monotonic() + 3.0  # let the other failing workers write their reason
+        for p in self._processes():
+            p.join(timeout=max(0.0, deadline - time.monotonic()))
+        reasons = self.worker_errors()
+        self.close(force=True)
+        what = "; ".join(reasons) if reasons else f"a worker process died ({_reason(exc)})"
+        raise WorkerError(f"environment worker failed: {what}") from None
+
+    def close(self, force: bool = False) -> None:
+        """Close the envs; with ``force`` (or if they do not answer), terminate the workers."""
+        venv = getattr(self, "venv", None)
+        procs = self._processes()
+        if venv is not None and not force:
+            try:
+                venv.close()
+            except Exception:
+                force = True
+        for p in procs:  # workers hold nothing worth flushing: SIGKILL the ones still there
+            if not force:
+                p.join(timeout=2.0)
+            if p.is_alive():
+                p.kill()
+                p.join(timeout=2.0)
+        if self._dir is not None:
+            self._dir.cleanup()
+            self._dir = None
