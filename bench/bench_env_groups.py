@@ -3,11 +3,12 @@
 Usage::
 
     python bench/bench_env_groups.py [--envs 4] [--per-worker 1,2,4] [--repeats 3]
-        [--proxy-steps 6144] [--camera-steps 512] [--sources proxy,camera]
+        [--proxy-steps 6144] [--camera-steps 2048] [--sources proxy,camera]
         [--backends local,ray]
 
 Each timing is one whole ``rl train`` command in a fresh process (PPO, ``--envs`` envs, no
-checkpoints or evaluations in between), the median of ``--repeats``, for every ``K`` of
+checkpoints or evaluations in between; the steps are the ones the run did, ``--steps`` rounded
+up to whole rollouts of 512 steps per env), the median of ``--repeats``, for every ``K`` of
 ``--per-worker`` and every backend (Ray through a head started once with ``ray start``, as on a
 cluster). While it runs, the proportional set size (PSS: shared pages divided among the
 processes sharing them) of the command's whole process tree is sampled every 0.2 s; its peak
@@ -24,6 +25,7 @@ Writes ``bench/results/env_groups.json`` (rows + machine, commit, packages).
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import shutil
 import statistics
@@ -100,12 +102,14 @@ def row(source: str, backend: str, k: int, a, toml: Path) -> dict:
     walls, peaks = [], []
     for _ in range(a.repeats):
         with tempfile.TemporaryDirectory(prefix="bench-groups-") as tmp:
+            run = Path(tmp) / "run"
             cmd = [str(BIN / "rl"), "train", "--config", str(toml), "--envs", str(a.envs),
-                   "--steps", str(steps), "--seed", "5", "--out", str(Path(tmp) / "run"),
+                   "--steps", str(steps), "--seed", "5", "--out", str(run),
                    "--envs-per-worker", str(k)]  # fmt: skip
             if backend == "ray":
                 cmd += ["--backend", "ray", "--ray-address", "auto"]
             wall, peak = _run(cmd)
+            steps = int(json.loads((run / "DONE").read_text())["steps"])  # whole rollouts
         walls.append(wall)
         peaks.append(peak)
     wall = statistics.median(walls)
@@ -123,7 +127,7 @@ def main() -> None:
     ap.add_argument("--per-worker", default="1,2,4")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--proxy-steps", type=int, default=6144)
-    ap.add_argument("--camera-steps", type=int, default=512)
+    ap.add_argument("--camera-steps", type=int, default=2048)
     ap.add_argument("--sources", default="proxy,camera")
     ap.add_argument("--backends", default="local,ray")
     ap.add_argument("--out-dir", type=Path, default=None)

@@ -93,7 +93,8 @@ class EnvConfig:
             ``sim fit-water``).
         water_device: None runs the water model with numpy/OpenCV on the CPU (the default);
             a torch device ("cuda", "cuda:1", "cpu") runs it with torch there
-            (:mod:`uwdock.sim.water_torch`: the same image within one grey level).
+            (:mod:`uwdock.sim.water_torch`: the same image within one grey level); "auto" on
+            the CUDA GPU SAPIEN renders with, where it renders on one (else numpy).
         marker_set_path: marker set file (None: the default DS set, generated into a cache).
         task: success criteria and docking geometry.
         reward: reward constants.

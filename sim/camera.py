@@ -30,7 +30,7 @@ from uwdock.sim.render import CameraRig, RenderResult
 from uwdock.sim.water import WaterConfig, apply_water
 from uwdock.sim.water_torch import apply_water_torch
 
-__all__ = ["Frame", "SimCamera"]
+__all__ = ["Frame", "SimCamera", "render_cuda_device"]
 
 #: Keep the current water of a :class:`SimCamera` (``capture(..., water=KEEP)``).
 KEEP: Literal["keep"] = "keep"
@@ -59,6 +59,18 @@ class Frame:
         return cv2.cvtColor(self.img_rgb, cv2.COLOR_RGB2BGR)
 
 
+def render_cuda_device(rig: CameraRig) -> str | None:
+    """The torch device of the CUDA GPU the rig's scene renders on (``"cuda:N"``), or None
+    where SAPIEN renders without one (lavapipe on the CPU, a GPU CUDA cannot see) or torch has
+    no CUDA: the water then stays with numpy on the CPU, next to the picture."""
+    device = rig.entity.scene.render_system.device
+    if not device.is_cuda() or device.cuda_id < 0:
+        return None
+    import torch  # only where SAPIEN renders on a CUDA GPU
+
+    return f"cuda:{device.cuda_id}" if torch.cuda.is_available() else None
+
+
 class SimCamera:
     """A camera rig of a render scene plus the water between it and the scene.
 
@@ -67,7 +79,8 @@ class SimCamera:
         water: water and sensor model applied to each capture; None: the image in air.
         water_device: None applies the water with numpy/OpenCV (:func:`sim.water.apply_water`);
             a torch device ("cuda", "cpu") with torch there
-            (:func:`sim.water_torch.apply_water_torch`, the same image within one grey level).
+            (:func:`sim.water_torch.apply_water_torch`, the same image within one grey level);
+            "auto": :func:`render_cuda_device` (the renderer's GPU, or None).
     """
 
     def __init__(
@@ -75,7 +88,7 @@ class SimCamera:
     ) -> None:
         self.rig = rig
         self.water = water
-        self.water_device = water_device
+        self.water_device = render_cuda_device(rig) if water_device == "auto" else water_device
 
     @property
     def model(self) -> CameraModel:

@@ -39,7 +39,8 @@ class WorldConfig:
             name or a water file (``*.toml`` with a ``[water]`` table, e.g. from
             ``sim fit-water``).
         water_device: None: the water model in numpy/OpenCV on the CPU; a torch device
-            ("cuda", "cpu"): :func:`uwdock.sim.water_torch.apply_water_torch` there.
+            ("cuda", "cpu"): :func:`uwdock.sim.water_torch.apply_water_torch` there;
+            "auto": on the CUDA GPU SAPIEN renders with, where it renders on one (else None).
         randomise_vehicle: draw the vehicle's parameters (and thruster placement) per episode.
         camera_mount_error_m: the camera's true mounting differs from its calibration by a
             translation drawn per episode, each camera axis uniform within +- this (m); the
@@ -74,10 +75,10 @@ class WorldConfig:
                 f"got {self.camera_width_px}"
             )
         if self.water_device is not None and not re.fullmatch(
-            r"(cpu|cuda(:\d+)?|mps)", str(self.water_device)
+            r"(auto|cpu|cuda(:\d+)?|mps)", str(self.water_device)
         ):
             raise ValueError(
-                f"water_device: must be None, 'cpu', 'cuda', 'cuda:N' or 'mps', got "
+                f"water_device: must be None, 'auto', 'cpu', 'cuda', 'cuda:N' or 'mps', got "
                 f"{str(self.water_device)[:40]!r}"
             )
         why = water_spec_error(self.water_preset, allow_none=False)

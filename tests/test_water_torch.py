@@ -217,3 +217,38 @@ def test_world_config_checks_the_water_device():
     WorldConfig(water_device="cuda:1").validate()
     with pytest.raises(ValueError, match="water_device"):
         WorldConfig(water_device="gpu0").validate()
+    WorldConfig(water_device="auto").validate()
+
+
+@pytest.mark.render
+def test_auto_keeps_the_water_on_numpy_where_sapien_renders_without_cuda():
+    """``water_device = "auto"`` on lavapipe (no CUDA GPU): numpy, the default frames exactly."""
+    rs = make_render_scene()
+    T = rs.ds.T_worldned_ds.copy()
+    T[2, 3] -= 4.0
+    T[:3, :3] = np.eye(3)
+    auto = SimCamera(rs.rig, PRESETS["coastal"], water_device="auto")
+    if rs.scene.render_system.device.is_cuda():
+        pytest.skip("SAPIEN renders on a CUDA GPU here")
+    assert auto.water_device is None
+    a = SimCamera(rs.rig, PRESETS["coastal"]).capture(T, np.random.default_rng(3)).img_rgb
+    assert np.array_equal(a, auto.capture(T, np.random.default_rng(3)).img_rgb)
+
+
+def test_auto_picks_the_cuda_gpu_the_renderer_uses(monkeypatch):
+    """The renderer's CUDA index becomes the water's torch device, when torch sees CUDA."""
+    from types import SimpleNamespace
+
+    from uwdock.sim.camera import render_cuda_device
+
+    def rig(is_cuda: bool, cuda_id: int):
+        device = SimpleNamespace(is_cuda=lambda: is_cuda, cuda_id=cuda_id)
+        scene = SimpleNamespace(render_system=SimpleNamespace(device=device))
+        return SimpleNamespace(entity=SimpleNamespace(scene=scene))
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    assert render_cuda_device(rig(True, 1)) == "cuda:1"
+    assert render_cuda_device(rig(True, -1)) is None  # a GPU CUDA cannot see
+    assert render_cuda_device(rig(False, -1)) is None  # lavapipe
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert render_cuda_device(rig(True, 0)) is None  # torch without CUDA
