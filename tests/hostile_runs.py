@@ -1,8 +1,10 @@
-"""Helpers of the hostile-input tests of ``sim`` and ``datasets``: the one-line error check, a
-dataset folder as bytes, and a command group run as a real process of its own."""
+"""Helpers of the hostile-input and resume tests: the one-line error check, a dataset folder as
+bytes, a training run's files as digests, and a command group run as a real process of its
+own."""
 
 from __future__ import annotations
 
+import hashlib
 import os
 import subprocess
 import sys
@@ -22,6 +24,21 @@ def assert_refused(res, out: Path | None = None) -> str:
     if out is not None:
         assert not out.exists(), f"{out} was created: {sorted(p.name for p in out.iterdir())}"
     return lines[0]
+
+
+#: What a training run writes about itself (logs, its owner, timings, a figure's metadata):
+#: not part of the run's results.
+RUN_BOOKKEEPING = ("tb/", "provenance.json", "resume_log.jsonl", ".uwdock", "eval_history.png")
+
+
+def run_digest(run: Path) -> dict[str, str]:
+    """A training run's files (but for :data:`RUN_BOOKKEEPING`) by relative path -> sha256."""
+    out = {}
+    for p in sorted(run.rglob("*")):
+        rel = p.relative_to(run).as_posix()
+        if p.is_file() and not rel.startswith(RUN_BOOKKEEPING):
+            out[rel] = hashlib.sha256(p.read_bytes()).hexdigest()
+    return out
 
 
 def tree(root: Path) -> dict[str, bytes]:

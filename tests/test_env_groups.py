@@ -10,6 +10,7 @@ from pathlib import Path
 import psutil
 import pytest
 
+from tests.hostile_runs import run_digest
 from uwdock.rl import cli
 from uwdock.rl.vec_envs import env_groups
 
@@ -46,24 +47,15 @@ n_steps = 24
 batch_size = 48
 n_epochs = 1
 """
-_SKIP = ("tb/", "provenance.json", "resume_log.jsonl", ".uwdock", "eval_history.png")
 
 
-def _digest(run: Path) -> dict[str, bytes]:
-    return {
-        p.relative_to(run).as_posix(): p.read_bytes()
-        for p in sorted(run.rglob("*"))
-        if p.is_file() and not p.relative_to(run).as_posix().startswith(_SKIP)
-    }
-
-
-def _train(run_cli, cfg: Path, out: Path, *extra) -> dict[str, bytes]:
+def _train(run_cli, cfg: Path, out: Path, *extra) -> dict[str, str]:
     res = run_cli(cli.main, "train", "--config", cfg, "--out", out, *extra)
     assert res.code == 0, res.err[-2000:]
-    return _digest(out)
+    return run_digest(out)
 
 
-def _same(a: dict[str, bytes], b: dict[str, bytes]) -> None:
+def _same(a: dict[str, str], b: dict[str, str]) -> None:
     assert sorted(a) == sorted(b)
     assert [k for k in a if a[k] != b[k]] == []
     assert any(k.startswith("checkpoints/") for k in a) and "eval_history.jsonl" in a

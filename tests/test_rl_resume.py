@@ -6,7 +6,6 @@ never outlive the command."""
 
 from __future__ import annotations
 
-import hashlib
 import json
 import random
 import shutil
@@ -19,6 +18,7 @@ from pathlib import Path
 import psutil
 import pytest
 
+from tests.hostile_runs import run_digest
 from uwdock.dockcore.config import load_config
 from uwdock.rl import cli
 from uwdock.rl.train import TrainConfig, train
@@ -49,22 +49,12 @@ episodes_per_iteration = 1
 epochs = 2
 critic_warmup_steps = 200
 """
-_SKIP = ("tb/", "provenance.json", "resume_log.jsonl", ".uwdock", "eval_history.png")
 
 
 def _rl(*args: str) -> list[str]:
     # the console script's path: `rl` imports its group inside the error handling, so a signal
     # that lands while it imports is one line too
     return [sys.executable, "-c", "from uwdock.cli import rl; rl()", *map(str, args)]
-
-
-def _digest(run: Path) -> dict[str, str]:
-    out = {}
-    for p in sorted(run.rglob("*")):
-        rel = p.relative_to(run).as_posix()
-        if p.is_file() and not rel.startswith(_SKIP):
-            out[rel] = hashlib.sha256(p.read_bytes()).hexdigest()
-    return out
 
 
 def _units(run: Path) -> list[str]:
@@ -152,7 +142,7 @@ def test_killed_and_resumed_training_equals_uninterrupted(reference):
 
     ref = _finished(reference)
     assert _units(run) == _units(ref) == [f"step_{n:010d}" for n in range(0, 513, 128)]
-    a, b = _digest(ref), _digest(run)
+    a, b = run_digest(ref), run_digest(run)
     assert sorted(a) == sorted(b)
     assert [k for k in a if a[k] != b[k]] == []
     history = [json.loads(line) for line in (run / "eval_history.jsonl").read_text().splitlines()]
@@ -178,7 +168,7 @@ def test_resume_falls_back_past_a_damaged_checkpoint(reference, tmp_path):
     train(cfg, run, resume=True, progress=False, note=notes.append)
     assert any("step_0000000512 is damaged" in n and "checksum" in n for n in notes), notes
     assert any("step_0000000384 is damaged" in n and "manifest" in n for n in notes), notes
-    a, b = _digest(ref), _digest(run)
+    a, b = run_digest(ref), run_digest(run)
     assert [k for k in a if a[k] != b.get(k)] == []
 
 

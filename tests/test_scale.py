@@ -22,6 +22,7 @@ from uwdock.dockcore.pool import PoolConfig, worker_pool
 ray = pytest.importorskip("ray")
 psutil = pytest.importorskip("psutil")
 
+from tests.hostile_runs import run_digest  # noqa: E402
 from uwdock import cli as uwdock_cli  # noqa: E402 - after the skips
 from uwdock.datasets.synth import SynthConfig, generate  # noqa: E402
 from uwdock.rl.config import EnvConfig  # noqa: E402
@@ -191,15 +192,6 @@ n_steps = 32
 batch_size = 64
 n_epochs = 2
 """
-_SKIP = ("tb/", "provenance.json", "resume_log.jsonl", ".uwdock", "eval_history.png")
-
-
-def _digest(run: Path) -> dict[str, bytes]:
-    return {
-        p.relative_to(run).as_posix(): p.read_bytes()
-        for p in sorted(run.rglob("*"))
-        if p.is_file() and not p.relative_to(run).as_posix().startswith(_SKIP)
-    }
 
 
 def _rl(*args) -> list[str]:
@@ -236,7 +228,7 @@ def test_training_on_ray_env_workers_resumes_and_equals_the_local_run(tmp_path):
     assert resumed.returncode == 0, resumed.stderr[-2000:]
     log = [json.loads(line) for line in (run / "resume_log.jsonl").read_text().splitlines()]
     assert log and log[-1]["from_step"] >= 128  # it went on from a checkpoint
-    a, b = _digest(local), _digest(run)
+    a, b = run_digest(local), run_digest(run)
     assert sorted(a) == sorted(b)
     assert [k for k in a if a[k] != b[k]] == []
 
@@ -278,7 +270,7 @@ def test_a_sweep_runs_each_trial_as_its_own_resumable_run(tmp_path, run_cli):
     cfg.write_text(SWEEP.replace("n_epochs = 1", "n_epochs = 1\nlearning_rate = 0.001") + "")
     res = run_cli(uwdock_cli.rl, "train", "--config", cfg, "--seed", "1", "--out", direct)
     assert res.code == 0, res.err[-2000:]
-    a, b = _digest(direct), _digest(out / "seed1_learning_rate=0.001")
+    a, b = run_digest(direct), run_digest(out / "seed1_learning_rate=0.001")
     assert [k for k in a if a[k] != b.get(k)] == []
     # again: every trial is complete, nothing is trained again
     stamps = {p: p.stat().st_mtime_ns for p in out.rglob("policy.zip")}
