@@ -5,6 +5,8 @@ SAPIEN renderer); a failing env in a group is one line naming it."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 
 import psutil
@@ -103,15 +105,26 @@ def test_worker_processes_hold_their_share_of_the_envs(tmp_path):
     assert not any(psutil.pid_exists(p.pid) and p.is_alive() for p in procs)
 
 
+def _train_process(cfg: Path, out: Path, *extra) -> dict[str, str]:
+    """``rl train`` as a process of its own, as a user runs it: the workers are forked from a
+    process that has not rendered (a process that has, like this test process after the
+    rendering tests, must not fork its Vulkan state)."""
+    cmd = [sys.executable, "-c", "from uwdock.cli import rl; rl()", "train", "--config", str(cfg),
+           "--out", str(out), *extra]  # fmt: skip
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    return run_digest(out)
+
+
 @pytest.mark.render
-def test_camera_envs_sharing_a_renderer_train_the_same_run(run_cli, tmp_path):
+def test_camera_envs_sharing_a_renderer_train_the_same_run(tmp_path):
     """Two camera envs (render -> water -> detector -> PnP) in one worker, sharing its SAPIEN
     renderer: the same run as one env per worker."""
     cfg = tmp_path / "camera.toml"
     cfg.write_text(CAMERA)
     _same(
-        _train(run_cli, cfg, tmp_path / "k1"),
-        _train(run_cli, cfg, tmp_path / "k2", "--envs-per-worker", "2"),
+        _train_process(cfg, tmp_path / "k1"),
+        _train_process(cfg, tmp_path / "k2", "--envs-per-worker", "2"),
     )
 
 
