@@ -47,6 +47,7 @@ __all__ = [
     "WorkerPool",
     "actor_cpus",
     "import_ray",
+    "kill_actors",
     "preflight",
     "start_ray",
     "worker_pool",
@@ -206,6 +207,15 @@ def actor_cpus(ray: Any, actors: int) -> float:
     return 1.0 if total >= actors else max(total / actors, 0.01)
 
 
+def kill_actors(ray: Any, actors: Iterable[Any]) -> None:
+    """Kill Ray actors for good (no restart), skipping those already gone."""
+    for a in actors:
+        try:
+            ray.kill(a, no_restart=True)
+        except Exception:  # an actor already gone
+            pass
+
+
 class _Host:
     """A Ray actor holding one worker object."""
 
@@ -271,11 +281,7 @@ class _RayPool(WorkerPool):
             fill()
 
     def close(self) -> None:
-        for a in self.actors:
-            try:
-                self._ray.kill(a, no_restart=True)
-            except Exception:  # an actor already gone
-                pass
+        kill_actors(self._ray, self.actors)
 
 
 @contextmanager

@@ -38,6 +38,7 @@ from uwdock.rl.sweep import SweepConfig, parse_grid, run_sweep
 from uwdock.rl.train import TrainConfig, run_config
 from uwdock.rl.train import train as run
 from uwdock.rl.trajectories import record_pid_trajectories
+from uwdock.rl.vec_envs import EnvsPerWorker
 from uwdock.sim.usbl import USBL_PRESETS
 from uwdock.sim.water import resolve_water, water_choice
 
@@ -103,7 +104,7 @@ def cli() -> None:
 @click.option(
     "--envs-per-worker",
     "envs_per_worker",
-    type=domain_type(Annotated[int, Interval(ge=1, le=256)]),
+    type=domain_type(EnvsPerWorker),
     default=1,
     show_default=True,
     help="Envs each worker process (or Ray actor) holds, sharing its renderer, torch and "

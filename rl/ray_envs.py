@@ -19,7 +19,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
-from uwdock.dockcore.pool import actor_cpus, import_ray, start_ray
+from uwdock.dockcore.pool import actor_cpus, import_ray, kill_actors, start_ray
 from uwdock.rl.config import EnvConfig
 from uwdock.rl.vec_envs import EnvGroup, GroupedVecEnv, env_groups
 from uwdock.rl.workers import WorkerError, _reason
@@ -74,11 +74,7 @@ class RayHosts:
             ) from None
 
     def shutdown(self) -> None:
-        for a in self.actors:
-            try:
-                self._ray.kill(a, no_restart=True)
-            except Exception:  # an actor already gone
-                pass
+        kill_actors(self._ray, self.actors)
 
 
 def RayVecEnv(env_cfg: EnvConfig, n_envs: int, seed: int, envs_per_worker: int = 1) -> Any:

@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 from uwdock.dockcore.config import changed_keys, dumps_toml, load_config, to_dict, validated
-from uwdock.dockcore.domains import Count, Fraction, Interval, Seed
+from uwdock.dockcore.domains import Count, Fraction, Interval, Seed, check, split_annotated
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_write_bytes, atomic_write_json, atomic_write_text
 from uwdock.dockcore.outdir import claim_output_dir
@@ -54,7 +54,7 @@ from uwdock.rl.observation import actor_observation_size, observation_size
 from uwdock.rl.policy_io import check_obs_dim, load_policy
 from uwdock.rl.ray_envs import RayEnvWorkers
 from uwdock.rl.session import TrainingSession, load_vecnormalize
-from uwdock.rl.vec_envs import EnvWorkers, env_groups
+from uwdock.rl.vec_envs import EnvsPerWorker, EnvWorkers, env_groups
 
 _LearningRate = Annotated[float, Interval(gt=0, le=1)]
 _Width = Annotated[int, Interval(ge=1, le=4096)]  # units in a hidden layer
@@ -317,12 +317,9 @@ def train(
             non-finite policy, a failed environment worker.
     """
     cfg = validated(cfg)
-    if (
-        isinstance(envs_per_worker, bool)
-        or not isinstance(envs_per_worker, int)
-        or not (1 <= envs_per_worker <= 256)
-    ):
-        raise DockError(f"envs_per_worker: must be an integer in [1, 256], got {envs_per_worker!r}")
+    why = check(envs_per_worker, *split_annotated(EnvsPerWorker), "envs_per_worker")
+    if why is not None:
+        raise DockError(why)
     workers = len(env_groups(cfg.n_envs, envs_per_worker))
     pool = PoolConfig(backend, workers, ray_address)
     try:

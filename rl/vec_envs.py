@@ -27,20 +27,29 @@ import functools
 import multiprocessing
 import os
 import pickle
-import signal
 import tempfile
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Annotated, Any, Protocol
 
 import numpy as np
 
-from uwdock.dockcore.procs import die_with_parent
+from uwdock.dockcore.domains import Interval
 from uwdock.rl.config import EnvConfig
-from uwdock.rl.workers import WorkerError, _make_env_fn, _reason, _report_and_exit
+from uwdock.rl.workers import (
+    WorkerError,
+    _make_env_fn,
+    _reason,
+    _report_and_exit,
+    error_path,
+    setup_worker_process,
+)
 
-__all__ = ["EnvGroup", "EnvWorkers", "GroupedVecEnv", "PipeHosts", "env_groups"]
+__all__ = ["EnvGroup", "EnvWorkers", "EnvsPerWorker", "GroupedVecEnv", "PipeHosts", "env_groups"]
+
+#: The domain of ``envs_per_worker`` (``rl train --envs-per-worker``).
+EnvsPerWorker = Annotated[int, Interval(ge=1, le=256)]
 
 
 def env_groups(n_envs: int, envs_per_worker: int) -> list[list[int]]:
@@ -169,12 +178,7 @@ def _group_worker(
     ``close``. A failure writes ``env{i}.err`` (its one-line reason) and ends the process; the
     learner, finding the pipe closed, reads the reason (:class:`rl.workers.EnvWorkers`)."""
     parent_end.close()
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent alone handles signals
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    die_with_parent(parent)
-    import torch  # one thread per worker (see rl.workers._make_env_fn)
-
-    torch.set_num_threads(1)
+    setup_worker_process(parent)
     group = EnvGroup(indices)
     try:
         group.build(env_cfg, seed)
@@ -189,7 +193,7 @@ def _group_worker(
                 return
             conn.send(getattr(group, method)(*args))
     except Exception as exc:
-        _report_and_exit(str(Path(error_dir) / f"env{group.current}.err"), group.current, exc)
+        _report_and_exit(error_path(error_dir, group.current), group.current, exc)
 
 
 class PipeHosts:
@@ -271,13 +275,17 @@ def _grouped_vec_env_class() -> type:
             """The local worker processes (none on Ray)."""
             return list(getattr(self.hosts, "processes", []))
 
-        def _by_group(self, method: str, per_env: Sequence[Any] | None, *args: Any) -> list:
-            """Call ``method`` once per group, with its envs' share of ``per_env`` first."""
-            handles = []
-            for w, g in enumerate(self.groups):
-                share = () if per_env is None else ([per_env[i] for i in g],)
-                handles.append(self.hosts.submit(w, method, *share, *args))
-            return handles
+        def _by_group(self, method: str, *per_env: Sequence[Any]) -> list[Any]:
+            """Call ``method`` once per group with its envs' share of each ``per_env`` list;
+            returns the handles."""
+            return [
+                self.hosts.submit(w, method, *([seq[i] for i in g] for seq in per_env))
+                for w, g in enumerate(self.groups)
+            ]
+
+        def _flat(self, handles: Sequence[Any]) -> list[Any]:
+            """The groups' per-env results, in env order."""
+            return [r for rs in self.hosts.gather(handles) for r in rs]
 
         def _per_env(self, method: str, indices: Any, *args: Any) -> list[Any]:
             """``group.<method>(slots, *args)`` for the given envs, results in their order."""
@@ -299,17 +307,13 @@ def _grouped_vec_env_class() -> type:
             self.waiting = True
 
         def step_wait(self):
-            results = [r for rs in self.hosts.gather(self._pending) for r in rs]
+            results = self._flat(self._pending)
             self.waiting = False
             obs, rews, dones, infos, self.reset_infos = zip(*results, strict=True)
             return _stack_obs(obs, self.observation_space), np.stack(rews), np.stack(dones), infos
 
         def reset(self):
-            handles = []
-            for w, g in enumerate(self.groups):
-                seeds = [self._seeds[i] for i in g]
-                handles.append(self.hosts.submit(w, "reset", seeds, [self._options[i] for i in g]))
-            results = [r for rs in self.hosts.gather(handles) for r in rs]
+            results = self._flat(self._by_group("reset", self._seeds, self._options))
             obs, self.reset_infos = zip(*results, strict=True)
             self._reset_seeds()
             self._reset_options()
@@ -321,7 +325,7 @@ def _grouped_vec_env_class() -> type:
             try:
                 if self.waiting:
                     self.hosts.gather(self._pending)
-                self.hosts.gather(self._by_group("close", None))
+                self.hosts.gather(self._by_group("close"))
             except Exception:  # a worker already gone: nothing to flush
                 pass
             self.hosts.shutdown()
@@ -392,7 +396,7 @@ class EnvWorkers:
             return
         parent = os.getpid()
         fns = [
-            _make_env_fn(env_cfg, seed + i, i, str(Path(self._dir.name) / f"env{i}.err"), parent)
+            _make_env_fn(env_cfg, seed + i, i, error_path(self._dir.name, i), parent)
             for i in range(n_envs)
         ]
         before = set(multiprocessing.active_children())

@@ -110,21 +110,32 @@ class EvalJob:
         return res.episodes
 
 
+def error_path(folder: str, index: int) -> str:
+    """Where env ``index``'s worker writes its one-line reason (in the trainer's ``folder``)."""
+    return str(Path(folder) / f"env{index}.err")
+
+
+def setup_worker_process(parent: int) -> None:
+    """What every env worker process does first: leave signals to the parent (which decides),
+    die with it, and run torch on one thread."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    die_with_parent(parent)
+    # one thread per worker, and never the thread pool the parent had when it forked: a forked
+    # child that enters the inherited OpenMP pool waits on it forever (seen: both eval workers
+    # stuck in torch's orthogonal_ while loading the policy, after the parent had run
+    # multi-threaded torch ops)
+    import torch
+
+    torch.set_num_threads(1)
+
+
 def _make_env_fn(
     env_cfg: EnvConfig, seed: int, index: int, error_file: str | None, parent: int | None
 ):
     def make():
-        if parent is not None:  # a worker process: the parent alone handles signals
-            signal.signal(signal.SIGINT, signal.SIG_IGN)
-            signal.signal(signal.SIGTERM, signal.SIG_DFL)
-            die_with_parent(parent)
-            # one thread per worker, and never the thread pool the parent had when it forked:
-            # a forked child that enters the inherited OpenMP pool waits on it forever (seen:
-            # both eval workers stuck in torch's orthogonal_ while loading the policy, after
-            # the parent had run multi-threaded torch ops)
-            import torch
-
-            torch.set_num_threads(1)
+        if parent is not None:  # a worker process of its own
+            setup_worker_process(parent)
         from stable_baselines3.common.monitor import Monitor
 
         try:

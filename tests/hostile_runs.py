@@ -26,6 +26,27 @@ def assert_refused(res, out: Path | None = None) -> str:
     return lines[0]
 
 
+#: A small training run with everything a resume or a worker layout has to carry: envs in
+#: worker processes, evaluations (their shares run in the workers) between checkpoints, a
+#: curriculum and an asymmetric critic. Format with ``n_envs`` and ``eval_episodes``.
+SMALL_RUN = """\
+n_envs = {n_envs}
+total_steps = 256
+checkpoint_every = 128
+eval_every = 128
+eval_episodes = {eval_episodes}
+[env]
+episode_s = 4.0
+obs_privileged = true
+[curriculum]
+steps = 192
+spawn_scale_start = 0.3
+[ppo]
+n_steps = 32
+batch_size = 64
+n_epochs = 2
+"""
+
 #: What a training run writes about itself (logs, its owner, timings, a figure's metadata):
 #: not part of the run's results.
 RUN_BOOKKEEPING = ("tb/", "provenance.json", "resume_log.jsonl", ".uwdock", "eval_history.png")

@@ -12,28 +12,12 @@ from pathlib import Path
 import psutil
 import pytest
 
-from tests.hostile_runs import run_digest
+from tests.hostile_runs import SMALL_RUN, run_digest
 from uwdock.rl import cli
 from uwdock.rl.vec_envs import env_groups
 
 # 4 envs, periodic evaluations (their shares run in the workers) and a checkpoint in between
-CONFIG = """\
-n_envs = 4
-total_steps = 256
-checkpoint_every = 128
-eval_every = 128
-eval_episodes = 3
-[env]
-episode_s = 4.0
-obs_privileged = true
-[curriculum]
-steps = 192
-spawn_scale_start = 0.3
-[ppo]
-n_steps = 32
-batch_size = 64
-n_epochs = 2
-"""
+CONFIG = SMALL_RUN.format(n_envs=4, eval_episodes=3)
 CAMERA = """\
 n_envs = 2
 total_steps = 96

@@ -22,7 +22,7 @@ from uwdock.dockcore.pool import PoolConfig, worker_pool
 ray = pytest.importorskip("ray")
 psutil = pytest.importorskip("psutil")
 
-from tests.hostile_runs import run_digest  # noqa: E402
+from tests.hostile_runs import SMALL_RUN, run_digest  # noqa: E402
 from uwdock import cli as uwdock_cli  # noqa: E402 - after the skips
 from uwdock.datasets.synth import SynthConfig, generate  # noqa: E402
 from uwdock.rl.config import EnvConfig  # noqa: E402
@@ -175,23 +175,7 @@ def test_pool_config_is_checked():
             bad.validate()
 
 
-TRAIN = """\
-n_envs = 2
-total_steps = 256
-checkpoint_every = 128
-eval_every = 128
-eval_episodes = 2
-[env]
-episode_s = 4.0
-obs_privileged = true
-[curriculum]
-steps = 192
-spawn_scale_start = 0.3
-[ppo]
-n_steps = 32
-batch_size = 64
-n_epochs = 2
-"""
+TRAIN = SMALL_RUN.format(n_envs=2, eval_episodes=2)
 
 
 def _rl(*args) -> list[str]:
