@@ -46,6 +46,7 @@ __all__ = [
     "REFERENCE_T_BODYFRD_CAMCV",
     "CameraModel",
     "load_camera",
+    "read_filestorage_yaml",
     "reference_camera",
     "resolve_camera",
     "save_camera",
@@ -369,7 +370,7 @@ def _node_value(node: Any) -> Any:
     return node  # unsupported type: reported by the key checks in _model_from_raw
 
 
-def _read_yaml(path: Path) -> dict[str, Any]:
+def read_filestorage_yaml(path: Path) -> dict[str, Any]:
     """Raw key -> value (ndarray, float or str) of an OpenCV FileStorage YAML file."""
     text = read_text(path, "camera file")
     if not text.strip():
@@ -497,7 +498,7 @@ def load_camera(path: str | os.PathLike[str]) -> tuple[CameraModel, np.ndarray |
     if not path.is_file():
         raise DockError(f"camera file not found: {path}")
     try:
-        raw = _read_json(path) if suffix == ".json" else _read_yaml(path)
+        raw = _read_json(path) if suffix == ".json" else read_filestorage_yaml(path)
     except OSError as exc:
         raise DockError(f"cannot read camera file {path}: {exc.strerror or exc}") from None
     return _model_from_raw(raw, path)

@@ -23,17 +23,20 @@ from uwdock.calibration.formats import (
     import_camera_file,
 )
 from uwdock.calibration.intrinsics import IntrinsicsConfig, calibrate_intrinsics, write_outputs
+from uwdock.calibration.stereo import StereoConfig, calibrate_stereo, write_stereo_outputs
+from uwdock.calibration.stereo_formats import export_stereo_file, import_stereo_file
+from uwdock.calibration.stereo_rig import is_stereo_file
 from uwdock.dockcore.bags import resolve_image_topic
 from uwdock.dockcore.cli import DomainType, domain_type, field_type, run_group
 from uwdock.dockcore.config import load_config
 from uwdock.dockcore.domains import Interval
+from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.options import (
     command_group,
     config_option,
     json_option,
     out_file_option,
     quiet_option,
-    seed_option,
 )
 
 #: ``extrinsics set --xyz-m``: the camera's position in the body frame (m; a vehicle is a few
@@ -43,6 +46,11 @@ XyzM = Annotated[float, Interval(ge=-100.0, le=100.0)]
 RpyDeg = Annotated[float, Interval(ge=-360.0, le=360.0)]
 #: ``reference-camera --width/--height`` (px).
 ImageSidePx = Annotated[int, Interval(ge=16, le=20000)]
+
+
+def _stereo_cfg(name: str) -> DomainType:
+    """The type of an option overriding ``StereoConfig.<name>``."""
+    return field_type("uwdock.calibration.stereo:StereoConfig", name)
 
 
 def _cfg(name: str) -> DomainType:
@@ -78,9 +86,10 @@ def cli() -> None:
     "--max-views", type=_cfg("max_views"), help="Most views kept, spread over poses [40]."
 )
 @click.option(
-    "--holdout-fraction", type=_cfg("holdout_fraction"), help="Fraction of views held out [0.2]."
+    "--cv-folds",
+    type=_cfg("cv_folds"),
+    help="Cross-validation folds: 0 = leave-one-view-out (10 folds above 40 views) [0].",
 )
-@seed_option(_cfg("seed"), "Seed of the hold-out draw [0].")
 @click.option(
     "--distortion-model",
     type=click.Choice(["k1k2", "k1k2k3", "k1k2p1p2", "k1k2p1p2k3", "rational"]),
@@ -109,8 +118,7 @@ def intrinsics(
     dictionary,
     blur_threshold_px,
     max_views,
-    holdout_fraction,
-    seed,
+    cv_folds,
     distortion_model,
     config_path,
     name,
@@ -122,8 +130,10 @@ def intrinsics(
     target.
 
     Chessboard sizes count inner corners, ChArUco sizes count squares. Blurred views and
-    near-duplicates are rejected, a seeded fraction is held out and its reprojection error
-    reported. Calibrate an underwater camera in water, behind its own port.
+    near-duplicates are rejected; the views are cross-validated (no random draw), outliers
+    judged against the other views' consensus, the final fit uses every accepted view and the
+    folds' spread is reported as the uncertainty. Calibrate an underwater camera in water,
+    behind its own port.
     """
     cfg = load_config(
         IntrinsicsConfig,
@@ -137,8 +147,7 @@ def intrinsics(
             "dictionary": dictionary,
             "blur_threshold_px": blur_threshold_px,
             "max_views": max_views,
-            "holdout_fraction": holdout_fraction,
-            "seed": seed,
+            "cv_folds": cv_folds,
             "distortion_model": distortion_model,
         },
         section="intrinsics",
@@ -157,16 +166,172 @@ def intrinsics(
     rejected = ", ".join(f"{k} {v}" for k, v in n["rejected_by_reason"].items()) or "none"
     click.echo(
         f"views: {n['read'] + n['unreadable']} in, {n['pattern_found']} with the pattern, "
-        f"{n['calibration']} calibration, {n['holdout']} held out; rejected: {rejected}"
+        f"{n['calibration']} calibration; rejected: {rejected}"
     )
     click.echo(
         f"fx {cam.fx_px:.3f} px  fy {cam.fy_px:.3f} px  cx {cam.cx_px:.3f} px  "
         f"cy {cam.cy_px:.3f} px  dist [{', '.join(f'{d:.5f}' for d in cam.dist)}]"
     )
-    hold = "n/a" if result.holdout_rms_px is None else f"{result.holdout_rms_px:.4f} px"
-    click.echo(f"rms {cam.rms_px:.4f} px (calibration views), hold-out {hold}")
+    click.echo(
+        f"rms {cam.rms_px:.4f} px (calibration views), cross-validated "
+        f"{result.cv_rms_px:.4f} px ({result.cv.scheme})"
+    )
+    unc = result.uncertainty()
+    click.echo(
+        "uncertainty (fold jackknife, 1 sigma): "
+        + "  ".join(f"{k[:2]} +-{v:.2f} px" for k, v in unc.items())
+    )
     if kept_T:
         click.echo(f"kept T_body_cam from the existing {out_path}")
+    click.echo("wrote " + ", ".join(str(p) for p in paths))
+
+
+@cli.command()
+@click.argument("left", type=click.Path(path_type=Path))
+@click.argument("right", type=click.Path(path_type=Path), required=False)
+@click.option(
+    "--left-camera",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="The left camera's file: its intrinsics are kept fixed (give --right-camera too).",
+)
+@click.option(
+    "--right-camera",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="The right camera's file. Without both, each camera's intrinsics are fitted.",
+)
+@click.option("--left-topic", help="Bag: the left camera's image topic.")
+@click.option("--right-topic", help="Bag: the right camera's image topic.")
+@click.option("--pattern", help="Target: chessboard or charuco [chessboard].")
+@click.option(
+    "--cols", type=_cfg("cols"), help="Chessboard: inner corners per row; charuco: squares [9]."
+)
+@click.option(
+    "--rows", type=_cfg("rows"), help="Chessboard: inner corners per column; charuco: squares [6]"
+)
+@click.option("--square-mm", type=_cfg("square_mm"), help="Square side in mm [25].")
+@click.option(
+    "--marker-mm", type=_cfg("marker_mm"), help="ChArUco marker side in mm [0.75 x square]."
+)
+@click.option("--dictionary", help="ChArUco marker dictionary [DICT_4X4_50].")
+@click.option(
+    "--distortion-model",
+    type=click.Choice(["k1k2", "k1k2k3", "k1k2p1p2", "k1k2p1p2k3", "rational"]),
+    help="Distortion terms fitted when no camera files are given [k1k2p1p2k3]; k1k2p1p2 "
+    "exports to Kalibr.",
+)
+@click.option(
+    "--pair-tolerance-ms",
+    type=_stereo_cfg("pair_tolerance_ms"),
+    help="Bag: most difference of the two header stamps of a pair (ms) [5].",
+)
+@click.option(
+    "--skip-unpaired",
+    is_flag=True,
+    default=None,
+    help="Skip images without a partner (same file stem, same frame index) instead of stopping.",
+)
+@click.option(
+    "--rectify-alpha",
+    type=_stereo_cfg("rectify_alpha"),
+    help="Rectification scaling: 0 valid pixels only, 1 every source pixel [0].",
+)
+@click.option(
+    "--maps", "write_maps", is_flag=True, help="Also write the rectification maps (.npz; large)."
+)
+@config_option(
+    "TOML file overriding StereoConfig defaults, the target in an [intrinsics] table "
+    "(flags override the file)."
+)
+@out_file_option(
+    "Stereo file (.yaml + .json twin); camera files, a ROS camera_info pair, a Kalibr "
+    "camchain, <stem>_report.json and <stem>_errors.png beside it.",
+    default=Path("stereo.yaml"),
+    show_default=True,
+)
+@quiet_option("Print only the stereo file path; no progress bar.")
+def stereo(
+    left,
+    right,
+    left_camera,
+    right_camera,
+    left_topic,
+    right_topic,
+    pattern,
+    cols,
+    rows,
+    square_mm,
+    marker_mm,
+    dictionary,
+    distortion_model,
+    pair_tolerance_ms,
+    skip_unpaired,
+    rectify_alpha,
+    write_maps,
+    config_path,
+    out_path,
+    quiet,
+) -> None:
+    """Calibrate a stereo pair (T_right_left, rectification, epipolar error) from views of the
+    target in LEFT and RIGHT, or in one ROS bag LEFT.
+
+    LEFT and RIGHT: image folders (pairs: same file stem) or videos (pairs: same frame index);
+    a bag: --left-topic and --right-topic (pairs: header stamps within --pair-tolerance-ms).
+    T_right_left maps points of the left camera frame into the right one (m; cam_cv: x right,
+    y down, z forward). Intrinsics come fixed from --left-camera and --right-camera, or are
+    fitted (each camera alone, then jointly). A pair whose error is far above the others'
+    median is rejected as an outlier.
+    """
+    target = {
+        "pattern": pattern,
+        "cols": cols,
+        "rows": rows,
+        "square_mm": square_mm,
+        "marker_mm": marker_mm,
+        "dictionary": dictionary,
+        "distortion_model": distortion_model,
+    }
+    target = {k: v for k, v in target.items() if v is not None}
+    cfg = load_config(
+        StereoConfig,
+        config_path,
+        overrides={
+            "intrinsics": target or None,
+            "pair_tolerance_ms": pair_tolerance_ms,
+            "skip_unpaired": skip_unpaired,
+            "rectify_alpha": rectify_alpha,
+        },
+        section="stereo",
+    )
+    if out_path.suffix.lower() not in (".yaml", ".yml", ".json"):
+        raise click.UsageError(f"--out must end in .yaml, .yml or .json: {out_path}")
+    result = calibrate_stereo(
+        left, right, cfg, left_camera, right_camera, left_topic, right_topic,
+        progress=False if quiet else None,
+    )  # fmt: skip
+    paths, skipped = write_stereo_outputs(result, out_path, write_maps=write_maps)
+    for note in result.notes + skipped:
+        click.echo(f"note: {note}", err=True)
+    if quiet:
+        click.echo(str(paths[0]))
+        return
+    rig, n = result.rig, result.counts()
+    rejected = ", ".join(f"{k} {v}" for k, v in n["rejected_by_reason"].items()) or "none"
+    click.echo(f"pairs: {n['pairs']} read, {n['used']} used; rejected: {rejected}")
+    how = "fitted" if result.intrinsics_fitted else "fixed from the camera files"
+    for c in (rig.left, rig.right):
+        click.echo(
+            f"{c.name}: fx {c.fx_px:.3f} px  fy {c.fy_px:.3f} px  cx {c.cx_px:.3f} px  "
+            f"cy {c.cy_px:.3f} px  ({how})"
+        )
+    T = rig.T_right_left
+    click.echo("T_right_left (left camera frame in the right one, m):")
+    for row in T:
+        click.echo("  " + "  ".join(f"{v:+.9f}" for v in row))
+    click.echo(
+        f"baseline {rig.baseline_m:.5f} m, rotation {rig.rotation_deg:.3f} deg, "
+        f"rms {rig.rms_px:.4f} px, epipolar {result.epipolar_rms_px:.4f} px, "
+        f"rectified dy {result.rectified_dy_rms_px:.4f} px"
+    )
     click.echo("wrote " + ", ".join(str(p) for p in paths))
 
 
@@ -269,13 +434,43 @@ _SOURCE_LABELS = {
     default=Path("camera.yaml"),
     show_default=True,
 )
-def import_(source, fmt, cam_key, out_path) -> None:
+@click.option(
+    "--right",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="ROS: the right camera's camera_info of a stereo pair (SOURCE is the left one).",
+)
+@click.option(
+    "--stereo-out",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="Stereo file written when SOURCE holds a stereo pair (a camchain whose --cam has a "
+    "T_cn_cnm1 link, or --right) [<out stem>_stereo.yaml].",
+)
+@click.option(
+    "--no-stereo",
+    is_flag=True,
+    help="Import the one camera only: a camchain's T_cn_cnm1 is then not kept.",
+)
+def import_(source, fmt, cam_key, out_path, right, stereo_out, no_stereo) -> None:
     """Convert SOURCE, a ROS camera_info YAML or a Kalibr camchain, into a camera file.
 
-    Intrinsics only. Kalibr's T_cam_imu (the IMU frame in the camera frame) is printed, not
-    written: T_body_cam = T_body_imu @ inv(T_cam_imu) needs where the IMU sits in the body
-    frame; set it with `calibration extrinsics set`.
+    Intrinsics of one camera (--cam; ROS: SOURCE). Kalibr's T_cam_imu (the IMU frame in the
+    camera frame) is printed, not written: T_body_cam = T_body_imu @ inv(T_cam_imu) needs where
+    the IMU sits in the body frame; set it with `calibration extrinsics set`.
+
+    Stereo: when the camchain links the camera to its neighbour by T_cn_cnm1 (cam0 -> cam1:
+    left, right), or with --right for a ROS camera_info pair, the pair is also written as a
+    stereo file (T_right_left = cam1's T_cn_cnm1, as read; the rectification as read from ROS,
+    computed for Kalibr); a pair that cannot be represented is refused (--no-stereo imports the
+    camera alone).
     """
+    if no_stereo and (right is not None or stereo_out is not None):
+        raise click.UsageError("--no-stereo goes with neither --right nor --stereo-out")
+    stereo_path = stereo_out or out_path.with_name(f"{out_path.stem}_stereo.yaml")
+    found = None
+    if not no_stereo:  # checked first: a pair that cannot be represented writes nothing
+        found = import_stereo_file(source, stereo_path, fmt, cam_key, right)
+        if found is None and stereo_out is not None:
+            raise DockError(f"{source} holds no stereo pair for {cam_key}: --stereo-out unused")
     imported, (yaml_path, json_path), kept_T = import_camera_file(source, out_path, fmt, cam_key)
     for note in imported.notes:
         click.echo(f"note: {note}", err=True)
@@ -293,6 +488,14 @@ def import_(source, fmt, cam_key, out_path) -> None:
     if kept_T:
         click.echo(f"kept T_body_cam from the existing {out_path}")
     click.echo(f"wrote {yaml_path} and {json_path}")
+    if found is not None:
+        rig, what, (s_yaml, s_json) = found
+        click.echo(
+            f"stereo pair {what}: baseline {rig.baseline_m:.5f} m, rotation "
+            f"{rig.rotation_deg:.3f} deg; wrote {s_yaml} and {s_json}"
+        )
+    elif no_stereo and imported.T_cn_cnm1 is not None:
+        click.echo(f"note: T_cn_cnm1 of {cam_key} not kept (--no-stereo)", err=True)
 
 
 @cli.command()
@@ -302,23 +505,53 @@ def import_(source, fmt, cam_key, out_path) -> None:
     "fmt",
     type=click.Choice(EXPORT_FORMATS),
     required=True,
-    help="ros: camera_info YAML (plumb_bob or rational_polynomial); kalibr: a one-camera "
-    "camchain (pinhole-radtan, k3 and higher must be zero).",
+    help="ros: camera_info YAML (plumb_bob or rational_polynomial); kalibr: a camchain "
+    "(pinhole-radtan, k3 and higher must be zero).",
 )
-@out_file_option("YAML file to write (.yaml or .yml).", required=True)
+@out_file_option(
+    "YAML file to write (.yaml or .yml); a stereo file's left camera for ros.", required=True
+)
+@click.option(
+    "--right-out",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="ROS, a stereo file: the right camera's camera_info (required).",
+)
 @click.option(
     "--rostopic",
-    default="/cam0/image_raw",
-    show_default=True,
-    help="Kalibr: the image topic written into the camchain.",
+    help="Kalibr: the image topic of cam0 [the stereo file's, else /cam0/image_raw].",
 )
-def export(camera_file, fmt, out_path, rostopic) -> None:
+@click.option(
+    "--right-rostopic",
+    help="Kalibr, a stereo file: the image topic of cam1 [the stereo file's, else "
+    "/cam1/image_raw].",
+)
+def export(camera_file, fmt, out_path, right_out, rostopic, right_rostopic) -> None:
     """Write the intrinsics of CAMERA_FILE as ROS camera_info YAML or a Kalibr camchain.
 
+    CAMERA_FILE may be a stereo file (`calibration stereo`, or an imported pair): it gives a
+    camera_info pair (R1/P1 and R2/P2 of the rectification; the right P holds
+    Tx = -fx' * baseline) or a two-camera camchain whose cam1 has T_cn_cnm1 = T_right_left.
     T_body_cam is not exported: camera_info has no extrinsics, and Kalibr's T_cam_imu is
     relative to the IMU, not the body frame.
     """
-    path, model = export_camera_file(camera_file, out_path, fmt, rostopic=rostopic)
+    if is_stereo_file(camera_file):
+        paths, model = export_stereo_file(
+            camera_file, out_path, fmt, right_out, (rostopic, right_rostopic)
+        )
+        label = (
+            "ROS camera_info pair (left, right)"
+            if fmt == "ros"
+            else "Kalibr camchain (cam0 left, cam1 right with T_cn_cnm1)"
+        )
+        click.echo(f"wrote {' and '.join(str(p) for p in paths)}: {label}, distortion {model}")
+        return
+    if right_out is not None or right_rostopic is not None:
+        raise click.UsageError(
+            f"--right-out and --right-rostopic are for stereo files: {camera_file}"
+        )
+    path, model = export_camera_file(
+        camera_file, out_path, fmt, rostopic=rostopic or "/cam0/image_raw"
+    )
     label = "ROS camera_info" if fmt == "ros" else "Kalibr camchain (cam0, pinhole)"
     click.echo(f"wrote {path}: {label}, distortion model {model}")
 

@@ -9,7 +9,9 @@ All three sources use OpenCV's pixel convention (integer coordinates at pixel ce
   ``distortion_coefficients``, ``rectification_matrix``, ``projection_matrix`` (matrices as
   ``{rows, cols, data}``). Distortion models ``plumb_bob`` (k1 k2 p1 p2 k3) and
   ``rational_polynomial`` (k1 k2 p1 p2 k3 k4 k5 k6); ``equidistant`` (fisheye) has no
-  equivalent in :class:`CameraModel` and is refused. Export writes R = I and P = [K | 0].
+  equivalent in :class:`CameraModel` and is refused. A single camera exports with R = I and
+  P = [K | 0]; import keeps the R and P it read (``ImportedCamera.R`` / ``P``), so that a
+  stereo pair's two files make a stereo file (:mod:`calibration.stereo_formats`).
 * A ``sensor_msgs/CameraInfo`` message (``height``, ``width``, ``k``, ``d``,
   ``distortion_model``, ``r``, ``p``; ROS 1 spells ``K``, ``D``, ``R``, ``P``): an object with
   those attributes, a mapping (``dockcore.bags``), or ``rostopic echo`` output saved as YAML.
@@ -17,7 +19,10 @@ All three sources use OpenCV's pixel convention (integer coordinates at pixel ce
   distortion_model: radtan | none, distortion_coeffs: [k1, k2, p1, p2], resolution: [w, h],
   T_cam_imu (optional), rostopic}``. ``T_cam_imu`` (``T_camcv_imu``: the IMU frame expressed in
   the camera frame) is returned as read, never turned into ``T_body_cam``: where the IMU sits in
-  the body frame is the caller's to state. Radtan has no k3, so a model with k3 (or higher)
+  the body frame is the caller's to state. ``T_cn_cnm1`` (a stereo link to the previous
+  camera) is returned too (``ImportedCamera.T_cn_cnm1``); ``calibration import`` writes the
+  pair it links as a stereo file, or refuses in one line when the pair cannot be represented
+  (:mod:`calibration.stereo_formats`). Radtan has no k3, so a model with k3 (or higher)
   non-zero is refused on export.
 
 MATLAB's ``cameraParameters`` is not handled: it has no text file (a ``.mat`` class object that
@@ -70,9 +75,11 @@ __all__ = [
     "export_camera_file",
     "import_camera_file",
     "kalibr_camchain_yaml",
+    "kalibr_camera_lines",
     "read_camera_yaml",
     "read_yaml_mapping",
     "ros_camera_info_yaml",
+    "ros_distortion_model",
 ]
 
 #: ``--format`` of ``calibration import``: ``ros`` covers ost.yaml and a saved CameraInfo.
@@ -99,12 +106,21 @@ class ImportedCamera:
         T_cam_imu: Kalibr only: (4, 4) float64 ``T_camcv_imu`` (maps IMU points to camera
             points, metres) when the camchain has one, else None. Not a ``T_body_cam``.
         notes: what was read but not carried over, one line each.
+        R: ROS only: (3, 3) float64 rectification matrix as read (the identity for a single
+            camera; a stereo pair's R1 or R2), else None.
+        P: ROS only: (3, 4) float64 projection matrix as read, or None when the file has none
+            (or only a placeholder).
+        T_cn_cnm1: Kalibr only: (4, 4) float64 ``T_cn_cnm1`` of this camera (the previous
+            camera of the chain in this camera's frame, m) when the camchain has one, else None.
     """
 
     camera: CameraModel
     source_format: str
     T_cam_imu: np.ndarray | None = None
     notes: tuple[str, ...] = ()
+    R: np.ndarray | None = None
+    P: np.ndarray | None = None
+    T_cn_cnm1: np.ndarray | None = None
 
 
 # ---------------------------------------------------------------------------- YAML
@@ -329,12 +345,17 @@ def camera_from_ros(doc: Mapping[str, Any], where: str = "camera_info") -> Impor
     d = matrix("distortion_coefficients", None)
     dist = _dist_from_ros(_get(doc, "distortion_model", where), d, where, "distortion_model")
     R = matrix("rectification_matrix", (3, 3)) if "rectification_matrix" in doc else np.eye(3)
-    if "projection_matrix" in doc:
-        matrix("projection_matrix", (3, 4))
+    P = matrix("projection_matrix", (3, 4)) if "projection_matrix" in doc else None
     name = doc.get("camera_name") or "camera"
     name = _string(name, where, "camera_name") if not isinstance(name, (int, float)) else str(name)
     cam = _from_K(K, dist, size, name, where, "camera_matrix")
-    return ImportedCamera(cam, "ros", notes=_rectification_note(R))
+    return ImportedCamera(
+        cam,
+        "ros",
+        notes=_rectification_note(R),
+        R=R.reshape(3, 3),
+        P=None if P is None else P.reshape(3, 4),
+    )
 
 
 def _field(msg: Any, names: tuple[str, ...], where: str, required: bool = True) -> Any:
@@ -363,12 +384,18 @@ def _from_msg(msg_like: Any, where: str) -> ImportedCamera:
     R = np.eye(3) if R is None else _numbers(R, where, "r", (0, 9))
     P = _field(msg_like, ("p", "P"), where, required=False)
     if P is not None:
-        _numbers(P, where, "p", (0, 12))
+        P = _numbers(P, where, "p", (0, 12))
     header = _field(msg_like, ("header",), where, required=False)
     frame_id = None if header is None else _field(header, ("frame_id",), where, required=False)
     name = frame_id.lstrip("/") if isinstance(frame_id, str) and frame_id.strip("/ ") else "camera"
     cam = _from_K(K, dist, size, name, where, "k")
-    return ImportedCamera(cam, "camera_info", notes=_rectification_note(R))
+    return ImportedCamera(
+        cam,
+        "camera_info",
+        notes=_rectification_note(R),
+        R=R.reshape(3, 3) if R.size == 9 else np.eye(3),
+        P=P.reshape(3, 4) if P is not None and P.size == 12 else None,
+    )
 
 
 def camera_from_camera_info_msg(msg_like: Any, where: str = "camera_info message") -> CameraModel:
@@ -447,18 +474,24 @@ def camera_from_kalibr(
     K = np.array([[fu, 0.0, pu], [0.0, fv, pv], [0.0, 0.0, 1.0]])
     dist = tuple(coeffs.tolist()) if want else (0.0,) * 4
     cam = _from_K(K, dist, size, cam_key, where, f"{k}intrinsics")
-    T = None
-    if c.get("T_cam_imu") is not None:
-        rows = c["T_cam_imu"]
-        if not isinstance(rows, (list, tuple)) or len(rows) != 4:
-            raise DockError(f"{where}: key '{k}T_cam_imu' must be 4 rows of 4 numbers")
-        T = np.stack([_numbers(r, where, f"{k}T_cam_imu", (4,)) for r in rows])
-        try:
-            T = check_T(T, f"key '{k}T_cam_imu'")
-        except ValueError as exc:
-            raise DockError(f"{where}: {exc}") from None
+    T = _kalibr_T(c, "T_cam_imu", where, k)
+    T_chain = _kalibr_T(c, "T_cn_cnm1", where, k)
     notes = (f"the camchain holds {', '.join(cams)}; imported {cam_key}",) if len(cams) > 1 else ()
-    return ImportedCamera(cam, "kalibr", T_cam_imu=T, notes=notes)
+    return ImportedCamera(cam, "kalibr", T_cam_imu=T, notes=notes, T_cn_cnm1=T_chain)
+
+
+def _kalibr_T(c: Mapping[str, Any], key: str, where: str, k: str) -> np.ndarray | None:
+    """The (4, 4) transform ``key`` of a camchain camera, checked, or None when absent."""
+    if c.get(key) is None:
+        return None
+    rows = c[key]
+    if not isinstance(rows, (list, tuple)) or len(rows) != 4:
+        raise DockError(f"{where}: key '{k}{key}' must be 4 rows of 4 numbers")
+    T = np.stack([_numbers(r, where, f"{k}{key}", (4,)) for r in rows])
+    try:
+        return check_T(T, f"key '{k}{key}'")
+    except ValueError as exc:
+        raise DockError(f"{where}: {exc}") from None
 
 
 def detect_format(doc: Mapping[str, Any], where: str = "camera file") -> str:
@@ -577,6 +610,15 @@ def _padded(cam: CameraModel) -> list[float]:
     return list(cam.dist) + [0.0] * (14 - len(cam.dist))
 
 
+def ros_distortion_model(cam: CameraModel, where: str = "camera") -> str:
+    """``plumb_bob`` or ``rational_polynomial``: the ROS distortion model ``cam`` exports as.
+
+    Raises:
+        DockError: thin-prism or tilt coefficients are not zero.
+    """
+    return _ros_distortion(cam, where)[0]
+
+
 def _ros_distortion(cam: CameraModel, where: str) -> tuple[str, list[float]]:
     d = _padded(cam)
     if not any(d[5:]):
@@ -589,16 +631,24 @@ def _ros_distortion(cam: CameraModel, where: str) -> tuple[str, list[float]]:
     )
 
 
-def ros_camera_info_yaml(cam: CameraModel, where: str | None = None) -> str:
+def ros_camera_info_yaml(
+    cam: CameraModel,
+    where: str | None = None,
+    R: ArrayLike | None = None,
+    P: ArrayLike | None = None,
+) -> str:
     """``cam`` as ROS camera_info YAML, laid out as ``camera_calibration`` writes it.
 
     The distortion model is ``plumb_bob`` (5 coefficients) when k4 and higher are zero, else
-    ``rational_polynomial`` (8). R is the identity and P = [K | 0] (the rectified image keeps
-    K).
+    ``rational_polynomial`` (8). A single camera has R = I and P = [K | 0] (the rectified image
+    keeps K); one camera of a stereo pair has the pair's R1 / P1 (left) or R2 / P2 (right, whose
+    ``P[0, 3] = -fx' * baseline`` is ROS's Tx; :mod:`calibration.stereo_formats`).
 
     Args:
         cam: the camera.
         where: what to call the camera in errors (default: its name).
+        R: (3, 3) rectification matrix (default the identity).
+        P: (3, 4) projection matrix (default [K | 0]).
 
     Raises:
         DockError: thin-prism or tilt coefficients are not zero.
@@ -616,8 +666,11 @@ def ros_camera_info_yaml(cam: CameraModel, where: str | None = None) -> str:
         *matrix("camera_matrix", cam.K),
         f"distortion_model: {model}",
         *matrix("distortion_coefficients", np.array([d])),
-        *matrix("rectification_matrix", np.eye(3)),
-        *matrix("projection_matrix", np.hstack([cam.K, np.zeros((3, 1))])),
+        *matrix("rectification_matrix", np.eye(3) if R is None else np.reshape(R, (3, 3))),
+        *matrix(
+            "projection_matrix",
+            np.hstack([cam.K, np.zeros((3, 1))]) if P is None else np.reshape(P, (3, 4)),
+        ),
     ]
     return "\n".join(lines) + "\n"
 
@@ -641,7 +694,35 @@ def kalibr_camchain_yaml(
         DockError: k3 (or a higher coefficient) is not zero, ``T_cam_imu`` is not a rigid
             transform, or ``rostopic`` is not a non-empty single line.
     """
-    where = where or f"camera {cam.name!r}"
+    lines = kalibr_camera_lines(
+        "cam0", cam, rostopic, where or f"camera {cam.name!r}", T_cam_imu=T_cam_imu
+    )
+    return "\n".join(lines) + "\n"
+
+
+def kalibr_camera_lines(
+    key: str,
+    cam: CameraModel,
+    rostopic: str,
+    where: str,
+    T_cam_imu: ArrayLike | None = None,
+    T_cn_cnm1: ArrayLike | None = None,
+    overlaps: tuple[int, ...] = (),
+) -> list[str]:
+    """One camera of a camchain: ``camN:`` and its keys (sorted as PyYAML writes them).
+
+    Args:
+        key: "cam0", "cam1", ...
+        cam: the camera; its coefficients after p2 must be zero (radtan has no k3).
+        rostopic: the image topic.
+        where: what to call the camera in errors.
+        T_cam_imu: optional (4, 4) ``T_camcv_imu`` (m).
+        T_cn_cnm1: optional (4, 4) previous camera's frame in this one's (m).
+        overlaps: ``cam_overlaps``: indices of the cameras that see what this one sees.
+
+    Raises:
+        DockError: k3 (or higher) not zero, a transform that is not rigid, a bad topic.
+    """
     higher = [f"{n} = {v:g}" for n, v in zip(_HIGHER, _padded(cam)[4:], strict=True) if v]
     if higher:
         raise DockError(
@@ -650,15 +731,16 @@ def kalibr_camchain_yaml(
         )
     if not isinstance(rostopic, str) or not rostopic.strip() or "\n" in rostopic:
         raise DockError(f"rostopic must be a non-empty single line, got {_show(rostopic)}")
-    lines = ["cam0:"]
-    if T_cam_imu is not None:
-        try:
-            T = check_T(T_cam_imu, "T_cam_imu")
-        except ValueError as exc:
-            raise DockError(str(exc)) from None
-        lines += ["  T_cam_imu:", *(f"  - {_flow_list(row)}" for row in T)]
+    lines = [f"{key}:"]
+    for name, value in (("T_cam_imu", T_cam_imu), ("T_cn_cnm1", T_cn_cnm1)):
+        if value is not None:
+            try:
+                T = check_T(value, name)
+            except ValueError as exc:
+                raise DockError(str(exc)) from None
+            lines += [f"  {name}:", *(f"  - {_flow_list(row)}" for row in T)]
     lines += [
-        "  cam_overlaps: []",
+        f"  cam_overlaps: [{', '.join(str(i) for i in overlaps)}]",
         "  camera_model: pinhole",
         f"  distortion_coeffs: {_flow_list(cam.dist[:4])}",
         "  distortion_model: radtan",
@@ -666,7 +748,7 @@ def kalibr_camchain_yaml(
         f"  resolution: [{cam.width_px}, {cam.height_px}]",
         f"  rostopic: {_yaml_str(rostopic)}",
     ]
-    return "\n".join(lines) + "\n"
+    return lines
 
 
 def export_camera_file(

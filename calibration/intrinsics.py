@@ -1,10 +1,12 @@
 """Camera intrinsics from views of a chessboard or ChArUco board (``calibration intrinsics``).
 
-Pipeline: read views (an image folder or a sampled video) -> find the pattern with sub-pixel
-corners -> reject blurred views and near-duplicates -> keep at most ``max_views`` spread over
-pose space -> hold out a seeded fraction -> ``cv2.calibrateCamera`` on the rest -> reprojection
-error of the held-out views with the calibrated intrinsics (their pose from PnP) -> camera file,
-JSON report and a per-view error plot.
+Pipeline: read views (an image folder, a sampled video or a bag topic, each turned grey the same
+way) -> find the pattern with sub-pixel corners -> reject blurred views (edge width on the board)
+and near-duplicates -> keep at most ``max_views`` spread over pose space (deterministically) ->
+cross-validate over the views (:mod:`calibration.crossval`: leave-one-view-out or k folds, no
+random draw), rejecting views whose held-out error the others' consensus does not explain ->
+``cv2.calibrateCamera`` on every accepted view -> camera file, JSON report (the folds' spread of
+fx, fy, cx, cy as the uncertainty) and a per-view error plot.
 
 Pattern sizes: ``cols`` x ``rows`` are **inner corners** for a chessboard and **squares** for a
 ChArUco board (OpenCV's conventions; see :mod:`calibration.patterns`).
@@ -28,6 +30,13 @@ import numpy as np
 from tqdm import tqdm
 
 from uwdock.calibration.camera import CameraModel, load_camera, save_camera
+from uwdock.calibration.crossval import (
+    INTRINSIC_NAMES,
+    CrossValidation,
+    Fit,
+    cross_validate,
+    fit_views,
+)
 from uwdock.calibration.patterns import (
     PATTERNS,
     Detection,
@@ -40,7 +49,7 @@ from uwdock.calibration.patterns import (
 )
 from uwdock.dockcore.bags import Bag, is_bag
 from uwdock.dockcore.config import to_dict, validated
-from uwdock.dockcore.domains import Interval, Seed
+from uwdock.dockcore.domains import Interval
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_path, atomic_write_json
 from uwdock.dockcore.media import (
@@ -60,10 +69,11 @@ __all__ = [
     "ViewRecord",
     "calibrate_intrinsics",
     "iter_views",
+    "to_grey",
     "write_outputs",
 ]
 
-#: Fewest calibration views (held-out views excluded) a calibration accepts.
+#: Fewest calibration views a calibration accepts.
 MIN_VIEWS = 4
 #: Views smaller than this on a side (px) are rejected as ``too_small`` (no target fits).
 MIN_VIEW_PX = 16
@@ -106,11 +116,15 @@ class IntrinsicsConfig:
         duplicate_threshold_frac: a view whose board outline lies closer than this to a kept
             view's (mean corner distance, as a fraction of the image diagonal, [0, 1)) is a
             duplicate.
-        max_views: most views used (calibration + hold-out, ``MIN_VIEWS`` ... ``MAX_VIEWS``);
-            extra views are dropped so that the kept ones spread over board positions and tilts.
-        holdout_fraction: fraction of the kept views held out of the fit to validate it, in
-            [0, 0.5]; at least one when there are more than ``MIN_VIEWS`` views, none otherwise.
-        seed: seed of the hold-out draw and the spread selection (0 ... 2^32 - 1).
+        max_views: most views used (``MIN_VIEWS`` ... ``MAX_VIEWS``); extra views are dropped
+            so that the kept ones spread over board positions and tilts (farthest-point
+            sampling from the medoid view: no random draw).
+        cv_folds: cross-validation folds (0 ... 100): 0 = leave-one-view-out up to 40 views
+            and 10 folds above; ``k >= 2``: ``k`` folds, view ``i`` in fold ``i mod k``. The
+            final intrinsics are fitted on every accepted view; the folds give the held-out
+            error and the uncertainty (see :mod:`calibration.crossval`).
+        uncertainty_warn_frac: warn when the folds' jackknife standard deviation of fx, fy, cx
+            or cy exceeds this fraction of its value ((0, 1]; 0.01 = 1 %).
         distortion_model: ``k1k2``, ``k1k2k3``, ``k1k2p1p2``, ``k1k2p1p2k3`` (OpenCV's default)
             or ``rational`` (8 coefficients).
         min_corners: fewest ChArUco corners for a view to count (4 ... the board's inner
@@ -119,16 +133,19 @@ class IntrinsicsConfig:
         video_max_frames: most frames sampled (evenly) from a video input (1 ... 100000).
         corner_method: chessboard corners by ``classic`` (``findChessboardCorners`` +
             ``cornerSubPix``), ``sb`` (``findChessboardCornersSB``) or ``auto``: both, each
-            calibrated, and the one with the lower hold-out error kept (the classic one when
-            nothing is held out); both errors go into the report. ChArUco has one detector.
-        outlier_ratio: after each fit, the calibration view with the largest reprojection
-            error is rejected (reason ``outlier``) and the fit repeated while that error exceeds
-            this multiple of the median of the other views' (and ``outlier_min_px``), as long
-            as ``MIN_VIEWS`` remain; 0 disables. A view with a mis-detected or moved corner
-            pulls K toward itself: on real tank frames one view at ~6x the median error moved
-            fx by ~8 % and doubled the RMS.
-        outlier_min_px: views at or below this error are never outliers (px; sub-pixel
-            corners on a sharp board reach ~0.1 px, so a ratio alone would flag noise).
+            calibrated, and the one with the lower cross-validated error *on the views both
+            accept* kept (the one with more accepted views when fewer than ``MIN_VIEWS + 1``
+            views are common; classic on a tie); the comparison goes into the report.
+            ChArUco has one detector.
+        outlier_ratio: the view with the largest held-out error (posed with the intrinsics the
+            other views give) is rejected (reason ``outlier``) and the cross-validation
+            repeated while that error exceeds this multiple of the median of the other views'
+            (and ``outlier_min_px``), as long as ``MIN_VIEWS`` remain; 0 disables. A
+            view with a mis-detected or moved corner pulls K toward itself, so its in-fit error
+            understates it: on real tank frames one such view moved fx by ~8 %.
+        outlier_min_px: views at or below this held-out error are never outliers (px;
+            sub-pixel corners on a sharp board reach ~0.1 px, so a ratio alone would flag
+            noise).
     """
 
     pattern: str = "chessboard"
@@ -141,8 +158,8 @@ class IntrinsicsConfig:
     blur_threshold_px: Annotated[float, Interval(gt=0.0, le=1000.0)] = 6.0
     duplicate_threshold_frac: Annotated[float, Interval(ge=0.0, lt=1.0)] = 0.01
     max_views: Annotated[int, Interval(ge=MIN_VIEWS, le=MAX_VIEWS)] = 40
-    holdout_fraction: Annotated[float, Interval(ge=0.0, le=0.5)] = 0.2
-    seed: Seed = 0
+    cv_folds: Annotated[int, Interval(ge=0, le=100)] = 0
+    uncertainty_warn_frac: Annotated[float, Interval(gt=0.0, le=1.0)] = 0.01
     distortion_model: Literal["k1k2", "k1k2k3", "k1k2p1p2", "k1k2p1p2k3", "rational"] = "k1k2p1p2k3"
     min_corners: Annotated[int, Interval(ge=4, le=100 * 100)] = 8
     corner_method: Literal["auto", "classic", "sb"] = "auto"
@@ -154,6 +171,8 @@ class IntrinsicsConfig:
     def validate(self) -> None:
         """Raise ValueError (one line naming the field) for values that do not go together
         (each numeric field's own range is its declared domain)."""
+        if self.cv_folds == 1:
+            raise ValueError("cv_folds: must be 0 (leave-one-view-out) or at least 2, got 1")
         if self.pattern not in PATTERNS:
             raise ValueError(f"pattern: must be one of {list(PATTERNS)}, got {self.pattern!r}")
         if self.marker_mm is not None and not self.marker_mm < self.square_mm:
@@ -202,14 +221,18 @@ class ViewRecord:
 
     Attributes:
         name: file name (folder input) or ``frame_<index>`` (video input).
-        status: ``calibration``, ``holdout`` or ``rejected``.
+        status: ``calibration`` or ``rejected`` (``candidate`` while being selected).
         reason: why a view was rejected (``unreadable``, ``too_small``, ``size_mismatch``,
             ``no_pattern``, ``blurred``, ``duplicate``, ``over_cap``, ``outlier``), else None.
-        detail: for an outlier, its error against the others' median and the fit's K before
-            and after its rejection.
+            ``blurred`` is judged on the board's own edges only: a view where the pattern is
+            not found is ``no_pattern`` (the detail gives the whole image's edge width).
+        detail: for an outlier, its held-out error against the others' median and the fit's
+            fx before and after its rejection; for ``no_pattern``, the image's edge width.
         n_corners: corners found (0 without a detection).
         blur_px: pattern edge width (px), None without a detection.
-        error_px: RMS reprojection error of the view (px) for calibration and hold-out views.
+        error_px: RMS reprojection error of a calibration view in the final fit (px).
+        cv_error_px: its held-out error (px): posed by PnP with the intrinsics fitted without
+            its fold (for an outlier: at its rejection).
     """
 
     name: str
@@ -218,6 +241,7 @@ class ViewRecord:
     n_corners: int = 0
     blur_px: float | None = None
     error_px: float | None = None
+    cv_error_px: float | None = None
     detail: str | None = None
     detection: Detection | None = field(default=None, repr=False)
     quad_px: np.ndarray | None = field(default=None, repr=False)
@@ -231,6 +255,7 @@ class ViewRecord:
             "n_corners": self.n_corners,
             "blur_px": _round(self.blur_px),
             "error_px": _round(self.error_px),
+            "cv_error_px": _round(self.cv_error_px),
             "detail": self.detail,
         }
 
@@ -240,19 +265,21 @@ class IntrinsicsResult:
     """Outcome of :func:`calibrate_intrinsics`.
 
     Attributes:
-        camera: the calibrated camera (``rms_px`` = RMS over the calibration views).
-        holdout_rms_px: RMS reprojection error (px) over the held-out views, None without any.
+        camera: the calibrated camera (``rms_px`` = RMS over the calibration views), fitted on
+            every accepted view.
+        cv: the cross-validation over the accepted views (held-out errors, folds' intrinsics).
         views: one record per input view, in input order.
-        std_intrinsics: one-sigma uncertainty of fx, fy, cx, cy (px) and each distortion term.
+        std_intrinsics: Jacobian one-sigma of fx, fy, cx, cy (px) and each distortion term
+            (``cv2.calibrateCameraExtended``; assumes independent Gaussian corner errors).
         config: the configuration used.
         source: the input path.
         notes: one-line remarks for the user (e.g. a ChArUco border too thin).
         corner_methods: with ``corner_method = "auto"`` on a chessboard, each method's
-            ``{"rms_px", "holdout_rms_px", "views"}`` and which was ``"chosen"``; else None.
+            figures, the comparison on the common views and which was ``"chosen"``; else None.
     """
 
     camera: CameraModel
-    holdout_rms_px: float | None
+    cv: CrossValidation
     views: list[ViewRecord]
     std_intrinsics: dict[str, float]
     config: IntrinsicsConfig
@@ -260,15 +287,30 @@ class IntrinsicsResult:
     notes: list[str] = field(default_factory=list)
     corner_methods: dict[str, Any] | None = None
 
+    @property
+    def cv_rms_px(self) -> float:
+        """Cross-validated RMS reprojection error over the accepted views' corners (px)."""
+        return self.cv.rms_px
+
+    def uncertainty(self) -> dict[str, float]:
+        """Grouped-jackknife standard deviation of fx, fy, cx, cy over the folds (px)."""
+        return dict(zip(INTRINSIC_NAMES, self.cv.uncertainty().tolist(), strict=True))
+
+    def uncertainty_frac(self) -> dict[str, float]:
+        """:meth:`uncertainty` as a fraction of each value."""
+        cam = self.camera
+        values = (cam.fx_px, cam.fy_px, cam.cx_px, cam.cy_px)
+        unc = self.uncertainty()
+        return {k: unc[k] / abs(v) for k, v in zip(INTRINSIC_NAMES, values, strict=True)}
+
     def counts(self) -> dict[str, Any]:
-        """Views read / with the pattern / used / held out / rejected (by reason)."""
+        """Views read / with the pattern / used / rejected (by reason)."""
         reasons = Counter(v.reason for v in self.views if v.status == "rejected")
         return {
             "read": sum(v.reason != "unreadable" for v in self.views),
             "unreadable": reasons.get("unreadable", 0),
             "pattern_found": sum(v.detection is not None for v in self.views),
             "calibration": sum(v.status == "calibration" for v in self.views),
-            "holdout": sum(v.status == "holdout" for v in self.views),
             "rejected": sum(reasons.values()),
             "rejected_by_reason": dict(sorted(reasons.items())),
         }
@@ -284,9 +326,21 @@ class IntrinsicsResult:
             ),
             "views": self.counts(),
             "rms_px": _round(cam.rms_px),
-            "holdout_rms_px": _round(self.holdout_rms_px),
+            "cv_rms_px": _round(self.cv_rms_px),
             "camera_matrix": cam.K.tolist(),
             "distortion_coefficients": list(cam.dist),
+            "uncertainty_px": {k: _round(v) for k, v in self.uncertainty().items()},
+            "uncertainty_frac": {k: _round(v) for k, v in self.uncertainty_frac().items()},
+            "cross_validation": {
+                "scheme": self.cv.scheme,
+                "folds": len(self.cv.folds),
+                "rms_px": _round(self.cv_rms_px),
+                "fold_spread_px": {
+                    k: {kk: _round(vv) for kk, vv in v.items()} for k, v in self.cv.spread().items()
+                },
+                "fold_intrinsics_px": [[_round(x, 4) for x in row] for row in self.cv.params],
+                "failed_folds": list(self.cv.failed_folds),
+            },
             "std_intrinsics": {k: _round(v) for k, v in self.std_intrinsics.items()},
             "per_view": [v.as_dict() for v in self.views],
             "notes": list(self.notes),
@@ -300,6 +354,28 @@ def _round(x: float | None, digits: int = 6) -> float | None:
 
 
 # --------------------------------------------------------------------------- input views
+
+
+def to_grey(image: np.ndarray | None) -> np.ndarray | None:
+    """The one greyscale conversion of every input (folder, video, bag), so that the same
+    frames give the same corners whatever their container.
+
+    Args:
+        image: a decoded frame: (H, W) or (H, W, 3) BGR, uint8 or uint16; None passes through.
+
+    Returns:
+        (H, W) uint8: 16-bit keeps its top byte (as ``cv2.imread``'s greyscale flag does),
+        colour goes through ``cv2.COLOR_BGR2GRAY`` (0.299 R + 0.587 G + 0.114 B).
+    """
+    if image is None:
+        return None
+    if image.dtype == np.uint16:
+        image = (image >> 8).astype(np.uint8)
+    elif image.dtype != np.uint8:
+        image = np.clip(image, 0, 255).astype(np.uint8)
+    if image.ndim == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    return image
 
 
 def _video_frames(
@@ -334,7 +410,7 @@ def _video_frames(
                     failures += 1
                 else:
                     failures = 0
-                    frame = frame if frame.ndim == 2 else cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
+                    frame = to_grey(frame)
                 yield f"frame_{index:06d}", frame
                 n += 1
                 index += stride
@@ -361,12 +437,7 @@ def _bag_frames(
             for k, (_, image) in enumerate(bag.images(topic)):
                 if k % stride or n >= total:
                     continue
-                if image is not None:
-                    if image.dtype == np.uint16:  # as imread's GRAYSCALE flag does
-                        image = (image >> 8).astype(np.uint8)
-                    if image.ndim == 3:
-                        image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
-                yield f"frame_{k:06d}", image
+                yield f"frame_{k:06d}", to_grey(image)
                 n += 1
 
     return total, frames()
@@ -403,7 +474,7 @@ def iter_views(
         )
         if not files:
             raise DockError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in folder {path}")
-        return len(files), ((p.name, read_image(p, grey=True)) for p in files)
+        return len(files), ((p.name, to_grey(read_image(p))) for p in files)
     if path.is_file():
         return _video_frames(path, video_max_frames)
     raise DockError(f"input not found: {path}")
@@ -413,7 +484,9 @@ def iter_views(
 
 
 def _image_blur_px(gray: np.ndarray) -> float:
-    """Whole-image edge width (px), used only to label a view without a detection."""
+    """Whole-image edge width (px), only a hint in the detail of a view without a detection
+    (a whole-image measure mixes the board with the background: on a real murky tank it
+    called 5 views blurred whose board the classic finder reads)."""
     img = gray.astype(np.float32)
     lo, hi = np.percentile(img, [1.0, 99.0])
     gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3) / 8.0
@@ -453,8 +526,10 @@ def _inspect(
             continue
         det = detector.detect(gray)
         if det is None:
-            blurred = _image_blur_px(gray) > cfg.blur_threshold_px
-            rec.reason = "blurred" if blurred else "no_pattern"
+            rec.reason = "no_pattern"
+            width = _image_blur_px(gray)
+            if width > cfg.blur_threshold_px:
+                rec.detail = f"image edge width {width:.1f} px (the whole image may be blurred)"
             continue
         rec.detection, rec.n_corners = det, det.n_corners
         rec.blur_px = blur_px(gray, det)
@@ -473,44 +548,25 @@ def _inspect(
 
 
 def _select(records: list[ViewRecord], cfg: IntrinsicsConfig) -> list[ViewRecord]:
-    """Cap the candidates at ``max_views`` (spread) and split them into calibration / hold-out."""
+    """Cap the candidates at ``max_views`` (spread over poses, deterministic); the kept ones
+    become calibration views."""
     cands = [r for r in records if r.status == "candidate"]
-    keep = set(spread_subset([r.quad_px for r in cands], cfg.max_views, cfg.seed))
+    keep = set(spread_subset([r.quad_px for r in cands], cfg.max_views))
     for i, rec in enumerate(cands):
-        if i not in keep:
-            rec.status, rec.reason = "rejected", "over_cap"
-    kept = [r for i, r in enumerate(cands) if i in keep]
-    n_hold = 0
-    if cfg.holdout_fraction > 0 and len(kept) > MIN_VIEWS:
-        n_hold = min(max(1, round(cfg.holdout_fraction * len(kept))), len(kept) - MIN_VIEWS)
-    hold = set(np.random.default_rng(cfg.seed).choice(len(kept), n_hold, replace=False).tolist())
-    for i, rec in enumerate(kept):
-        rec.status = "holdout" if i in hold else "calibration"
-    return kept
+        rec.status, rec.reason = ("calibration", None) if i in keep else ("rejected", "over_cap")
+    return [r for r in cands if r.status == "calibration"]
 
 
 # --------------------------------------------------------------------------- calibration
 
 
-def _view_rms_px(det: Detection, rvec: np.ndarray, tvec: np.ndarray, K, dist) -> float:
-    proj, _ = cv2.projectPoints(det.object_m.astype(np.float64), rvec, tvec, K, dist)
-    err = proj.reshape(-1, 2) - det.image_px.astype(np.float64)
-    return float(np.sqrt(np.mean(np.sum(err**2, axis=1))))
-
-
-def _holdout_error(det: Detection, K: np.ndarray, dist: np.ndarray) -> tuple[float, float]:
-    """(RMS px, sum of squared px errors) of a held-out view posed by PnP with fixed intrinsics."""
-    obj = det.object_m.astype(np.float64)
-    img = det.image_px.astype(np.float64)
-    ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, flags=cv2.SOLVEPNP_IPPE)
-    if not ok:
-        ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, flags=cv2.SOLVEPNP_ITERATIVE)
-    rvec, tvec = cv2.solvePnPRefineLM(obj, img, K, dist, rvec, tvec)
-    rms = _view_rms_px(det, rvec, tvec, K, dist)
-    return rms, rms**2 * det.n_corners
-
-
 _STD_NAMES = ("fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
+
+#: A cross-validated error above this multiple of the fit's RMS is warned about.
+CV_WARN_RATIO = 2.0
+
+#: Image corners checked for coverage: a corner region is this fraction of each side.
+CORNER_REGION_FRAC = 0.2
 
 
 def calibrate_intrinsics(
@@ -531,7 +587,9 @@ def calibrate_intrinsics(
         topic: a bag's image topic.
 
     Returns:
-        The calibrated camera, the hold-out error and one record per view.
+        The camera fitted on every accepted view, its cross-validation (held-out errors, the
+        folds' spread as the uncertainty) and one record per view. Deterministic: the same
+        input and configuration give the same result.
 
     Raises:
         DockError: bad input (see :func:`iter_views`), no pattern in any view, fewer than
@@ -545,17 +603,14 @@ def calibrate_intrinsics(
     records, size = _inspect(views, total, cfg, detector, progress)
     if size is None:
         raise DockError(f"none of the {len(records)} images in {source} could be decoded")
-    n_found = sum(r.detection is not None for r in records)
-    if n_found == 0:
-        blurred = sum(r.reason == "blurred" for r in records)
+    if not any(r.detection is not None for r in records):
         raise DockError(
             f"no {cfg.pattern} of {cfg.cols}x{cfg.rows} "
             f"{'inner corners' if cfg.pattern == 'chessboard' else 'squares'} found in any of "
-            f"{len(records)} views ({blurred} too blurred); check --pattern, --cols and --rows"
+            f"{len(records)} views; check --pattern, --cols and --rows"
             + "".join(f"; {note}" for note in detector.notes)
         )
-    kept = _select(records, cfg)
-    cal = [r for r in kept if r.status == "calibration"]
+    cal = _select(records, cfg)
     if len(cal) < MIN_VIEWS:
         reasons = Counter(r.reason for r in records if r.status == "rejected")
         detail = ", ".join(f"{k} {v}" for k, v in sorted(reasons.items())) or "none"
@@ -563,13 +618,9 @@ def calibrate_intrinsics(
             f"only {len(cal)} usable views of {len(records)}, need at least {MIN_VIEWS} "
             f"(rejected: {detail})"
         )
-    rms, K, dist, std_in = _fit_rejecting_outliers(cal, size, cfg)
-    sq_sum, n_pts = 0.0, 0
-    for rec in (r for r in kept if r.status == "holdout"):
-        rec.error_px, sq = _holdout_error(rec.detection, K, dist)
-        sq_sum, n_pts = sq_sum + sq, n_pts + rec.n_corners
-    holdout = math.sqrt(sq_sum / n_pts) if n_pts else None
+    fit, cv = _fit_rejecting_outliers(cal, size, cfg)
     n_dist = 8 if cfg.distortion_model == "rational" else 5
+    K, dist = fit.K, fit.dist
     camera = CameraModel(
         width_px=int(size[0]),
         height_px=int(size[1]),
@@ -578,29 +629,49 @@ def calibrate_intrinsics(
         cx_px=float(K[0, 2]),
         cy_px=float(K[1, 2]),
         dist=tuple(float(d) for d in dist[:n_dist]),
-        rms_px=float(rms),
+        rms_px=float(fit.rms_px),
         name=name,
     )
-    std = std_in.reshape(-1)
-    std_named = {k: float(std[i]) for i, k in enumerate(_STD_NAMES[: 4 + n_dist])}
-    notes = list(detector.notes)
-    for rec in records:
-        if rec.reason == "outlier":
-            notes.append(f"{rec.name} rejected as an outlier: {rec.detail}")
-    if holdout is not None and holdout > HOLDOUT_WARN_RATIO * rms:
+    std_named = {k: float(fit.std[i]) for i, k in enumerate(_STD_NAMES[: 4 + n_dist])}
+    result = IntrinsicsResult(camera, cv, records, std_named, cfg, str(source))
+    result.notes = list(detector.notes) + _warnings(result, size)
+    return result
+
+
+def _warnings(result: IntrinsicsResult, size: tuple[int, int]) -> list[str]:
+    """Outliers rejected, a cross-validated error far above the fit's, intrinsics the folds
+    disagree on, image corners no view reaches."""
+    notes = [
+        f"{rec.name} rejected as an outlier: {rec.detail}"
+        for rec in result.views
+        if rec.reason == "outlier"
+    ]
+    rms, cv_rms = result.camera.rms_px or 0.0, result.cv_rms_px
+    if cv_rms > CV_WARN_RATIO * rms:
         notes.append(
-            f"warning: the hold-out error {holdout:.3f} px is {holdout / rms:.1f}x the fit's "
-            f"{rms:.3f} px: the model does not generalise (too few or too similar views, or a "
-            "distortion model with too many terms)"
+            f"warning: the cross-validated error {cv_rms:.3f} px is "
+            f"{cv_rms / max(rms, 1e-12):.1f}x the fit's {rms:.3f} px: the model does not "
+            "generalise (too few or too similar views, or a distortion model with too many terms)"
         )
-    empty = uncovered_corners([r for r in kept if r.status == "calibration"], size)
+    frac, unc = result.uncertainty_frac(), result.uncertainty()
+    loose = [k for k, v in frac.items() if not v <= result.config.uncertainty_warn_frac]
+    if loose:
+        detail = ", ".join(f"{k[:2]} +-{unc[k]:.1f} px ({100 * frac[k]:.1f} %)" for k in loose)
+        notes.append(
+            f"warning: the views disagree on the intrinsics ({result.cv.scheme} jackknife: "
+            f"{detail}; limit {100 * result.config.uncertainty_warn_frac:g} %): add views "
+            "that tilt the board more and fill the image"
+        )
+    for msg in result.cv.failed_folds:
+        notes.append(f"warning: cross-validation {msg}")
+    empty = uncovered_corners([r for r in result.views if r.status == "calibration"], size)
     if empty:
         notes.append(
             f"warning: no calibration view covers the image's {', '.join(empty)} corner"
             f"{'s' if len(empty) > 1 else ''}: distortion there is extrapolated; add views "
             "with the board in those corners"
         )
-    return IntrinsicsResult(camera, holdout, records, std_named, cfg, str(source), notes)
+    return notes
 
 
 def _best_corner_method(
@@ -610,8 +681,9 @@ def _best_corner_method(
     progress: bool | None,
     topic: str | None,
 ) -> IntrinsicsResult:
-    """Calibrate with the classic and the sector-based chessboard corners; keep the one with
-    the lower hold-out error (classic when nothing is held out or only it succeeds)."""
+    """Calibrate with the classic and the sector-based chessboard corners and keep the one with
+    the lower cross-validated error on the views both accept (compared on the same views,
+    since a method that keeps only its easy views would otherwise look better)."""
     results: dict[str, IntrinsicsResult] = {}
     failures: dict[str, str] = {}
     for method in ("classic", "sb"):
@@ -623,10 +695,35 @@ def _best_corner_method(
             failures[method] = str(exc)
     if not results:
         raise DockError(failures["classic"])
-    held = {m: r.holdout_rms_px for m, r in results.items() if r.holdout_rms_px is not None}
-    chosen = min(held, key=lambda m: held[m]) if len(held) == 2 else next(iter(results))
-    best = results[chosen]
-    table: dict[str, Any] = {"chosen": chosen}
+    accepted = {
+        m: {v.name: v for v in r.views if v.status == "calibration"} for m, r in results.items()
+    }
+    common = [n for n in accepted.get("classic", {}) if n in accepted.get("sb", {})]
+    table: dict[str, Any] = {"common_views": len(common)}
+    common_cv: dict[str, float] = {}
+    if len(results) == 2 and len(common) > MIN_VIEWS:
+        size = (results["classic"].camera.width_px, results["classic"].camera.height_px)
+        for m in results:
+            if list(accepted[m]) == common:  # every view it accepts is common: its own CV
+                common_cv[m] = results[m].cv_rms_px
+                continue
+            dets = [accepted[m][n].detection for n in common]
+            flags = _DIST_FLAGS[cfg.distortion_model]
+            common_cv[m] = cross_validate(dets, size, flags, cfg.cv_folds).rms_px
+        chosen = min(common_cv, key=lambda m: (common_cv[m], m != "classic"))
+        other = "sb" if chosen == "classic" else "classic"
+        why = (
+            f"lower cross-validated error on the {len(common)} views both accept: "
+            f"{common_cv[chosen]:.3f} against {common_cv[other]:.3f} px"
+        )
+    elif len(results) == 2:
+        chosen = max(results, key=lambda m: (len(accepted[m]), m == "classic"))
+        why = (
+            f"more accepted views ({len(accepted[chosen])}); only {len(common)} views are "
+            "common to both, too few to compare"
+        )
+    else:
+        chosen, why = next(iter(results)), "the only one"
     for m in ("classic", "sb"):
         r = results.get(m)
         table[m] = (
@@ -634,28 +731,18 @@ def _best_corner_method(
             if r is None
             else {
                 "rms_px": _round(r.camera.rms_px),
-                "holdout_rms_px": _round(r.holdout_rms_px),
+                "cv_rms_px": _round(r.cv_rms_px),
+                "cv_rms_common_px": _round(common_cv.get(m)),
                 "views": r.counts()["calibration"],
+                "fx_px": _round(r.camera.fx_px, 3),
             }
         )
-    why = (
-        f"lower hold-out error: {held[chosen]:.3f} against {max(held.values()):.3f} px"
-        if len(held) == 2
-        else "the only one"
-        if len(results) == 1
-        else "nothing held out to compare"
-    )
+    table["chosen"] = chosen
+    best = results[chosen]
     best.notes.insert(0, f"chessboard corners: {chosen} ({why})")
     best.corner_methods = table
     best.config = cfg
     return best
-
-
-#: Hold-out error above this multiple of the fit's RMS is warned about.
-HOLDOUT_WARN_RATIO = 2.0
-
-#: Image corners checked for coverage: a corner region is this fraction of each side.
-CORNER_REGION_FRAC = 0.2
 
 
 def uncovered_corners(views: list[ViewRecord], size: tuple[int, int]) -> list[str]:
@@ -678,79 +765,103 @@ def uncovered_corners(views: list[ViewRecord], size: tuple[int, int]) -> list[st
     return [name for name, inside in regions.items() if not inside.any()]
 
 
-def _calibrate(cal: list[ViewRecord], size: tuple[int, int], cfg: IntrinsicsConfig):
-    obj = [r.detection.object_m.reshape(-1, 1, 3) for r in cal]  # type: ignore[union-attr]
-    img = [r.detection.image_px.reshape(-1, 1, 2) for r in cal]  # type: ignore[union-attr]
-    try:
-        rms, K, dist, _, _, std_in, _, per_view = cv2.calibrateCameraExtended(
-            obj, img, size, None, None, flags=_DIST_FLAGS[cfg.distortion_model]
-        )
-    except cv2.error as exc:
-        text = " ".join(str(exc).split()).split(" error: ", 1)[-1]
-        raise DockError(f"calibration failed: {text}") from None
-    return float(rms), K, dist.reshape(-1), std_in, per_view.reshape(-1)
-
-
-def _fit_rejecting_outliers(cal: list[ViewRecord], size: tuple[int, int], cfg: IntrinsicsConfig):
-    """Fit, then reject the worst view while it is an outlier (``cfg.outlier_ratio``); the
-    rejected records get status ``rejected``, reason ``outlier`` and a detail. Returns (rms,
-    K, dist, std) of the last fit; sets ``error_px`` of the views kept."""
+def _fit_rejecting_outliers(
+    cal: list[ViewRecord], size: tuple[int, int], cfg: IntrinsicsConfig
+) -> tuple[Fit, CrossValidation]:
+    """Cross-validate, then reject the view with the largest held-out error while it is an
+    outlier against the others' (``cfg.outlier_ratio``, ``cfg.outlier_min_px``); rejected
+    records get status ``rejected``, reason ``outlier`` and a detail. Returns the fit on every
+    view kept and its cross-validation; sets ``error_px`` and ``cv_error_px`` of the views
+    kept (``cal`` is updated in place)."""
+    flags = _DIST_FLAGS[cfg.distortion_model]
     views = list(cal)
+    fit = fit_views([r.detection for r in views], size, flags)  # type: ignore[misc]
     while True:
-        rms, K, dist, std_in, per_view = _calibrate(views, size, cfg)
-        for rec, err in zip(views, per_view, strict=True):
-            rec.error_px = float(err)
+        cv = cross_validate([r.detection for r in views], size, flags, cfg.cv_folds)  # type: ignore[misc]
+        for rec, err in zip(views, cv.error_px, strict=True):
+            rec.cv_error_px = float(err)
         if cfg.outlier_ratio <= 0 or len(views) <= MIN_VIEWS:
-            return rms, K, dist, std_in
-        worst = int(np.argmax(per_view))
-        others = float(np.median(np.delete(per_view, worst)))
-        err = float(per_view[worst])
+            break
+        worst = int(np.argmax(cv.error_px))
+        others = float(np.median(np.delete(cv.error_px, worst)))
+        err = float(cv.error_px[worst])
         if err <= cfg.outlier_min_px or err <= cfg.outlier_ratio * others:
-            return rms, K, dist, std_in
+            break
         rec = views.pop(worst)
-        rec.status, rec.reason = "rejected", "outlier"
-        rms2, K2, *_ = _calibrate(views, size, cfg)
+        rec.status, rec.reason, rec.error_px = "rejected", "outlier", None
+        new_fit = fit_views([r.detection for r in views], size, flags)  # type: ignore[misc]
         rec.detail = (
-            f"{err:.2f} px, {err / max(others, 1e-12):.1f}x the other views' median "
-            f"{others:.2f} px; without it fx {K[0, 0]:.1f} -> {K2[0, 0]:.1f} px, RMS "
-            f"{rms:.3f} -> {rms2:.3f} px"
+            f"held-out error {err:.2f} px, {err / max(others, 1e-12):.1f}x the other views' "
+            f"median {others:.2f} px; without it fx {fit.K[0, 0]:.1f} -> "
+            f"{new_fit.K[0, 0]:.1f} px, RMS {fit.rms_px:.3f} -> {new_fit.rms_px:.3f} px"
         )
+        fit = new_fit
+    for rec, err in zip(views, fit.per_view_px, strict=True):
+        rec.error_px = float(err)
+    cal[:] = views
+    return fit, cv
 
 
 # --------------------------------------------------------------------------- outputs
 
 
 def _plot_errors(result: IntrinsicsResult, path: Path) -> None:
-    """Bar chart of per-view RMS reprojection error (px), calibration vs hold-out views."""
+    """Per-view RMS error in the fit and held out (px), and each fold's fx / fy against the
+    final fit's (the spread the uncertainty comes from)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    used = [v for v in result.views if v.status in ("calibration", "holdout")]
-    fig, ax = plt.subplots(figsize=(max(6.0, 0.22 * len(used) + 2.0), 3.6), dpi=100)
-    colours = ["tab:blue" if v.status == "calibration" else "tab:orange" for v in used]
-    ax.bar(range(len(used)), [v.error_px or 0.0 for v in used], color=colours)
+    used = [v for v in result.views if v.status == "calibration" or v.reason == "outlier"]
+    fig, (ax, ax2) = plt.subplots(
+        1,
+        2,
+        figsize=(max(8.0, 0.3 * len(used) + 5.0), 3.8),
+        dpi=100,
+        gridspec_kw={"width_ratios": [max(2.0, 0.3 * len(used)), 3.0]},
+    )
+    x = np.arange(len(used))
+    fit_err = [v.error_px or 0.0 for v in used]
+    cv_err = [v.cv_error_px if v.cv_error_px is not None else 0.0 for v in used]
+    ax.bar(x - 0.2, fit_err, 0.4, color="tab:blue", label="in the fit")
+    colours = ["tab:red" if v.reason == "outlier" else "tab:orange" for v in used]
+    ax.bar(x + 0.2, cv_err, 0.4, color=colours, label="held out (red: outlier)")
+    rms = result.camera.rms_px or 0.0
+    ax.axhline(rms, color="tab:blue", ls="--", lw=1, label=f"fit RMS {rms:.3f} px")
     ax.axhline(
-        result.camera.rms_px or 0.0,
-        color="tab:blue",
+        result.cv_rms_px,
+        color="tab:orange",
         ls="--",
         lw=1,
-        label=f"calibration RMS {result.camera.rms_px:.3f} px",
+        label=f"{result.cv.scheme} RMS {result.cv_rms_px:.3f} px",
     )
-    if result.holdout_rms_px is not None:
-        ax.axhline(
-            result.holdout_rms_px,
-            color="tab:orange",
-            ls="--",
-            lw=1,
-            label=f"hold-out RMS {result.holdout_rms_px:.3f} px",
-        )
-    ax.set_xticks(range(len(used)))
+    ax.set_xticks(x)
     ax.set_xticklabels([v.name for v in used], rotation=90, fontsize=6)
     ax.set_ylabel("RMS reprojection error (px)")
-    ax.set_title("Per-view error (blue: calibration, orange: hold-out)")
-    ax.legend(fontsize=8)
+    ax.set_title("Per view")
+    ax.legend(fontsize=7)
+    cam = result.camera
+    p = result.cv.params
+    for j, (label, value, colour) in enumerate(
+        (("fx", cam.fx_px, "tab:blue"), ("fy", cam.fy_px, "tab:green"))
+    ):
+        rel = 100.0 * (p[:, j] - value) / value
+        ax2.plot(np.arange(len(rel)), rel, "o", ms=3, color=colour, label=label)
+    unc = result.uncertainty_frac()
+    fx_band = 100.0 * unc["fx_px"]
+    limit = 100.0 * result.config.uncertainty_warn_frac
+    ax2.axhspan(-fx_band, fx_band, color="0.88", zorder=0, label="fx +-1 sigma (jackknife)")
+    for sign in (-1.0, 1.0):
+        ax2.axhline(sign * limit, color="tab:red", ls=":", lw=1)
+    ax2.axhline(0.0, color="k", lw=0.8)
+    ax2.set_xlabel(f"fold ({result.cv.scheme}; red: {limit:g} % warning limit)")
+    ax2.set_ylabel("fold's value - final (%)")
+    ax2.set_title(
+        f"Folds: fx +-{100 * unc['fx_px']:.2f} %, fy +-{100 * unc['fy_px']:.2f} % (jackknife)",
+        fontsize=9,
+    )
+    ax2.legend(fontsize=7)
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png")

@@ -644,3 +644,69 @@ def test_cli_bad_files_fail_with_one_line(run_cli, tmp_path):
     assert r.err.count("\n") == 1 and "k3 = -0.023906" in r.err
     r = run_cli(calibration_cli.main, "import", _write(tmp_path, KALIBR), "--cam", "cam7")
     assert r.code != 0 and r.err.count("\n") == 1 and "no 'cam7'" in r.err
+
+
+# --------------------------------------------------------------------------- stereo camchains
+
+KALIBR_T_CN_CNM1 = np.array(
+    [
+        [0.999997256477, 0.00231206719, 0.000376008102, -0.110073808127],
+        [-0.002317135723, 0.999898048506, 0.014089835846, 0.000399121813],
+        [-0.000343393121, -0.014090668452, 0.999900662638, -0.000853702043],
+        [0.0, 0.0, 0.0, 1.0],
+    ]
+)
+
+
+@pytest.mark.parametrize("cam_key", ["cam0", "cam1"])
+def test_cli_import_keeps_T_cn_cnm1_as_a_stereo_file(run_cli, tmp_path, cam_key):
+    """Either camera of a two-camera camchain: the camera file, and the pair (cam0 left, cam1
+    right) with T_right_left = cam1's T_cn_cnm1 exactly, beside it."""
+    from uwdock.calibration.stereo_rig import load_stereo
+
+    src, out = _write(tmp_path, KALIBR), tmp_path / "cam.yaml"
+    r = run_cli(calibration_cli.main, "import", src, "--cam", cam_key, "--out", out)
+    assert r.code == 0, r.err
+    assert "stereo pair cam0 -> cam1 (T_cn_cnm1 of cam1)" in r.out
+    rig = load_stereo(tmp_path / "cam_stereo.yaml")
+    assert np.array_equal(rig.T_right_left, KALIBR_T_CN_CNM1)
+    assert rig.left == read_camera_yaml(src, cam_key="cam0").camera
+    assert rig.right == read_camera_yaml(src, cam_key="cam1").camera
+    assert (rig.left_topic, rig.right_topic) == ("/cam0/image_raw", "/cam1/image_raw")
+    assert rig.baseline_m == pytest.approx(0.110078, abs=1e-6)
+    # exported again: the same transform, the same numbers, cam1 linked to cam0
+    chain = tmp_path / "chain.yaml"
+    r = run_cli(calibration_cli.main, "export", tmp_path / "cam_stereo.yaml", "--format",
+                "kalibr", "--out", chain)  # fmt: skip
+    assert r.code == 0, r.err
+    doc = read_yaml_mapping(chain)
+    assert np.array_equal(np.array(doc["cam1"]["T_cn_cnm1"]), KALIBR_T_CN_CNM1)
+    assert doc["cam0"]["cam_overlaps"] == [1] and doc["cam1"]["cam_overlaps"] == [0]
+    assert doc["cam1"]["intrinsics"] == [1114.9870, 1114.1301, 645.8452, 519.2170]
+
+
+def test_cli_import_no_stereo_and_refusals(run_cli, tmp_path):
+    src, out = _write(tmp_path, KALIBR), tmp_path / "cam.yaml"
+    r = run_cli(calibration_cli.main, "import", src, "--cam", "cam1", "--no-stereo", "--out", out)
+    assert r.code == 0, r.err
+    assert "T_cn_cnm1 of cam1 not kept (--no-stereo)" in r.err
+    assert not (tmp_path / "cam_stereo.yaml").exists()
+    # a partner the camera model cannot hold: refused in one line, nothing written
+    fisheye = _write(tmp_path, KALIBR.replace("radtan", "equidistant", 2).replace(
+        "distortion_model: equidistant", "distortion_model: radtan", 1), "fish.yaml")  # fmt: skip
+    out2 = tmp_path / "c2.yaml"
+    r = run_cli(calibration_cli.main, "import", fisheye, "--out", out2)
+    assert r.code != 0 and r.err.count("\n") == 1, r.err
+    assert "'cam1'" in r.err and "stereo pair" in r.err and "--no-stereo" in r.err
+    assert not out2.exists() and not (tmp_path / "c2_stereo.yaml").exists()
+    r = run_cli(calibration_cli.main, "import", fisheye, "--no-stereo", "--out", out2)
+    assert r.code == 0 and load_camera(out2)[0].name == "cam0"
+    # different image sizes cannot form one stereo file
+    text = KALIBR.replace("[1280, 1024]\n  rostopic: /cam1", "[640, 512]\n  rostopic: /cam1")
+    sizes = _write(tmp_path, text, "s.yaml")
+    r = run_cli(calibration_cli.main, "import", sizes, "--out", out2)
+    assert r.code != 0 and r.err.count("\n") == 1 and "differ in size" in r.err, r.err
+    # a one-camera camchain has no pair: --stereo-out is refused, the import alone goes on
+    one = _write(tmp_path, kalibr_camchain_yaml(MODELS["ideal"]), "one.yaml")
+    r = run_cli(calibration_cli.main, "import", one, "--stereo-out", tmp_path / "x.yaml")
+    assert r.code != 0 and "holds no stereo pair" in r.err

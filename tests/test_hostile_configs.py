@@ -25,6 +25,7 @@ PACKAGES = tuple(
 def _roots() -> list[type]:
     """The configs a user loads from TOML (``--config``) or that commands build from flags."""
     from uwdock.calibration.intrinsics import IntrinsicsConfig
+    from uwdock.calibration.stereo import StereoConfig
     from uwdock.datasets.synth import SynthConfig
     from uwdock.datasets.tank_report import TankReportConfig
     from uwdock.datasets.water_fit import FitWaterConfig
@@ -43,6 +44,7 @@ def _roots() -> list[type]:
     return [
         MarkerConfig,
         IntrinsicsConfig,
+        StereoConfig,
         PerceptionConfig,
         SynthConfig,
         TankReportConfig,

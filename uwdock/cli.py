@@ -71,6 +71,8 @@ COMMANDS: dict[str, tuple[str, dict[str, str]]] = {
             "or a ROS bag of the target.",
             "reference-camera": "Write the reference Girona downward camera (968x732, 55 deg "
             "HFOV) with its T_body_cam.",
+            "stereo": "Calibrate a stereo pair (T_right_left, rectification, epipolar error) "
+            "from views of the target in LEFT and RIGHT, or in one ROS bag LEFT.",
         },
     ),
     "datasets": (
