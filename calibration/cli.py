@@ -86,6 +86,11 @@ def cli() -> None:
     "--max-views", type=_cfg("max_views"), help="Most views kept, spread over poses [40]."
 )
 @click.option(
+    "--corner-method",
+    type=click.Choice(["auto", "classic", "sb"]),
+    help="Chessboard corners: classic, sb (sector-based) or auto (both, compared) [auto].",
+)
+@click.option(
     "--cv-folds",
     type=_cfg("cv_folds"),
     help="Cross-validation folds: 0 = leave-one-view-out (10 folds above 40 views) [0].",
@@ -118,6 +123,7 @@ def intrinsics(
     dictionary,
     blur_threshold_px,
     max_views,
+    corner_method,
     cv_folds,
     distortion_model,
     config_path,
@@ -148,6 +154,7 @@ def intrinsics(
             "blur_threshold_px": blur_threshold_px,
             "max_views": max_views,
             "cv_folds": cv_folds,
+            "corner_method": corner_method,
             "distortion_model": distortion_model,
         },
         section="intrinsics",

@@ -320,14 +320,18 @@ def test_cli_config_file_and_flags_override(run_cli, cb_folder, tmp_path):
         toml,
         "--cols",
         9,
+        "--corner-method",
+        "classic",
         "--out",
         out,
         "--quiet",
     )
     assert r.code == 0, r.err
     assert r.out.strip() == str(out)
-    cfg = json.loads((tmp_path / "cam_report.json").read_text())["config"]
-    assert (cfg["cols"], cfg["cv_folds"]) == (9, 5)
+    report = json.loads((tmp_path / "cam_report.json").read_text())
+    cfg = report["config"]
+    assert (cfg["cols"], cfg["cv_folds"], cfg["corner_method"]) == (9, 5, "classic")
+    assert report["corner_methods"] is None and report["cross_validation"]["scheme"] == "5-fold"
     bad = tmp_path / "bad.toml"
     bad.write_text("colls = 9\n")
     r = run_cli(calibration_cli.main, "intrinsics", cb_folder, "--config", bad, "--out", out)
