@@ -46,6 +46,8 @@ __all__ = [
     "REFERENCE_T_BODYFRD_CAMCV",
     "CameraModel",
     "load_camera",
+    "raw_integer",
+    "raw_matrix",
     "read_filestorage_yaml",
     "reference_camera",
     "resolve_camera",
@@ -408,7 +410,18 @@ def _read_json(path: Path) -> dict[str, Any]:
     return raw
 
 
-def _matrix(raw: dict[str, Any], key: str, path: Path, shape: tuple[int, ...] | None) -> np.ndarray:
+def raw_matrix(
+    raw: dict[str, Any], key: str, path: Path, shape: tuple[int, ...] | None
+) -> np.ndarray:
+    """``raw[key]`` of a camera-like file as a finite float64 array of ``shape`` (any shape
+    when None).
+
+    Raises:
+        DockError: one line naming ``path`` and ``key``: missing, not numeric, another shape,
+            or non-finite.
+    """
+    if key not in raw:
+        raise DockError(f"{path}: missing key '{key}'")
     value = raw[key]
     try:
         arr = np.array(value, dtype=np.float64)
@@ -421,7 +434,14 @@ def _matrix(raw: dict[str, Any], key: str, path: Path, shape: tuple[int, ...] | 
     return arr
 
 
-def _integer(raw: dict[str, Any], key: str, path: Path) -> int:
+def raw_integer(raw: dict[str, Any], key: str, path: Path) -> int:
+    """``raw[key]`` of a camera-like file as an int (an integral float is accepted).
+
+    Raises:
+        DockError: one line naming ``path`` and ``key``: missing or not an integer.
+    """
+    if key not in raw:
+        raise DockError(f"{path}: missing key '{key}'")
     value = raw[key]
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise DockError(f"{path}: key '{key}' must be an integer, got {value!r}")
@@ -435,16 +455,16 @@ def _model_from_raw(raw: dict[str, Any], path: Path) -> tuple[CameraModel, np.nd
         if key not in raw:
             raise DockError(f"{path}: missing key '{key}'")
     if "format_version" in raw:
-        version = _integer(raw, "format_version", path)
+        version = raw_integer(raw, "format_version", path)
         if version != CAMERA_FILE_VERSION:
             raise DockError(
                 f"{path}: key 'format_version' is {version}, this toolkit reads "
                 f"{CAMERA_FILE_VERSION}"
             )
-    K = _matrix(raw, "camera_matrix", path, (3, 3))
+    K = raw_matrix(raw, "camera_matrix", path, (3, 3))
     if K[0, 1] != 0.0 or K[1, 0] != 0.0 or not np.array_equal(K[2], (0.0, 0.0, 1.0)):
         raise DockError(f"{path}: key 'camera_matrix' must be [[fx,0,cx],[0,fy,cy],[0,0,1]]")
-    dist = _matrix(raw, "distortion_coefficients", path, None).reshape(-1)
+    dist = raw_matrix(raw, "distortion_coefficients", path, None).reshape(-1)
     rms = None
     if "rms_px" in raw:
         rms_value = raw["rms_px"]
@@ -456,8 +476,8 @@ def _model_from_raw(raw: dict[str, Any], path: Path) -> tuple[CameraModel, np.nd
         raise DockError(f"{path}: key 'name' must be a string, got {name!r}")
     try:
         cam = CameraModel(
-            width_px=_integer(raw, "image_width", path),
-            height_px=_integer(raw, "image_height", path),
+            width_px=raw_integer(raw, "image_width", path),
+            height_px=raw_integer(raw, "image_height", path),
             fx_px=float(K[0, 0]),
             fy_px=float(K[1, 1]),
             cx_px=float(K[0, 2]),
@@ -471,7 +491,7 @@ def _model_from_raw(raw: dict[str, Any], path: Path) -> tuple[CameraModel, np.nd
     T = None
     if raw.get("T_body_cam") is not None:
         try:
-            T = check_T(_matrix(raw, "T_body_cam", path, (4, 4)), "T_body_cam")
+            T = check_T(raw_matrix(raw, "T_body_cam", path, (4, 4)), "T_body_cam")
         except ValueError as exc:
             raise DockError(f"{path}: key {exc}") from None
     return cam, T

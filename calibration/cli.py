@@ -58,6 +58,34 @@ def _cfg(name: str) -> DomainType:
     return field_type("uwdock.calibration.intrinsics:IntrinsicsConfig", name)
 
 
+def _target_options(fn):
+    """The target's options (``--pattern`` ... ``--dictionary``), shared by ``intrinsics`` and
+    ``stereo`` (``IntrinsicsConfig`` fields)."""
+    options = [
+        click.option("--pattern", help="Target: chessboard or charuco [chessboard]."),
+        click.option(
+            "--cols",
+            type=_cfg("cols"),
+            help="Chessboard: inner corners per row; charuco: squares [9].",
+        ),
+        click.option(
+            "--rows",
+            type=_cfg("rows"),
+            help="Chessboard: inner corners per column; charuco: squares [6]",
+        ),
+        click.option("--square-mm", type=_cfg("square_mm"), help="Square side in mm [25]."),
+        click.option(
+            "--marker-mm",
+            type=_cfg("marker_mm"),
+            help="ChArUco marker side in mm [0.75 x square].",
+        ),
+        click.option("--dictionary", help="ChArUco marker dictionary [DICT_4X4_50]."),
+    ]
+    for option in reversed(options):
+        fn = option(fn)
+    return fn
+
+
 @command_group()
 def cli() -> None:
     """Calibration: camera intrinsics and the camera-to-vehicle extrinsics."""
@@ -65,18 +93,7 @@ def cli() -> None:
 
 @cli.command()
 @click.argument("source", type=click.Path(path_type=Path))
-@click.option("--pattern", help="Target: chessboard or charuco [chessboard].")
-@click.option(
-    "--cols", type=_cfg("cols"), help="Chessboard: inner corners per row; charuco: squares [9]."
-)
-@click.option(
-    "--rows", type=_cfg("rows"), help="Chessboard: inner corners per column; charuco: squares [6]"
-)
-@click.option("--square-mm", type=_cfg("square_mm"), help="Square side in mm [25].")
-@click.option(
-    "--marker-mm", type=_cfg("marker_mm"), help="ChArUco marker side in mm [0.75 x square]."
-)
-@click.option("--dictionary", help="ChArUco marker dictionary [DICT_4X4_50].")
+@_target_options
 @click.option(
     "--blur-threshold-px",
     type=_cfg("blur_threshold_px"),
@@ -208,18 +225,7 @@ def intrinsics(
 )
 @click.option("--left-topic", help="Bag: the left camera's image topic.")
 @click.option("--right-topic", help="Bag: the right camera's image topic.")
-@click.option("--pattern", help="Target: chessboard or charuco [chessboard].")
-@click.option(
-    "--cols", type=_cfg("cols"), help="Chessboard: inner corners per row; charuco: squares [9]."
-)
-@click.option(
-    "--rows", type=_cfg("rows"), help="Chessboard: inner corners per column; charuco: squares [6]"
-)
-@click.option("--square-mm", type=_cfg("square_mm"), help="Square side in mm [25].")
-@click.option(
-    "--marker-mm", type=_cfg("marker_mm"), help="ChArUco marker side in mm [0.75 x square]."
-)
-@click.option("--dictionary", help="ChArUco marker dictionary [DICT_4X4_50].")
+@_target_options
 @click.option(
     "--distortion-model",
     type=click.Choice(["k1k2", "k1k2k3", "k1k2p1p2", "k1k2p1p2k3", "rational"]),

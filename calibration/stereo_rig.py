@@ -43,7 +43,13 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike
 
-from uwdock.calibration.camera import CameraModel, read_filestorage_yaml, twin_paths
+from uwdock.calibration.camera import (
+    CameraModel,
+    raw_integer,
+    raw_matrix,
+    read_filestorage_yaml,
+    twin_paths,
+)
 from uwdock.calibration.frames import check_T
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_path, atomic_write_json, read_text
@@ -412,28 +418,11 @@ def load_stereo(path: str | os.PathLike[str]) -> StereoRig:
     if raw.get("kind") != "stereo":
         raise DockError(f"{path}: not a stereo file (no 'kind: stereo'; a camera file?)")
 
-    def get(key: str) -> Any:
-        if key not in raw:
-            raise DockError(f"{path}: missing key '{key}'")
-        return raw[key]
-
     def matrix(key: str, shape: tuple[int, ...] | None) -> np.ndarray:
-        try:
-            arr = np.array(get(key), dtype=np.float64)
-        except (TypeError, ValueError):
-            raise DockError(f"{path}: key '{key}' must be a numeric matrix") from None
-        if shape is not None and arr.shape != shape:
-            raise DockError(f"{path}: key '{key}' must have shape {shape}, got {arr.shape}")
-        if not np.all(np.isfinite(arr)):
-            raise DockError(f"{path}: key '{key}' contains non-finite values")
-        return arr
+        return raw_matrix(raw, key, path, shape)
 
     def integer(key: str) -> int:
-        value = get(key)
-        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
-        if not (ok and float(value).is_integer()):
-            raise DockError(f"{path}: key '{key}' must be an integer, got {value!r}")
-        return int(value)
+        return raw_integer(raw, key, path)
 
     def optional(key: str, kind: type) -> Any:
         value = raw.get(key)
