@@ -30,6 +30,7 @@ from uwdock.perception.preprocess import (
     Pipeline,
     as_uint8,
     get_pipeline,
+    to_grey,
 )
 from uwdock.perception.rescue import QuadReader
 
@@ -53,8 +54,8 @@ CORNER_REFINEMENTS: dict[str, int] = {
 class DetectorConfig:
     """Marker detector settings. ``None`` fields take the pipeline's preset
     (:data:`perception.preprocess.PIPELINES`; ``default`` presets: 7.0, (23, 23, 10), "subpix",
-    True; the published pipelines and ``plain`` use OpenCV's defaults: 7.0, (3, 23, 10), "none",
-    False).
+    True, rescue and OpenCV pass on; the published pipelines and ``plain`` use OpenCV's
+    defaults: 7.0, (3, 23, 10), "none", False, rescue and OpenCV pass off).
 
     Attributes:
         dictionary: OpenCV dictionary name, any ``cv2.aruco.DICT_*`` incl. AprilTag families
@@ -90,6 +91,23 @@ class DetectorConfig:
             whole frame is searched. 1 demands every predicted marker; below 1, a marker hidden
             behind the station's structure does not cost a whole-frame search, while a prior
             that is off finds few or none and falls back.
+        opencv_pass: also run OpenCV's ArUco detector with OpenCV's default parameters on the
+            plain grey image: the allow-listed IDs it decodes are reported from it (corners
+            refined like rescued ones when the pipeline refines to sub-pixel), the pipeline's
+            own candidates (and the rescue) add the IDs it missed. The pipeline then decodes
+            every marker plain OpenCV decodes, by construction. ``default``'s own pass is tuned
+            for murky, noisy views and loses flat tags that plain OpenCV reads on real footage
+            (``bench/bench_real.py``: 8 of 41 on the shared sets): its single 23 px threshold
+            window merges a rope crossing a tag's white margin with the tag (windows of 5-13 px
+            keep them apart) and loses some oblique tags; its Gaussian, and the 3x3 median it
+            takes where a textured JPEG reads as impulse noise, blur away the 2-4 px cells of
+            tags under ~40 px. Its corners of flat tags are biased by ``detectInvertedMarker``
+            (the smallest nested contour; median 1.6 px on 16-30 px tags, against 0.6 px from
+            this pass refined).
+            OpenCV's pass decodes no 3DBM (a negative): those keep the pipeline's corners. Costs
+            one more detection (three threshold windows) per frame, about OpenCV's own time,
+            less in the small regions of a prior search. None: pipeline preset (True only for
+            ``default``).
     """
 
     dictionary: str = "DICT_4X4_50"
@@ -107,6 +125,7 @@ class DetectorConfig:
     rescue_rejected: bool | None = None
     rescue_max_quads: Annotated[int, Interval(ge=0, le=10000)] = 16
     rescue_min_side_px: Annotated[float, Interval(ge=0.0, le=10000.0)] = 16.0
+    opencv_pass: bool | None = None
 
     def validate(self) -> None:
         """Raise ValueError naming the first bad field (names, IDs, the window sequence; each
@@ -197,6 +216,12 @@ class Detector:
             self.pipeline.rescue_rejected if cfg.rescue_rejected is None else cfg.rescue_rejected
         ) and cfg.rescue_max_quads > 0
         self._reader = QuadReader(self._dictionary, self._allowed) if rescue else None
+        opencv_pass = self.pipeline.opencv_pass if cfg.opencv_pass is None else cfg.opencv_pass
+        self._opencv = (
+            cv2.aruco.ArucoDetector(self._dictionary, cv2.aruco.DetectorParameters())
+            if opencv_pass
+            else None
+        )
         #: where the last :meth:`detect` found its markers: "regions" (the prior's) or "frame"
         self.last_search = "frame"
 
@@ -241,12 +266,21 @@ class Detector:
         ``cornerRefinementWinSize`` at most). Measured on the 11 rescued markers of the
         rendered water frames (27-60 px): mean corner error 1.12 px unrefined, 0.74 px at
         half-window 2, 1.15 px at ArUco's 5 (the window reaches the next cell's edges); ArUco's
-        own corners there: median 0.73 px."""
+        own corners there: median 0.73 px.
+
+        Markers whose cells are no larger than the half-window plus the gradient's 1 px are
+        left as they are: there the window reaches the inner cells' edges, which pull the
+        corner. Measured on OpenCV's corners of synthetic flat tags (small AprilTags under
+        perspective, ChArUco boards, 20-60 px 4x4 tags; median of the mean corner error):
+        cells under 3 px 0.85 px unrefined, 1.27 px refined; 3-3.5 px 0.75 / 0.76; 3.5-4 px
+        0.75 / 0.43; 4-20 px 0.77-0.86 / 0.39-0.45."""
         p = self.parameters
         cell_px = (
             cv2.arcLength(corners.astype(np.float32), True) / 4 / (self._dictionary.markerSize + 2)
         )
         win = int(max(2, min(int(p.cornerRefinementWinSize), round(cell_px / 4))))
+        if cell_px <= win + 1:
+            return corners
         pts = corners.astype(np.float32).reshape(-1, 1, 2).copy()
         criteria = (
             cv2.TERM_CRITERIA_MAX_ITER | cv2.TERM_CRITERIA_EPS,
@@ -276,7 +310,9 @@ class Detector:
         Returns:
             Detections sorted by marker ID. An ID decoded in several candidate images is
             reported once, from the candidate with the most detections (ties: the earlier one),
-            or, for a pipeline that merges "first", from the earliest candidate.
+            or, for a pipeline that merges "first", from the earliest candidate. With
+            ``opencv_pass`` the IDs OpenCV's own pass decodes come from it (flat tags, corners
+            free of the inversion bias), the candidates add the IDs it missed.
             An ID seen twice in the same candidate (two physical markers) is kept twice.
 
         Raises:
@@ -293,21 +329,33 @@ class Detector:
 
     def _detect_image(self, image: np.ndarray) -> list[Detection]:
         """The pipeline's candidates of one uint8 image, detected and merged."""
+        merged = [] if self._opencv is None else self._opencv_pass(to_grey(image))
+        seen = {d.marker_id for d in merged}
         per_candidate = [self.detect_candidate(c) for c in self.pipeline(image)]
-        if not per_candidate:
-            return []
         order = list(range(len(per_candidate)))  # "first": in the pipeline's order
         if self.pipeline.merge != "first":
             order.sort(key=lambda i: -len(per_candidate[i]))
         if self.pipeline.merge == "best":
             order = order[:1]
-        seen: set[int] = set()
-        merged: list[Detection] = []
         for i in order:
             new = [d for d in per_candidate[i] if d.marker_id not in seen]
             merged.extend(new)
             seen.update(d.marker_id for d in new)
         return sorted(merged, key=lambda d: d.marker_id)
+
+    def _opencv_pass(self, grey: np.ndarray) -> list[Detection]:
+        """OpenCV's ArUco with its default parameters on ``grey``: allow-listed IDs, corners
+        refined as rescued ones are (when the pipeline refines to sub-pixel)."""
+        corners, ids, _ = self._opencv.detectMarkers(grey)  # type: ignore[union-attr]
+        if ids is None:
+            return []
+        subpix = self.parameters.cornerRefinementMethod == cv2.aruco.CORNER_REFINE_SUBPIX
+        out = []
+        for marker_id, c in zip(ids.ravel().tolist(), corners, strict=True):
+            if self._allowed is None or marker_id in self._allowed:
+                q = np.asarray(c, np.float64).reshape(4, 2)
+                out.append(Detection(int(marker_id), self._refine_subpix(grey, q) if subpix else q))
+        return out
 
     def search_regions(
         self, shape: tuple[int, ...], predicted: dict[int, np.ndarray]

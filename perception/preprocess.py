@@ -8,12 +8,17 @@ size. The detector runs ArUco on each candidate and merges the results (see
 Each pipeline also carries the ArUco ``DetectorParameters`` it was designed or tuned with
 (``aruco_preset``) and how results from several candidates are merged (``merge``):
 
-* ``default`` (2-5 ms at 968x732): noise-aware contrast stretch (noise floor from JPEG
-  blocking; 3x3 median on impulse noise) + Gaussian (3x3 up to 1280 px wide, scaled with the
-  width above), one candidate (a second when an outlier widens the range); ArUco decodes both
-  polarities itself (``detectInvertedMarker``), one 23 px threshold window, sub-pixel corners;
+* ``default`` (2-5 ms at 968x732 for its own pass; OpenCV's pass on top): noise-aware
+  contrast stretch (noise floor from JPEG blocking; 3x3 median on impulse noise) + Gaussian
+  (3x3 up to 1280 px wide, scaled with the width above), one candidate (a second when an
+  outlier widens the range); ArUco decodes both polarities itself (``detectInvertedMarker``),
+  one 23 px threshold window, sub-pixel corners;
   the quads ArUco rejects are read again by shading-corrected cell splits
-  (:mod:`perception.rescue`).
+  (:mod:`perception.rescue`). Plus OpenCV's own detector with its default parameters on the
+  plain grey image (``opencv_pass``), whose IDs come first: ``default`` decodes every flat tag
+  plain OpenCV decodes (on real footage the stretch, blur and single window lose small tags
+  and tags whose margin a rope crosses), at about OpenCV's own time more
+  (``bench/bench_real.py``).
 * ``reference_3dbm`` (5-8 ms): the published 3DBM pipeline (the authors' detector, its "CLAHE
   method"): min-max normalise, grey (RGB2GRAY on the BGR frame, as published), CLAHE (clip 2.0,
   32x32 tiles), float inverted rescale to [-127, 127], 3x3 binomial filter, + 127.5, clip to
@@ -438,6 +443,10 @@ class Pipeline:
             (:mod:`perception.rescue`); ``default`` only, the published pipelines stay as
             published.
         description: one line for listings.
+        opencv_pass: the detector also runs OpenCV's ArUco detector with OpenCV's default
+            parameters on the plain grey image (:func:`to_grey`); the IDs it decodes come
+            from it, the pipeline's candidates add the others (``default`` only; see
+            ``DetectorConfig.opencv_pass``).
     """
 
     name: str
@@ -446,6 +455,7 @@ class Pipeline:
     merge: str = "union"
     rescue_rejected: bool = False
     description: str = ""
+    opencv_pass: bool = False
 
     def __call__(self, image: np.ndarray) -> list[np.ndarray]:
         return self.fn(image)
@@ -477,7 +487,9 @@ PIPELINES: dict[str, Pipeline] = {
             _DEFAULT_PRESET,
             merge="first",
             rescue_rejected=True,
-            description="noise-aware stretch + blur, both polarities, rejected quads re-read",
+            description="noise-aware stretch + blur, both polarities, rejected quads re-read, "
+            "+ OpenCV's own pass on the grey image",
+            opencv_pass=True,
         ),
         Pipeline(
             "reference_3dbm",
