@@ -41,14 +41,14 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, is_dataclass
 from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from uwdock.dockcore.bench import format_table, save_results
-from uwdock.dockcore.config import replace, to_dict
+from uwdock.dockcore.config import merge, replace, to_dict
 from uwdock.rl.config import EnvConfig
 from uwdock.rl.policy_io import policy_env_settings, policy_error_model
 from uwdock.sim.thrusters import ThrusterRandomisation
@@ -61,12 +61,20 @@ HARD_CURRENT = CurrentConfig(
     mode="varying", range_x_mps=(-0.4, 0.4), range_y_mps=(-0.4, 0.4), max_speed_mps=0.4
 )
 LONG_APPROACH = {"spawn_auv_range_m": (8.5, 4.0, 1.4), "spawn_horizontal_range_m": (8.0, 10.0)}
-CAMERA_MOUNT = {"camera_mount_error_m": 0.01, "camera_mount_error_deg": 1.0}
+# the world's conditions go to EnvConfig.world ([env.world])
+CAMERA_MOUNT = {"world": {"camera_mount_error_m": 0.01, "camera_mount_error_deg": 1.0}}
 THRUSTERS = {
-    "vehicle_randomisation": VehicleRandomisation(
-        thrusters=ThrusterRandomisation(position_m=0.05, axis_deg=5.0)
-    )
+    "world": {
+        "vehicle_randomisation": to_dict(
+            VehicleRandomisation(thrusters=ThrusterRandomisation(position_m=0.05, axis_deg=5.0))
+        )
+    }
 }
+
+
+def _world(**changes: Any) -> dict[str, Any]:
+    """EnvConfig overrides of ``world`` fields (config dataclasses as plain data)."""
+    return {"world": {k: to_dict(v) if is_dataclass(v) else v for k, v in changes.items()}}
 
 
 @dataclass(frozen=True)
@@ -84,22 +92,19 @@ ROWS = (
     Row("camera", "camera", headline=True),
     Row("camera off", "acoustic", headline=True),
     Row("error model", "error-model", headline=True),
-    Row("coastal", "camera", {"water_preset": "coastal"}),
-    Row("turbid", "camera", {"water_preset": "turbid"}),
-    Row("current 0.4", "camera", {"current": HARD_CURRENT}),
+    Row("coastal", "camera", _world(water_preset="coastal")),
+    Row("turbid", "camera", _world(water_preset="turbid")),
+    Row("current 0.4", "camera", _world(current=HARD_CURRENT)),
     Row("long approach", "camera", LONG_APPROACH),
     Row("camera mount", "camera", CAMERA_MOUNT),
     Row("thrusters", "camera", THRUSTERS),
     Row(
         "all",
         "camera",
-        {
-            "water_preset": "coastal",
-            "current": HARD_CURRENT,
-            **LONG_APPROACH,
-            **CAMERA_MOUNT,
-            **THRUSTERS,
-        },
+        merge(
+            merge(_world(water_preset="coastal", current=HARD_CURRENT), LONG_APPROACH),
+            merge(CAMERA_MOUNT, THRUSTERS),
+        ),
     ),
 )
 

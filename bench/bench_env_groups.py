@@ -48,6 +48,7 @@ checkpoint_every = 1000000000
 eval_every = 0
 [env]
 obs_source = "{source}"
+[env.world]
 camera_width_px = 480
 """
 

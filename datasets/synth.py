@@ -89,6 +89,7 @@ from uwdock.sim.water import (
     resolve_water,
     water_spec_error,
 )
+from uwdock.sim.world_config import camera_width_error
 
 __all__ = [
     "PoseSamplingConfig",
@@ -228,8 +229,9 @@ class SynthConfig:
         why = water_spec_error(self.water, allow_random=True)
         if why is not None:
             raise ValueError(f"water: {why}")
-        if not (self.width_px == 0 or self.width_px >= 16):
-            raise ValueError(f"width_px: must be 0 or >= 16, got {self.width_px}")
+        why = camera_width_error(self.width_px)
+        if why is not None:
+            raise ValueError(f"width_px: {why}")
         try:
             self.poses.check_tank(_ds_config(self))
         except ValueError as exc:

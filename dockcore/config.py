@@ -11,6 +11,10 @@ Conventions:
       finite (NaN and infinity are refused everywhere), an int is an int.
     * A dataclass may define ``validate(self) -> None`` that raises ``ValueError``; it is called
       after every load and on :func:`replace`.
+    * A field that moved into a nested table stays readable at its old place: the dataclass
+      lists it in ``MOVED_KEYS: ClassVar[Mapping[str, str]]`` (old key -> the table it moved
+      into, under the same name), and the loader lifts it there (:func:`lift_moved_keys`), so
+      files written before the move load unchanged; a key given at both places is an error.
 
 Example:
     >>> cfg = load_config(MarkerConfig, "marker.toml", overrides={"size_mm": 80})
@@ -134,7 +138,50 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
     return value
 
 
+def _lift_here(cls: type, data: Mapping[str, Any], prefix: str) -> Mapping[str, Any]:
+    """``data`` with the old keys of ``cls.MOVED_KEYS`` moved into their tables (this level)."""
+    moved: Mapping[str, str] = getattr(cls, "MOVED_KEYS", None) or {}
+    if not any(k in moved for k in data):
+        return data
+    out = dict(data)
+    for old, table in moved.items():
+        if old not in out:
+            continue
+        inner = out.get(table, {})
+        if not isinstance(inner, Mapping):
+            raise ConfigError(f"{prefix}{table}: expected a table, got {type(inner).__name__}")
+        if old in inner:
+            raise ConfigError(
+                f"{prefix}{table}.{old}: given twice, as '{prefix}{old}' (the flat layout of "
+                f"older files) and in the '{prefix}{table}' table; keep one"
+            )
+        out[table] = {**inner, old: out.pop(old)}
+    return out
+
+
+def lift_moved_keys(cls: type, data: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Plain config data of ``cls`` in its current layout: every key of a dataclass's
+    ``MOVED_KEYS`` (here and in nested tables) moved into the table it moved to.
+
+    The loader does this on every load; call it on file data before merging it with data in the
+    current layout (:func:`merge`), or a moved key would be seen at both places.
+
+    Raises:
+        ConfigError: a key given both at its old place and in its table, or a moved-into key
+            that is not a table. Unknown keys are left for the loader to refuse.
+    """
+    out = dict(_lift_here(cls, data, prefix))
+    hints = typing.get_type_hints(cls, include_extras=True)
+    for f in dataclasses.fields(cls):
+        value = out.get(f.name)
+        tp = split_annotated(hints[f.name])[0]
+        if isinstance(value, Mapping) and isinstance(tp, type) and dataclasses.is_dataclass(tp):
+            out[f.name] = lift_moved_keys(tp, value, f"{prefix}{f.name}.")
+    return out
+
+
 def _build(cls: type[C], data: Mapping[str, Any], prefix: str = "") -> C:
+    data = _lift_here(cls, data, prefix)
     hints = typing.get_type_hints(cls, include_extras=True)
     names = {f.name for f in dataclasses.fields(cls) if f.init}
     unknown = sorted(set(data) - names)
@@ -276,7 +323,7 @@ def load_config(
     With ``section``, a file whose only top-level key is that table (as in the ``config.toml``
     written next to every output) is read from inside it, so an output's config can be reused.
     """
-    data = config_data(path, section) if path is not None else {}
+    data = lift_moved_keys(cls, config_data(path, section)) if path is not None else {}
     if overrides:
         data = merge(data, {k: v for k, v in overrides.items() if v is not None})
     return _build(cls, data)
@@ -285,10 +332,12 @@ def load_config(
 def replace(cfg: C, **changes: Any) -> C:
     """``dataclasses.replace`` that re-validates (raises ConfigError on a bad value).
 
-    Values may be plain data or config dataclasses (which replace that table whole).
+    Values may be plain data or config dataclasses (which replace that table whole); a partial
+    mapping changes those keys of a table (``replace(env, world={"water_preset": "turbid"})``).
+    A key of the class's ``MOVED_KEYS`` changes the field it moved to.
     """
     plain = {k: to_dict(v) if dataclasses.is_dataclass(v) else v for k, v in changes.items()}
-    return from_dict(type(cfg), merge(to_dict(cfg), plain))
+    return from_dict(type(cfg), merge(to_dict(cfg), lift_moved_keys(type(cfg), plain)))
 
 
 def to_dict(cfg: Any) -> dict[str, Any]:

@@ -10,7 +10,15 @@ from tqdm import tqdm
 
 from uwdock.datasets.loaders import write_pose_track_csv
 from uwdock.dockcore.cli import domain_type, field_type, run_group
-from uwdock.dockcore.config import config_data, from_dict, load_config, merge, replace, to_dict
+from uwdock.dockcore.config import (
+    config_data,
+    from_dict,
+    lift_moved_keys,
+    load_config,
+    merge,
+    replace,
+    to_dict,
+)
 from uwdock.dockcore.domains import Count, Interval, Seed
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_write_json
@@ -41,16 +49,19 @@ from uwdock.rl.trajectories import record_pid_trajectories
 from uwdock.rl.vec_envs import EnvsPerWorker
 from uwdock.sim.usbl import USBL_PRESETS
 from uwdock.sim.water import resolve_water, water_choice
+from uwdock.sim.world_config import WorldConfig
 
 #: The config whose fields the options override (imported when an option is first used).
 _TRAIN = "uwdock.rl.train:TrainConfig"
 _ENV = "uwdock.rl.config:EnvConfig"
+_WORLD = "uwdock.sim.world_config:WorldConfig"
 _VIDEO = "uwdock.rl.episode:EpisodeVideoConfig"
 
-#: ``rl episode``'s values of EnvConfig fields that neither a flag nor ``--config`` sets.
-_EPISODE_DEFAULTS = {"episode_s": 30.0, "camera_width_px": 484}
+#: ``rl episode``'s values of EnvConfig fields that neither a flag nor ``--config`` sets (the
+#: camera's render width is the env's own, ``WorldConfig.camera_width_px``).
+_EPISODE_DEFAULTS = {"episode_s": 30.0}
 OBS_CHOICES = click.Choice(list(get_args(ObsSourceName)))
-#: ``--water``: the water of the camera sources (``EnvConfig.water_preset``).
+#: ``--water``: the water of the camera sources (``EnvConfig.world.water_preset``).
 WATER_OPTION = click.option(
     "--water",
     "water",
@@ -124,7 +135,7 @@ def train(
         "obs_source": obs,
         "error_model_path": str(error_model) if error_model else None,
         "usbl": {"preset": usbl} if usbl else None,
-        "water_preset": water_choice(water) if water else None,
+        "world": {"water_preset": water_choice(water)} if water else None,
     }
     overrides = {
         "algo": algo,
@@ -138,6 +149,7 @@ def train(
     if resume:
         base = to_dict(run_config(out_dir))
         extra = config_data(config_path, section="train") if config_path else {}
+        extra = lift_moved_keys(TrainConfig, extra)  # a file of the old flat [env] layout
         overrides = {k: v for k, v in overrides.items() if v is not None and v != {}}
         cfg = from_dict(TrainConfig, merge(merge(base, extra), overrides))
     else:
@@ -283,7 +295,7 @@ def eval_cmd(
             "error_model_path": em,
             "terminate_on": terminate_on,
             "usbl": {"preset": usbl} if usbl else None,
-            "water_preset": water_choice(water) if water else None,
+            "world": {"water_preset": water_choice(water)} if water else None,
         },
     )
     # the policy's observation layout and action scaling come from its own run config
@@ -376,9 +388,9 @@ def _fmt_rho(rho: list[float]) -> str:
 @click.option(
     "--width",
     "width_px",
-    type=field_type(_ENV, "camera_width_px"),
-    help="Downward camera render width (px) [default: the --config's camera_width_px, else "
-    f"{_EPISODE_DEFAULTS['camera_width_px']}].",
+    type=field_type(_WORLD, "camera_width_px"),
+    help="Downward camera render width (px) [default: the --config's world.camera_width_px, "
+    f"else the env's, {WorldConfig.camera_width_px}].",
 )
 @click.option(
     "--outside-width",
@@ -397,7 +409,11 @@ def episode(
     downward camera (with water) and an outside view, plus summary.json."""
     water_name = water_choice(water or "coastal", allow_random=False)
     given = config_data(config_path, section="env") if config_path is not None else {}
-    flags = {"episode_s": seconds, "camera_width_px": width_px}
+    given = lift_moved_keys(EnvConfig, given)  # a file of the old flat layout
+    flags = {
+        "episode_s": seconds,
+        "world": {"camera_width_px": width_px} if width_px is not None else None,
+    }
     data = merge(merge(_EPISODE_DEFAULTS, given), {k: v for k, v in flags.items() if v is not None})
     env_cfg = from_dict(EnvConfig, data)  # a flag, else the file's value, else our default
     outside_height_px = max(16, round(outside_width_px * 3 / 4))
@@ -469,7 +485,7 @@ def trajectories(out_dir, episodes, seed, obs, error_model, config_path, quiet) 
     """
     em = str(error_model) if error_model else None
     given = config_data(config_path, section="env") if config_path is not None else {}
-    base = merge({"terminate_on": "strict"}, given)
+    base = merge({"terminate_on": "strict"}, lift_moved_keys(EnvConfig, given))
     env_cfg = from_dict(
         EnvConfig,
         merge(base, {k: v for k, v in {"obs_source": obs, "error_model_path": em}.items() if v}),
@@ -500,7 +516,7 @@ def trajectories(out_dir, episodes, seed, obs, error_model, config_path, quiet) 
     click.echo(
         f"{summary['poses']} poses of {episodes} episodes ({summary['left_out']} left out, "
         f"{summary['success_strict']:.0%} docked strictly) -> {csv_path}; render them with "
-        f"`datasets render --poses {csv_path} --width {env_cfg.camera_width_px} --water ...`"
+        f"`datasets render --poses {csv_path} --width {env_cfg.world.camera_width_px} --water ...`"
     )
 
 

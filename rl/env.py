@@ -129,7 +129,7 @@ class DockingEnv(gym.Env):
             return ErrorModelSource(
                 load_error_model(c.error_model_path),
                 c.task,
-                c.water_preset,
+                c.world.water_preset,
                 temporal=c.error_model_memory,
             )
         if c.obs_source == "acoustic":

@@ -16,7 +16,7 @@ The env is duck-typed: anything with the Gymnasium
 ``detected``, ``success_paper``, ``success_strict``, ``collided`` and ``reward_terms``.
 
 Example:
-    >>> env = DockingEnv(EnvConfig(episode_s=30, camera_width_px=484), render_mode="rgb_array")
+    >>> env = DockingEnv(EnvConfig(episode_s=30), render_mode="rgb_array")
     >>> summary = record_episode(env, PIDController(env._limits), "out/ep", seed=3)
 """
 

@@ -157,15 +157,21 @@ def stress_tables(
     rows: list[tuple[str, str, Any, EnvConfig]] = []
     for speed in STRESS_CURRENTS_MPS:
         cur = replace(
-            env_cfg.current, mode="random", range_x_mps=(-speed, speed), range_y_mps=(-speed, speed)
+            env_cfg.world.current,
+            mode="random",
+            range_x_mps=(-speed, speed),
+            range_y_mps=(-speed, speed),
         )
-        rows.append(("current", "current_max_mps", speed, replace(env_cfg, current=cur)))
+        cfg = replace(env_cfg, world=replace(env_cfg.world, current=cur))
+        rows.append(("current", "current_max_mps", speed, cfg))
     if SOURCE_CLASSES[env_cfg.obs_source].needs.camera:  # the water acts on rendered frames
         for preset in PRESET_ORDER:
-            rows.append(("water", "water", preset, replace(env_cfg, water_preset=preset)))
+            cfg = replace(env_cfg, world=replace(env_cfg.world, water_preset=preset))
+            rows.append(("water", "water", preset, cfg))
     for err in STRESS_THRUSTER_ERRORS_M:
         rnd = VehicleRandomisation(thrusters=ThrusterRandomisation(position_m=err))
-        cfg = replace(env_cfg, randomise_vehicle=True, vehicle_randomisation=rnd)
+        world = replace(env_cfg.world, randomise_vehicle=True, vehicle_randomisation=rnd)
+        cfg = replace(env_cfg, world=world)
         rows.append(("thruster", "thruster_position_error_m", err, cfg))
 
     out: dict[str, list[dict[str, Any]]] = {"current": [], "water": [], "thruster": []}

@@ -59,7 +59,7 @@ class DockingRunner:
         policy: an exported ONNX policy (``rl export``) or any object with ``act(obs)``.
         camera_file: the camera YAML/JSON (intrinsics + ``T_body_cam``); None: the reference
             camera. Resolved as the simulated world resolves it
-            (:func:`uwdock.calibration.camera.resolve_camera` at ``env_cfg.camera_width_px``):
+            (:func:`uwdock.calibration.camera.resolve_camera` at ``env_cfg.world.camera_width_px``):
             frames of the file's size are resized to that width before detection, so the
             policy sees the estimator it was trained with.
         marker_set: the DS marker set file; None: the reference DS set.
@@ -79,7 +79,7 @@ class DockingRunner:
             env_cfg = replace(EnvConfig(), **(policy_env_settings(str(policy)) if exported else {}))
         self.cfg = env_cfg
         self.policy = OnnxPolicy(policy) if isinstance(policy, (str, os.PathLike)) else policy
-        self.camera, self.T_body_cam = resolve_camera(camera_file, self.cfg.camera_width_px)
+        self.camera, self.T_body_cam = resolve_camera(camera_file, self.cfg.world.camera_width_px)
         ms = (
             load_marker_set(marker_set)
             if marker_set is not None

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any
 
-from uwdock.dockcore.config import from_dict, merge, to_dict
+from uwdock.dockcore.config import from_dict, lift_moved_keys, merge, to_dict
 from uwdock.dockcore.domains import Interval
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_write_json
@@ -133,8 +133,8 @@ def plan_trials(
         point = "".join(f"_{k.split('.')[-1]}={_slug(v)}" for k, v in changes.items())
         for seed in cfg.seeds:
             data = to_dict(base)
-            for k, v in changes.items():
-                data = merge(data, _nested(k, v))
+            for k, v in changes.items():  # a key that moved (env.water_preset): to its table
+                data = merge(data, lift_moved_keys(TrainConfig, _nested(k, v)))
             data["seed"] = int(seed)
             trials.append(
                 Trial(f"seed{seed}{point}", int(seed), changes, from_dict(TrainConfig, data))
@@ -219,7 +219,9 @@ def run_sweep(
     old = out / "sweep.json"
     if old.is_file():
         before = json.loads(old.read_text(encoding="utf-8")).get("trials", {})
-        if {k: v["config"] for k, v in before.items()} != {k: v["config"] for k, v in plan.items()}:
+        # a sweep.json written before [env.world]: its configs in the current layout
+        before = {k: lift_moved_keys(TrainConfig, v["config"]) for k, v in before.items()}
+        if before != {k: v["config"] for k, v in plan.items()}:
             raise DockError(
                 f"{out} holds another sweep (other trials or configs): use another --out"
             )

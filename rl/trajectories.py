@@ -84,9 +84,9 @@ def record_pid_trajectories(
     Raises:
         DockError: no pose kept (every camera outside the render tank).
     """
-    ds_cfg = DockingStationConfig(marker_set_path=env_cfg.marker_set_path)
+    ds_cfg = DockingStationConfig(marker_set_path=env_cfg.world.marker_set_path)
     T_render_ds = default_T_worldned_ds(ds_cfg)
-    _, T_body_cam = resolve_camera(env_cfg.camera_file, env_cfg.camera_width_px)
+    _, T_body_cam = resolve_camera(env_cfg.world.camera_file, env_cfg.world.camera_width_px)
     poses: list[np.ndarray] = []
     labels: list[tuple[int, int, float]] = []
     rows: list[dict[str, Any]] = []

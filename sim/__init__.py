@@ -13,7 +13,7 @@ Modules:
     render:          the headless SAPIEN camera rig and ground-truth marker projection.
     camera:          THE simulated camera: ``SimCamera.capture`` = render + water, returning a
                      ``Frame`` that names its channel order (``img_rgb``, ``img_bgr()``).
-    world_config:    ``WorldConfig`` of the world (SAPIEN-free, built from the env's keys).
+    world_config:    ``WorldConfig`` of the world (SAPIEN-free; the env's ``EnvConfig.world``).
     world:           THE world of one docking env (scene, tank, DS, vehicle, currents, camera),
                      composed once.
     water:           underwater image formation (attenuation, backscatter, blur, noise, JPEG).

@@ -2,8 +2,8 @@
 
 Kept apart from :mod:`uwdock.sim.world` (which needs SAPIEN) so that configs can be built,
 loaded and checked without the simulator. The env's config (:class:`uwdock.rl.config.EnvConfig`)
-keeps the world's fields as its own flat keys (the layout of existing run folders and policies)
-and builds this config from them (``EnvConfig.world``).
+nests it as ``EnvConfig.world`` (the TOML table ``[env.world]``). It owns the rules of a world
+camera's render width (:func:`camera_width_error`, which ``datasets synth`` applies too).
 """
 
 from __future__ import annotations
@@ -14,13 +14,23 @@ from typing import Annotated
 
 from uwdock.dockcore.domains import Interval
 from uwdock.sim.domains import TANK_SIZE_M, TankSide_m
-from uwdock.sim.vehicle import CurrentConfig, VehicleConfig, VehicleRandomisation
+from uwdock.sim.vehicle import CurrentConfig, Hydrodynamics, VehicleConfig, VehicleRandomisation
 from uwdock.sim.water import water_spec_error
 
-__all__ = ["MIN_CAMERA_WIDTH_PX", "WorldConfig"]
+__all__ = ["MIN_CAMERA_WIDTH_PX", "WorldConfig", "camera_width_error"]
 
 #: Narrowest render width (px) a world camera may have (0 = the camera file's own width).
 MIN_CAMERA_WIDTH_PX = 16
+
+
+def camera_width_error(width_px: int) -> str | None:
+    """Why ``width_px`` cannot be a render width (the camera's intrinsics scaled to it), or None:
+    it must be 0 (the camera file's own size) or at least :data:`MIN_CAMERA_WIDTH_PX`. Its upper
+    bound is the field's declared domain. The one rule for every config with such a width
+    (:class:`WorldConfig`, ``datasets.synth.SynthConfig``)."""
+    if width_px and width_px < MIN_CAMERA_WIDTH_PX:
+        return f"must be 0 or >= {MIN_CAMERA_WIDTH_PX}, got {width_px}"
+    return None
 
 
 @dataclass(frozen=True)
@@ -28,13 +38,17 @@ class WorldConfig:
     """The world of one docking env.
 
     Attributes:
-        physics_hz: physics substep rate (Hz).
+        physics_hz: physics substep rate (Hz); in a docking env a multiple of its
+            ``control_hz``.
         tank_size_m: tank length, width, depth (m); the world origin is at the surface above
             the tank centre (NED), the floor at z = depth.
         marker_set_path: marker set file (None: the default DS set, generated into a cache).
         camera_file: camera YAML/JSON (None: the reference camera and mounting).
         camera_width_px: render width (px): the camera's intrinsics are scaled to it
-            (:func:`uwdock.calibration.camera.resolve_camera`); 0 keeps the file's size.
+            (:func:`uwdock.calibration.camera.resolve_camera`); 0 keeps the file's size. 480
+            (of the reference 968) keeps the DS markers detectable from the approach altitude
+            at a quarter of the render cost (>= 50 control steps/s on one core); fit an error
+            model from frames of the same camera and width.
         water_preset: water between the camera and the scene: a :mod:`uwdock.sim.water` preset
             name or a water file (``*.toml`` with a ``[water]`` table, e.g. from
             ``sim fit-water``).
@@ -69,11 +83,9 @@ class WorldConfig:
     def validate(self) -> None:
         """Raise ValueError naming the first field that breaks a rule across fields or a name
         (each field's own range is its declared domain)."""
-        if self.camera_width_px and self.camera_width_px < MIN_CAMERA_WIDTH_PX:
-            raise ValueError(
-                f"camera_width_px: must be 0 or >= {MIN_CAMERA_WIDTH_PX}, "
-                f"got {self.camera_width_px}"
-            )
+        why = camera_width_error(self.camera_width_px)
+        if why is not None:
+            raise ValueError(f"camera_width_px: {why}")
         if self.water_device is not None and not re.fullmatch(
             r"(auto|cpu|cuda(:\d+)?|mps)", str(self.water_device)
         ):
@@ -84,3 +96,15 @@ class WorldConfig:
         why = water_spec_error(self.water_preset, allow_none=False)
         if why is not None:
             raise ValueError(f"water_preset: {why}")
+        # the physics substep must keep the damping stable for every vehicle the world may draw
+        limit_s = Hydrodynamics(self.vehicle).stable_substep_s()
+        if self.randomise_vehicle:
+            r = self.vehicle_randomisation
+            shrink = 1 - max(r.mass_rel, r.inertia_rel, r.added_mass_rel)
+            limit_s *= shrink / (1 + r.damping_rel)
+        if not 1.0 / self.physics_hz < limit_s:
+            raise ValueError(
+                f"vehicle.linear_damping: too stiff for physics_hz {self.physics_hz:g} (the "
+                f"vehicle's damping and mass need a substep < {limit_s:.3g} s, randomised draws "
+                "included): lower the damping, raise the mass or physics_hz"
+            )

@@ -40,7 +40,10 @@ _BIG = "[1, 1000000000]"
         ("[env]\nepisode_s = nan\n", "env.episode_s: must be a finite number in (0, 3600], got"),
         ("[env]\nepisode_s = 1e-9\n", "env.episode_s: 1e-09 s is shorter than one control step"),
         ("[env]\nspawn_auv_height_m = inf\n", "env.spawn_auv_height_m: must be a finite number"),
-        ("[env]\ntank_size_m = [19.0, 0.0, 5.0]\n", "env.tank_size_m[1]: must be a finite number"),
+        ("[env.world]\ntank_size_m = [19.0, 0.0, 5.0]\n",
+         "env.world.tank_size_m[1]: must be a finite number"),
+        ("[env]\ntank_size_m = [19.0, 0.0, 5.0]\n",  # the flat layout of old run folders
+         "env.world.tank_size_m[1]: must be a finite number"),
         ("[env]\ntank_size_m = [4.0, 9.0, 5.0]\n", "spawn_auv_range_m: the spawn box"),
         ("[ppo]\nlearning_rate = 0.0\n", "ppo.learning_rate: must be a finite number in (0, 1]"),
         ("[ppo]\ngamma = 1.5\n", "ppo.gamma: must be a finite number in [0, 1], got 1.5"),
@@ -48,8 +51,8 @@ _BIG = "[1, 1000000000]"
         ("[ppo]\nn_steps = -1\n", "ppo.n_steps: must be an integer in [1, 1000000], got -1"),
         ("seed = -1\n", "seed: must be an integer in [0, 4294967295], got -1"),
         ("[imitation]\nteacher = 'mpc'\n", "imitation.teacher: must be one of ['pid', 'none']"),
-        ("[env.vehicle]\nmass_kg = 1.0\nlinear_damping = [1e5, 1e5, 1e5, 1e5, 1e5, 1e5]\n",
-         "env.vehicle.linear_damping: too stiff for physics_hz 300"),
+        ("[env.world.vehicle]\nmass_kg = 1.0\nlinear_damping = [1e5, 1e5, 1e5, 1e5, 1e5, 1e5]\n",
+         "env.world.vehicle.linear_damping: too stiff for physics_hz 300"),
     ],
 )  # fmt: skip
 def test_absurd_training_configs_are_one_line(run_cli, tmp_path, toml, message):

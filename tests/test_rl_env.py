@@ -465,10 +465,8 @@ def test_stress_tables_rows_progress_and_seeds(capsys):
     for row in tables["current"] + tables["thruster"]:
         assert row["episodes"] == 2 and 0.0 <= row["success_rate"] <= 1.0
     # a row is the plain evaluation of its config on the same seeds
-    calm = replace(
-        cfg,
-        current=replace(cfg.current, mode="random", range_x_mps=(0.0, 0.0), range_y_mps=(0.0, 0.0)),
-    )
+    still = {"mode": "random", "range_x_mps": (0.0, 0.0), "range_y_mps": (0.0, 0.0)}
+    calm = replace(cfg, world={"current": still})
     direct = run_episodes_parallel("pid", calm, 2, seed=5, workers=1, record=False).summary
     assert tables["current"][0]["mean_collisions"] == direct["mean_collisions"]
     assert tables["current"][0]["success_rate"] == direct["success_rate"]

@@ -20,7 +20,7 @@ from uwdock.calibration.camera import (
     scaled_to_width,
 )
 from uwdock.calibration.frames import R_from_rpy, inv_T, make_T
-from uwdock.dockcore.config import from_dict, read_toml, replace
+from uwdock.dockcore.config import from_dict, read_toml, replace, to_dict
 from uwdock.markers.config import MarkerConfig
 from uwdock.markers.markerset import marker_set_from_config
 from uwdock.markers.view import markers_in_view
@@ -57,14 +57,14 @@ def test_resolve_camera_falls_back_to_the_reference_and_scales_to_a_width(tmp_pa
 def test_world_config_is_built_from_the_flat_env_keys_of_existing_run_folders():
     """The shipped policy's run config (flat keys) loads and gives its world config."""
     env = read_toml(ROOT / "rl/policies/error_model_ppo/config.toml")["train"]["env"]
-    cfg = from_dict(EnvConfig, env)
-    w = cfg.world
-    assert w.camera_width_px == cfg.camera_width_px
-    assert tuple(w.tank_size_m) == tuple(cfg.tank_size_m)
-    assert w.water_preset == cfg.water_preset and w.vehicle == cfg.vehicle
-    assert w.physics_hz == cfg.physics_hz and w.current == cfg.current
+    assert "world" not in env and "camera_width_px" in env  # the layout before [env.world]
+    w = from_dict(EnvConfig, env).world
+    assert w.camera_width_px == env["camera_width_px"]
+    assert list(w.tank_size_m) == env["tank_size_m"]
+    assert w.water_preset == env["water_preset"] and w.physics_hz == env["physics_hz"]
+    assert to_dict(w.vehicle) == env["vehicle"] and to_dict(w.current) == env["current"]
     with pytest.raises(ValueError, match="camera_width_px: must be 0 or >= 16"):
-        replace(EnvConfig(), camera_width_px=8)
+        replace(EnvConfig(), world={"camera_width_px": 8})
 
 
 # ----------------------------------------------------------------------------- in view

@@ -5,8 +5,8 @@ from pathlib import Path
 
 import pytest
 
-from uwdock.dockcore.config import load_config, replace
-from uwdock.rl.config import check_env_files
+from uwdock.dockcore.config import load_config, read_toml, replace
+from uwdock.rl.config import LEGACY_WORLD_KEYS, check_env_files
 from uwdock.rl.train import TrainConfig
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -23,6 +23,14 @@ def test_shipped_config_loads_and_its_files_exist(path, monkeypatch):
     cfg = load_config(TrainConfig, path, section="train")
     check_env_files(cfg.env)
     assert cfg.total_steps > 0
+
+
+@pytest.mark.parametrize("path", CONFIGS, ids=lambda p: p.name)
+def test_shipped_config_sets_the_world_in_env_world(path):
+    """The recipes are written in the current layout: world keys in [env.world], none flat in
+    [env] (the loader still reads the flat layout of run folders, tests/test_env_config.py)."""
+    env = read_toml(path).get("env", {})
+    assert sorted(set(env) & set(LEGACY_WORLD_KEYS)) == []
 
 
 def test_stage_two_only_raises_the_collision_penalty():
