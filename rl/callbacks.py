@@ -1,38 +1,27 @@
 """Training callback: the rollout boundaries of :class:`rl.session.TrainingSession` (checkpoints,
 evaluations), the critic warm-up, the progress bar, and ``charts/`` (episode success rates,
-reward terms) in TensorBoard."""
+reward terms) in TensorBoard.
+
+This module subclasses Stable-Baselines3's ``BaseCallback``, so it imports SB3 (and torch under
+it) at module level: only the function that trains imports it (``rl.train``), so importing
+``rl.train`` (``rl --help``, ``rl eval``) does not pay for it (``tests/test_architecture.py``:
+heavy modules of the tree).
+"""
 
 from __future__ import annotations
 
 from collections import defaultdict
 
 import numpy as np
+from stable_baselines3.common.callbacks import BaseCallback
 from tqdm import tqdm
 
-
-def training_callback(session, total_steps: int, progress: bool = True):
-    """The run's Stable-Baselines3 callback: :class:`TrainingHooks` on SB3's ``BaseCallback``.
-
-    SB3 (and torch under it) is imported here, when training starts, so that importing
-    ``rl.train`` (``rl --help``, ``rl eval``) does not pay for it.
-
-    Args:
-        session: the run's :class:`rl.session.TrainingSession`.
-        total_steps: the run's length (for the progress bar).
-        progress: show a progress bar.
-    """
-    from stable_baselines3.common.callbacks import BaseCallback
-
-    class TrainingCallback(TrainingHooks, BaseCallback):
-        __doc__ = TrainingHooks.__doc__
-
-    return TrainingCallback(session, total_steps, progress)
+__all__ = ["TrainingCallback"]
 
 
-class TrainingHooks:
-    """Calls ``session.boundary()`` before every rollout; freezes the actor while the critic
-    warms up; logs rollouts. Mixed into SB3's ``BaseCallback`` by :func:`training_callback`
-    (which provides ``model``, ``locals`` and ``logger``).
+class TrainingCallback(BaseCallback):
+    """The run's Stable-Baselines3 callback: calls ``session.boundary()`` before every rollout;
+    freezes the actor while the critic warms up; logs rollouts.
 
     Args:
         session: the run's :class:`rl.session.TrainingSession`.

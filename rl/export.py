@@ -21,41 +21,10 @@ from uwdock.rl.policy_io import load_policy, policy_env_settings
 
 
 def _actor_module(model, vecnorm):
-    import torch
-    from stable_baselines3 import SAC
+    """The exported network of ``model`` (:class:`rl.export_actor.ExportActor`), in eval mode."""
+    from uwdock.rl.export_actor import ExportActor  # torch at module level
 
-    if vecnorm is not None and vecnorm.norm_obs:
-        mean = torch.as_tensor(vecnorm.obs_rms.mean, dtype=torch.float32)
-        std = torch.as_tensor(np.sqrt(vecnorm.obs_rms.var + vecnorm.epsilon), dtype=torch.float32)
-        clip = float(vecnorm.clip_obs)
-    else:
-        dim = model.observation_space.shape[0]
-        mean, std, clip = torch.zeros(dim), torch.ones(dim), float("inf")
-
-    class Actor(torch.nn.Module):
-        def __init__(self) -> None:
-            super().__init__()
-            self.register_buffer("mean", mean)
-            self.register_buffer("std", std)
-            self.clip = clip
-            if isinstance(model, SAC):
-                self.net = torch.nn.Sequential(model.actor.latent_pi, model.actor.mu)
-                self.squash = True
-            else:
-                pol = model.policy
-                self.net = torch.nn.Sequential(pol.mlp_extractor.policy_net, pol.action_net)
-                self.squash = False
-            # an asymmetric actor-critic's actor reads only the leading values
-            self.actor_dim = int(getattr(model.policy, "actor_obs_dim", len(mean)))
-
-        def forward(self, obs):
-            x = torch.clamp((obs - self.mean) / self.std, -self.clip, self.clip)
-            a = self.net(x[..., : self.actor_dim])
-            if self.squash:
-                a = torch.tanh(a)
-            return torch.clamp(a, -1.0, 1.0)
-
-    return Actor().eval()
+    return ExportActor(model, vecnorm).eval()
 
 
 def export_onnx(policy_path: str | os.PathLike[str], out: str | os.PathLike[str]) -> Path:

@@ -3,7 +3,7 @@
 Each actor (:class:`_RayGroup`) holds a group of envs (:class:`rl.vec_envs.EnvGroup`: one by
 default, ``K`` with ``--envs-per-worker K``), built exactly as the local workers build theirs
 and answering SB3's worker commands with ``SubprocVecEnv``'s semantics; the learner reaches
-them through :class:`rl.vec_envs.GroupedVecEnv`, the same vectorised env as the local groups.
+them through :class:`rl.grouped_vec_env.GroupedVecEnv`, the same vectorised env as the local groups.
 The PPO learner, the checkpoints and the resume logic do not know the difference: the rollouts
 are the local ones, step for step. The periodic evaluation's share
 (``env_method("evaluate_share", job)``) runs on the actors too.
@@ -21,8 +21,8 @@ from typing import Any
 
 from uwdock.dockcore.pool import actor_cpus, import_ray, kill_actors, start_ray
 from uwdock.rl.config import EnvConfig
-from uwdock.rl.vec_envs import EnvGroup, GroupedVecEnv, env_groups
-from uwdock.rl.workers import WorkerError, _reason
+from uwdock.rl.vec_envs import EnvGroup, env_groups
+from uwdock.rl.workers import WorkerError, failure_reason
 
 __all__ = ["RayEnvWorkers", "RayHosts", "RayVecEnv"]
 
@@ -64,7 +64,7 @@ class RayHosts:
             return ray.get(list(handles))
         except ray.exceptions.RayTaskError as exc:
             cause = getattr(exc, "cause", None)
-            why = _reason(cause) if isinstance(cause, BaseException) else _reason(exc)
+            why = failure_reason(cause) if isinstance(cause, BaseException) else failure_reason(exc)
             raise WorkerError(f"environment worker failed: {why}") from None
         except ray.exceptions.RayActorError as exc:
             what = " ".join(str(exc).split()[:12])
@@ -80,6 +80,8 @@ class RayHosts:
 def RayVecEnv(env_cfg: EnvConfig, n_envs: int, seed: int, envs_per_worker: int = 1) -> Any:
     """``n_envs`` docking envs in Ray actors (``envs_per_worker`` each) behind SB3's ``VecEnv``
     (see the module docstring); env i is reset first with ``seed + i``."""
+    from uwdock.rl.grouped_vec_env import GroupedVecEnv  # SB3 at module level
+
     groups = env_groups(n_envs, envs_per_worker)
     return GroupedVecEnv(RayHosts(env_cfg, seed, groups), groups)
 
@@ -104,7 +106,7 @@ class RayEnvWorkers:
 
     def raise_worker_error(self, exc: BaseException) -> None:
         self.close(force=True)
-        raise WorkerError(f"environment worker failed: {_reason(exc)}") from None
+        raise WorkerError(f"environment worker failed: {failure_reason(exc)}") from None
 
     def close(self, force: bool = False) -> None:
         venv = getattr(self, "venv", None)

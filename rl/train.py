@@ -36,8 +36,6 @@ from uwdock.dockcore.io import atomic_write_bytes, atomic_write_json, atomic_wri
 from uwdock.dockcore.outdir import claim_output_dir
 from uwdock.dockcore.pool import PoolConfig, preflight
 from uwdock.dockcore.provenance import git_commit, write_provenance
-from uwdock.rl import asymmetric
-from uwdock.rl.callbacks import training_callback
 from uwdock.rl.checkpoint import (
     has_legacy_checkpoints,
     latest_unit,
@@ -189,7 +187,9 @@ def build_model(cfg: TrainConfig, venv, tb_dir: Path):
         policy: Any = "MlpPolicy"
         kwargs: dict[str, Any] = {"net_arch": list(p.net_arch), "log_std_init": p.log_std_init}
         if cfg.env.obs_privileged:  # asymmetric actor-critic
-            policy = asymmetric.AsymmetricPolicy
+            from uwdock.rl.asymmetric import AsymmetricPolicy  # torch and SB3 at module level
+
+            policy = AsymmetricPolicy
             kwargs["actor_obs_dim"] = actor_observation_size(cfg.env)
         return PPO(
             policy,
@@ -429,7 +429,9 @@ def _run(
             session = TrainingSession(cfg, run, model, vecnorm, note)
             session.start(warm_started=warm)
         if model.num_timesteps < cfg.total_steps:
-            cb = training_callback(session, cfg.total_steps, progress=progress)
+            from uwdock.rl.callbacks import TrainingCallback  # SB3 at module level
+
+            cb = TrainingCallback(session, cfg.total_steps, progress=progress)
             try:
                 model.learn(
                     total_timesteps=cfg.total_steps - model.num_timesteps,

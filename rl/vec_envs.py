@@ -3,7 +3,8 @@
 :class:`EnvWorkers` holds ``n_envs`` docking envs: in this process for one env (SB3's
 ``DummyVecEnv``), else in worker processes (:mod:`rl.workers`: failures as one line, no
 orphans, the periodic evaluation's shares), one env each (SB3's ``SubprocVecEnv``) or, with
-``envs_per_worker = K``, ``K`` each (:class:`GroupedVecEnv` over :class:`PipeHosts`).
+``envs_per_worker = K``, ``K`` each (:class:`rl.grouped_vec_env.GroupedVecEnv` over
+:class:`PipeHosts`).
 
 Several envs per worker (``rl train --envs-per-worker K``): with one env per worker, every
 worker process loads torch, SAPIEN and OpenCV and opens its own render device (on a GPU each
@@ -13,7 +14,7 @@ that share the process: its SAPIEN renderer (one render device per process; each
 own scene), its torch and its imports. A step sends a group all its envs' actions at once and
 gets their results back in one message.
 
-Every env is built exactly as the one-env workers build theirs (:func:`rl.workers._make_env_fn`:
+Every env is built exactly as the one-env workers build theirs (:func:`rl.workers.make_env_fn`:
 ``Monitor(DockingEnv)``, first reset with ``seed + i``) and answers SB3's worker commands with
 ``SubprocVecEnv``'s semantics (auto-reset with ``terminal_observation``,
 ``TimeLimit.truncated``, seeds and options used once). The envs share no random state, so the
@@ -23,7 +24,6 @@ backend (:mod:`rl.ray_envs`) puts the same groups in Ray actors.
 
 from __future__ import annotations
 
-import functools
 import multiprocessing
 import os
 import pickle
@@ -39,14 +39,14 @@ from uwdock.dockcore.domains import Interval
 from uwdock.rl.config import EnvConfig
 from uwdock.rl.workers import (
     WorkerError,
-    _make_env_fn,
-    _reason,
-    _report_and_exit,
     error_path,
+    failure_reason,
+    make_env_fn,
+    report_and_exit,
     setup_worker_process,
 )
 
-__all__ = ["EnvGroup", "EnvWorkers", "EnvsPerWorker", "GroupedVecEnv", "PipeHosts", "env_groups"]
+__all__ = ["EnvGroup", "EnvWorkers", "EnvsPerWorker", "Hosts", "PipeHosts", "env_groups"]
 
 #: The domain of ``envs_per_worker`` (``rl train --envs-per-worker``).
 EnvsPerWorker = Annotated[int, Interval(ge=1, le=256)]
@@ -79,7 +79,7 @@ class EnvGroup:
         """Build the envs (env ``i`` first reset with ``seed + i``)."""
         for i in self.indices:
             self.current = i
-            self.envs.append(_make_env_fn(env_cfg, seed + i, i, None, None)())
+            self.envs.append(make_env_fn(env_cfg, seed + i, i, None, None)())
 
     def _env(self, slot: int) -> Any:
         self.current = self.indices[slot]
@@ -193,7 +193,7 @@ def _group_worker(
                 return
             conn.send(getattr(group, method)(*args))
     except Exception as exc:
-        _report_and_exit(error_path(error_dir, group.current), group.current, exc)
+        report_and_exit(error_path(error_dir, group.current), group.current, exc)
 
 
 class PipeHosts:
@@ -242,123 +242,6 @@ class PipeHosts:
             c.close()
 
 
-# ----------------------------------------------------------------------------- the learner's side
-
-
-@functools.cache
-def _grouped_vec_env_class() -> type:
-    """:class:`GroupedVecEnv`'s class, made on first use (SB3 is imported only then)."""
-    from stable_baselines3.common.vec_env import VecEnv
-    from stable_baselines3.common.vec_env.subproc_vec_env import _stack_obs
-
-    class GroupedVecEnv(VecEnv):
-        """``n_envs`` envs in groups on workers behind SB3's ``VecEnv`` (module docstring).
-
-        Args:
-            hosts: the workers (:class:`PipeHosts` or :class:`rl.ray_envs.RayHosts`).
-            groups: the env indices each worker holds (:func:`env_groups`).
-        """
-
-        def __init__(self, hosts: Hosts, groups: list[list[int]]) -> None:
-            self.hosts = hosts
-            self.groups = groups
-            self._where = [(w, s) for w, g in enumerate(groups) for s in range(len(g))]
-            self.waiting = False
-            self.closed = False
-            self._pending: list[Any] = []
-            spaces = hosts.gather([hosts.submit(0, "spaces")])[0]
-            obs_space, act_space = pickle.loads(spaces)
-            super().__init__(len(self._where), obs_space, act_space)
-
-        @property
-        def processes(self) -> list[Any]:
-            """The local worker processes (none on Ray)."""
-            return list(getattr(self.hosts, "processes", []))
-
-        def _by_group(self, method: str, *per_env: Sequence[Any]) -> list[Any]:
-            """Call ``method`` once per group with its envs' share of each ``per_env`` list;
-            returns the handles."""
-            return [
-                self.hosts.submit(w, method, *([seq[i] for i in g] for seq in per_env))
-                for w, g in enumerate(self.groups)
-            ]
-
-        def _flat(self, handles: Sequence[Any]) -> list[Any]:
-            """The groups' per-env results, in env order."""
-            return [r for rs in self.hosts.gather(handles) for r in rs]
-
-        def _per_env(self, method: str, indices: Any, *args: Any) -> list[Any]:
-            """``group.<method>(slots, *args)`` for the given envs, results in their order."""
-            idx = list(self._get_indices(indices))
-            by_worker: dict[int, list[int]] = {}
-            for i in idx:
-                by_worker.setdefault(self._where[i][0], []).append(i)
-            handles = [
-                self.hosts.submit(w, method, [self._where[i][1] for i in envs], *args)
-                for w, envs in by_worker.items()
-            ]
-            found: dict[int, Any] = {}
-            for envs, res in zip(by_worker.values(), self.hosts.gather(handles), strict=True):
-                found.update(zip(envs, res, strict=True))
-            return [found[i] for i in idx]
-
-        def step_async(self, actions: np.ndarray) -> None:
-            self._pending = self._by_group("step", actions)
-            self.waiting = True
-
-        def step_wait(self):
-            results = self._flat(self._pending)
-            self.waiting = False
-            obs, rews, dones, infos, self.reset_infos = zip(*results, strict=True)
-            return _stack_obs(obs, self.observation_space), np.stack(rews), np.stack(dones), infos
-
-        def reset(self):
-            results = self._flat(self._by_group("reset", self._seeds, self._options))
-            obs, self.reset_infos = zip(*results, strict=True)
-            self._reset_seeds()
-            self._reset_options()
-            return _stack_obs(obs, self.observation_space)
-
-        def close(self) -> None:
-            if self.closed:
-                return
-            try:
-                if self.waiting:
-                    self.hosts.gather(self._pending)
-                self.hosts.gather(self._by_group("close"))
-            except Exception:  # a worker already gone: nothing to flush
-                pass
-            self.hosts.shutdown()
-            self.closed = True
-
-        def get_images(self) -> Sequence[np.ndarray | None]:
-            return self._per_env("render", None)
-
-        def has_attr(self, attr_name: str) -> bool:
-            return all(self._per_env("has_attr", None, attr_name))
-
-        def get_attr(self, attr_name: str, indices=None) -> list[Any]:
-            return self._per_env("get_attr", indices, attr_name)
-
-        def set_attr(self, attr_name: str, value: Any, indices=None) -> None:
-            self._per_env("set_attr", indices, attr_name, value)
-
-        def env_method(
-            self, method_name: str, *method_args, indices=None, **method_kwargs
-        ) -> list[Any]:
-            return self._per_env("env_method", indices, method_name, method_args, method_kwargs)
-
-        def env_is_wrapped(self, wrapper_class: type, indices=None) -> list[bool]:
-            return self._per_env("is_wrapped", indices, wrapper_class)
-
-    return GroupedVecEnv
-
-
-def GroupedVecEnv(hosts: Hosts, groups: list[list[int]]) -> Any:
-    """An SB3 ``VecEnv`` over the env groups of ``hosts`` (see the module docstring)."""
-    return _grouped_vec_env_class()(hosts, groups)
-
-
 # ----------------------------------------------------------------------------- the trainer's handle
 
 
@@ -373,7 +256,7 @@ class EnvWorkers:
 
     Attributes:
         venv: the SB3 VecEnv (``DummyVecEnv`` for one env, ``SubprocVecEnv`` for one env per
-            worker, else :class:`GroupedVecEnv`).
+            worker, else :class:`rl.grouped_vec_env.GroupedVecEnv`).
     """
 
     def __init__(
@@ -381,9 +264,11 @@ class EnvWorkers:
     ) -> None:
         from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
+        from uwdock.rl.grouped_vec_env import GroupedVecEnv  # SB3 at module level
+
         self._dir = None
         if n_envs == 1:
-            self.venv = DummyVecEnv([_make_env_fn(env_cfg, seed, 0, None, None)])
+            self.venv = DummyVecEnv([make_env_fn(env_cfg, seed, 0, None, None)])
             return
         self._dir = tempfile.TemporaryDirectory(prefix="uwdock-workers-")
         groups = env_groups(n_envs, envs_per_worker)
@@ -396,7 +281,7 @@ class EnvWorkers:
             return
         parent = os.getpid()
         fns = [
-            _make_env_fn(env_cfg, seed + i, i, error_path(self._dir.name, i), parent)
+            make_env_fn(env_cfg, seed + i, i, error_path(self._dir.name, i), parent)
             for i in range(n_envs)
         ]
         before = set(multiprocessing.active_children())
@@ -432,7 +317,7 @@ class EnvWorkers:
             p.join(timeout=max(0.0, deadline - time.monotonic()))
         reasons = self.worker_errors()
         self.close(force=True)
-        what = "; ".join(reasons) if reasons else f"a worker process died ({_reason(exc)})"
+        what = "; ".join(reasons) if reasons else f"a worker process died ({failure_reason(exc)})"
         raise WorkerError(f"environment worker failed: {what}") from None
 
     def close(self, force: bool = False) -> None:

@@ -21,6 +21,7 @@ from __future__ import annotations
 import os
 import pickle
 import signal
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -38,42 +39,55 @@ class WorkerError(DockError):
     """An environment worker process failed (its one-line reason)."""
 
 
-def _reason(exc: BaseException) -> str:
+def failure_reason(exc: BaseException) -> str:
+    """``exc`` as one line: its message for a :class:`DockError` (already written for the user),
+    else ``<ExceptionType>: <message>``; whitespace collapsed."""
     text = " ".join(str(exc).split())
     return text if isinstance(exc, DockError) else f"{type(exc).__name__}: {text}"
 
 
-def _report_and_exit(error_file: str, index: int, exc: BaseException) -> None:
+def report_and_exit(error_file: str, index: int, exc: BaseException) -> None:
+    """End this worker process (exit status 3, no clean-up: the parent decides) after writing
+    ``env <index>: <reason>`` to ``error_file`` (:func:`error_path`), where the parent reads it."""
     try:
-        Path(error_file).write_text(f"env {index}: {_reason(exc)}\n", encoding="utf-8")
+        Path(error_file).write_text(f"env {index}: {failure_reason(exc)}\n", encoding="utf-8")
     finally:
         os._exit(3)
 
 
-def _guarded_env(env, error_file: str, index: int):
-    """Wrap ``env`` so an exception in a worker ends it with its reason written down."""
+class GuardedEnv(gym.Wrapper):
+    """A worker's env: an exception in ``reset``, ``step`` or ``evaluate_share`` ends the worker
+    process with its reason written down (:func:`report_and_exit`).
 
-    class Guard(gym.Wrapper):
-        def reset(self, **kwargs):
-            try:
-                return self.env.reset(**kwargs)
-            except Exception as exc:
-                _report_and_exit(error_file, index, exc)
+    Args:
+        env: the env (``Monitor(DockingEnv)``).
+        error_file: where the reason goes (:func:`error_path`).
+        index: the env's index in the vectorised env (the reason names it).
+    """
 
-        def step(self, action):
-            try:
-                return self.env.step(action)
-            except Exception as exc:
-                _report_and_exit(error_file, index, exc)
+    def __init__(self, env: gym.Env, error_file: str, index: int) -> None:
+        super().__init__(env)
+        self._error_file = error_file
+        self._index = index
 
-        def evaluate_share(self, job: EvalJob) -> list[dict]:
-            """This worker's share of ``job``'s episodes (their rows)."""
-            try:
-                return job.rows(index)
-            except Exception as exc:
-                _report_and_exit(error_file, index, exc)
+    def reset(self, **kwargs):
+        try:
+            return self.env.reset(**kwargs)
+        except Exception as exc:
+            report_and_exit(self._error_file, self._index, exc)
 
-    return Guard(env)
+    def step(self, action):
+        try:
+            return self.env.step(action)
+        except Exception as exc:
+            report_and_exit(self._error_file, self._index, exc)
+
+    def evaluate_share(self, job: EvalJob) -> list[dict]:
+        """This worker's share of ``job``'s episodes (their rows)."""
+        try:
+            return job.rows(self._index)
+        except Exception as exc:
+            report_and_exit(self._error_file, self._index, exc)
 
 
 @dataclass(frozen=True)
@@ -130,10 +144,24 @@ def setup_worker_process(parent: int) -> None:
     torch.set_num_threads(1)
 
 
-def _make_env_fn(
+def make_env_fn(
     env_cfg: EnvConfig, seed: int, index: int, error_file: str | None, parent: int | None
-):
-    def make():
+) -> Callable[[], gym.Env]:
+    """The function that builds env ``index`` of a training vectorised env (what SB3's
+    ``DummyVecEnv`` / ``SubprocVecEnv`` and :class:`rl.vec_envs.EnvGroup` call):
+    ``Monitor(DockingEnv(env_cfg, privileged=True))``, first reset with ``seed``.
+
+    Args:
+        env_cfg: the training env.
+        seed: the first reset's seed.
+        index: the env's index in the vectorised env.
+        error_file: in a worker process, where a failure's reason goes (the env is then a
+            :class:`GuardedEnv`); None: failures raise.
+        parent: in a worker process of its own, the parent's pid
+            (:func:`setup_worker_process`); else None.
+    """
+
+    def make() -> gym.Env:
         if parent is not None:  # a worker process of its own
             setup_worker_process(parent)
         from stable_baselines3.common.monitor import Monitor
@@ -147,7 +175,7 @@ def _make_env_fn(
         except Exception as exc:
             if error_file is None:
                 raise
-            _report_and_exit(error_file, index, exc)
-        return env if error_file is None else _guarded_env(env, error_file, index)
+            report_and_exit(error_file, index, exc)
+        return env if error_file is None else GuardedEnv(env, error_file, index)
 
     return make
