@@ -13,6 +13,14 @@ coefficient against the preset's, the vignetting and noise read from the frames,
 contrast's error and the residual. A last block does the same with the DS marker board as the
 target (the DS rendered from 1 to 5 m), for the coastal and clear presets.
 
+Each fit chooses its lighting model on held-out frames (``--lighting auto``) and reports what
+the frames determine: per row the chosen model, whether beta_D is determined in every channel,
+and beta_D's uncertainty (the larger of the bootstrap over frames and the Jacobian) beside the
+Jacobian's alone. ``--ambient`` adds lamp-off films (the board lit by the tank's ambient light
+only, 0.7-4 m): the ambient model must be chosen.
+
+Quick run: ``--seeds 0 --marker-presets ""``.
+
 Writes ``bench/results/water_fit.json`` (rows + machine, commit, packages) and
 ``docs/results/water_fit_coastal.png`` (the fit's own plot, film seed 0).
 """
@@ -20,6 +28,7 @@ Writes ``bench/results/water_fit.json`` (rows + machine, commit, packages) and
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -32,6 +41,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from uwdock.calibration.frames import make_T
 from uwdock.datasets.water_fit import FitWaterConfig, fit_water, plot_fit, sample_frames
 from uwdock.dockcore.bench import format_table, save_results
+from uwdock.dockcore.config import to_dict
 from uwdock.dockcore.errors import DockError
 from uwdock.sim.docking_station import DockingStationConfig
 from uwdock.sim.render import RenderConfig, board_views, make_render_scene
@@ -41,6 +51,10 @@ ROOT = Path(__file__).resolve().parent.parent
 ALTITUDES_M = np.arange(0.7, 6.01, 0.1)
 RENDER = RenderConfig(lamp_intensity=2.0)
 FIT = FitWaterConfig(square_mm=60.0)
+
+
+AMBIENT_ALTITUDES_M = np.arange(0.7, 4.01, 0.15)
+AMBIENT_RENDER = RenderConfig(lamp=False, ambient_rgb=(0.6, 0.6, 0.6))
 
 
 def _frames(renders, water, seed: int):
@@ -68,6 +82,15 @@ def _row(name: str, target: str, seed: int, fit, samples, wall_s: float) -> dict
             rel = np.where(want > 0, (got - want) / want, np.nan)
         row[f"{key}_err_%"] = [None if np.isnan(v) else round(100 * float(v), 1) for v in rel]
     row["beta_D_max_err_%"] = max(abs(v) for v in row["beta_D_err_%"])
+    row["lighting"] = fit.lighting
+    row["beta_D_determined"] = fit.beta_D_determined
+    row["undetermined"] = fit.undetermined_names()
+    row["beta_D_rel_std_jacobian"] = [
+        round(float(v), 3) for v in fit.models[fit.lighting].rel_std_jacobian["beta_D"]
+    ]
+    row["heldout_rms_8bit"] = {
+        k: round(m.heldout_rms_8bit, 2) for k, m in fit.models.items() if m.heldout_rms_8bit > 0
+    }
     row["vignetting"] = round(fit.vignetting, 3)
     row["photons"] = round(fit.water.photons_at_white, 0)
     row["read_noise"] = round(fit.water.read_noise, 4)
@@ -78,13 +101,20 @@ def _row(name: str, target: str, seed: int, fit, samples, wall_s: float) -> dict
     return row
 
 
-def board_rows(seeds: list[int], presets: list[str], figure: Path | None) -> list[dict]:
+def board_rows(
+    seeds: list[int], presets: list[str], figure: Path | None, ambient: bool = False
+) -> list[dict]:
     rows = []
     for seed in seeds:
-        renders = board_views(ALTITUDES_M, square_m=0.06, render_cfg=RENDER, seed=seed)
+        if ambient:
+            renders = board_views(AMBIENT_ALTITUDES_M, square_m=0.06, render_cfg=AMBIENT_RENDER,
+                                  seed=seed)  # fmt: skip
+        else:
+            renders = board_views(ALTITUDES_M, square_m=0.06, render_cfg=RENDER, seed=seed)
         for name in presets:
             t0 = time.perf_counter()
-            samples = sample_frames(_frames(renders, PRESETS[name], seed), renders[0].camera, FIT)
+            truth = dataclasses.replace(PRESETS[name], artificial_light=not ambient)
+            samples = sample_frames(_frames(renders, truth, seed), renders[0].camera, FIT)
             try:
                 fit = fit_water(samples, FIT)
             except DockError as exc:  # e.g. the board found over too short a range of distances
@@ -92,10 +122,11 @@ def board_rows(seeds: list[int], presets: list[str], figure: Path | None) -> lis
                              "refused": str(exc)})  # fmt: skip
                 print(f"board seed {seed} {name:>12}: refused: {exc}", flush=True)
                 continue
-            rows.append(_row(name, "chessboard", seed, fit, samples, time.perf_counter() - t0))
-            print(f"board seed {seed} {name:>12}: beta_D max error "
+            target = "chessboard, lamp off" if ambient else "chessboard"
+            rows.append(_row(name, target, seed, fit, samples, time.perf_counter() - t0))
+            print(f"{target} seed {seed} {name:>12}: {fit.lighting}, beta_D max error "
                   f"{rows[-1]['beta_D_max_err_%']:.1f} %", flush=True)  # fmt: skip
-            if figure is not None and seed == seeds[0] and name == "coastal":
+            if figure is not None and seed == seeds[0] and name == "coastal" and not ambient:
                 plot_fit(fit, figure)
     return rows
 
@@ -127,13 +158,17 @@ def main() -> None:
     ap.add_argument("--seeds", default="0,1,2")
     ap.add_argument("--presets", default=",".join(PRESET_ORDER))
     ap.add_argument("--marker-presets", default="clear_tank,coastal")
+    ap.add_argument("--ambient", action="store_true", help="Add lamp-off films.")
     ap.add_argument("--out-dir", type=Path, default=None)
     ap.add_argument("--figure", type=Path, default=ROOT / "docs/results/water_fit_coastal.png")
     a = ap.parse_args()
     seeds = [int(s) for s in a.seeds.split(",")]
     rows = board_rows(seeds, a.presets.split(","), a.figure)
+    if a.ambient:
+        rows += board_rows(seeds, a.presets.split(","), None, ambient=True)
     rows += marker_rows([p for p in a.marker_presets.split(",") if p])
-    cols = ["water", "target", "film_seed", "frames", "range_m", "beta_D_err_%", "B_inf_err_%",
+    cols = ["water", "target", "film_seed", "frames", "range_m", "lighting", "beta_D_determined",
+            "beta_D_err_%", "beta_D_rel_std", "beta_D_rel_std_jacobian", "B_inf_err_%",
             "beta_B_err_%", "contrast_err_%", "residual_8bit", "vignetting", "photons",
             "read_noise"]  # fmt: skip
     print(format_table([r for r in rows if "refused" not in r], cols))
@@ -141,6 +176,13 @@ def main() -> None:
         "altitudes_m": [round(float(a_), 2) for a_ in ALTITUDES_M],
         "board": "9 x 7 squares of 60 mm, white 0.6, black 0.03",
         "lamp_intensity": RENDER.lamp_intensity,
+        "lamp_off_films": {
+            "altitudes_m": [round(float(a_), 2) for a_ in AMBIENT_ALTITUDES_M],
+            "ambient_rgb": list(AMBIENT_RENDER.ambient_rgb),
+        }
+        if a.ambient
+        else None,
+        "fit": to_dict(FIT),
         "film_seeds": seeds,
         "noise_seed": "1000 * film seed + frame",
     }

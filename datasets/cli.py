@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -39,7 +40,13 @@ from uwdock.dockcore.provenance import write_provenance
 from uwdock.markers.markerset import load_marker_set
 from uwdock.perception.video import open_frames
 from uwdock.sim.docking_station import DockingStationConfig, resolve_marker_set
-from uwdock.sim.water import PRESET_ORDER, PRESETS, load_water_file, water_choice
+from uwdock.sim.water import (
+    PRESET_ORDER,
+    PRESETS,
+    load_water_file,
+    water_choice,
+    water_file_notes,
+)
 
 #: Configs whose fields the options override (imported when an option is first used).
 _SYNTH = "uwdock.datasets.synth:SynthConfig"
@@ -266,12 +273,41 @@ def tank_report(
         if n not in PRESETS:
             raise DockError(f"unknown water preset {n!r}; known: {', '.join(PRESET_ORDER)}")
         waters[n] = PRESETS[n]
-    for f in water_files:
-        waters[f.stem] = load_water_file(f)
+    bounds, notes = {}, {}
+    for f in water_files:  # keyed by the path as given: two folders' water.toml are two rows
+        key = str(f)
+        if key in waters:
+            continue  # the same file twice
+        waters[key] = load_water_file(f)
+        notes[key] = water_file_notes(f)
+        low, high = notes[key].get("beta_D_low_rgb"), notes[key].get("beta_D_high_rgb")
+        if low is not None and high is not None:
+            try:
+                bounds[key] = (
+                    dataclasses.replace(waters[key], beta_D_rgb=tuple(high)),
+                    dataclasses.replace(waters[key], beta_D_rgb=tuple(low)),
+                )
+                for w in bounds[key]:
+                    w.validate()
+            except (TypeError, ValueError) as exc:
+                raise DockError(f"{f}: [fit] beta_D_low_rgb/beta_D_high_rgb: {exc}") from None
     camera, _ = resolve_camera(camera_file)
     progress = None if quiet or as_json else (
         lambda alt: click.echo(f"  rendered altitude {alt:.2f} m", err=True))  # fmt: skip
-    rows = detection_ranges(camera, waters, cfg, marker_set_path, progress)
+    rows = detection_ranges(camera, waters, cfg, marker_set_path, progress, bounds)
+    for r in rows:
+        undetermined = notes.get(r["water"], {}).get("undetermined")
+        if r["water"] in notes:
+            r["water_file"] = r["water"]
+            r["lighting"] = notes[r["water"]].get("lighting")
+            r["undetermined"] = dict(undetermined or {})
+            r["beta_D_determined"] = not (undetermined or {}).get("beta_D")
+        if r["water"] in bounds:
+            r["interval_from"] = (
+                "the water rendered at beta_D -+1 of its relative uncertainty (the larger of the "
+                "fit's bootstrap over frames and Jacobian; [fit] of the water file), all "
+                "channels together"
+            )
     with claim_output_dir(out_dir, "datasets tank-report") as out:
         path = atomic_write_json(out / "tank_report.json", {"rows": rows})
         plot_ranges(rows, out / "tank_report.png")
@@ -282,11 +318,28 @@ def tank_report(
     elif quiet:
         click.echo(str(path))
     else:
+        lo_m, hi_m = float(rows[0]["altitudes_m"][0]), float(rows[0]["altitudes_m"][-1])
         for r in rows[:-1]:
-            click.echo(
-                f"{r['water']:>12s} ({r['width']}): 3 markers up to "
-                f"{_alt(r['max_alt_3_markers_m'])}, 1 marker up to {_alt(r['max_alt_1_marker_m'])}"
-            )
+            parts = []
+            for n, key in ((3, "max_alt_3_markers"), (1, "max_alt_1_marker")):
+                text = f"{n} marker{'s' if n > 1 else ''} {_alt(r[f'{key}_m'], lo_m, hi_m)}"
+                if f"{key}_interval_m" in r:
+                    a, b = r[f"{key}_interval_m"]
+                    text += f" ({_span(a, b, lo_m, hi_m)} over beta_D -+ its uncertainty)"
+                parts.append(text)
+            click.echo(f"{r['water']} ({r['width']}): " + "; ".join(parts))
+            und = r.get("undetermined") or {}
+            if und.get("beta_D"):
+                click.echo(
+                    f"  beta_D of {', '.join(und['beta_D'])} is NOT determined by the footage: "
+                    "these ranges are not a prediction"
+                )
+            other = {k: v for k, v in und.items() if k != "beta_D" and v}
+            if other:
+                click.echo(
+                    "  not determined by the footage (the fit's values used): "
+                    + "; ".join(f"{k} of {', '.join(v)}" for k, v in other.items())
+                )
         click.echo(f"wrote {path} and tank_report.png")
 
 
@@ -318,10 +371,16 @@ def tank_report(
     help="Marker set file (--target markers) [default: the reference DS set].",
 )
 @click.option(
+    "--lighting",
+    type=click.Choice(["auto", "lamp", "ambient", "both"]),
+    help="What lit the target: a lamp beside the camera, ambient (tank/room) light only, both, "
+    "or auto: each fitted, the one with the least error on held-out frames chosen [auto].",
+)
+@click.option(
     "--no-lamp",
     "no_lamp",
     is_flag=True,
-    help="The target is lit by daylight or tank lights, not a lamp beside the camera.",
+    help="Same as --lighting ambient (daylight or tank lights, no lamp beside the camera).",
 )
 @click.option("--base", help="Preset whose blur the water file keeps [coastal].")
 @click.option("--topic", help="Image topic when FRAMES is a ROS bag (listed when left out).")
@@ -331,8 +390,8 @@ def tank_report(
 @json_option("Print the fit's summary as JSON.")
 @quiet_option("No progress; print only the water file's path.")
 def fit_water_cmd(
-    frames, camera_file, target, cols, rows, square_mm, marker_set_path, no_lamp, base, topic,
-    config_path, out_dir, as_json, quiet,
+    frames, camera_file, target, cols, rows, square_mm, marker_set_path, lighting, no_lamp, base,
+    topic, config_path, out_dir, as_json, quiet,
 ) -> None:  # fmt: skip
     """Fit the underwater model's attenuation, backscatter and veiling light per channel to
     frames of a known target (a chessboard or the DS marker board) seen at several ranges;
@@ -341,7 +400,16 @@ def fit_water_cmd(
     The target is posed by PnP in each frame; its black and white patches at the ranges seen
     give the direct signal and the backscatter per channel. Film it from as near as the
     target fits the image to as far as it is still found, across the whole image.
+
+    Says what the frames cannot tell: a value is marked not determined where it sits at a
+    bound, its uncertainty (the larger of a bootstrap over frames and the Jacobian) is large,
+    or another lighting model that fits the held-out frames about as well gives another value;
+    where that is the attenuation, no water file is written (exit 2) and what to film is said.
     """
+    if no_lamp:
+        if lighting not in (None, "ambient"):
+            raise DockError(f"--no-lamp means --lighting ambient, not --lighting {lighting}")
+        lighting = "ambient"
     cfg = load_config(
         FitWaterConfig,
         config_path,
@@ -351,7 +419,7 @@ def fit_water_cmd(
             "cols": cols,
             "rows": rows,
             "square_mm": square_mm,
-            "artificial_light": False if no_lamp else None,
+            "lighting": lighting,
             "base": base,
         },
     )
@@ -368,29 +436,58 @@ def fit_water_cmd(
     for w in source.warnings:
         click.echo(f"warning: {w}", err=True)
     fit = fit_water(samples, cfg)
+    summary = fit.summary()
+    refused = not fit.beta_D_determined
     with claim_output_dir(out_dir, "sim fit-water") as out:
-        water_path = write_water_file(fit, out / "water.toml", str(frames))
-        summary = fit.summary()
+        water_path = None if refused else write_water_file(fit, out / "water.toml", str(frames))
+        summary["water_file"] = None if water_path is None else str(water_path)
         atomic_write_json(out / "fit_water.json", summary)
         plot_fit(fit, out / "fit_water.png")
         write_provenance(out, {"fit_water": cfg}, {"frames": str(frames), "camera": camera_file,
                          "topic": topic, "marker_set": marker_set_path})  # fmt: skip
-    for w in fit.warnings:
-        click.echo(f"warning: {w}", err=True)
+    if not refused:
+        for w in fit.warnings:
+            click.echo(f"warning: {w}", err=True)
     if as_json:
         click.echo(json.dumps(summary, indent=2))
-        return
-    if quiet:
+    elif not quiet:
+        _print_fit(fit, samples, out_dir)
+    elif water_path is not None:
         click.echo(str(water_path))
-        return
+    if refused:
+        bad = [ch for ch, ok in zip("RGB", fit.determined["beta_D"], strict=True) if not ok]
+        why = fit.verdict.reasons[("beta_D", bad[0])][0] if fit.verdict else ""
+        raise DockError(
+            f"beta_D ({', '.join(bad)}) is not determined by these frames ({why}): no water.toml "
+            f"written (fit_water.json says why); to pin it down: {' | '.join(fit.to_film)}"
+        )
+
+
+def _print_fit(fit, samples, out_dir) -> None:
     p = fit.params
+    chosen = fit.models[fit.lighting]
     click.echo(
         f"{len(samples)} patches in {samples.frames_used} of {samples.frames_read} frames, "
         f"ranges {fit.range_m[0]:.2f}-{fit.range_m[1]:.2f} m"
     )
+    if len(fit.models) > 1:
+        errs = ", ".join(
+            f"{k} {m.heldout_rms_8bit:.2f}"
+            + ("" if m.plausible else " (not a lamp model)" if m.degenerate else " (worse)")
+            for k, m in fit.models.items()
+        )
+        click.echo(f"lighting: {fit.lighting} (held-out error in grey levels: {errs})")
+    else:
+        click.echo(f"lighting: {fit.lighting} (as asked)")
+    click.echo(
+        f"uncertainty: the larger of the Jacobian's and a bootstrap over frames "
+        f"({chosen.resamples} resamples)"
+    )
     for b, unit in (("beta_D", "/m"), ("beta_B", "/m"), ("B_inf", "")):
-        vals = ", ".join(f"{v:.4g} (+-{100 * e:.0f} %)" for v, e in zip(p[b], fit.rel_std[b],
-                                                                         strict=True))  # fmt: skip
+        vals = ", ".join(
+            f"{v:.4g} (+-{100 * e:.0f} %{'' if ok else ', NOT DETERMINED'})"
+            for v, e, ok in zip(p[b], fit.rel_std[b], fit.determined[b], strict=True)
+        )
         click.echo(f"  {b:7s} R, G, B: {vals}{unit}")
     click.echo(
         f"  vignetting {fit.vignetting:.3f}; noise: {fit.water.photons_at_white:.4g} photons at "
@@ -400,11 +497,30 @@ def fit_water_cmd(
         f"residual {fit.residual_rms_8bit:.2f} grey levels (RMS); contrast error R/G/B "
         + " / ".join(f"{100 * e:.1f} %" for e in fit.contrast_error)
     )
-    click.echo(f"wrote {water_path}, fit_water.json, fit_water.png")
+    for line in fit.to_film:
+        click.echo(f"to film: {line}")
+    water = "water.toml, " if fit.beta_D_determined else "no water.toml (beta_D undetermined), "
+    click.echo(f"wrote {water}fit_water.json, fit_water.png in {out_dir}")
 
 
-def _alt(v: float | None) -> str:
-    return "never" if v is None else f"{v:g} m"
+def _alt(v: float | None, lo_m: float, hi_m: float) -> str:
+    """Plain words for a greatest altitude (None: at no altitude rendered)."""
+    if v is None:
+        return f"not within {lo_m:g}-{hi_m:g} m"
+    if v >= hi_m - 1e-9:
+        return f"up to {v:g} m or more (the highest rendered)"
+    return f"up to {v:g} m"
+
+
+def _span(a: float | None, b: float | None, lo_m: float, hi_m: float) -> str:
+    """Plain words for an interval of greatest altitudes."""
+    if a is None and b is None:
+        return f"not within {lo_m:g}-{hi_m:g} m either way"
+    if a == b:
+        return f"{a:g} m at either end"
+    ends = ["none" if v is None else f"{v:g}" for v in (a, b)]
+    more = " or more" if b is not None and b >= hi_m - 1e-9 else ""
+    return f"{ends[0]}-{ends[1]} m{more}"
 
 
 def main() -> None:

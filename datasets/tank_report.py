@@ -11,6 +11,12 @@ markers in view, from the render's ground truth).
 Two of the default DS markers are on the rim, 1.76 m up: below ~2.3 m altitude the camera sees
 only the floor markers, so ">= 3" may first hold higher up.
 
+A fitted water (``sim fit-water``'s ``water.toml``) carries its uncertainty in a ``[fit]``
+table: the attenuation at -+1 of its relative uncertainty per channel (``beta_D_low_rgb``,
+``beta_D_high_rgb``: the larger of the bootstrap over frames and the Jacobian). Such a water is
+also rendered at both, all three channels together, the rest of the water kept: the detection
+range becomes an interval (the higher attenuation gives its lower end).
+
 ``bench/bench_sim.py`` (d) measures the benchmark's detection ranges with this function; it lives in
 ``datasets`` because it crosses the sim -> perception seam (render, then detect).
 """
@@ -18,7 +24,7 @@ only the floor markers, so ">= 3" may first hold higher up.
 from __future__ import annotations
 
 import statistics
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Hashable, Mapping
 from dataclasses import dataclass
 from typing import Annotated, Any
 
@@ -79,6 +85,7 @@ def detection_ranges(
     cfg: TankReportConfig | None = None,
     marker_set: Any = None,
     progress: Callable[[float], None] | None = None,
+    bounds: Mapping[str, tuple[WaterConfig, WaterConfig]] | None = None,
 ) -> list[dict[str, Any]]:
     """Greatest altitudes at which >= 3 and >= 1 DS markers decode, per water.
 
@@ -88,12 +95,17 @@ def detection_ranges(
         cfg: altitudes, noise draws, seed.
         marker_set: markers on the DS (object or file); None: the default DS set.
         progress: called with the altitude just rendered (m).
+        bounds: water name -> (the water at its higher attenuation, at its lower): rendered
+            too, they give the ranges as intervals.
 
     Returns:
         One row per water (``water``, ``width``, ``max_alt_3_markers_m``,
-        ``max_alt_1_marker_m``, ``altitudes_m``, ``decoded_median``) and a last row
-        ``water = "(visible)"`` with the markers in view at each altitude.
+        ``max_alt_1_marker_m``, ``altitudes_m``, ``decoded_median``; with ``bounds``, also
+        ``max_alt_3_markers_interval_m`` and ``max_alt_1_marker_interval_m``, [lower, upper]
+        with None where no altitude decoded them) and a last row ``water = "(visible)"`` with
+        the markers in view at each altitude.
     """
+    bounds = dict(bounds or {})
     cfg = cfg or TankReportConfig()
     cfg.validate()
     altitudes = cfg.altitudes_m()
@@ -101,14 +113,18 @@ def detection_ranges(
     rs = make_render_scene(
         DockingStationConfig(tank_depth_m=tank_depth_m), marker_set, camera_model=camera
     )
-    detector = Detector(DetectorConfig(ids=rs.ds.marker_set.ids))
-    counts: dict[str, list[float]] = {name: [] for name in waters}
+    # rendered 3DBMs: OpenCV's default-parameter pass decodes no negative (same detections)
+    detector = Detector(DetectorConfig(ids=rs.ds.marker_set.ids, opencv_pass=False))
+    rendered: dict[Hashable, WaterConfig] = dict(waters)
+    for name, (high, low) in bounds.items():
+        rendered[(name, "high")], rendered[(name, "low")] = high, low
+    counts: dict[Hashable, list[float]] = {name: [] for name in rendered}
     visible = []
     for alt in altitudes:
         T_world_cam = rs.ds.T_worldned_ds @ make_T(_R_DS_CAMCV, [0.0, 0.0, -float(alt)])
         res = rs.render(T_worldned_camcv=T_world_cam)
         visible.append(sum(p.visible for p in rs.ground_truth(res).values()))
-        for name, water in waters.items():
+        for name, water in rendered.items():
             n = []
             for d in range(cfg.draws):
                 rng = np.random.default_rng([cfg.seed, d, round(float(alt) * 10)])
@@ -119,18 +135,25 @@ def detection_ranges(
             progress(float(alt))
     width = f"{camera.width_px}x{camera.height_px}"
     rows = []
-    for name, c in counts.items():
-        arr = np.asarray(c)
-        rows.append(
-            {
-                "water": name,
-                "width": width,
-                "max_alt_3_markers_m": _greatest(altitudes, arr >= 3),
-                "max_alt_1_marker_m": _greatest(altitudes, arr >= 1),
-                "altitudes_m": altitudes.tolist(),
-                "decoded_median": c,
-            }
-        )
+    for name in waters:
+        arr = np.asarray(counts[name])
+        row = {
+            "water": name,
+            "width": width,
+            "max_alt_3_markers_m": _greatest(altitudes, arr >= 3),
+            "max_alt_1_marker_m": _greatest(altitudes, arr >= 1),
+            "altitudes_m": altitudes.tolist(),
+            "decoded_median": counts[name],
+        }
+        if name in bounds:
+            hi, lo = np.asarray(counts[(name, "high")]), np.asarray(counts[(name, "low")])
+            for k, key in ((3, "max_alt_3_markers"), (1, "max_alt_1_marker")):
+                ends = [_greatest(altitudes, hi >= k), _greatest(altitudes, lo >= k)]
+                if None not in ends:  # noise may swap them by a step
+                    ends = sorted(ends)  # type: ignore[type-var]
+                row[f"{key}_interval_m"] = ends
+            row["decoded_median_interval"] = [counts[(name, "high")], counts[(name, "low")]]
+        rows.append(row)
     rows.append(
         {
             "water": "(visible)",

@@ -1,30 +1,34 @@
 """The water fitted to the user's tank: ``sim fit-water``.
 
 The simulator's underwater model (:func:`uwdock.sim.water.apply_water`) gives, per colour
-channel ``c``, the linear intensity of a surface point at range ``r`` lit by the lamp beside the
-camera::
+channel ``c``, the linear intensity of a surface point at range ``r``::
 
-    I_c = V(rho) * (J_c * exp(-2 beta_D_c r) + B_inf_c * (1 - exp(-beta_B_c r)))
+    I_c = V(rho) * (J_c * exp(-p beta_D_c r) + B_inf_c * (1 - exp(-beta_B_c r)))
 
-with ``J`` the in-air radiance and ``V = 1 - s rho**2`` the vignetting. A known target (a
-chessboard, or the DS marker board) posed by PnP gives, in every frame, black and white patches
-of known geometry: their range ``r``, their distance ``d`` to the lamp and the cosine of the
-lamp's incidence. The in-air radiance of a patch of albedo class ``k`` (black or white) is
-modelled as ``J = a_kc * (eta + cos / d**2)``: a point lamp (``1 / d**2``, Lambert) plus a
-uniform ambient light ``eta`` (the renderer's ambient light, or a tank's room lights), one ratio
-for the three channels (the ambient light taken to have the lamp's colour: a ratio per channel
-trades off against the attenuation, and in turbid water moved green's by 20 %). The
-difference white - black then carries the direct signal alone (``beta_D``), the black level the
-backscatter (``B_inf``, ``beta_B``), and the spread of patch positions in the image the
-vignetting; all 17 parameters are fitted jointly by weighted least squares
-(:func:`scipy.optimize.least_squares`, 2 % relative + 0.002 absolute uncertainty per patch, a
-few starts). Their standard errors come from the Jacobian.
+with ``J`` the in-air radiance, ``p = 2`` when a lamp beside the camera lights the scene (the
+light travels to the target and back) and 1 under ambient light, and ``V = 1 - s rho**2`` the
+vignetting. A known target (a chessboard, or the DS marker board) posed by PnP gives, in every
+frame, black and white patches of known geometry: their range ``r``, their distance ``d`` to
+the lamp and the cosine of the lamp's incidence. Three lighting models give the in-air radiance
+of a patch of albedo class ``k`` (:mod:`datasets.water_fit_model`): ``lamp`` (``a_kc cos /
+d**2``), ``both`` (``a_kc (eta + cos / d**2)``: the lamp plus a uniform ambient light ``eta``,
+one ratio for the three channels, as the renderer lights a scene) and ``ambient`` (``a_kc``,
+``p = 1``: tank or room lights only). The difference white - black carries the direct signal
+(``beta_D``), the black level the backscatter (``B_inf``, ``beta_B``), the spread of patch
+positions in the image the vignetting; all parameters are fitted jointly by weighted least
+squares (:func:`scipy.optimize.least_squares` with the model's analytic Jacobian, 2 % relative
++ 0.002 absolute uncertainty per patch, a few starts).
 
-Needs ranges: the target must be seen at several ranges (a spread of 1 m or more), and the
-backscatter coefficient of a channel is only separable from its veiling light when
-the backscatter changes and bends over the ranges seen (:func:`backscatter_separable`): in clear
-water only the product ``B_inf * beta_B`` is determined, and the report says so in a warning
-(there the Jacobian's standard errors understate the error several times).
+What the frames can tell (:mod:`datasets.water_fit_judge`): with ``lighting = "auto"`` every
+model is fitted and the one with the least error on held-out frames (folds of whole frames,
+no random draw) is chosen; the uncertainty is the larger of the Jacobian's standard error and
+the spread over a bootstrap of whole frames; and each of ``beta_D``, ``B_inf``, ``beta_B`` per
+channel is *determined* unless it sits at a bound, its backscatter is not separable over the
+ranges seen (:func:`backscatter_separable`: in clear water only ``B_inf * beta_B`` is), its
+uncertainty is large, the modelled contrast misses the frames', or another lighting model that
+fits the held-out frames about as well gives a value beyond the uncertainties. The report says
+what to film to pin an undetermined value down; the command writes no water file when
+``beta_D`` is undetermined.
 
 It lives in ``datasets``: it crosses the sim -> perception seam (the water model of ``sim``,
 the detector and PnP of ``perception``); ``sim fit-water`` is its command.
@@ -36,7 +40,6 @@ import dataclasses
 import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Annotated, Any
 
 import cv2
@@ -45,14 +48,25 @@ import numpy as np
 from uwdock.calibration.camera import CameraModel
 from uwdock.calibration.frames import make_T
 from uwdock.calibration.patterns import PatternDetector
-from uwdock.dockcore.config import check_fields, dumps_toml, to_dict
-from uwdock.dockcore.domains import Interval
+from uwdock.datasets import water_fit_model as wm
+from uwdock.datasets.water_fit_judge import (
+    ModelResult,
+    Verdict,
+    block_std,
+    frame_folds,
+    judge,
+    lamp_not_seen,
+    lamp_share,
+)
+from uwdock.datasets.water_fit_model import LIGHTINGS, Geometry, expected
+from uwdock.datasets.water_fit_report import plot_fit, water_toml, write_water_file
+from uwdock.dockcore.config import check_fields, to_dict
+from uwdock.dockcore.domains import Interval, Seed
 from uwdock.dockcore.errors import DockError
-from uwdock.dockcore.io import atomic_path, atomic_write_text
 from uwdock.markers.dictionary import bits_per_side
 from uwdock.markers.markerset import MarkerSet
 from uwdock.perception.ds_pose import DSPoseEstimator
-from uwdock.sim.water import PRESETS, WaterConfig, _decode_lut
+from uwdock.sim.water import PRESETS, WaterConfig, decode_lut
 
 __all__ = [
     "FitWaterConfig",
@@ -71,27 +85,8 @@ __all__ = [
 CHANNELS = ("R", "G", "B")
 TARGETS = ("chessboard", "markers")
 
-#: Parameter blocks of the fit (each per channel), in the order of the parameter vector.
-_BLOCKS = ("a_white", "a_black", "ambient", "beta_D", "B_inf", "beta_B")
-#: Values per block: the ambient-to-lamp ratio is one (one lighting), the rest per channel.
-_SIZES = {b: 1 if b == "ambient" else 3 for b in _BLOCKS}
-#: Where each block sits in the parameter vector; the vignetting strength comes last.
-_SLICES = {
-    b: slice(sum(_SIZES[q] for q in _BLOCKS[:i]), sum(_SIZES[q] for q in _BLOCKS[: i + 1]))
-    for i, b in enumerate(_BLOCKS)
-}
-_N_PARAMS = sum(_SIZES.values()) + 1
-#: log bounds of each block (the values are exp of the parameters).
-_LOG_BOUNDS = {
-    "a_white": (-12.0, 6.0),
-    "a_black": (-14.0, 6.0),
-    "ambient": (-14.0, 4.0),
-    "beta_D": (-9.0, math.log(100.0)),
-    "B_inf": (-14.0, 0.0),
-    "beta_B": (-9.0, math.log(100.0)),
-}
-#: Per-patch uncertainty of the fit: relative and absolute (linear units, white = 1).
-_SIGMA_REL, _SIGMA_ABS = 0.02, 0.002
+#: The sensor model (kept under its old name for callers).
+_expected = expected
 
 
 @dataclass(frozen=True)
@@ -107,9 +102,12 @@ class FitWaterConfig:
         gamma: display gamma of the frames (2.2: sRGB-like cameras and the simulator).
         lamp_offset_camcv_m: the lamp's position in the camera frame (m; the Girona's lamp is
             10 cm above the camera, the renderer's default).
-        artificial_light: the target is lit by the vehicle's lamp (direct signal over 2 r,
-            fall-off 1 / d**2); False: by daylight or tank lights only (direct signal over r,
-            uniform lighting).
+        lighting: the lighting model (:data:`water_fit_model.LIGHTINGS`): ``"lamp"`` (a lamp
+            beside the camera: fall-off 1 / d**2, direct signal over 2 r), ``"ambient"`` (tank
+            or room lights only: uniform, direct signal over r), ``"both"`` (the lamp plus a
+            uniform ambient light, as the renderer lights a scene) or ``"auto"``: each is fitted
+            and the one with the least error on held-out frames chosen.
+        artificial_light: False is the older spelling of ``lighting = "ambient"``.
         patch_fraction: central fraction of a square (or marker cell) that is sampled: away
             from the edges, where blur mixes black and white.
         saturation_level: patches with any sampled channel at or above this 8-bit level are
@@ -119,6 +117,20 @@ class FitWaterConfig:
         min_range_spread_m: the fit refuses frames whose target ranges span less (m).
         max_frames: at most this many frames are used (evenly spaced over the input).
         base: the preset whose other fields (blur, sensor noise, gamma) the water file keeps.
+        cv_folds: folds of frames for the held-out error (frames sorted by range, dealt
+            round-robin); 0, or no more frames than folds: leave one frame out.
+        plausible_tolerance: a lighting model whose held-out error is within this fraction of
+            the best one's is plausible too (its values are compared with the chosen one's).
+        bootstrap_resamples: resamples of whole frames for the uncertainty (0: the Jacobian's
+            standard errors only).
+        bootstrap_seed: seed of the resampling.
+        max_rel_std: a value whose relative uncertainty (the larger of the bootstrap's and the
+            Jacobian's) exceeds this is not determined.
+        disagree_sigmas: a value is not determined when a plausible other lighting model gives
+            one more than this many combined uncertainties away.
+        max_contrast_error: a channel's attenuation is not determined when the modelled
+            contrast misses the measured one by more than this fraction
+            (:func:`contrast_error`; rendered films: within 0.01).
     """
 
     target: str = "chessboard"
@@ -131,6 +143,7 @@ class FitWaterConfig:
         Annotated[float, Interval(ge=-5, le=5)],
         Annotated[float, Interval(ge=-5, le=5)],
     ] = (0.0, -0.10, 0.0)
+    lighting: str = "auto"
     artificial_light: bool = True
     patch_fraction: Annotated[float, Interval(gt=0, le=0.9)] = 0.5
     saturation_level: Annotated[int, Interval(ge=1, le=255)] = 250
@@ -139,10 +152,31 @@ class FitWaterConfig:
     min_range_spread_m: Annotated[float, Interval(ge=0, le=100)] = 1.0
     max_frames: Annotated[int, Interval(ge=1, le=100_000)] = 400
     base: str = "coastal"
+    cv_folds: Annotated[int, Interval(ge=0, le=1000)] = 5
+    plausible_tolerance: Annotated[float, Interval(ge=0, le=10)] = 0.10
+    bootstrap_resamples: Annotated[int, Interval(ge=0, le=10_000)] = 100
+    bootstrap_seed: Seed = 0
+    max_rel_std: Annotated[float, Interval(gt=0, le=100)] = 0.25
+    disagree_sigmas: Annotated[float, Interval(gt=0, le=100)] = 2.0
+    max_contrast_error: Annotated[float, Interval(gt=0, le=100)] = 0.2
 
     def validate(self) -> None:
         """Raise ValueError naming the first bad field."""
         check_fields(self)
+        if self.lighting not in ("auto", *LIGHTINGS):
+            raise ValueError(
+                f"lighting: must be auto, {', '.join(LIGHTINGS)}, got {self.lighting!r}"
+            )
+        if not self.artificial_light and self.lighting not in ("auto", "ambient"):
+            raise ValueError(
+                f"artificial_light: false means lighting 'ambient', not {self.lighting!r}"
+            )
+
+    def lightings(self) -> tuple[str, ...]:
+        """The lighting models to fit (all of them for ``"auto"``)."""
+        if not self.artificial_light:
+            return ("ambient",)
+        return LIGHTINGS if self.lighting == "auto" else (self.lighting,)
         if self.target not in TARGETS:
             raise ValueError(f"target: must be one of {', '.join(TARGETS)}, got {self.target!r}")
         if self.base not in PRESETS:
@@ -364,6 +398,7 @@ def _sample_frame(
         projected.reshape(-1, 2), np.cumsum([len(p.points_m) for _, p in patches])[:-1]
     )
     saturated = 0
+    clipped_parity: list[int] = []
     for (k, p), px in zip(patches, per_patch, strict=True):
         pts_cam = (R @ p.points_m.T).T + t
         if (pts_cam[:, 2] <= 0.05).any():
@@ -377,6 +412,7 @@ def _sample_frame(
         raw = img_bgr[uv[:, 1], uv[:, 0], ::-1]  # (k, 3) RGB uint8
         if (raw >= cfg.saturation_level).any():
             saturated += 1
+            clipped_parity.append(p.parity)
             continue
         centre = pts_cam.mean(axis=0)
         n_cam = R @ p.normal
@@ -401,6 +437,13 @@ def _sample_frame(
                 "white": p.white,
             }
         )
+    if rows and clipped_parity and len({r["parity"] for r in rows}) == 1:
+        # one parity left: the other was dropped as clipped, so it is the white one (without
+        # this a frame whose white squares all clip would call its black squares white)
+        white_parity = max(set(clipped_parity), key=clipped_parity.count)
+        for r in rows:
+            if r["white"] is None:
+                r["white"] = r["parity"] == white_parity
     return rows, saturated
 
 
@@ -427,7 +470,7 @@ def sample_frames(
         target: _Target = _MarkerBoard(cfg, marker_set)
     else:
         target = _Chessboard(cfg)
-    lut = _decode_lut(float(cfg.gamma))  # the water model's own uint8 -> linear table
+    lut = decode_lut(float(cfg.gamma))  # the water model's own uint8 -> linear table
     cols: dict[str, list] = {k: [] for k in ("frame", "white", "rgb", "var", "range_m",
                                              "lamp_m", "cos", "rho2")}  # fmt: skip
     groups: list[tuple[int, list[int]]] = []
@@ -456,6 +499,8 @@ def sample_frames(
         if not rows:
             continue
         if any(r["white"] is None for r in rows):  # chessboard: the brighter parity is white
+            if len({r["parity"] for r in rows}) == 1:
+                continue  # one parity only, none clipped: which is white is not known
             lum = {p: np.mean([r["rgb"].sum() for r in rows if r["parity"] == p] or [0.0])
                    for p in (0, 1)}  # fmt: skip
             white_parity = 0 if lum[0] > lum[1] else 1
@@ -522,29 +567,19 @@ def estimate_noise(s: PatchSamples, gamma: float) -> tuple[float | None, float]:
     return photons, float(min(math.sqrt(max(read2, 0.0)), 1.0))
 
 
-def _expected(m: np.ndarray, photons: float | None, read: float) -> np.ndarray:
-    """The mean of a value ``m`` seen through the sensor's noise and clipped at 0 (the camera
-    cannot record negative light: dark patches read brighter than their signal)."""
-    from scipy.special import ndtr  # scipy costs 0.5 s to import: only for the fit
-
-    var = read * read + (np.maximum(m, 0.0) / photons if photons else 0.0)
-    sd = np.sqrt(np.maximum(var, 1e-18))
-    z = m / sd
-    return m * ndtr(z) + sd * np.exp(-0.5 * z * z) / math.sqrt(2.0 * math.pi)
-
-
 # ----------------------------------------------------------------------------- the fit
 
 
 @dataclass
 class WaterFit:
-    """The fitted water and how well it explains the frames.
+    """The fitted water, how well it explains the frames and what the frames determine.
 
     Attributes:
         water: the fitted model as a :class:`WaterConfig` (the base preset's other fields).
         params: block -> (R, G, B) fitted values (``a_white``, ``a_black``, ``ambient``,
-            ``beta_D``, ``B_inf``, ``beta_B``).
-        rel_std: block -> (R, G, B) relative standard errors (from the Jacobian).
+            ``beta_D``, ``B_inf``, ``beta_B``) of the chosen lighting model.
+        rel_std: block -> (R, G, B) relative uncertainty used in the decisions: the larger of
+            the Jacobian's standard error and the bootstrap's spread.
         vignetting: the vignetting strength (fitted or given).
         residual_rms: RMS of the patch residuals (linear units, white = 1).
         residual_rms_8bit: the same in 8-bit display levels at the patches' brightness.
@@ -556,6 +591,9 @@ class WaterFit:
         separable: per channel, whether B_inf and beta_B are told apart over the ranges seen
             (:func:`backscatter_separable`).
         warnings: one-line remarks (ranges too narrow, parameters not determined).
+        lighting: the chosen lighting model.
+        models: lighting -> its fit, held-out error and uncertainty (every model fitted).
+        verdict: per judged parameter and channel, determined or not, why, what to film.
     """
 
     water: WaterConfig
@@ -570,13 +608,38 @@ class WaterFit:
     config: FitWaterConfig
     separable: tuple[bool, bool, bool] = (True, True, True)
     warnings: list[str] = field(default_factory=list)
+    lighting: str = "both"
+    models: dict[str, ModelResult] = field(default_factory=dict)
+    verdict: Verdict | None = None
     _x: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
+
+    @property
+    def determined(self) -> dict[str, list[bool]]:
+        """Judged block -> (R, G, B) whether the frames determine the value."""
+        assert self.verdict is not None
+        return self.verdict.determined
+
+    @property
+    def beta_D_determined(self) -> bool:
+        """Whether the attenuation is determined in every channel."""
+        return all(self.determined["beta_D"])
+
+    @property
+    def to_film(self) -> list[str]:
+        """What to film (or state) to pin the undetermined values down."""
+        return list(self.verdict.to_film) if self.verdict else []
+
+    def undetermined_names(self) -> dict[str, list[str]]:
+        """Judged block -> channels it is not determined in (blocks with none left out)."""
+        return {b: [ch for ch, ok in zip(CHANNELS, v, strict=True) if not ok]
+                for b, v in self.determined.items() if not all(v)}  # fmt: skip
 
     def model(self, s: PatchSamples | None = None) -> np.ndarray:
         """(N, 3) modelled linear RGB of the patches as the camera records them (mean of the
         noisy values clipped at 0)."""
         noise = (self.water.photons_at_white, self.water.read_noise)
-        return _expected(_model(self._x, s or self.samples, self.config), *noise)
+        g = Geometry.of(s or self.samples)
+        return _expected(wm.model(self._x, g, self.lighting), *noise)
 
     def contrast_pairs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(range_m (G,), measured (G, 3), modelled (G, 3)) white - mean(black neighbours)."""
@@ -585,10 +648,43 @@ class WaterFit:
     def summary(self) -> dict[str, Any]:
         """What the report JSON holds (no per-patch arrays)."""
         s = self.samples
+        chosen = self.models[self.lighting]
+        boot = chosen.rel_std_bootstrap
         return {
             "water": to_dict(self.water),
+            "lighting": {
+                "requested": self.config.lighting if self.config.artificial_light else "ambient",
+                "chosen": self.lighting,
+                "chosen_by": "least error on held-out frames"
+                if len(self.models) > 1
+                else "requested",
+                "cv_folds": _n_folds(s, self.config) if len(self.models) > 1 else 0,
+                "plausible_tolerance": self.config.plausible_tolerance,
+                "models": {k: m.summary() for k, m in self.models.items()},
+            },
             "params": {k: list(v) for k, v in self.params.items()},
             "rel_std": {k: list(v) for k, v in self.rel_std.items()},
+            "rel_std_jacobian": {
+                k: [float(x) for x in v] for k, v in chosen.rel_std_jacobian.items()
+            },
+            "rel_std_bootstrap": {k: [float(x) for x in v] for k, v in boot.items()},
+            "bootstrap": {
+                "resamples": chosen.resamples,
+                "seed": self.config.bootstrap_seed,
+                "what": "whole frames resampled with replacement; half the 16-84 % interval of "
+                "each log parameter",
+                "beta_D_q16": [float(v) for v in chosen.quantiles["beta_D"][0]]
+                if chosen.quantiles
+                else None,
+                "beta_D_q84": [float(v) for v in chosen.quantiles["beta_D"][1]]
+                if chosen.quantiles
+                else None,
+            },
+            "determined": {
+                b: dict(zip(CHANNELS, v, strict=True)) for b, v in self.determined.items()
+            },
+            "undetermined": self.verdict.undetermined() if self.verdict else [],
+            "to_film": self.to_film,
             "vignetting": self.vignetting,
             "backscatter_separable": dict(zip(CHANNELS, self.separable, strict=True)),
             "residual_rms": self.residual_rms,
@@ -605,24 +701,6 @@ class WaterFit:
             "warnings": list(self.warnings),
             "config": to_dict(self.config),
         }
-
-
-def _unpack(x: np.ndarray) -> tuple[dict[str, np.ndarray], float]:
-    p = {b: np.broadcast_to(np.exp(x[_SLICES[b]]), (3,)) for b in _BLOCKS}
-    return p, float(x[-1])
-
-
-def _model(x: np.ndarray, s: PatchSamples, cfg: FitWaterConfig) -> np.ndarray:
-    p, vig = _unpack(x)
-    r = s.range_m[:, None]
-    a = np.where(s.white[:, None], p["a_white"], p["a_black"])
-    if cfg.artificial_light:
-        light = p["ambient"] + (s.cos_lamp / s.lamp_m**2)[:, None]
-        direct = a * light * np.exp(-2.0 * p["beta_D"] * r)
-    else:
-        direct = a * np.exp(-p["beta_D"] * r)
-    back = p["B_inf"] * (1.0 - np.exp(-p["beta_B"] * r))
-    return (1.0 - vig * s.rho2)[:, None] * (direct + back)
 
 
 def _contrast(s: PatchSamples, model: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -677,39 +755,88 @@ def backscatter_separable(
     return [bool(v) for v in (change >= SEPARABLE_CHANGE) & (bend >= SEPARABLE_CHANGE)]
 
 
-def _start(s: PatchSamples, water: WaterConfig, vig: float) -> np.ndarray:
-    """A starting point: the preset's water, albedo scales from the nearest patches."""
-    near = s.range_m <= np.quantile(s.range_m, 0.2)
-    light = 1.0 / np.maximum(s.lamp_m, 0.1) ** 2
-    x = np.zeros(_N_PARAMS)
+#: A residual above this (8-bit grey levels) means no lighting model explains the frames (on
+#: rendered films, with their noise, the fit leaves 0.3-0.6).
+MISFIT_8BIT = 3.0
 
-    def scale(mask: np.ndarray) -> np.ndarray:
-        m = mask & near
-        if not m.any():
-            m = mask
-        decay = np.exp(-2.0 * np.asarray(water.beta_D_rgb) * s.range_m[m, None])
-        v = s.rgb[m] / (light[m, None] * decay)
-        return np.log(np.clip(np.median(v, axis=0), 1e-5, 1e2))
 
-    x[_SLICES["a_white"]] = scale(s.white)
-    x[_SLICES["a_black"]] = scale(~s.white) if (~s.white).any() else x[_SLICES["a_white"]] - 3
-    x[_SLICES["ambient"]] = math.log(0.05)
-    x[_SLICES["beta_D"]] = np.log(np.clip(water.beta_D_rgb, 1e-3, 50))
-    x[_SLICES["B_inf"]] = np.log(np.clip(water.B_inf_rgb, 1e-3, 1))
-    x[_SLICES["beta_B"]] = np.log(np.clip(water.beta_B_rgb, 1e-3, 50))
-    x[-1] = vig
-    return x
+def _n_folds(s: PatchSamples, cfg: FitWaterConfig) -> int:
+    n = len(np.unique(s.frame))
+    return n if cfg.cv_folds == 0 else min(cfg.cv_folds, n)
+
+
+def _to_8bit(v: np.ndarray, gamma: float) -> np.ndarray:
+    return 255.0 * (np.clip(v, 1e-6, None) ** (1.0 / gamma))
+
+
+def _fit_model(
+    s: PatchSamples, cfg: FitWaterConfig, lighting: str, photons: float | None, read: float
+) -> ModelResult:
+    """One lighting model on all frames (four starts), its Jacobian standard errors."""
+    vig0 = cfg.vignetting if not cfg.fit_vignetting else 0.1
+    lo, hi = wm.bounds(lighting, cfg.fit_vignetting, cfg.vignetting)
+    sol = wm.solve(s, lighting, photons, read, lo, hi, vig0)
+    n_free = wm.free_parameters(lighting, cfg.fit_vignetting)
+    sd = wm.log_std(sol.jac[:, hi - lo > 1e-6], 2.0 * sol.cost / max(sol.fun.size - n_free, 1))
+    full = np.zeros(wm.N_PARAMS)
+    full[hi - lo > 1e-6] = sd
+    rel = {b: np.broadcast_to(full[wm.SLICES[b]], (3,)).astype(float) for b in wm.BLOCKS}
+    m = _expected(wm.model(sol.x, Geometry.of(s), lighting), photons, read)
+    fit_rms = float(np.sqrt(np.mean((_to_8bit(m, cfg.gamma) - _to_8bit(s.rgb, cfg.gamma)) ** 2)))
+    return ModelResult(lighting, sol.x, sol.cost, n_free, rel, fit_rms_8bit=fit_rms,
+                       lamp_share=lamp_share(sol.x, s, lighting))  # fmt: skip
+
+
+def _cross_validate(
+    s: PatchSamples, cfg: FitWaterConfig, m: ModelResult, photons: float | None, read: float
+) -> None:
+    """Held-out error of a model: each fold of frames predicted by a fit to the others."""
+    folds = frame_folds(s.frame, s.range_m, cfg.cv_folds)
+    lo, hi = wm.bounds(m.lighting, cfg.fit_vignetting, cfg.vignetting)
+    pred = np.zeros_like(s.rgb)
+    for f in np.unique(folds):
+        train, test = np.flatnonzero(folds != f), np.flatnonzero(folds == f)
+        sol = wm.solve(s, m.lighting, photons, read, lo, hi, 0.1, rows=train, x0=m.x,
+                       max_nfev=100, tol=1e-6)  # fmt: skip
+        pred[test] = _expected(wm.model(sol.x, Geometry.of(s, test), m.lighting), photons, read)
+    sigma = wm.SIGMA_REL * s.rgb + wm.SIGMA_ABS
+    m.heldout_rms = float(np.sqrt(np.mean(((pred - s.rgb) / sigma) ** 2)))
+    diff = _to_8bit(pred, cfg.gamma) - _to_8bit(s.rgb, cfg.gamma)
+    m.heldout_rms_8bit = float(np.sqrt(np.mean(diff**2)))
+
+
+def _bootstrap(
+    s: PatchSamples, cfg: FitWaterConfig, m: ModelResult, photons: float | None, read: float
+) -> None:
+    """Resample whole frames with replacement (seeded) and refit: the spread of each log
+    parameter (half its 16-84 % interval) and its 16 % and 84 % values."""
+    if cfg.bootstrap_resamples <= 0:
+        return
+    frames = np.unique(s.frame)
+    index = np.searchsorted(frames, s.frame)
+    lo, hi = wm.bounds(m.lighting, cfg.fit_vignetting, cfg.vignetting)
+    rng = np.random.default_rng(cfg.bootstrap_seed)
+    draws = []
+    for _ in range(cfg.bootstrap_resamples):
+        count = np.bincount(rng.integers(0, len(frames), len(frames)), minlength=len(frames))
+        w = count[index].astype(float)
+        rows = np.flatnonzero(w > 0)
+        sol = wm.solve(s, m.lighting, photons, read, lo, hi, 0.1, rows=rows, weights=w[rows],
+                       x0=m.x, max_nfev=60, tol=1e-5)  # fmt: skip
+        draws.append(sol.x)
+    m.rel_std_bootstrap, m.quantiles = block_std(np.asarray(draws))
+    m.resamples = len(draws)
 
 
 def fit_water(samples: PatchSamples, cfg: FitWaterConfig | None = None) -> WaterFit:
-    """Fit the water model to the patches (see the module docstring).
+    """Fit the water model to the patches under each lighting model asked for, choose one by
+    its error on held-out frames, and judge what the frames determine (see the module
+    docstring and :mod:`datasets.water_fit_judge`).
 
     Raises:
         DockError: too few patches, no white or no black patch, ranges spanning less than
             ``cfg.min_range_spread_m``.
     """
-    from scipy.optimize import least_squares  # scipy costs 0.5 s to import: only for the fit
-
     cfg = cfg or FitWaterConfig()
     cfg.validate()
     s = samples
@@ -725,60 +852,64 @@ def fit_water(samples: PatchSamples, cfg: FitWaterConfig | None = None) -> Water
             f"the fit needs ranges spanning {cfg.min_range_spread_m:g} m or more (film it from "
             f"near and far)"
         )
-    lo = np.concatenate([np.repeat(_LOG_BOUNDS[b][0], _SIZES[b]) for b in _BLOCKS] + [[0.0]])
-    hi = np.concatenate([np.repeat(_LOG_BOUNDS[b][1], _SIZES[b]) for b in _BLOCKS] + [[0.95]])
-    if not cfg.fit_vignetting:
-        lo[-1], hi[-1] = cfg.vignetting - 1e-9, cfg.vignetting + 1e-9
-    obs = s.rgb
-    sigma = _SIGMA_REL * obs + _SIGMA_ABS
     photons, read = estimate_noise(s, cfg.gamma)
-
-    def residual(x: np.ndarray) -> np.ndarray:
-        return ((_expected(_model(x, s, cfg), photons, read) - obs) / sigma).ravel()
-
-    best = None
-    for name in ("clear_tank", "coastal", "turbid", "very_turbid"):
-        x0 = np.clip(_start(s, PRESETS[name], cfg.vignetting if not cfg.fit_vignetting else 0.1),
-                     lo + 1e-6, hi - 1e-6)  # fmt: skip
-        res = least_squares(residual, x0, bounds=(lo, hi), x_scale="jac", max_nfev=400)
-        if best is None or res.cost < best.cost:
-            best = res
-    assert best is not None
-    x = best.x
-    p, vig = _unpack(x)
-    n_res, n_par = best.fun.size, _N_PARAMS - (0 if cfg.fit_vignetting else 1)
-    sd = _log_std(best.jac, 2.0 * best.cost / max(n_res - n_par, 1))
-    rel_std = {b: tuple(float(v) for v in np.broadcast_to(sd[_SLICES[b]], (3,))) for b in _BLOCKS}
-    params = {b: tuple(float(v) for v in p[b]) for b in _BLOCKS}
-    model = _expected(_model(x, s, cfg), photons, read)
-    resid = model - obs
-    disp = 255.0 * (np.clip(obs, 1e-6, None) ** (1.0 / cfg.gamma))
-    disp_m = 255.0 * (np.clip(model, 1e-6, None) ** (1.0 / cfg.gamma))
+    lightings = cfg.lightings()
+    models = {L: _fit_model(s, cfg, L, photons, read) for L in lightings}
+    auto = len(lightings) > 1
+    if auto and len(np.unique(s.frame)) < 3:
+        raise DockError(
+            f"choosing the lighting needs the target in 3 or more frames (found it in "
+            f"{len(np.unique(s.frame))}): film more, or state it with --lighting"
+        )
+    if auto:
+        for m in models.values():
+            _cross_validate(s, cfg, m, photons, read)
+            m.degenerate = lamp_not_seen(m)
+        candidates = [m for m in models.values() if not m.degenerate] or list(models.values())
+        best = min(m.heldout_rms for m in candidates)
+        for m in models.values():
+            m.plausible = not m.degenerate and (
+                m.heldout_rms <= best * (1.0 + cfg.plausible_tolerance)
+            )
+        chosen = min(candidates, key=lambda m: m.heldout_rms)
+    else:
+        chosen = models[lightings[0]]
+    for m in models.values():
+        if m.plausible:
+            _bootstrap(s, cfg, m, photons, read)
+    x = chosen.x
+    lighting = chosen.lighting
+    p, vig = wm.unpack(x)
+    rel = chosen.rel_std()
+    rel_std = {b: tuple(float(v) for v in rel[b]) for b in wm.BLOCKS}
+    params = {b: tuple(float(v) for v in p[b]) for b in wm.BLOCKS}
+    model = _expected(wm.model(x, Geometry.of(s), lighting), photons, read)
+    resid = model - s.rgb
     cerr = contrast_error(*_contrast(s, model))
-    warnings = []
     r_lo, r_hi = float(s.range_m.min()), float(s.range_m.max())
     separable = backscatter_separable(p["B_inf"], p["beta_B"], r_lo, r_hi)
-    for c, ch in enumerate(CHANNELS):
-        b_inf, beta_b = params["B_inf"][c], params["beta_B"][c]
-        if b_inf >= 0.01 and not separable[c]:
-            why = (
-                "is saturated already at the nearest range: film nearer"
-                if beta_b * r_lo > 2.0
-                else "hardly bends: film farther"
+    verdict = judge(chosen, [m for m in models.values() if m is not chosen], (r_lo, r_hi),
+                    separable, cfg.max_rel_std, cfg.disagree_sigmas, cerr,
+                    cfg.max_contrast_error)  # fmt: skip
+    if cfg.target == "markers":  # rendered films: attenuation 18-173 % off, contrast within 3.4 %
+        for ch in CHANNELS:
+            verdict.reasons.setdefault(("beta_D", ch), []).append(
+                "the marker board is an approximate target (on rendered films its attenuation "
+                "came out 18-173 % off)"
             )
-            warnings.append(
-                f"B_inf and beta_B of {ch} are not separable over {r_lo:.2f}-{r_hi:.2f} m (the "
-                f"backscatter {why}); only its curve over these ranges is determined "
-                f"(B_inf * beta_B = {b_inf * beta_b:.3g}/m)"
-            )
-        for b in ("beta_D", "beta_B", "B_inf"):
-            if b != "beta_D" and (b_inf < 0.01 or not separable[c]):
-                continue  # no backscatter to speak of, or said above
-            if rel_std[b][c] > 0.25:
-                warnings.append(
-                    f"{b} {ch} = {params[b][c]:.3g} is poorly determined by these frames "
-                    f"(+-{100 * rel_std[b][c]:.0f} %): film over a wider range of distances"
-                )
+        verdict.determined["beta_D"] = [False, False, False]
+        verdict.to_film.append("film a flat chessboard (--target chessboard) for the water file")
+    warnings = []
+    for (b, ch), why in verdict.reasons.items():
+        warnings.append(f"{b} {ch} = {params[b][CHANNELS.index(ch)]:.3g} is not determined by "
+                        f"these frames: {'; '.join(why)}")  # fmt: skip
+    if chosen.fit_rms_8bit > MISFIT_8BIT:
+        warnings.append(
+            f"no lighting model explains these frames well (residual {chosen.fit_rms_8bit:.1f} "
+            f"grey levels; rendered films fit within 0.6): uneven or changing light (automatic "
+            "exposure, room lights), a board that is not flat or glare; treat every value as "
+            "approximate"
+        )
     if cfg.target == "markers":
         warnings.append(
             "the marker board is an approximate target (small 3D markers, shaded): on rendered "
@@ -792,7 +923,7 @@ def fit_water(samples: PatchSamples, cfg: FitWaterConfig | None = None) -> Water
         beta_B_rgb=_rgb(np.clip(p["beta_B"], 0.0, 100.0)),
         B_inf_rgb=_rgb(np.clip(p["B_inf"], 0.0, 1.0)),
         vignetting=float(min(vig, 0.95)),
-        artificial_light=cfg.artificial_light,
+        artificial_light=lighting != "ambient",
         gamma=cfg.gamma,
         photons_at_white=photons if photons is not None else base.photons_at_white,
         read_noise=read,
@@ -804,95 +935,21 @@ def fit_water(samples: PatchSamples, cfg: FitWaterConfig | None = None) -> Water
         rel_std=rel_std,
         vignetting=vig,
         residual_rms=float(np.sqrt(np.mean(resid**2))),
-        residual_rms_8bit=float(np.sqrt(np.mean((disp_m - disp) ** 2))),
+        residual_rms_8bit=float(
+            np.sqrt(np.mean((_to_8bit(model, cfg.gamma) - _to_8bit(s.rgb, cfg.gamma)) ** 2))
+        ),
         contrast_error=cerr,  # type: ignore[arg-type]
-        range_m=(float(s.range_m.min()), float(s.range_m.max())),
+        range_m=(r_lo, r_hi),
         samples=s,
         config=cfg,
         separable=tuple(separable),  # type: ignore[arg-type]
         warnings=warnings,
+        lighting=lighting,
+        models=models,
+        verdict=verdict,
         _x=x,
     )
 
 
-def _log_std(J: np.ndarray, scale: float) -> np.ndarray:
-    """Standard errors of the (log) parameters from the Jacobian of the weighted residuals: a
-    parameter the residuals do not depend on (a backscatter already saturated at the nearest
-    range) gets a huge one, not the zero a pseudo-inverse would give it."""
-    JtJ = J.T @ J
-    ridge = 1e-12 * max(float(np.abs(np.diag(JtJ)).max()), 1e-300)
-    try:
-        cov = np.linalg.inv(JtJ + ridge * np.eye(len(JtJ))) * scale
-    except np.linalg.LinAlgError:  # pragma: no cover - the ridge keeps it invertible
-        return np.full(len(JtJ), np.inf)
-    return np.sqrt(np.clip(np.diag(cov), 0.0, None))
-
-
 def _rgb(v: np.ndarray) -> tuple[float, float, float]:
     return (float(v[0]), float(v[1]), float(v[2]))
-
-
-# ----------------------------------------------------------------------------- outputs
-
-
-def water_toml(fit: WaterFit, source: str = "") -> str:
-    """The fitted water as a ``[water]`` TOML file (read by every ``--water`` option)."""
-    head = [
-        "# Water fitted by `sim fit-water`" + (f" to {source}" if source else ""),
-        f"# {len(fit.samples)} patches in {fit.samples.frames_used} frames, ranges "
-        f"{fit.range_m[0]:.2f}-{fit.range_m[1]:.2f} m; residual RMS {fit.residual_rms_8bit:.2f} "
-        "grey levels; contrast error R/G/B "
-        + "/".join(f"{100 * e:.1f} %" for e in fit.contrast_error),
-        f"# blur and sensor noise from the '{fit.config.base}' preset",
-        "",
-        "[water]",
-    ]
-    return "\n".join(head) + "\n" + dumps_toml(fit.water)
-
-
-def write_water_file(fit: WaterFit, path: str | Path, source: str = "") -> Path:
-    """Write :func:`water_toml` atomically."""
-    return atomic_write_text(path, water_toml(fit, source))
-
-
-def plot_fit(fit: WaterFit, path: str | Path) -> None:
-    """Measured vs modelled contrast (white - black) and black level against range, per
-    channel; written atomically."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    s = fit.samples
-    model = fit.model()
-    r_pairs, meas, mod = fit.contrast_pairs()
-    fig, axes = plt.subplots(2, 3, figsize=(11, 6.2), sharex=True)
-    colours = ("tab:red", "tab:green", "tab:blue")
-    for c, ch in enumerate(CHANNELS):
-        ax = axes[0, c]
-        ax.scatter(r_pairs, meas[:, c], s=4, color=colours[c], alpha=0.35, label="frames")
-        order = np.argsort(r_pairs)
-        ax.plot(r_pairs[order], mod[order, c], ".", ms=2, color="k", label="model")
-        ax.set_yscale("log")
-        ax.set_title(f"{ch}: contrast white - black (error {100 * fit.contrast_error[c]:.1f} %)",
-                     fontsize=9)  # fmt: skip
-        black = ~s.white
-        ax = axes[1, c]
-        ax.scatter(s.range_m[black], s.rgb[black, c], s=4, color=colours[c], alpha=0.35,
-                   label="frames")  # fmt: skip
-        ax.plot(s.range_m[black], model[black, c], ".", ms=2, color="k", label="model")
-        ax.set_title(f"{ch}: black level (B_inf {fit.params['B_inf'][c]:.3f}, beta_B "
-                     f"{fit.params['beta_B'][c]:.3f}/m)", fontsize=9)  # fmt: skip
-        ax.set_xlabel("range (m)")
-    axes[0, 0].set_ylabel("linear intensity")
-    axes[1, 0].set_ylabel("linear intensity")
-    axes[0, 0].legend(fontsize=7)
-    fig.suptitle(
-        "Water fit: beta_D " + ", ".join(f"{v:.3f}" for v in fit.params["beta_D"]) + " /m; "
-        f"residual {fit.residual_rms_8bit:.2f} grey levels",
-        fontsize=10,
-    )
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=100, format="png")
-    plt.close(fig)

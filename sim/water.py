@@ -55,24 +55,33 @@ from typing import Annotated
 import cv2
 import numpy as np
 
-from uwdock.dockcore.config import check_fields, load_config
+from uwdock.dockcore.config import check_fields, from_dict, read_toml
 from uwdock.dockcore.domains import Fraction, Interval
 from uwdock.dockcore.errors import DockError
 from uwdock.sim.domains import RGB as ColourRGB
 
 __all__ = [
+    "FAR_M",
     "JERLOV_BEAM_C_RGB",
     "JERLOV_KD_RGB",
     "PRESETS",
     "PRESET_ORDER",
+    "WATER_FILE_NOTES",
     "WaterConfig",
     "WaterRandomisation",
     "apply_water",
+    "blur_level",
+    "decode_lut",
     "is_water_file",
+    "jpeg_roundtrip",
     "load_water_file",
+    "noise_bank",
+    "noise_draw",
     "preset",
     "resolve_water",
+    "vignette",
     "water_choice",
+    "water_file_notes",
     "water_spec_error",
 ]
 
@@ -103,7 +112,7 @@ JERLOV_BEAM_C_RGB: dict[str, RGB] = {
 }
 
 #: Range (m) standing in for "nothing hit" (r = inf) in the exponentials.
-_FAR_M = 1.0e4
+FAR_M = 1.0e4
 
 #: Largest attenuation or backscatter coefficient (1/m): the most turbid Jerlov type (9C) has
 #: 5.6/m in blue; at 100/m nothing beyond 5 cm is seen.
@@ -204,11 +213,27 @@ def is_water_file(spec: str) -> bool:
     return str(spec).lower().endswith(".toml")
 
 
+#: Tables a water file may hold beside ``[water]``: ``[fit]``, what ``sim fit-water`` records
+#: about the fit (lighting model, uncertainty, values the frames did not determine); not read
+#: here (see :func:`water_file_notes`).
+WATER_FILE_NOTES = ("fit",)
+
+
 def load_water_file(path: str | os.PathLike[str]) -> WaterConfig:
     """The ``[water]`` table of a TOML file (fields of :class:`WaterConfig`; those left out keep
-    their defaults), validated. Raises a one-line :class:`ConfigError` (a missing file, bad
-    TOML, an unknown key or a value outside its domain)."""
-    return load_config(WaterConfig, path, section="water")
+    their defaults), validated; a ``[fit]`` table beside it is ignored. Raises a one-line
+    :class:`ConfigError` (a missing file, bad TOML, an unknown key or a value outside its
+    domain)."""
+    data = read_toml(path)
+    if isinstance(data.get("water"), dict) and set(data) <= {"water", *WATER_FILE_NOTES}:
+        data = data["water"]
+    return from_dict(WaterConfig, data)
+
+
+def water_file_notes(path: str | os.PathLike[str]) -> dict:
+    """The ``[fit]`` table of a water file (empty when it has none)."""
+    notes = read_toml(path).get("fit", {})
+    return dict(notes) if isinstance(notes, dict) else {}
 
 
 def resolve_water(spec: str | None) -> WaterConfig | None:
@@ -382,13 +407,13 @@ def _rgb(v: np.ndarray) -> RGB:
 
 
 @functools.lru_cache(maxsize=8)
-def _decode_lut(gamma: float) -> np.ndarray:
+def decode_lut(gamma: float) -> np.ndarray:
     """(256,) float32: uint8 display value -> linear value in [0, 1]."""
     return ((np.arange(256, dtype=np.float64) / 255.0) ** gamma).astype(np.float32)
 
 
 @functools.lru_cache(maxsize=8)
-def _vignette(height: int, width: int, strength: float) -> np.ndarray:
+def vignette(height: int, width: int, strength: float) -> np.ndarray:
     """(H, W, 3) float32 vignetting factor 1 - s * rho**2 (rho = 1 at the image corners)."""
     v = (np.arange(height, dtype=np.float32) - (height - 1) / 2.0) / ((height - 1) / 2.0 or 1.0)
     u = (np.arange(width, dtype=np.float32) - (width - 1) / 2.0) / ((width - 1) / 2.0 or 1.0)
@@ -404,7 +429,7 @@ _NOISE_MARGIN_PX = 97
 
 
 @functools.lru_cache(maxsize=4)
-def _noise_bank(height: int, width: int) -> np.ndarray:
+def noise_bank(height: int, width: int) -> np.ndarray:
     """(H + m, 3 (W + m)) float32 standard normal field, fixed seed, read-only (cached)."""
     m = _NOISE_MARGIN_PX
     shape = (height + m, 3 * (width + m))
@@ -422,21 +447,21 @@ def _unit_noise(height: int, width: int, rng: np.random.Generator) -> tuple[np.n
     noise is uncorrelated with itself, so the noises of two frames are independent to any
     detector; the draw is fully determined by ``rng``.
     """
-    bank = _noise_bank(height, width)
-    dy, dx, sign = _noise_draw(rng)
+    bank = noise_bank(height, width)
+    dy, dx, sign = noise_draw(rng)
     z = bank[dy : dy + height, dx : dx + 3 * width].reshape(height, width, 3)
     return z, sign
 
 
-def _noise_draw(rng: np.random.Generator) -> tuple[int, int, float]:
+def noise_draw(rng: np.random.Generator) -> tuple[int, int, float]:
     """One frame's draw from ``rng`` for :func:`_unit_noise` (shared with ``sim.water_torch``):
-    the row offset, the element offset into :func:`_noise_bank` and the sign (+1.0 or -1.0)."""
+    the row offset, the element offset into :func:`noise_bank` and the sign (+1.0 or -1.0)."""
     m = _NOISE_MARGIN_PX
     dy, dx, sign = (int(v) for v in rng.integers(0, (m, 3 * m, 2)))
     return dy, dx, (1.0 if sign else -1.0)
 
 
-def _blur_level(img: np.ndarray, sigma_px: float, dst: np.ndarray) -> np.ndarray:
+def blur_level(img: np.ndarray, sigma_px: float, dst: np.ndarray) -> np.ndarray:
     """Approximate Gaussian blur of ``img`` with ``sigma_px``, computed at reduced size.
 
     The image is area-downsampled by an integer factor ~ sigma / 0.8, blurred with the residual
@@ -498,7 +523,7 @@ def _forward_scatter(J: np.ndarray, r: np.ndarray, cfg: WaterConfig, ws: _Worksp
     """Blend ``cfg.blur_levels`` blurred copies of ``J`` by per-pixel range (sigma = k * r)."""
     width = J.shape[1]
     k_px_per_m = cfg.blur_sigma_per_m * width
-    r_top = min(float(r[r < _FAR_M].max(initial=0.0)), cfg.blur_max_range_m)
+    r_top = min(float(r[r < FAR_M].max(initial=0.0)), cfg.blur_max_range_m)
     sigma_max = k_px_per_m * r_top
     if sigma_max < 0.3:  # below a third of a pixel the blur is invisible
         return J
@@ -510,7 +535,7 @@ def _forward_scatter(J: np.ndarray, r: np.ndarray, cfg: WaterConfig, ws: _Worksp
         a = np.clip(t - np.float32(level - 1), 0.0, 1.0, out=ws.weight)
         # ping-pong between two buffers apply_water does not reuse while J is alive
         dst = ws.blend if out is not ws.blend else ws.b
-        out = cv2.blendLinear(out, _blur_level(J, level * step, ws.level), 1.0 - a, a, dst=dst)
+        out = cv2.blendLinear(out, blur_level(J, level * step, ws.level), 1.0 - a, a, dst=dst)
     return out
 
 
@@ -550,9 +575,9 @@ def apply_water(
         raise ValueError("rng: a numpy Generator is required when noise is enabled")
     h, w = r_in.shape
     ws = _workspace(h, w)
-    r = np.minimum(r_in, np.float32(_FAR_M), out=ws.r)
+    r = np.minimum(r_in, np.float32(FAR_M), out=ws.r)
 
-    J = cv2.LUT(img, _decode_lut(float(cfg.gamma)), dst=ws.J)  # linear float32
+    J = cv2.LUT(img, decode_lut(float(cfg.gamma)), dst=ws.J)  # linear float32
     if cfg.blur_sigma_per_m > 0.0:
         J = _forward_scatter(J, r, cfg, ws)
 
@@ -577,7 +602,7 @@ def apply_water(
     back += _row(cfg.B_inf_rgb, 1.0, w)
     out += back.reshape(h, w, 3)
     if cfg.vignetting > 0.0:
-        out *= _vignette(h, w, float(cfg.vignetting))
+        out *= vignette(h, w, float(cfg.vignetting))
 
     if cfg.noise_enabled:
         assert rng is not None and cfg.photons_at_white is not None
@@ -598,11 +623,11 @@ def apply_water(
     result = cv2.convertScaleAbs(out, alpha=255.0)  # out >= 0: rounds and saturates to uint8
 
     if cfg.jpeg_quality is not None:
-        result = _jpeg_roundtrip(result, int(cfg.jpeg_quality))
+        result = jpeg_roundtrip(result, int(cfg.jpeg_quality))
     return result
 
 
-def _jpeg_roundtrip(rgb_uint8: np.ndarray, quality: int) -> np.ndarray:
+def jpeg_roundtrip(rgb_uint8: np.ndarray, quality: int) -> np.ndarray:
     """(H, W, 3) uint8 RGB encoded as JPEG with ``quality`` and decoded (shared with
     ``sim.water_torch``)."""
     bgr = cv2.cvtColor(rgb_uint8, cv2.COLOR_RGB2BGR)

@@ -15,15 +15,16 @@ How each step is matched:
   ``sim.water`` (float32, the per-channel products rounded to float32 as ``_row`` does), moved to
   the device once and cached per device;
 * forward scatter blends the same pre-blurred levels with OpenCV's ``blendLinear`` formula
-  ``(a1 x1 + a2 x2) / (a1 + a2 + 1e-5)``; each level is blurred as ``_blur_level`` does: an area
-  downsample by the same integer factor (``avg_pool2d`` where OpenCV takes its integer-scale
-  path, otherwise OpenCV's fractional ``INTER_AREA`` weights, ported), the Gaussian kernel of
-  ``cv2.GaussianBlur(img, (0, 0), sigma)`` (``cv2.getGaussianKernel`` with OpenCV's size rule
-  ``round(8 sigma + 1) | 1`` for float images) applied separably with reflect-101 borders, and a
-  bilinear upsample (``align_corners=False``, OpenCV's ``INTER_LINEAR`` pixel grid);
-* the noise is the same fixed-seed standard-normal bank (``_noise_bank``, moved to the device
+  ``(a1 x1 + a2 x2) / (a1 + a2 + 1e-5)``; each level is blurred as ``sim.water.blur_level``
+  does: an area downsample by the same integer factor (``avg_pool2d`` where OpenCV takes its
+  integer-scale path, otherwise OpenCV's fractional ``INTER_AREA`` weights, ported), the
+  Gaussian kernel of ``cv2.GaussianBlur(img, (0, 0), sigma)`` (``cv2.getGaussianKernel`` with
+  OpenCV's size rule ``round(8 sigma + 1) | 1`` for float images) applied separably with
+  reflect-101 borders, and a bilinear upsample (``align_corners=False``, OpenCV's
+  ``INTER_LINEAR`` pixel grid);
+* the noise is the same fixed-seed standard-normal bank (``noise_bank``, moved to the device
   once per (H, W, device)) cropped at the offsets and signed with the sign that
-  ``_noise_draw`` takes from ``rng``: the generator advances exactly as in ``apply_water``, so a
+  ``noise_draw`` takes from ``rng``: the generator advances exactly as in ``apply_water``, so a
   sequence of frames from one generator is the same sequence;
 * the JPEG round trip runs on the CPU with OpenCV, as in ``apply_water`` (so it is exact on
   the image it gets; where that image differs from ``apply_water``'s by one level at a pixel,
@@ -47,14 +48,14 @@ import cv2
 import numpy as np
 
 from uwdock.sim.water import (
-    _FAR_M,
+    FAR_M,
     RGB,
     WaterConfig,
-    _decode_lut,
-    _jpeg_roundtrip,
-    _noise_bank,
-    _noise_draw,
-    _vignette,
+    decode_lut,
+    jpeg_roundtrip,
+    noise_bank,
+    noise_draw,
+    vignette,
 )
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -77,7 +78,7 @@ def _lut(gamma: float, device: torch.device) -> torch.Tensor:
     """(256,) float32 decoding table of ``sim.water`` on ``device``."""
     import torch
 
-    return torch.from_numpy(_decode_lut(gamma).copy()).to(device)
+    return torch.from_numpy(decode_lut(gamma).copy()).to(device)
 
 
 @functools.lru_cache(maxsize=16)
@@ -85,7 +86,7 @@ def _vignette_t(height: int, width: int, strength: float, device: torch.device) 
     """(1, H, W) float32 vignetting factor of ``sim.water`` on ``device``."""
     import torch
 
-    v = _vignette(height, width, strength)[:, :, 0].copy()
+    v = vignette(height, width, strength)[:, :, 0].copy()
     return torch.from_numpy(v).to(device)[None]
 
 
@@ -94,7 +95,7 @@ def _noise_bank_t(height: int, width: int, device: torch.device) -> torch.Tensor
     """``sim.water``'s (H + m, 3 (W + m)) float32 noise bank on ``device`` (cached)."""
     import torch
 
-    return torch.from_numpy(_noise_bank(height, width).copy()).to(device)
+    return torch.from_numpy(noise_bank(height, width).copy()).to(device)
 
 
 @functools.lru_cache(maxsize=64)
@@ -230,7 +231,7 @@ def _area_down(x: torch.Tensor, height: int, width: int) -> torch.Tensor:
 
 
 def _blur_level(J: torch.Tensor, sigma_px: float) -> torch.Tensor:
-    """``sim.water._blur_level`` of (3, H, W) planes: the same approximate Gaussian blur."""
+    """``sim.water.blur_level`` of (3, H, W) planes: the same approximate Gaussian blur."""
     import torch.nn.functional as F
 
     h, w = J.shape[-2:]
@@ -250,7 +251,7 @@ def _forward_scatter(J: torch.Tensor, r: torch.Tensor, cfg: WaterConfig) -> torc
 
     width = J.shape[-1]
     k_px_per_m = cfg.blur_sigma_per_m * width
-    near = torch.where(r < _FAR_M, r, torch.zeros((), dtype=r.dtype, device=r.device))
+    near = torch.where(r < FAR_M, r, torch.zeros((), dtype=r.dtype, device=r.device))
     r_top = min(float(near.max()) if near.numel() else 0.0, cfg.blur_max_range_m)
     sigma_max = k_px_per_m * r_top
     if sigma_max < 0.3:
@@ -341,7 +342,7 @@ def apply_water_torch(
         out = _model(img, r_in, cfg, rng)
     result = out.permute(1, 2, 0).contiguous()  # (H, W, 3) uint8
     if cfg.jpeg_quality is not None:
-        jpeg = _jpeg_roundtrip(result.cpu().numpy(), int(cfg.jpeg_quality))
+        jpeg = jpeg_roundtrip(result.cpu().numpy(), int(cfg.jpeg_quality))
         return torch.from_numpy(jpeg).to(dev) if as_tensor else jpeg
     return result if as_tensor else result.cpu().numpy()
 
@@ -355,7 +356,7 @@ def _model(
 
     dev = img.device
     h, w = r_in.shape
-    r = torch.clamp_max(r_in, _FAR_M)
+    r = torch.clamp_max(r_in, FAR_M)
     idx = img.permute(2, 0, 1).reshape(-1).int()
     J = _lut(float(cfg.gamma), dev).index_select(0, idx).view(3, h, w)  # linear float32
     if cfg.blur_sigma_per_m > 0.0:
@@ -377,7 +378,7 @@ def _model(
 
     if cfg.noise_enabled:
         assert rng is not None and cfg.photons_at_white is not None
-        dy, dx, sign = _noise_draw(rng)
+        dy, dx, sign = noise_draw(rng)
         bank = _noise_bank_t(h, w, dev)
         z = bank[dy : dy + h, dx : dx + 3 * w].view(h, w, 3).permute(2, 0, 1)
         sd = torch.mul(out, _f32(1.0 / cfg.photons_at_white)).add_(_f32(cfg.read_noise**2))

@@ -413,10 +413,8 @@ def eager_imports_of_heavy_modules(root: Path, layers: dict[str, int]) -> list[s
 #: Private names that still cross a module boundary, to be made public where they are defined
 #: (issue 31: the water model's helpers, shared by ``sim.water_torch`` and the water fit); the
 #: check allows only these, from whichever module imports them.
-PENDING_PRIVATE = frozenset(
-    f"uwdock.sim.water.{n}"
-    for n in ("_FAR_M", "_decode_lut", "_jpeg_roundtrip", "_noise_bank", "_noise_draw", "_vignette")
-)
+#: Private names still allowed to cross modules (none: add one only with a reason).
+PENDING_PRIVATE: frozenset[str] = frozenset()
 
 
 def _private(name: str) -> bool:

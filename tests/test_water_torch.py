@@ -12,7 +12,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from uwdock.sim.water import PRESETS, WaterConfig, _jpeg_roundtrip, apply_water
+from uwdock.sim.water import PRESETS, WaterConfig, apply_water, jpeg_roundtrip
 
 torch = pytest.importorskip("torch")
 
@@ -103,7 +103,7 @@ def test_jpeg_is_opencvs_round_trip_of_the_image() -> None:
     plain = apply_water_torch(
         rgb, r, dataclasses.replace(cfg, jpeg_quality=None), np.random.default_rng(4)
     )
-    assert np.array_equal(out, _jpeg_roundtrip(plain, 80))
+    assert np.array_equal(out, jpeg_roundtrip(plain, 80))
 
 
 def test_infinite_range_is_pure_veiling_light() -> None:
@@ -188,7 +188,7 @@ def test_invalid_inputs_raise_apply_waters_errors(name: str, as_tensor: bool) ->
 def test_blur_level_matches_opencv(h: int, w: int, sigma: float) -> None:
     """One forward-scatter level in float: full resolution (sigma < 1.6), the integer-scale and
     the fractional INTER_AREA downsampling, a kernel wider than the reduced image."""
-    from uwdock.sim.water import _blur_level as blur_np
+    from uwdock.sim.water import blur_level as blur_np
     from uwdock.sim.water_torch import _blur_level as blur_t
 
     x = np.random.default_rng(3).random((h, w, 3), dtype=np.float32)
