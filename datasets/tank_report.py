@@ -28,7 +28,6 @@ from collections.abc import Callable, Hashable, Mapping
 from dataclasses import dataclass
 from typing import Annotated, Any
 
-import cv2
 import numpy as np
 
 from uwdock.calibration.camera import CameraModel
@@ -36,9 +35,10 @@ from uwdock.calibration.frames import make_T
 from uwdock.dockcore.domains import Interval, Seed
 from uwdock.dockcore.io import atomic_path
 from uwdock.perception.detector import Detector, DetectorConfig
+from uwdock.sim.camera import SimCamera
 from uwdock.sim.docking_station import DockingStationConfig
 from uwdock.sim.render import make_render_scene
-from uwdock.sim.water import WaterConfig, apply_water
+from uwdock.sim.water import WaterConfig
 
 __all__ = ["TankReportConfig", "detection_ranges"]
 
@@ -115,6 +115,7 @@ def detection_ranges(
     )
     # rendered 3DBMs: OpenCV's default-parameter pass decodes no negative (same detections)
     detector = Detector(DetectorConfig(ids=rs.ds.marker_set.ids, opencv_pass=False))
+    sim_camera = SimCamera(rs.rig)  # the water through the camera's one path
     rendered: dict[Hashable, WaterConfig] = dict(waters)
     for name, (high, low) in bounds.items():
         rendered[(name, "high")], rendered[(name, "low")] = high, low
@@ -128,8 +129,8 @@ def detection_ranges(
             n = []
             for d in range(cfg.draws):
                 rng = np.random.default_rng([cfg.seed, d, round(float(alt) * 10)])
-                img = apply_water(res.rgb, res.range_m, water, rng)
-                n.append(len(detector.detect(cv2.cvtColor(img, cv2.COLOR_RGB2BGR))))
+                frame = sim_camera.through_water(res, rng, water)
+                n.append(len(detector.detect(frame.img_bgr())))
             counts[name].append(float(statistics.median(n)))
         if progress is not None:
             progress(float(alt))

@@ -120,8 +120,23 @@ class SimCamera:
         Returns:
             The :class:`Frame` (RGB; :meth:`Frame.img_bgr` for perception).
         """
+        return self.through_water(self.rig.render(T_world_body), rng, water)
+
+    def through_water(
+        self,
+        res: RenderResult,
+        rng: np.random.Generator | None = None,
+        water: WaterConfig | Literal["keep"] | None = KEEP,
+    ) -> Frame:
+        """The frame of a render already taken, with the water applied: one render seen through
+        several waters (e.g. the tank report) takes the same path as :meth:`capture`.
+
+        Args:
+            res: a render of this camera's rig (in air).
+            rng: generator for the sensor noise (required when the water has noise).
+            water: the water instead of the camera's (None: in air).
+        """
         w = self.water if water is KEEP else water
-        res = self.rig.render(T_world_body)
         if w is None:
             img = res.rgb
         elif self.water_device is None:
