@@ -20,6 +20,7 @@ import importlib
 import os
 import signal
 import sys
+import threading
 import traceback
 import types
 import typing
@@ -128,14 +129,31 @@ class _Interrupted(KeyboardInterrupt):
 _received: list[int] = []
 
 
+#: Delay (s) before a signal that landed inside importlib's machinery is delivered again.
+REDELIVER_DELAY_S = 0.02
+
+
+def _in_import_machinery(frame: Any) -> bool:
+    """Whether the interrupted code is importlib's own (a module lock's weakref callback, for
+    one): an exception raised there is printed as "Exception ignored ... Traceback" and
+    dropped, so the interrupt would be lost and a traceback shown."""
+    return frame is not None and frame.f_code.co_filename.startswith("<frozen importlib")
+
+
+def _interrupt(signum: int, frame: Any, exc: type[BaseException]) -> None:
+    if _in_import_machinery(frame):
+        threading.Timer(REDELIVER_DELAY_S, os.kill, (os.getpid(), signum)).start()
+        return
+    _received.append(signum)
+    raise exc()
+
+
 def _on_sigterm(signum: int, frame: Any) -> None:
-    _received.append(signal.SIGTERM)
-    raise _Interrupted()
+    _interrupt(signal.SIGTERM, frame, _Interrupted)
 
 
 def _on_sigint(signum: int, frame: Any) -> None:
-    _received.append(signal.SIGINT)
-    raise KeyboardInterrupt
+    _interrupt(signal.SIGINT, frame, KeyboardInterrupt)
 
 
 def _oserror_line(exc: OSError) -> str:

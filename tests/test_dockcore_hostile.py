@@ -339,3 +339,30 @@ def test_disk_full_or_read_only_names_the_target(tmp_path, monkeypatch, err):
         atomic_write_text(target, "x")
     assert exc.value.filename == str(target) and exc.value.errno == err
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_signal_landing_in_importlib_is_delivered_again_not_lost():
+    """A SIGTERM/SIGINT that lands while importlib runs a module lock's weakref callback would
+    raise there, where Python prints "Exception ignored ... Traceback" and drops it (seen in the
+    killed-training test): the handler delivers it again a moment later instead, and raises at
+    once anywhere else."""
+    from uwdock.dockcore import cli as dcli
+
+    ns: dict = {}
+    code = compile("import sys\nframe = sys._getframe()", "<frozen importlib._bootstrap>", "exec")
+    exec(code, ns)
+    got: list[int] = []
+    old = signal.signal(signal.SIGUSR1, lambda s, f: got.append(s))
+    try:
+        dcli._interrupt(signal.SIGUSR1, ns["frame"], KeyboardInterrupt)  # no raise here
+        assert dcli._received == []
+        deadline = time.monotonic() + 5.0
+        while not got and time.monotonic() < deadline:
+            time.sleep(0.005)
+        assert got == [signal.SIGUSR1]
+        with pytest.raises(KeyboardInterrupt):
+            dcli._interrupt(signal.SIGUSR1, sys._getframe(), KeyboardInterrupt)
+        assert dcli._received == [signal.SIGUSR1]
+    finally:
+        signal.signal(signal.SIGUSR1, old)
+        dcli._received.clear()
