@@ -247,9 +247,10 @@ def test_max_views_caps_deterministically(cb_folder):
     assert n["calibration"] == 10 and n["rejected_by_reason"] == {"over_cap": 12}
     assert a.cv.scheme == "5-fold" and a.cv.folds[0].tolist() == [0, 5]
     assert [v.status for v in a.views] == [v.status for v in b.views]
-    # OpenCV's threaded solver reorders sums: equal to ~1e-12, not bit for bit
-    assert a.camera.fx_px == pytest.approx(b.camera.fx_px, rel=1e-9)
-    assert a.cv_rms_px == pytest.approx(b.cv_rms_px, rel=1e-9)
+    # OpenCV's threaded solver reorders sums: equal to ~1e-9 (seen), not bit for bit; a
+    # different view selection or fold would move them by far more
+    assert a.camera.fx_px == pytest.approx(b.camera.fx_px, rel=1e-6)
+    assert a.cv_rms_px == pytest.approx(b.cv_rms_px, rel=1e-6)
 
 
 def test_config_validation_names_the_field():
