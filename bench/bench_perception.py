@@ -16,7 +16,8 @@ and the slowest contrast level. Rate: recall = decoded visible markers / visible
 (markers fully inside the image), false = decoded IDs that are not visible. Two more rows:
 "default + prior" searches around the visible markers' corners predicted by a prior a few
 pixels off (``PRIOR_SHIFT_PX``, ``PRIOR_NOISE_PX``), the whole frame when one is missed
-(``in_regions``: the fraction of frames that needed no whole-frame search); "opencv" is plain
+(``in_regions``: the fraction of frames that needed no whole-frame search); "default, no OpenCV
+pass" is ``opencv_pass = False`` (what the simulator's camera source runs); "opencv" is plain
 OpenCV ArUco (grey, OpenCV's default parameters, both polarities), the speed reference.
 
 Part 2, PnP: the reference camera (968x732) aimed at the floor markers' centre from 1-5 m
@@ -147,6 +148,8 @@ def _detectors() -> dict[str, tuple[Detector, bool]]:
     ids = MARKER_SET.ids
     out = {p: (Detector(DetectorConfig(pipeline=p, ids=ids)), False) for p in PIPELINES}
     out["default + prior"] = (Detector(DetectorConfig(ids=ids)), True)
+    # default without its OpenCV pass (decodes no 3DBM negative): the simulator's camera source
+    out["default, no OpenCV pass"] = (Detector(DetectorConfig(ids=ids, opencv_pass=False)), False)
     # plain OpenCV: grey, OpenCV's defaults, both polarities (it must decode the 3DBM negative)
     out["opencv"] = (
         Detector(DetectorConfig(pipeline="plain", ids=ids, detect_inverted=True)),
