@@ -38,13 +38,14 @@ from numpy.typing import ArrayLike
 
 from uwdock.calibration.frames import check_T
 from uwdock.dockcore.errors import DockError
-from uwdock.dockcore.io import atomic_path, atomic_write_json, read_text
+from uwdock.dockcore.io import atomic_write_json, atomic_write_text, read_text
 from uwdock.dockcore.media import quiet_native_stderr
 
 __all__ = [
     "CAMERA_FILE_VERSION",
     "REFERENCE_T_BODYFRD_CAMCV",
     "CameraModel",
+    "filestorage_yaml_text",
     "load_camera",
     "raw_integer",
     "raw_matrix",
@@ -300,6 +301,23 @@ def twin_paths(path: str | os.PathLike[str]) -> tuple[Path, Path]:
     raise DockError(f"camera file must end in .yaml, .yml or .json: {path}")
 
 
+def filestorage_yaml_text(items: list[tuple[str, Any]]) -> str:
+    """OpenCV FileStorage YAML of ``(key, value)`` pairs (ints, floats, strings, 2-D arrays),
+    built in memory.
+
+    Written to disk by the caller with a Python write (``atomic_write_text``): FileStorage's own
+    file writer does not report a failed write, so on a full disk it left an empty temporary
+    file that the atomic rename then put over the user's camera file.
+    """
+    fs = cv2.FileStorage(
+        "camera.yaml",
+        cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_MEMORY | cv2.FILE_STORAGE_FORMAT_YAML,
+    )
+    for key, value in items:
+        fs.write(key, value)
+    return fs.releaseAndGetString()
+
+
 def save_camera(
     path: str | os.PathLike[str], cam: CameraModel, T_body_cam: ArrayLike | None = None
 ) -> tuple[Path, Path]:
@@ -321,21 +339,19 @@ def save_camera(
     T = None if T_body_cam is None else check_T(T_body_cam, "T_body_cam")
     yaml_path, json_path = twin_paths(path)
 
-    with atomic_path(yaml_path) as tmp:
-        fs = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_FORMAT_YAML)
-        try:
-            fs.write("format_version", CAMERA_FILE_VERSION)
-            fs.write("name", cam.name)
-            fs.write("image_width", int(cam.width_px))
-            fs.write("image_height", int(cam.height_px))
-            fs.write("camera_matrix", cam.K)
-            fs.write("distortion_coefficients", cam.dist_coeffs.reshape(1, -1))
-            if cam.rms_px is not None:
-                fs.write("rms_px", float(cam.rms_px))
-            if T is not None:
-                fs.write("T_body_cam", T)
-        finally:
-            fs.release()
+    items: list[tuple[str, Any]] = [
+        ("format_version", CAMERA_FILE_VERSION),
+        ("name", cam.name),
+        ("image_width", int(cam.width_px)),
+        ("image_height", int(cam.height_px)),
+        ("camera_matrix", cam.K),
+        ("distortion_coefficients", cam.dist_coeffs.reshape(1, -1)),
+    ]
+    if cam.rms_px is not None:
+        items.append(("rms_px", float(cam.rms_px)))
+    if T is not None:
+        items.append(("T_body_cam", T))
+    atomic_write_text(yaml_path, filestorage_yaml_text(items))
 
     doc: dict[str, Any] = {
         "format_version": CAMERA_FILE_VERSION,

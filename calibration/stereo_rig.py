@@ -45,6 +45,7 @@ from numpy.typing import ArrayLike
 
 from uwdock.calibration.camera import (
     CameraModel,
+    filestorage_yaml_text,
     raw_integer,
     raw_matrix,
     read_filestorage_yaml,
@@ -52,7 +53,7 @@ from uwdock.calibration.camera import (
 )
 from uwdock.calibration.frames import check_T
 from uwdock.dockcore.errors import DockError
-from uwdock.dockcore.io import atomic_path, atomic_write_json, read_text
+from uwdock.dockcore.io import atomic_write_json, atomic_write_text, read_text
 
 __all__ = [
     "STEREO_FILE_VERSION",
@@ -362,15 +363,9 @@ def save_stereo(path: str | os.PathLike[str], rig: StereoRig) -> tuple[Path, Pat
     """
     yaml_path, json_path = twin_paths(path)
     scalars, matrices = _scalars(rig), _matrices(rig)
-    with atomic_path(yaml_path) as tmp:
-        fs = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_FORMAT_YAML)
-        try:
-            for key, value in scalars.items():
-                fs.write(key, float(value) if isinstance(value, float) else value)
-            for key, value in matrices.items():
-                fs.write(key, np.ascontiguousarray(value, dtype=np.float64))
-        finally:
-            fs.release()
+    items = [(k, float(v) if isinstance(v, float) else v) for k, v in scalars.items()]
+    items += [(k, np.ascontiguousarray(v, dtype=np.float64)) for k, v in matrices.items()]
+    atomic_write_text(yaml_path, filestorage_yaml_text(items))
     doc = dict(scalars)
     doc.update({k: v.tolist() for k, v in matrices.items()})
     doc["left_distortion_coefficients"] = list(rig.left.dist)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 from pathlib import Path
 
 import cv2
@@ -626,3 +627,26 @@ def test_folder_video_and_bag_frames_are_turned_grey_the_same_way(tmp_path):
     deep = (bgr[:, :, 0].astype(np.uint16) << 8) | 0x7F
     np.testing.assert_array_equal(to_grey(deep), bgr[:, :, 0])
     assert to_grey(None) is None
+
+
+def test_a_full_disk_leaves_the_camera_file_as_it_was(run_cli, tmp_path, monkeypatch):
+    """``extrinsics set`` on a full disk: one line, a non-zero exit, and both twins keep their
+    bytes. OpenCV's FileStorage does not report a failed write, so the YAML is now built in
+    memory and written by Python; before, an empty temporary file was renamed over cam.yaml."""
+    import errno
+    import pathlib
+
+    cam_path = tmp_path / "cam.yaml"
+    save_camera(cam_path, reference_camera(), REFERENCE_T_BODYFRD_CAMCV)
+    before = {p: p.read_bytes() for p in (cam_path, cam_path.with_suffix(".json"))}
+
+    def full(self, data):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(self))
+
+    monkeypatch.setattr(pathlib.Path, "write_bytes", full)
+    args = ("extrinsics", "set", cam_path, "--xyz-m", 1, 2, 3, "--rpy-deg", 0, 0, 0)
+    msg = _one_line_error(run_cli(calibration_cli.main, *args))
+    assert "no space left" in msg
+    monkeypatch.undo()
+    assert {p: p.read_bytes() for p in before} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cam.json", "cam.yaml"]
