@@ -47,6 +47,7 @@ from bench_perception import MARKER_SET, random_view, render
 
 from uwdock.calibration.camera import reference_camera
 from uwdock.dockcore.bench import RESULTS_DIR, format_table, save_results, time_call
+from uwdock.dockcore.io import atomic_path
 from uwdock.perception.detector import Detector, DetectorConfig
 from uwdock.perception.preprocess import PIPELINES
 
@@ -223,10 +224,9 @@ def plot(rows: list[dict], path: Path) -> None:
     ax.set_title("Marker recall per pipeline and degradation (968x732, same frames each)")
     ax.legend(fontsize=8, ncol=len(pipes), loc="upper center", bbox_to_anchor=(0.5, -0.32))
     fig.tight_layout()
-    tmp = path.with_suffix(".tmp.png")
-    fig.savefig(tmp, dpi=110)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
     plt.close(fig)
-    tmp.replace(path)
 
 
 def main() -> None:

@@ -50,7 +50,7 @@ from uwdock.dockcore.bench import format_table, save_results, time_call
 from uwdock.markers.config import MarkerConfig
 from uwdock.markers.dictionary import get_dictionary
 from uwdock.markers.markerset import marker_set_from_config
-from uwdock.perception.detector import Detector, DetectorConfig
+from uwdock.perception.detector import Detector, DetectorConfig, rendered_3dbm_config
 from uwdock.perception.pose import solve_board
 from uwdock.perception.preprocess import PIPELINES
 
@@ -149,7 +149,7 @@ def _detectors() -> dict[str, tuple[Detector, bool]]:
     out = {p: (Detector(DetectorConfig(pipeline=p, ids=ids)), False) for p in PIPELINES}
     out["default + prior"] = (Detector(DetectorConfig(ids=ids)), True)
     # default without its OpenCV pass (decodes no 3DBM negative): the simulator's camera source
-    out["default, no OpenCV pass"] = (Detector(DetectorConfig(ids=ids, opencv_pass=False)), False)
+    out["default, no OpenCV pass"] = (Detector(rendered_3dbm_config(ids)), False)
     # plain OpenCV: grey, OpenCV's defaults, both polarities (it must decode the 3DBM negative)
     out["opencv"] = (
         Detector(DetectorConfig(pipeline="plain", ids=ids, detect_inverted=True)),

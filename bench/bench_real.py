@@ -52,7 +52,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from uwdock.dockcore.bench import RESULTS_DIR, format_table
 from uwdock.dockcore.errors import DockError
-from uwdock.dockcore.io import atomic_write_json
+from uwdock.dockcore.io import atomic_path, atomic_write_json
 from uwdock.dockcore.media import IMAGE_SUFFIXES, read_image
 from uwdock.dockcore.provenance import provenance
 from uwdock.markers.dictionary import get_dictionary, normalise_dictionary_name
@@ -322,10 +322,9 @@ def plot(summary: list[dict], names: list[str], path: Path) -> None:
     fig.legend(handles, labels, loc="lower center", ncol=len(names), fontsize=8)
     fig.suptitle("Real footage: markers and time per method (one thread)")
     fig.tight_layout(rect=(0, 0.07, 1, 1))
-    tmp = path.with_suffix(".tmp.png")
-    fig.savefig(tmp, dpi=110)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
     plt.close(fig)
-    tmp.replace(path)
 
 
 def main() -> None:

@@ -370,9 +370,9 @@ def spread_subset(quads: list[np.ndarray], k: int) -> list[int]:
         return list(range(n))
     pair = np.array([[quad_distance_px(a, b) for b in quads] for a in quads])
     chosen = [int(np.argmin(pair.sum(axis=1)))]
-    dist = np.array([quad_distance_px(q, quads[chosen[0]]) for q in quads])
+    dist = pair[chosen[0]].copy()
     for _ in itertools.repeat(None, k - 1):
         nxt = int(np.argmax(dist))
         chosen.append(nxt)
-        dist = np.minimum(dist, [quad_distance_px(q, quads[nxt]) for q in quads])
+        dist = np.minimum(dist, pair[nxt])
     return sorted(chosen)

@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
+from uwdock.calibration.intrinsics import to_grey
 from uwdock.dockcore.bags import Bag, is_bag, nearest_in_time
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.media import (
@@ -32,17 +33,6 @@ __all__ = ["View", "stereo_pairs"]
 
 #: One view as read: a grey image, or None when it cannot be decoded.
 View = np.ndarray | None
-
-
-def _grey(image: np.ndarray | None) -> np.ndarray | None:
-    """8-bit grey of a decoded image (16-bit as imread's GRAYSCALE flag does, BGR -> grey)."""
-    if image is None:
-        return None
-    if image.dtype == np.uint16:
-        image = (image >> 8).astype(np.uint8)
-    if image.ndim == 3:
-        image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
-    return image
 
 
 def _folder_pairs(
@@ -84,7 +74,7 @@ def _folder_pairs(
 
     def pairs() -> Iterator[tuple[str, View, View]]:
         for stem in common:
-            yield stem, _grey(read_image(stems[0][stem])), _grey(read_image(stems[1][stem]))
+            yield stem, to_grey(read_image(stems[0][stem])), to_grey(read_image(stems[1][stem]))
 
     return len(common), pairs()
 
@@ -132,7 +122,7 @@ def _video_pairs(
                         ok, frame = cap.read()
                     frame, position = (frame if ok else None), index + 1
                 failures = failures + 1 if frame is None else 0
-                yield _grey(frame)
+                yield to_grey(frame)
                 index += stride
         finally:
             cap.release()
@@ -194,7 +184,7 @@ def _bag_pairs(
             for side in (0, 1):
                 for k, (_, img) in enumerate(bag.images(topics[side])):
                     if k in wanted[side]:
-                        images[side][k] = _grey(img)
+                        images[side][k] = to_grey(img)
         for i, r in chosen:
             yield f"msg_{i:06d}", images[0].pop(i, None), images[1].pop(r, None)
 

@@ -34,7 +34,7 @@ from uwdock.calibration.camera import CameraModel
 from uwdock.calibration.frames import make_T
 from uwdock.dockcore.domains import Interval, Seed
 from uwdock.dockcore.io import atomic_path
-from uwdock.perception.detector import Detector, DetectorConfig
+from uwdock.perception.detector import Detector, rendered_3dbm_config
 from uwdock.sim.camera import SimCamera
 from uwdock.sim.docking_station import DockingStationConfig
 from uwdock.sim.render import make_render_scene
@@ -113,8 +113,7 @@ def detection_ranges(
     rs = make_render_scene(
         DockingStationConfig(tank_depth_m=tank_depth_m), marker_set, camera_model=camera
     )
-    # rendered 3DBMs: OpenCV's default-parameter pass decodes no negative (same detections)
-    detector = Detector(DetectorConfig(ids=rs.ds.marker_set.ids, opencv_pass=False))
+    detector = Detector(rendered_3dbm_config(rs.ds.marker_set.ids))
     sim_camera = SimCamera(rs.rig)  # the water through the camera's one path
     rendered: dict[Hashable, WaterConfig] = dict(waters)
     for name, (high, low) in bounds.items():

@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from uwdock.calibration.camera import CameraModel
-from uwdock.perception.detector import Detection, DetectorConfig
+from uwdock.perception.detector import Detection, rendered_3dbm_config
 from uwdock.perception.ds_pose import DSPoseEstimate, DSPoseEstimator
 from uwdock.rl.obs_sources import Measurement, SourceNeeds, StepContext
 from uwdock.sim.camera import Frame
@@ -41,10 +41,8 @@ class CameraSource:
         if world.camera is None:
             raise ValueError("the camera source needs a world built with a camera")
         self.world = world
-        # The simulator renders 3DBMs only (negatives), which OpenCV's default-parameter pass
-        # never decodes: skipping it gives the same detections in about half the time.
         self.estimator = DSPoseEstimator.from_marker_set(
-            world.ds.marker_set, DetectorConfig(opencv_pass=False)
+            world.ds.marker_set, rendered_3dbm_config()
         )
         self.camera: CameraModel = world.camera.model
         self.T_body_cam = world.camera.T_body_cam

@@ -60,7 +60,7 @@ from uwdock.dockcore.io import atomic_write_json
 from uwdock.dockcore.provenance import provenance
 from uwdock.markers.markerset import load_marker_set
 from uwdock.markers.view import markers_in_view
-from uwdock.perception.detector import DetectorConfig
+from uwdock.perception.detector import rendered_3dbm_config
 from uwdock.perception.ds_pose import DSPoseEstimator
 from uwdock.perception.groundtruth import load_dataset
 from uwdock.rl.obs_sources import Measurement, SourceNeeds, StepContext
@@ -178,8 +178,7 @@ def fit_error_model(
         raise DockError(f"{ds.root}: a dataset with sequences must number its frames 0..N-1")
     camera, T_bc = resolve_camera(ds.camera_path)
     ms = load_marker_set(ds.marker_set_path)
-    # rendered 3DBMs, as the camera source sees them (rl.camera_source: no OpenCV pass)
-    estimator = DSPoseEstimator.from_marker_set(ms, DetectorConfig(opencv_pass=False))
+    estimator = DSPoseEstimator.from_marker_set(ms, rendered_3dbm_config())  # as the camera
     board = ms.corners_ds()
     corners = np.stack([board[i] for i in sorted(board)])
     n_bins = math.ceil(cfg.range_max_m / cfg.range_bin_m)
