@@ -152,7 +152,7 @@ def bench_render(n_poses: int, repeats: int, seed: int) -> list[dict]:
         water_rng = np.random.default_rng(seed)
         t_water = time_call(
             lambda results=results, rng=water_rng: [
-                apply_water(r.rgb, r.range_m, PRESETS["coastal"], rng) for r in results
+                apply_water(r.radiance, r.range_m, PRESETS["coastal"], rng) for r in results
             ],
             repeats,
         )

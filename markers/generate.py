@@ -25,7 +25,7 @@ from uwdock.markers.geometry import (
     build_solids,
     print_estimate,
     rasterise_top_view,
-    render_scene,
+    render_mesh_glb,
 )
 from uwdock.markers.markerset import marker_set_from_config, save_marker_set
 from uwdock.markers.meshcheck import CHECK_EXTRA_HINT, check_printable, open3d_available
@@ -205,9 +205,7 @@ def generate(
             for part in ("insert", "enclosure"):
                 name = f"{stem}_{part}.stl"
                 written.append(atomic_write_bytes(out / name, stl[name]))
-            written.append(
-                atomic_write_bytes(out / mesh_names[i], render_scene(s).export(file_type="glb"))
-            )
+            written.append(atomic_write_bytes(out / mesh_names[i], render_mesh_glb(s)))
             written.append(write_preview(out / f"{stem}_preview.png", s, cfg))
             est = print_estimate(s)
             say(

@@ -49,6 +49,10 @@ if TYPE_CHECKING:
 INSERT_RGBA = (235, 235, 230, 255)
 ENCLOSURE_RGBA = (20, 20, 22, 255)
 
+#: Version of the render meshes' construction (part of the simulator's marker cache key):
+#: 2 = every triangle its own corners, so the exported vertex normals are the face normals.
+RENDER_MESH_VERSION = 2
+
 
 @dataclass(frozen=True)
 class MarkerSolids:
@@ -197,7 +201,12 @@ def print_estimate(solids: MarkerSolids) -> dict[str, float]:
 
 
 def render_scene(solids: MarkerSolids) -> trimesh.Scene:
-    """Both parts with PBR materials (white insert, black enclosure), in **metres**, for SAPIEN."""
+    """Both parts with PBR materials (white insert, black enclosure), in **metres**, for SAPIEN.
+
+    The parts are made of flat faces meeting at sharp edges, so they are exported flat shaded:
+    each triangle keeps its own corners and its vertex normals are its face normal. Shared
+    corners would average the normals of the top and the side faces, and on a 1 mm plate that
+    shades the whole top dark toward its edges."""
     import trimesh
 
     scene = trimesh.Scene()
@@ -207,6 +216,7 @@ def render_scene(solids: MarkerSolids) -> trimesh.Scene:
     ):
         m = mesh.copy()
         m.apply_scale(1e-3)
+        m.unmerge_vertices()  # flat shading (see above)
         m.visual = trimesh.visual.TextureVisuals(
             material=trimesh.visual.material.PBRMaterial(
                 name=f"3dbm_{name}", baseColorFactor=rgba, metallicFactor=0.0, roughnessFactor=0.9
@@ -214,6 +224,12 @@ def render_scene(solids: MarkerSolids) -> trimesh.Scene:
         )
         scene.add_geometry(m, node_name=name, geom_name=name)
     return scene
+
+
+def render_mesh_glb(solids: MarkerSolids) -> bytes:
+    """The render mesh file (GLB, metres) of :func:`render_scene`, with its flat vertex normals
+    written out (a GLB without normals gets smooth ones from the loader)."""
+    return bytes(render_scene(solids).export(file_type="glb", include_normals=True))
 
 
 def rasterise_top_view(

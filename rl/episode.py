@@ -232,7 +232,10 @@ class _Views:
         self.sun.color = [self.cfg.outside_sun_intensity] * 3
         out = self.outside.render(T_worldned_camcv=self._outside_pose())
         self.sun.color = [0.0, 0.0, 0.0]
-        outside_rgb = out.rgb if self.haze is None else apply_water(out.rgb, out.range_m, self.haze)
+        if self.haze is None:
+            outside_rgb = out.rgb
+        else:
+            outside_rgb = apply_water(out.radiance, out.range_m, self.haze)
         down_bgr = down.img_bgr()
         out_bgr = cv2.cvtColor(outside_rgb, cv2.COLOR_RGB2BGR)
         if self.cfg.overlay:

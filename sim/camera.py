@@ -140,7 +140,7 @@ class SimCamera:
         if w is None:
             img = res.rgb
         elif self.water_device is None:
-            img = apply_water(res.rgb, res.range_m, w, rng)
+            img = apply_water(res.radiance, res.range_m, w, rng)
         else:
-            img = apply_water_torch(res.rgb, res.range_m, w, rng, device=self.water_device)
+            img = apply_water_torch(res.radiance, res.range_m, w, rng, device=self.water_device)
         return Frame(img, res.range_m, res.T_worldned_camcv, res.camera)

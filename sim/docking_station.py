@@ -30,7 +30,6 @@ import hashlib
 import json
 import math
 import os
-import shutil
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -44,10 +43,11 @@ from uwdock.calibration.frames import T_WORLDZUP_WORLDNED, check_T, make_T, pos_
 from uwdock.dockcore.config import to_dict, validated
 from uwdock.dockcore.domains import Interval
 from uwdock.dockcore.errors import DockError
-from uwdock.dockcore.io import clean_stale_temps, temp_sibling
 from uwdock.markers.config import MarkerConfig
 from uwdock.markers.generate import MARKER_SET_NAME, generate
+from uwdock.markers.geometry import RENDER_MESH_VERSION
 from uwdock.markers.markerset import MarkerSet, load_marker_set
+from uwdock.sim.cache import build_once, cache_root
 from uwdock.sim.domains import RGB, TANK_SIZE_M, Friction, TankSide_m
 
 __all__ = [
@@ -246,14 +246,6 @@ def default_T_worldned_ds(cfg: DockingStationConfig | None = None) -> np.ndarray
 # ----------------------------------------------------------------------------- marker set
 
 
-def _cache_root() -> Path:
-    env = os.environ.get("UWDOCK_CACHE_DIR")
-    if env:
-        return Path(env)
-    xdg = os.environ.get("XDG_CACHE_HOME")
-    return (Path(xdg) if xdg else Path.home() / ".cache") / "uwdock"
-
-
 def default_marker_set(cache_dir: str | os.PathLike[str] | None = None) -> MarkerSet:
     """The reference marker set (``MarkerConfig()`` defaults) with its render meshes.
 
@@ -264,21 +256,10 @@ def default_marker_set(cache_dir: str | os.PathLike[str] | None = None) -> Marke
     ``~/.cache/uwdock``.
     """
     cfg = MarkerConfig()
-    digest = hashlib.sha1(json.dumps(to_dict(cfg), sort_keys=True).encode()).hexdigest()[:12]
-    root = Path(cache_dir) if cache_dir is not None else _cache_root()
-    final = root / f"markers-{digest}"
-    if not (final / MARKER_SET_NAME).is_file():
-        clean_stale_temps(root, recursive=False)  # folders of generations that were killed
-        tmp = temp_sibling(final, folder=True)  # creates root
-        try:
-            generate(cfg, tmp)
-            try:
-                os.replace(tmp, final)
-            except OSError:  # another process won the race: keep its folder
-                if not (final / MARKER_SET_NAME).is_file():
-                    raise
-        finally:
-            shutil.rmtree(tmp, ignore_errors=True)
+    key = {"config": to_dict(cfg), "render_mesh": RENDER_MESH_VERSION}
+    digest = hashlib.sha1(json.dumps(key, sort_keys=True).encode()).hexdigest()[:12]
+    root = Path(cache_dir) if cache_dir is not None else cache_root()
+    final = build_once(root / f"markers-{digest}", MARKER_SET_NAME, lambda tmp: generate(cfg, tmp))
     return load_marker_set(final / MARKER_SET_NAME)
 
 

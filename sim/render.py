@@ -16,7 +16,7 @@ only sets one entity pose, renders and reads two pictures back.
 Example:
     >>> rs = make_render_scene()
     >>> res = rs.render(T_worldned_bodyfrd)
-    >>> img = apply_water(res.rgb, res.range_m, PRESETS["coastal"], rng)
+    >>> img = apply_water(res.radiance, res.range_m, PRESETS["coastal"], rng)
 """
 
 from __future__ import annotations
@@ -54,6 +54,7 @@ from uwdock.sim.docking_station import (
     sapien_pose,
 )
 from uwdock.sim.domains import RGB, BodyCoord_m
+from uwdock.sim.shaders import hdr_shader_dir
 
 __all__ = [
     "CameraRig",
@@ -62,6 +63,7 @@ __all__ = [
     "RenderResult",
     "RenderScene",
     "board_views",
+    "display_rgb",
     "make_render_scene",
     "project_markers",
 ]
@@ -70,19 +72,15 @@ __all__ = [
 #: Ambient light (SAPIEN radiance units: 1 lights a white surface fully).
 _Ambient = Annotated[float, Interval(ge=0, le=10)]
 
-#: SAPIEN's own shaders this module reads pictures from (``Color`` and a position buffer).
+#: SAPIEN's own shaders, rendered through their linear variants (:mod:`sim.shaders`).
 SHADERS: tuple[str, ...] = ("minimal", "default")
 
 
-def shader_dir(shader: str) -> str:
-    """The folder of a rasterisation shader: one of :data:`SHADERS` (shipped with SAPIEN) or
-    the path of a shader folder (holding ``gbuffer.vert``).
-
-    Raises:
-        ValueError: one line ``shader: ...`` naming the choices.
-    """
+def check_shader(shader: str) -> None:
+    """Raise ValueError (one line ``shader: ...`` naming the choices) unless ``shader`` is one
+    of :data:`SHADERS` or the path of a shader folder (holding ``gbuffer.vert``)."""
     if shader in SHADERS:
-        return str(Path(sapien.__file__).parent / "vulkan_shader" / shader)
+        return
     try:
         found = bool(shader) and (Path(shader) / "gbuffer.vert").is_file()
     except (OSError, ValueError):  # a name too long for the file system, a NUL byte
@@ -92,7 +90,19 @@ def shader_dir(shader: str) -> str:
             f"shader: must be {' or '.join(SHADERS)} or a shader folder holding gbuffer.vert, "
             f"got {shader[:200]!r}"
         )
-    return shader
+
+
+def shader_dir(shader: str) -> str:
+    """The folder a camera loads: the linear variant of one of :data:`SHADERS`
+    (:func:`sim.shaders.hdr_shader_dir`) or the shader folder given (its ``Color`` picture is
+    read as linear radiance).
+
+    Raises:
+        ValueError: as :func:`check_shader`.
+        DockError: the linear variant cannot be derived.
+    """
+    check_shader(shader)
+    return hdr_shader_dir(shader) if shader in SHADERS else shader
 
 
 @dataclass(frozen=True)
@@ -101,9 +111,10 @@ class RenderConfig:
 
     Attributes:
         shader: SAPIEN camera shader: ``minimal`` (fast forward shading, ~2.5x faster on the CPU,
-            range quantised to 1 mm), ``default`` (SAPIEN's deferred PBR) or the path of a
-            shader folder (with ``gbuffer.vert``; one SAPIEN cannot use is an error when the
-            camera is built).
+            range quantised to 1 mm), ``default`` (SAPIEN's deferred PBR), both rendered
+            through their linear variants (:mod:`sim.shaders`), or the path of a shader folder
+            (with ``gbuffer.vert``, its ``Color`` read as linear radiance; one SAPIEN cannot use
+            is an error when the camera is built).
         near_m: near clipping distance (m).
         far_m: far clipping distance (m); farther surfaces count as "no hit".
         ambient_rgb: ambient light (SAPIEN units: adds ``ambient * albedo`` to the radiance).
@@ -130,7 +141,7 @@ class RenderConfig:
         """Raise ValueError naming the first invalid field: one outside its declared domain
         (NaN included), an unusable shader, or ``near_m >= far_m``."""
         check_fields(self)
-        shader_dir(self.shader)
+        check_shader(self.shader)
         if not self.near_m < self.far_m:
             raise ValueError(f"near_m, far_m: need near < far, got {self.near_m}, {self.far_m}")
 
@@ -140,8 +151,10 @@ class RenderResult:
     """One rendered frame.
 
     Attributes:
-        rgb: (H, W, 3) uint8 RGB, SAPIEN's display encoding (linear ** (1 / 2.2)), in air
-            (feed it to :func:`sim.water.apply_water` with ``gamma = 2.2``).
+        radiance: (H, W, 3) float32 linear RGB radiance in air, unclipped (SAPIEN units: a white
+            diffuse surface lit by the ambient light alone is ``ambient``; near the lamp values
+            well above 1 occur). Feed it to :func:`sim.water.apply_water`, which applies the
+            water, the exposure and the sensor (the only place light is clipped).
         range_m: (H, W) float32 distance from the camera centre to the surface seen (m);
             ``inf`` where nothing was hit.
         depth_m: (H, W) float32 z of that point in ``cam_cv`` (m); ``inf`` where nothing was hit.
@@ -149,11 +162,24 @@ class RenderResult:
         camera: the camera model the images follow.
     """
 
-    rgb: np.ndarray
+    radiance: np.ndarray
     range_m: np.ndarray
     depth_m: np.ndarray
     T_worldned_camcv: np.ndarray
     camera: CameraModel
+
+    @property
+    def rgb(self) -> np.ndarray:
+        """(H, W, 3) uint8 RGB: the radiance as a display image in air (clipped at 1, encoded
+        ``linear ** (1 / 2.2)``), for views without water or sensor."""
+        return display_rgb(self.radiance)
+
+
+def display_rgb(radiance: np.ndarray, gamma: float = 2.2) -> np.ndarray:
+    """(H, W, 3) uint8: linear radiance clipped at 1 and encoded ``v ** (1 / gamma)``."""
+    v = np.clip(radiance, 0.0, 1.0, dtype=np.float32)
+    cv2.pow(v, 1.0 / gamma, dst=v)
+    return cv2.convertScaleAbs(v, alpha=255.0)
 
 
 class CameraRig:
@@ -269,8 +295,8 @@ class CameraRig:
         T = self.set_pose(T_worldned_bodyfrd, T_worldned_camcv=T_worldned_camcv)
         self.entity.scene.update_render()  # the entity's scene: a world may move it to a new one
         self._component.take_picture()
-        rgba = self._component.get_picture("Color")  # float32 (H, W, 4) in [0, 1]
-        rgb = cv2.cvtColor(cv2.convertScaleAbs(rgba, alpha=255.0), cv2.COLOR_RGBA2RGB)
+        rgba = self._component.get_picture("Color")  # float32 (H, W, 4), linear, unclipped
+        rgb = cv2.cvtColor(rgba, cv2.COLOR_RGBA2RGB)
         depth_m, hit = self._depth()
         depth_m[~hit] = np.inf
         range_m = depth_m * self._ray_norm  # pinhole: range = depth * |K^-1 (u, v, 1)|
@@ -495,8 +521,8 @@ def board_views(
     image as far as it still fits in view.
 
     The board (:func:`sim.docking_station.build_chessboard`) follows OpenCV's chessboard
-    object frame; ``white_rgb`` and the lamp should keep the near views below white in air (the
-    renderer clips before the water is applied, where no camera would notice)."""
+    object frame. The renders are linear and unclipped (:class:`RenderResult`): the sensor
+    model clips, after the water and the exposure."""
     from scipy.spatial.transform import Rotation  # half a second to import, only needed here
 
     alts = np.asarray(altitudes_m, dtype=float).ravel()

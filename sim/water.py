@@ -18,12 +18,16 @@ range ``r`` along the viewing ray, in linear RGB)::
   (SAPIEN point light), hence ``p = 0`` by default.
 * ``V``: lens vignetting ``1 - s * rho**2`` (``rho`` = distance from the image centre, 1 at the
   corners).
+* the camera's exposure ``e`` scales what reaches the sensor: fixed, or set per frame by a
+  highlight-protecting auto exposure (the 99.5th percentile of the frame's brightest channel
+  lands at 85 % of full scale, ``e`` never above its maximum; :func:`exposure_for`);
 * then Poisson-Gaussian sensor noise (Gaussian approximation with the Poisson variance:
-  ``sigma**2 = I / photons_at_white + read_noise**2``), gamma encoding and optional JPEG.
+  ``sigma**2 = I / photons_at_white + read_noise**2``), the sensor's clipping at full scale,
+  gamma encoding and optional JPEG.
 
-Input and output images are display-encoded with ``gamma`` (SAPIEN's colour output is
-``linear ** (1 / 2.2)``); the model runs on the linearised values. ``gamma = 1`` treats the image
-as linear.
+The input is the render's linear radiance, float and unclipped (``sim.render`` keeps the light
+linear: the sensor is the only place it clips), or a uint8 image display-encoded with ``gamma``
+(decoded first). The output is uint8, display-encoded with ``gamma``.
 
 Presets (beta values from the Jerlov tables in docs/anchors.md; beta_D = diffuse attenuation
 K_d of the type, beta_B = beam attenuation c of the type, an upper bound suited to backscatter):
@@ -39,7 +43,7 @@ very_turbid    9C (most turbid coastal)            (0.05, 0.36, 0.26)
 
 Example:
     >>> rng = np.random.default_rng(0)
-    >>> out = apply_water(result.rgb, result.range_m, PRESETS["coastal"], rng)
+    >>> out = apply_water(result.radiance, result.range_m, PRESETS["coastal"], rng)
 """
 
 from __future__ import annotations
@@ -72,9 +76,13 @@ __all__ = [
     "apply_water",
     "blur_level",
     "decode_lut",
+    "exposure_for",
     "is_water_file",
     "jpeg_roundtrip",
     "load_water_file",
+    "meter_level",
+    "meter_rank",
+    "meter_step",
     "noise_bank",
     "noise_draw",
     "preset",
@@ -154,11 +162,22 @@ class WaterConfig:
         light_ref_range_m: r_ref (m) at which the extra falloff is 1.
         vignetting: vignetting strength s in [0, 1): brightness ``1 - s * rho**2`` with rho the
             normalised distance from the image centre (1 at the corners).
+        exposure: the camera's exposure: the factor from the light reaching the sensor (linear
+            radiance) to the sensor's full scale, in (0, 1e4]; 1 fills the sensor at radiance 1.
+            With ``auto_exposure`` it is the longest exposure the camera may use.
+        auto_exposure: the camera sets its exposure per frame, as a highlight-protecting auto
+            exposure does: the ``exposure_percentile`` of the frame's brightest channel (before
+            noise) lands at ``exposure_target`` of full scale, never above ``exposure``. Off:
+            the exposure is ``exposure`` on every frame (what a water fit needs).
+        exposure_target: full-scale fraction the metered level is exposed to, in (0, 1].
+        exposure_percentile: percentile of the pixels metered (per pixel its brightest channel),
+            in [50, 100].
         photons_at_white: photo-electrons collected at linear value 1.0 (sets the Poisson shot
             noise, variance I / photons_at_white), in [1, 1e9]; None disables all noise.
         read_noise: standard deviation of the Gaussian read noise in linear units (0-1).
-        gamma: display gamma of the input and output images (2.2 for SAPIEN's colour output,
-            1.0 for linear images), in [0.2, 5].
+        gamma: display gamma of the output image and of a uint8 input image (2.2 for the usual
+            display encoding, 1.0 for linear images), in [0.2, 5]; a float input (a render's
+            linear radiance) is not decoded.
         jpeg_quality: JPEG quality 1-100 applied last (encode + decode), or None for no JPEG.
     """
 
@@ -172,6 +191,10 @@ class WaterConfig:
     light_falloff_exponent: Annotated[float, Interval(ge=0, le=10)] = 0.0
     light_ref_range_m: Annotated[float, Interval(gt=0, le=1000)] = 1.0
     vignetting: _Vignetting = 0.2
+    exposure: Annotated[float, Interval(gt=0, le=1e4)] = 1.0
+    auto_exposure: bool = True
+    exposure_target: Annotated[float, Interval(gt=0, le=1)] = 0.85
+    exposure_percentile: Annotated[float, Interval(ge=50, le=100)] = 99.5
     photons_at_white: _Photons | None = 2000.0
     read_noise: _ReadNoise = 0.003
     gamma: Annotated[float, Interval(ge=0.2, le=5)] = 2.2
@@ -539,16 +562,65 @@ def _forward_scatter(J: np.ndarray, r: np.ndarray, cfg: WaterConfig, ws: _Worksp
     return out
 
 
+def meter_level(out: np.ndarray, percentile: float) -> float:
+    """The auto exposure's metered level of a linear (H, W, 3) frame: the ``percentile`` of its
+    pixels' brightest channel, on a regular subsample of about 128 rows (shared with
+    ``sim.water_torch``, which meters the same pixels)."""
+    h, w = out.shape[:2]
+    step = meter_step(h, w)
+    s = out[::step, ::step].max(axis=2).ravel()
+    k = meter_rank(s.size, percentile)
+    return float(np.partition(s, k)[k])
+
+
+def meter_step(height: int, width: int) -> int:
+    """Row and column step of the metered subsample."""
+    return max(1, min(height, width) // 128)
+
+
+def meter_rank(n: int, percentile: float) -> int:
+    """0-based rank of the ``percentile`` among ``n`` metered values."""
+    return min(n - 1, max(0, round(percentile / 100.0 * (n - 1))))
+
+
+def exposure_for(level: float, cfg: WaterConfig) -> float:
+    """The exposure the camera uses for a frame metered at ``level`` (at exposure 1):
+    ``min(exposure, exposure_target / level)`` with ``auto_exposure``, else ``exposure``."""
+    if not cfg.auto_exposure or not level > 0.0:
+        return float(cfg.exposure)
+    return float(min(cfg.exposure, cfg.exposure_target / level))
+
+
+def _linear_input(image: np.ndarray, cfg: WaterConfig, ws: _Workspace) -> np.ndarray:
+    """(H, W, 3) float32 linear radiance from a float image (checked) or a uint8 one (decoded)."""
+    img = np.asarray(image)
+    if img.dtype not in (np.uint8, np.float32, np.float64):
+        raise ValueError(
+            f"image: expected (H, W, 3) uint8 or float radiance, got {img.shape} {img.dtype}"
+        )
+    if img.dtype == np.uint8:
+        return cv2.LUT(np.ascontiguousarray(img), decode_lut(float(cfg.gamma)), dst=ws.J)
+    lo, hi = float(img.min(initial=np.inf)), float(img.max(initial=0.0))
+    if not (lo >= 0.0 and hi < np.inf):  # also catches nan
+        raise ValueError(f"image: radiance must be finite and >= 0, got range [{lo}, {hi}]")
+    if img.dtype == np.float32 and img.flags.c_contiguous:
+        return img  # read only below
+    np.copyto(ws.J, img, casting="same_kind")
+    return ws.J
+
+
 def apply_water(
-    rgb_uint8: np.ndarray,
+    image: np.ndarray,
     range_m: np.ndarray,
     cfg: WaterConfig,
     rng: np.random.Generator | None = None,
 ) -> np.ndarray:
-    """Apply the underwater image formation model to a rendered frame.
+    """Apply the underwater image formation model and the camera to a rendered frame.
 
     Args:
-        rgb_uint8: (H, W, 3) uint8 RGB image, display-encoded with ``cfg.gamma``.
+        image: (H, W, 3) RGB in air: float32/float64 linear radiance (a render's
+            ``RenderResult.radiance``: >= 0, unclipped) or uint8 display-encoded with
+            ``cfg.gamma``. Not modified.
         range_m: (H, W) range along each pixel's ray (m), >= 0; ``inf`` (or any value above
             1e4 m) where nothing was hit: such pixels become pure veiling light.
         cfg: water and sensor parameters (validated here).
@@ -559,13 +631,15 @@ def apply_water(
         (H, W, 3) uint8 RGB image, display-encoded with ``cfg.gamma`` (a new array).
 
     Raises:
-        ValueError: wrong shapes or dtypes, a negative or nan range, an invalid ``cfg``, or noise
-            enabled without ``rng``.
+        ValueError: wrong shapes or dtypes, a negative, infinite or nan radiance, a negative or
+            nan range, an invalid ``cfg``, or noise enabled without ``rng``.
     """
     cfg.validate()
-    img = np.ascontiguousarray(rgb_uint8)
-    if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
-        raise ValueError(f"rgb_uint8: expected (H, W, 3) uint8, got {img.shape} {img.dtype}")
+    img = np.asarray(image)
+    if img.ndim != 3 or img.shape[2] != 3:
+        raise ValueError(
+            f"image: expected (H, W, 3) uint8 or float radiance, got {img.shape} {img.dtype}"
+        )
     r_in = np.asarray(range_m, dtype=np.float32)
     if r_in.shape != img.shape[:2]:
         raise ValueError(f"range_m: expected shape {img.shape[:2]}, got {r_in.shape}")
@@ -577,7 +651,7 @@ def apply_water(
     ws = _workspace(h, w)
     r = np.minimum(r_in, np.float32(FAR_M), out=ws.r)
 
-    J = cv2.LUT(img, decode_lut(float(cfg.gamma)), dst=ws.J)  # linear float32
+    J = _linear_input(img, cfg, ws)
     if cfg.blur_sigma_per_m > 0.0:
         J = _forward_scatter(J, r, cfg, ws)
 
@@ -603,6 +677,10 @@ def apply_water(
     out += back.reshape(h, w, 3)
     if cfg.vignetting > 0.0:
         out *= vignette(h, w, float(cfg.vignetting))
+    level = meter_level(out, cfg.exposure_percentile) if cfg.auto_exposure else 0.0
+    e = exposure_for(level, cfg)
+    if e != 1.0:
+        out *= np.float32(e)
 
     if cfg.noise_enabled:
         assert rng is not None and cfg.photons_at_white is not None

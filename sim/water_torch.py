@@ -6,9 +6,10 @@ the same model (see :mod:`sim.water` for the physics and the parameters)::
     I_c = V * (J_c * blur(r) * exp(-beta_D_c * path * r) * F(r)
                + B_inf_c * (1 - exp(-beta_B_c * r)))
 
-then the Poisson-Gaussian noise, the gamma encoding, the uint8 rounding and the optional JPEG,
-with torch operations, and gives the same image as :func:`~sim.water.apply_water` to within one
-grey level (float32 rounding in a different order can move a value across a rounding boundary).
+then the exposure, the Poisson-Gaussian noise, the gamma encoding, the uint8 rounding and the
+optional JPEG, with torch operations, and gives the same image as :func:`~sim.water.apply_water`
+to within one grey level (float32 rounding in a different order can move a value across a
+rounding boundary).
 How each step is matched:
 
 * the decoding table, the vignetting and the veiling-light coefficients are the numpy values of
@@ -52,7 +53,10 @@ from uwdock.sim.water import (
     RGB,
     WaterConfig,
     decode_lut,
+    exposure_for,
     jpeg_roundtrip,
+    meter_rank,
+    meter_step,
     noise_bank,
     noise_draw,
     vignette,
@@ -62,6 +66,15 @@ if TYPE_CHECKING:  # pragma: no cover
     import torch
 
 __all__ = ["apply_water_torch"]
+
+_DTYPES_NP = (np.dtype(np.uint8), np.dtype(np.float32), np.dtype(np.float64))
+
+
+def _float_dtypes() -> tuple[object, ...]:
+    """The tensor dtypes an image may have (uint8 display-encoded, or float radiance)."""
+    import torch
+
+    return (torch.uint8, torch.float32, torch.float64, torch.float16)
 
 
 def _f32(value: float) -> float:
@@ -278,7 +291,7 @@ def _describe(shape: tuple[int, ...], dtype: object) -> str:
 
 
 def apply_water_torch(
-    rgb_uint8: np.ndarray | torch.Tensor,
+    image: np.ndarray | torch.Tensor,
     range_m: np.ndarray | torch.Tensor,
     cfg: WaterConfig,
     rng: np.random.Generator | None = None,
@@ -287,8 +300,9 @@ def apply_water_torch(
     """Apply the underwater image formation model of :func:`sim.water.apply_water` with torch.
 
     Args:
-        rgb_uint8: (H, W, 3) uint8 RGB image, display-encoded with ``cfg.gamma``: a numpy array
-            or a torch tensor (which is processed on its own device).
+        image: (H, W, 3) RGB in air: float linear radiance (>= 0, unclipped) or uint8
+            display-encoded with ``cfg.gamma``; a numpy array or a torch tensor (which is
+            processed on its own device).
         range_m: (H, W) range along each pixel's ray (m), >= 0; ``inf`` (or any value above
             1e4 m) where nothing was hit. A numpy array or a tensor (moved to the image's
             device).
@@ -303,28 +317,36 @@ def apply_water_torch(
         array for a numpy image, a tensor on the image's device for a tensor.
 
     Raises:
-        ValueError: wrong shapes or dtypes, a negative or nan range, an invalid ``cfg``, or noise
-            enabled without ``rng`` (the messages of ``apply_water``).
+        ValueError: wrong shapes or dtypes, a negative, infinite or nan radiance, a negative or
+            nan range, an invalid ``cfg``, or noise enabled without ``rng`` (the messages of
+            ``apply_water``).
     """
     import torch
 
     cfg.validate()
-    as_tensor = isinstance(rgb_uint8, torch.Tensor)
+    as_tensor = isinstance(image, torch.Tensor)
     if as_tensor:
-        img = rgb_uint8.detach()
+        img = image.detach()
         dev = img.device
-        if img.dtype != torch.uint8 or img.ndim != 3 or img.shape[2] != 3:
+        if img.ndim != 3 or img.shape[2] != 3 or img.dtype not in _float_dtypes():
             raise ValueError(
-                f"rgb_uint8: expected (H, W, 3) uint8, got {_describe(img.shape, img.dtype)}"
+                "image: expected (H, W, 3) uint8 or float radiance, got "
+                f"{_describe(img.shape, img.dtype)}"
             )
     else:
-        img_np = np.ascontiguousarray(rgb_uint8)
-        if img_np.dtype != np.uint8 or img_np.ndim != 3 or img_np.shape[2] != 3:
+        img_np = np.ascontiguousarray(image)
+        if img_np.ndim != 3 or img_np.shape[2] != 3 or img_np.dtype not in _DTYPES_NP:
             raise ValueError(
-                f"rgb_uint8: expected (H, W, 3) uint8, got {img_np.shape} {img_np.dtype}"
+                "image: expected (H, W, 3) uint8 or float radiance, got "
+                f"{img_np.shape} {img_np.dtype}"
             )
         dev = torch.device(device if device is not None else "cpu")
         img = torch.from_numpy(np.require(img_np, requirements=["C", "W"])).to(dev)
+    if img.dtype != torch.uint8:
+        img = img.to(torch.float32)
+        lo, hi = float(img.min()), float(img.max())
+        if not (lo >= 0.0 and hi < math.inf):  # also catches nan
+            raise ValueError(f"image: radiance must be finite and >= 0, got range [{lo}, {hi}]")
     hw = tuple(img.shape[:2])
     if isinstance(range_m, torch.Tensor):
         r_in = range_m.detach().to(device=dev, dtype=torch.float32)
@@ -350,15 +372,18 @@ def apply_water_torch(
 def _model(
     img: torch.Tensor, r_in: torch.Tensor, cfg: WaterConfig, rng: np.random.Generator | None
 ) -> torch.Tensor:
-    """The model on checked inputs: (H, W, 3) uint8 and (H, W) float32 on one device -> (3, H, W)
-    uint8 planes (before JPEG)."""
+    """The model on checked inputs: (H, W, 3) uint8 or float32 radiance and (H, W) float32 on
+    one device -> (3, H, W) uint8 planes (before JPEG)."""
     import torch
 
     dev = img.device
     h, w = r_in.shape
     r = torch.clamp_max(r_in, FAR_M)
-    idx = img.permute(2, 0, 1).reshape(-1).int()
-    J = _lut(float(cfg.gamma), dev).index_select(0, idx).view(3, h, w)  # linear float32
+    if img.dtype == torch.uint8:
+        idx = img.permute(2, 0, 1).reshape(-1).int()
+        J = _lut(float(cfg.gamma), dev).index_select(0, idx).view(3, h, w)  # linear float32
+    else:
+        J = img.permute(2, 0, 1)  # read only below
     if cfg.blur_sigma_per_m > 0.0:
         J = _forward_scatter(J, r, cfg)
 
@@ -375,6 +400,15 @@ def _model(
     out.add_(back.mul_(_coef(cfg.B_inf_rgb, -1.0, dev)).add_(_coef(cfg.B_inf_rgb, 1.0, dev)))
     if cfg.vignetting > 0.0:
         out.mul_(_vignette_t(h, w, float(cfg.vignetting), dev))
+    if cfg.auto_exposure:  # the pixels sim.water.meter_level meters, the same rank
+        step = meter_step(h, w)
+        s = out[:, ::step, ::step].amax(dim=0).reshape(-1)
+        level = float(torch.kthvalue(s, meter_rank(s.numel(), cfg.exposure_percentile) + 1)[0])
+    else:
+        level = 0.0
+    e = exposure_for(level, cfg)
+    if e != 1.0:
+        out.mul_(_f32(e))
 
     if cfg.noise_enabled:
         assert rng is not None and cfg.photons_at_white is not None

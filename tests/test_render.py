@@ -226,7 +226,7 @@ def test_seam_render_detect_pnp_recovers_the_ds_pose(rs, reference_rig, water) -
     rgb = res.rgb
     if water is not None:
         cfg = preset(water, jpeg_quality=90)
-        rgb = apply_water(res.rgb, res.range_m, cfg, np.random.default_rng(0))
+        rgb = apply_water(res.radiance, res.range_m, cfg, np.random.default_rng(0))
     truth = rs.T_camcv_ds(res.T_worldned_camcv)
     visible = {m for m, p in rs.ground_truth(res).items() if p.visible}
     corners, ids = _negative_aruco(rgb)
@@ -243,3 +243,47 @@ def test_seam_render_detect_pnp_recovers_the_ds_pose(rs, reference_rig, water) -
     assert np.linalg.norm(tvec.ravel() - truth[:3, 3]) < 0.02
     assert rotation_angle_deg(R, truth[:3, :3]) < 1.0
     _use(rs, rs.rig)
+
+
+# ----------------------------------------------------------------------------- linear light
+
+
+def test_the_render_is_linear_radiance_and_the_sensor_alone_clips() -> None:
+    """A white diffuse plate 0.5 m in front of the camera under the default lamp: the render
+    holds the radiance albedo * I * cos / (pi d**2) + ambient * albedo (about 14, not clipped at
+    1), and through water with the camera's auto exposure no pixel of the plate saturates."""
+    scene = sapien.Scene()
+    cfg = RenderConfig()
+    scene.ambient_light = list(cfg.ambient_rgb)
+    albedo, dist_m = 0.8, 0.5
+    builder = scene.create_actor_builder()
+    mat = sapien.render.RenderMaterial(
+        base_color=[albedo, albedo, albedo, 1.0], roughness=1.0, metallic=0.0, specular=0.0
+    )
+    builder.add_box_visual(half_size=[1.0, 1.0, 0.01], material=mat)
+    T_cam = make_T(None, [0.0, 0.0, 0.0])  # cam_cv at the world origin, looking along +z (NED down)
+    builder.set_initial_pose(sapien_pose(make_T(None, [0.0, 0.0, dist_m + 0.01])))
+    builder.build_static("plate")
+    cam = reference_camera().scaled(160, 120)
+    rig = CameraRig(scene, cam, cfg=cfg)
+    res = rig.render(T_worldned_camcv=T_cam)
+    u, v = round(cam.cx_px), round(cam.cy_px)
+    lamp = np.asarray(cfg.lamp_offset_camcv_m)
+    to_lamp = lamp - np.array([0.0, 0.0, dist_m])
+    d = np.linalg.norm(to_lamp)
+    cos = np.dot([0.0, 0.0, -1.0], to_lamp) / d  # the plate's normal points at the camera
+    expected = albedo * cfg.lamp_intensity * np.asarray(cfg.lamp_rgb) * cos / (
+        np.pi * d**2
+    ) + albedo * np.asarray(cfg.ambient_rgb)
+    assert res.radiance.dtype == np.float32
+    np.testing.assert_allclose(res.radiance[v, u], expected, rtol=0.02)
+    assert res.radiance.max() > 10.0  # nothing clipped at 1 before the water
+    assert res.rgb[v, u].min() == 255  # the in-air display image does clip
+    for name in ("clear_tank", "coastal"):
+        img = apply_water(res.radiance, res.range_m, preset(name), np.random.default_rng(0))
+        plate = res.range_m < 1.0
+        assert plate.mean() > 0.9 and img[plate].max() < 255, name
+        fixed = preset(name, auto_exposure=False)
+        assert (
+            apply_water(res.radiance, res.range_m, fixed, np.random.default_rng(0)) == 255
+        ).any()

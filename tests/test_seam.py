@@ -112,11 +112,13 @@ def _fake_world(rgb: np.ndarray, camera: CameraModel):
     """A world with a camera whose render is a fixed RGB image (no SAPIEN needed)."""
     from uwdock.sim.camera import SimCamera
     from uwdock.sim.render import RenderResult
+    from uwdock.sim.water import decode_lut
 
     def render(T_world_body):
         T_wc = np.asarray(T_world_body) @ REFERENCE_T_BODYFRD_CAMCV
         rng_m = np.full(rgb.shape[:2], 0.5, np.float32)
-        return RenderResult(rgb.copy(), rng_m, rng_m.copy(), T_wc, camera)
+        radiance = decode_lut(2.2)[rgb]  # linear radiance whose display image is ``rgb``
+        return RenderResult(radiance, rng_m, rng_m.copy(), T_wc, camera)
 
     rig = SimpleNamespace(camera=camera, T_bodyfrd_camcv=np.array(REFERENCE_T_BODYFRD_CAMCV))
     rig.render = render

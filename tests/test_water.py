@@ -15,6 +15,9 @@ from uwdock.sim.water import (
     WaterConfig,
     WaterRandomisation,
     apply_water,
+    decode_lut,
+    exposure_for,
+    meter_level,
     preset,
 )
 
@@ -25,6 +28,7 @@ PLAIN = dict(
     vignetting=0.0,
     photons_at_white=None,
     jpeg_quality=None,
+    auto_exposure=False,
 )
 
 
@@ -71,7 +75,9 @@ def test_zero_range_returns_scene_unchanged() -> None:
     rng = np.random.default_rng(1)
     img = rng.integers(0, 256, (48, 64, 3), dtype=np.uint8)
     for name in PRESET_ORDER:  # forward-scatter blur included: sigma is 0 at r = 0
-        cfg = preset(name, vignetting=0.0, photons_at_white=None, jpeg_quality=None)
+        cfg = preset(
+            name, vignetting=0.0, photons_at_white=None, jpeg_quality=None, auto_exposure=False
+        )
         out = apply_water(img, np.zeros(img.shape[:2]), cfg)
         np.testing.assert_array_equal(out, img)
 
@@ -221,8 +227,12 @@ def test_jpeg_off_and_on() -> None:
 
 def test_invalid_inputs() -> None:
     cfg = preset("coastal", **PLAIN)
-    with pytest.raises(ValueError, match="rgb_uint8"):
-        apply_water(np.zeros((6, 8, 3), np.float32), np.ones((6, 8)), cfg)
+    for bad in (np.int16, np.nan, -0.5, np.inf):
+        img = np.zeros((6, 8, 3), bad) if bad is np.int16 else np.full((6, 8, 3), bad, np.float32)
+        with pytest.raises(ValueError, match="image"):
+            apply_water(img, np.ones((6, 8)), cfg)
+    with pytest.raises(ValueError, match="image"):
+        apply_water(np.zeros((6, 8), np.float32), np.ones((6, 8)), cfg)
     with pytest.raises(ValueError, match="range_m"):
         apply_water(_const(1), np.ones((5, 8)), cfg)
     with pytest.raises(ValueError, match="range_m"):
@@ -231,6 +241,68 @@ def test_invalid_inputs() -> None:
         apply_water(_const(1), np.full((6, 8), np.nan), cfg)
     with pytest.raises(ValueError, match="B_inf_rgb"):
         dataclasses.replace(cfg, B_inf_rgb=(0.0, 1.5, 0.0)).validate()
+
+
+# ----------------------------------------------------------------------------- light and exposure
+
+
+def test_linear_radiance_input_equals_the_decoded_uint8_image() -> None:
+    rng = np.random.default_rng(3)
+    img = rng.integers(0, 256, (24, 32, 3), dtype=np.uint8)
+    r = rng.uniform(0.3, 9.0, img.shape[:2])
+    for name in PRESET_ORDER:
+        cfg = preset(name, jpeg_quality=None)
+        linear = decode_lut(cfg.gamma)[img]
+        a = apply_water(img, r, cfg, np.random.default_rng(5))
+        b = apply_water(linear, r, cfg, np.random.default_rng(5))
+        np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(
+            b, apply_water(linear.astype(np.float64), r, cfg, np.random.default_rng(5))
+        )
+
+
+def test_radiance_above_one_reaches_the_sensor_unclipped() -> None:
+    """Radiance 2 and 4 (a white board near the lamp) attenuated over 2 x 3 m of turbid water:
+    exactly the formula, different grey levels (a renderer that clipped at 1 would make them
+    equal)."""
+    cfg = preset("turbid", **PLAIN, exposure=1.0)
+    cfg = dataclasses.replace(cfg, artificial_light=True)
+    r = 3.0
+    D = np.exp(-2.0 * np.asarray(cfg.beta_D_rgb) * r)
+    B = np.asarray(cfg.B_inf_rgb) * (1.0 - np.exp(-np.asarray(cfg.beta_B_rgb) * r))
+    outs = []
+    for L in (2.0, 4.0):
+        img = np.full((6, 8, 3), L, np.float32)
+        out = apply_water(img, np.full((6, 8), r), cfg)
+        expected = 255.0 * np.clip(L * D + B, 0.0, 1.0) ** (1.0 / cfg.gamma)
+        assert np.abs(out[0, 0] - expected).max() <= 0.51
+        outs.append(out[0, 0].astype(int))
+    assert np.all(outs[1] > outs[0]) and (outs[1] - outs[0]).max() >= 20
+
+
+def test_auto_exposure_keeps_a_lamp_lit_white_board_below_full_scale() -> None:
+    """Radiance 14 (white diffuse, 0.5 m from the default lamp) at 0.5 m of clear water: with a
+    fixed exposure the sensor saturates; the auto exposure puts the metered level at its target
+    (85 % of full scale) and nothing saturates. A dim frame keeps the longest exposure."""
+    cfg = preset("clear_tank", photons_at_white=None, vignetting=0.0, jpeg_quality=None)
+    img = np.full((40, 60, 3), 14.0, np.float32)
+    img[:, :20] = 0.05  # a black border beside the board
+    r = np.full((40, 60), 0.5)
+    fixed = apply_water(img, r, dataclasses.replace(cfg, auto_exposure=False))
+    assert (fixed[:, 30:] == 255).all()
+    auto = apply_water(img, r, cfg)
+    assert auto.max() < 255
+    target = 255.0 * cfg.exposure_target ** (1.0 / cfg.gamma)
+    assert auto[:, 30:].max() == pytest.approx(target, abs=1.0)
+    assert auto[:, :20].max() < 40  # the black border stays black
+    # the exposure follows the metered level exactly
+    level = meter_level(np.full((40, 60, 3), 2.0, np.float32), 99.5)
+    assert level == 2.0 and exposure_for(level, cfg) == pytest.approx(0.85 / 2.0)
+    dim = np.full((40, 60, 3), 0.2, np.float32)
+    np.testing.assert_array_equal(
+        apply_water(dim, r, cfg), apply_water(dim, r, dataclasses.replace(cfg, auto_exposure=False))
+    )
+    assert exposure_for(0.0, cfg) == cfg.exposure  # a black frame: the longest exposure
 
 
 # ----------------------------------------------------------------------------- randomisation

@@ -43,10 +43,16 @@ def _scene(h: int = H, w: int = W) -> tuple[np.ndarray, np.ndarray]:
     return rgb, r.astype(np.float32)
 
 
-def _max_diff(cfg: WaterConfig, h: int = H, w: int = W, frames: int = 1) -> int:
+def _max_diff(
+    cfg: WaterConfig, h: int = H, w: int = W, frames: int = 1, hdr_scale: float | None = None
+) -> int:
     """Largest |apply_water - apply_water_torch| over ``frames`` frames drawn from one generator
-    each (same seed); asserts both generators end in the same state."""
+    each (same seed); asserts both generators end in the same state. ``hdr_scale``: feed the
+    scene as float linear radiance times this factor (values above 1, as a render near the
+    lamp) instead of uint8."""
     rgb, r = _scene(h, w)
+    if hdr_scale is not None:
+        rgb = (rgb.astype(np.float32) / 255.0) ** 2.2 * np.float32(hdr_scale)
     rng_np, rng_t = np.random.default_rng(7), np.random.default_rng(7)
     worst = 0
     for _ in range(frames):
@@ -78,6 +84,19 @@ CONFIGS: dict[str, WaterConfig] = {
 @pytest.mark.parametrize("name", list(CONFIGS))
 def test_same_image_as_apply_water(name: str) -> None:
     assert _max_diff(CONFIGS[name]) <= 1
+
+
+@pytest.mark.parametrize(
+    "cfg",
+    [
+        _COASTAL,
+        PRESETS["clear_tank"],
+        dataclasses.replace(_COASTAL, auto_exposure=False, exposure=0.3),
+    ],
+    ids=["coastal_auto_exposure", "clear_tank_auto_exposure", "coastal_fixed_exposure"],
+)
+def test_same_image_on_linear_radiance_above_one(cfg: WaterConfig) -> None:
+    assert _max_diff(cfg, hdr_scale=6.0, frames=2) <= 1
 
 
 def test_strong_blur_is_visible() -> None:
@@ -149,7 +168,10 @@ def test_inputs_are_not_modified() -> None:
 
 _RGB, _R = _scene(6, 8)
 BAD_INPUTS = {
-    "float_image": (_RGB.astype(np.float32), _R, _COASTAL, 0),
+    "int_image": (_RGB.astype(np.int16), _R, _COASTAL, 0),
+    "nan_radiance": (np.where(_RGB > 200, np.nan, 0.5).astype(np.float32), _R, _COASTAL, 0),
+    "negative_radiance": (np.where(_RGB > 200, -1.0, 0.5).astype(np.float32), _R, _COASTAL, 0),
+    "inf_radiance": (np.where(_RGB > 200, np.inf, 0.5).astype(np.float32), _R, _COASTAL, 0),
     "grey_image": (_RGB[:, :, 0], _R, _COASTAL, 0),
     "rgba_image": (np.concatenate([_RGB, _RGB[:, :, :1]], axis=2), _R, _COASTAL, 0),
     "range_shape": (_RGB, _R[:, :-1], _COASTAL, 0),

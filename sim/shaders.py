@@ -1,0 +1,130 @@
+"""Linear (HDR) variants of SAPIEN's rasterisation shaders, derived at run time.
+
+SAPIEN's ``minimal`` and ``default`` shaders end by display-encoding the colour and clipping it:
+``clamp(pow(color, 1/2.2), 0, 1)``. A white surface near the vehicle's lamp (radiance 14 at
+0.5 m under the default lamp) then comes out as 1.0 before the water and the sensor are applied,
+where no camera would clip: a real camera sees the attenuated light through the water and
+clips at its sensor, after its exposure. So the renderer uses variants of those shaders whose
+``Color`` picture is the linear radiance, unclipped (``sim.water`` applies the water, the
+exposure and the sensor's clipping).
+
+The variants are not shipped: they are derived from the installed SAPIEN's own shader files
+(a few lines of each replaced, :data:`EDITS`) into the toolkit's cache
+(``<cache>/shaders-<sapien version>-<hash>/``) the first time a camera needs them. An edit whose
+line is missing (a SAPIEN whose shaders changed) stops with one line naming the file.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import shutil
+from pathlib import Path
+
+import sapien
+
+from uwdock.dockcore.errors import DockError
+from uwdock.sim.cache import build_once, cache_root
+
+__all__ = ["EDITS", "hdr_shader_dir", "sapien_shader_root"]
+
+#: (shader folder, file) -> (SAPIEN's line, its linear replacement). The background (the
+#: environment map) is linearised too, so a picture is linear everywhere.
+EDITS: dict[tuple[str, str], tuple[tuple[str, str], ...]] = {
+    ("minimal", "gbuffer.frag"): (
+        (
+            "outColorRaw = vec4(clamp(pow(color, vec3(1/2.2)), vec3(0), vec3(1)), albedo.a);",
+            "outColorRaw = vec4(max(color, vec3(0)), albedo.a);",
+        ),
+    ),
+    ("minimal", "composite0.frag"): (
+        (
+            "vec3 bg = pow(getBackgroundColor((cameraBuffer.viewMatrixInverse * csPosition).xyz),"
+            " vec3(1/2.2));",
+            "vec3 bg = getBackgroundColor((cameraBuffer.viewMatrixInverse * csPosition).xyz);",
+        ),
+    ),
+    ("default", "composite0.frag"): (
+        (
+            "outColor.rgb = pow(outColor.rgb * exposure, vec3(1/2.2));",
+            "outColor.rgb = outColor.rgb * exposure;",
+        ),
+        (
+            "outColor = clamp(outColor, vec4(0), vec4(1));",
+            "outColor = max(outColor, vec4(0));",
+        ),
+    ),
+}
+
+#: Folders beside the shader folders that their ``#include "../common/..."`` lines read.
+_SHARED = ("common",)
+_DONE = "DERIVED"
+
+
+def sapien_shader_root() -> Path:
+    """The installed SAPIEN's shader folder (``.../sapien/vulkan_shader``)."""
+    return Path(sapien.__file__).parent / "vulkan_shader"
+
+
+def _patched(root: Path, shader: str) -> dict[str, str]:
+    """File name -> text of the linear variant of SAPIEN's ``shader`` folder."""
+    out = {}
+    for path in sorted((root / shader).iterdir()):
+        if not path.is_file():
+            continue
+        text = path.read_text(encoding="utf-8")
+        for old, new in EDITS.get((shader, path.name), ()):
+            if text.count(old) != 1:
+                raise DockError(
+                    f"cannot derive the linear {shader!r} shader: {path} does not hold the line "
+                    f"{old!r} once (SAPIEN {sapien.__version__}'s shaders differ from what "
+                    "uwdock.sim.shaders expects)"
+                )
+            text = text.replace(old, new)
+        out[path.name] = text
+    missing = {name for (sh, name) in EDITS if sh == shader} - set(out)
+    if missing:
+        raise DockError(
+            f"cannot derive the linear {shader!r} shader: {root / shader} lacks {missing}"
+        )
+    return out
+
+
+@functools.lru_cache(maxsize=4)
+def hdr_shader_dir(shader: str) -> str:
+    """The folder of the linear (HDR) variant of SAPIEN's ``minimal`` or ``default`` shader,
+    derived into the cache on first use (see the module docstring).
+
+    Raises:
+        ValueError: a shader without a linear variant.
+        DockError: SAPIEN's shader files are not what :data:`EDITS` expects, or the cache cannot
+            be written.
+    """
+    if shader not in {sh for sh, _ in EDITS}:
+        raise ValueError(f"shader: no linear variant of {shader!r}; known: minimal, default")
+    root = sapien_shader_root()
+    files = _patched(root, shader)
+    h = hashlib.sha1()
+    for name in sorted(files):
+        h.update(name.encode() + b"\0" + files[name].encode() + b"\0")
+    for folder in _SHARED:
+        for path in sorted((root / folder).rglob("*")):
+            if path.is_file():
+                h.update(str(path.relative_to(root)).encode() + b"\0" + path.read_bytes())
+    final = cache_root() / f"shaders-{sapien.__version__}-{shader}-{h.hexdigest()[:12]}"
+
+    def make(tmp: Path) -> None:
+        for folder in _SHARED:
+            shutil.copytree(root / folder, tmp / folder)
+        (tmp / shader).mkdir()
+        for name, text in files.items():
+            (tmp / shader / name).write_text(text, encoding="utf-8")
+        (tmp / _DONE).write_text(f"derived from {root} (SAPIEN {sapien.__version__})\n")
+
+    try:
+        build_once(final, _DONE, make)
+    except OSError as exc:
+        raise DockError(
+            f"cannot write the linear shaders into the cache {final.parent}: {exc}"
+        ) from None
+    return str(final / shader)
