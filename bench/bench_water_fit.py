@@ -58,6 +58,9 @@ AMBIENT_RENDER = RenderConfig(lamp=False, ambient_rgb=(0.6, 0.6, 0.6))
 
 
 def _frames(renders, water, seed: int):
+    """The renders filmed through ``water`` with the exposure locked (a fit needs one exposure
+    for all frames, as a diver sets the camera's before filming)."""
+    water = dataclasses.replace(water, auto_exposure=False)
     for i, r in enumerate(renders):
         img = apply_water(r.radiance, r.range_m, water, np.random.default_rng(1000 * seed + i))
         yield i, f"f{i:03d}", cv2.cvtColor(img, cv2.COLOR_RGB2BGR)

@@ -79,6 +79,8 @@ def weak_lamp_renders():
 
 
 def _frames(renders, water: WaterConfig):
+    """The renders filmed through ``water`` with the exposure locked, as a water fit needs."""
+    water = dataclasses.replace(water, auto_exposure=False)
     for i, r in enumerate(renders):
         img = apply_water(r.radiance, r.range_m, water, np.random.default_rng(i))
         yield i, f"f{i:03d}", cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
@@ -301,7 +303,8 @@ def test_marker_board_target_runs_and_reports_its_residual(tmp_path):
     frames = []
     for i, alt in enumerate(np.arange(1.0, 4.01, 0.5)):
         res = rs.render(T_worldned_camcv=rs.ds.T_worldned_ds @ make_T(R, [0.1, 0.1, -alt]))
-        img = apply_water(res.radiance, res.range_m, PRESETS["coastal"], np.random.default_rng(i))
+        locked = dataclasses.replace(PRESETS["coastal"], auto_exposure=False)
+        img = apply_water(res.radiance, res.range_m, locked, np.random.default_rng(i))
         frames.append((i, str(i), cv2.cvtColor(img, cv2.COLOR_RGB2BGR)))
     cfg = dataclasses.replace(FIT, target="markers")
     samples = sample_frames(frames, res.camera, cfg, rs.ds.marker_set)
