@@ -3,6 +3,7 @@
 Usage::
 
     python bench/bench_sim.py [--quick] [--seed 0] [--out-dir DIR --name sim_gpu]
+    python bench/bench_sim.py --baseline 248412c [--quick] [--baseline-repeats 3]
 
 (a) Physics without camera, one process: control steps per second of ``rl.env.DockingEnv``
     (proxy observation source, 300 Hz physics, 5 Hz control, uniform random actions, resets
@@ -27,6 +28,17 @@ Usage::
     floor markers.)
 
 Writes ``bench/results/sim.json`` (rows + machine, commit, packages).
+
+``--baseline COMMIT`` runs only section (c) (with the physics step of (a) it adds), for the
+working tree and for COMMIT side by side in one run: COMMIT is extracted with ``git archive``
+into a temporary folder (the repository and its git state are only read), given the
+``uwdock/<pkg>`` links an installed checkout has, and each side runs in its own subprocess of
+this Python, importing only its own tree (checked: a module loaded from elsewhere stops the
+run), with its own ``bench_loop``/``bench_physics`` (so a side is timed by the bench of its
+day: before ``perception.ds_pose`` existed, "estimate" is detect + board PnP and "capture" is
+render + water + RGB->BGR). The sides alternate (old, new, new, old, ...) over
+``--baseline-repeats`` rounds; the table gives per width the medians over rounds and the ratio
+new/old of control steps/s, capture ms and estimate ms. Writes ``sim_baseline.json``.
 """
 
 from __future__ import annotations
@@ -259,6 +271,162 @@ def render_device() -> str:
     return lines[0].removeprefix("GPU:").strip() if lines else "unknown"
 
 
+#: The subprocess of one side of ``--baseline``: argv = tree, config JSON. Imports nothing of
+#: uwdock before the tree is first on sys.path; prints one JSON line last.
+_SIDE = r"""
+import importlib.util, json, os, sys
+tree, cfg = os.path.realpath(sys.argv[1]), json.loads(sys.argv[2])
+sys.path.insert(0, tree)
+import cv2
+cv2.setNumThreads(1)
+path = os.path.join(tree, "bench", "bench_sim.py")
+spec = importlib.util.spec_from_file_location("bench_side", path)
+mod = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(mod)
+mod.LOOP_WIDTHS = tuple(cfg["widths"])
+phys = mod.bench_physics(cfg["physics_steps"], cfg["physics_runs"], cfg["seed"])
+physics_ms = phys[0]["ms_per_step"]
+loop = mod.bench_loop(cfg["loop_poses"], cfg["loop_repeats"], cfg["seed"], physics_ms)
+pkgs = ("uwdock", "calibration", "dockcore", "markers", "perception", "sim", "datasets", "rl")
+foreign = sorted(
+    name for name, m in list(sys.modules.items())
+    if name.split(".")[0] in pkgs and getattr(m, "__file__", None)
+    and not os.path.realpath(m.__file__).startswith(tree + os.sep)
+)
+print(json.dumps({"physics_ms": physics_ms, "loop": loop, "foreign_modules": foreign}))
+"""
+
+#: The uwdock subpackages an installed checkout links into ``uwdock/`` (the editable install's
+#: finder would otherwise load them from the working tree).
+_PKGS = ("calibration", "dockcore", "markers", "perception", "sim", "datasets", "rl")
+
+
+def _extract(commit: str, root: Path, dest: Path) -> str:
+    """``git archive`` COMMIT into ``dest`` (read-only on the repository); its full hash."""
+    import subprocess
+    import tarfile
+
+    full = subprocess.run(
+        ["git", "-C", str(root), "rev-parse", "--verify", f"{commit}^{{commit}}"],
+        capture_output=True, text=True, check=False,
+    )  # fmt: skip
+    if full.returncode != 0:
+        raise SystemExit(f"error: --baseline {commit}: not a commit of {root}")
+    sha = full.stdout.strip()
+    tar = dest.with_suffix(".tar")
+    with tar.open("wb") as fh:
+        subprocess.run(["git", "-C", str(root), "archive", sha], stdout=fh, check=True)
+    with tarfile.open(tar) as tf:
+        tf.extractall(dest, filter="data")
+    tar.unlink()
+    if (dest / "uwdock").is_dir():  # the namespace package: its subpackages as links
+        for pkg in _PKGS:
+            if (dest / pkg).is_dir() and not (dest / "uwdock" / pkg).exists():
+                (dest / "uwdock" / pkg).symlink_to(Path("..") / pkg)
+    return sha
+
+
+def _side(tree: Path, cfg: dict) -> dict:
+    import json
+    import subprocess
+
+    res = subprocess.run(
+        [sys.executable, "-c", _SIDE, str(tree), json.dumps(cfg)],
+        capture_output=True, text=True, cwd=tree, check=False,
+    )  # fmt: skip
+    lines = res.stdout.strip().splitlines()
+    if res.returncode != 0 or not lines:
+        tail = " | ".join(res.stderr.strip().splitlines()[-3:])
+        raise SystemExit(f"error: the bench of {tree} failed: {tail}")
+    out = json.loads(lines[-1])
+    if out["foreign_modules"]:
+        raise SystemExit(f"error: {tree} loaded modules of another tree: {out['foreign_modules']}")
+    return out
+
+
+def _loop_numbers(row: dict) -> dict[str, float]:
+    """capture / estimate ms of a ``bench_loop`` row of either day's layout."""
+    capture = row.get("capture_ms")
+    if capture is None:  # before sim.camera: render + water (RGB->BGR included)
+        capture = row["render_ms"] + row["water_ms"]
+    estimate = row.get("estimate_ms")
+    if estimate is None:  # before perception.ds_pose: detect + board PnP
+        estimate = row["detect_ms"] + row["pnp_ms"]
+    return {
+        "control_steps_per_s": row["control_steps_per_s"],
+        "capture_ms": capture,
+        "estimate_ms": estimate,
+        "camera_ms": row["camera_ms"],
+    }
+
+
+def run_baseline(commit: str, quick: bool, repeats: int, seed: int, out_dir: Path | None) -> None:
+    """``--baseline``: section (c) of the working tree and of ``commit``, interleaved."""
+    import tempfile
+
+    root = Path(__file__).resolve().parent.parent
+    cfg = {
+        "seed": seed,
+        "widths": list(LOOP_WIDTHS),
+        "physics_steps": 100 if quick else 300,
+        "physics_runs": 3 if quick else 7,
+        "loop_poses": 5 if quick else 24,
+        "loop_repeats": 1 if quick else 3,
+    }
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="uwdock-baseline-") as tmp:
+        old_tree = Path(tmp) / "tree"
+        sha = _extract(commit, root, old_tree)
+        sides = {"old": old_tree, "new": root}
+        runs: dict[str, list[dict]] = {"old": [], "new": []}
+        for k in range(repeats):
+            for name in ("old", "new") if k % 2 == 0 else ("new", "old"):
+                print(f"round {k + 1}/{repeats}: {name} ({sides[name]})", flush=True)
+                runs[name].append(_side(sides[name], cfg))
+    rows = []
+    for i, width in enumerate(LOOP_WIDTHS):
+        med = {}
+        for name in ("old", "new"):
+            per = [_loop_numbers(r["loop"][i]) for r in runs[name]]
+            med[name] = {k: statistics.median(p[k] for p in per) for k in per[0]}
+            med[name]["physics_ms"] = statistics.median(r["physics_ms"] for r in runs[name])
+        o, n = med["old"], med["new"]
+        rows.append(
+            {
+                "width_px": width,
+                "old_steps_per_s": o["control_steps_per_s"],
+                "new_steps_per_s": n["control_steps_per_s"],
+                "steps_ratio": n["control_steps_per_s"] / o["control_steps_per_s"],
+                "old_capture_ms": o["capture_ms"],
+                "new_capture_ms": n["capture_ms"],
+                "capture_ratio": n["capture_ms"] / o["capture_ms"],
+                "old_estimate_ms": o["estimate_ms"],
+                "new_estimate_ms": n["estimate_ms"],
+                "estimate_ratio": n["estimate_ms"] / o["estimate_ms"],
+                "old_physics_ms": o["physics_ms"],
+                "new_physics_ms": n["physics_ms"],
+            }
+        )
+    print(
+        f"\n(c) Camera in the loop, working tree (new) against {commit} = {sha[:12]} (old), "
+        f"{repeats} interleaved rounds, medians; ratio = new / old (steps: > 1 is faster; "
+        "ms: < 1 is faster)"
+    )
+    print(
+        format_table(
+            rows,
+            ["width_px", "old_steps_per_s", "new_steps_per_s", "steps_ratio", "old_capture_ms",
+             "new_capture_ms", "capture_ratio", "old_estimate_ms", "new_estimate_ms",
+             "estimate_ratio", "old_physics_ms", "new_physics_ms"],
+        )
+    )  # fmt: skip
+    config = {**cfg, "quick": quick, "baseline": commit, "baseline_commit": sha,
+              "rounds": repeats, "opencv_threads": 1,
+              "lp_num_threads": os.environ.get("LP_NUM_THREADS"), "raw": runs}  # fmt: skip
+    path = save_results("sim_baseline", rows, config, out_dir=out_dir)
+    print(f"\nwrote {path} in {time.perf_counter() - t0:.0f} s")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="fewer runs and poses (~1 min)")
@@ -269,9 +437,25 @@ def main() -> None:
     parser.add_argument(
         "--name", default="sim", help="results file stem (e.g. sim_gpu for a GPU machine)"
     )
+    parser.add_argument(
+        "--baseline",
+        metavar="COMMIT",
+        help="only the camera loop (c), of the working tree and of COMMIT side by side in one "
+        "run, interleaved; reports new/old ratios (sim_baseline.json)",
+    )
+    parser.add_argument(
+        "--baseline-repeats",
+        type=int,
+        default=None,
+        help="interleaved rounds of each side with --baseline [2 with --quick, else 4]",
+    )
     args = parser.parse_args()
     cv2.setNumThreads(1)
     quick = args.quick
+    if args.baseline:
+        repeats = args.baseline_repeats or (2 if quick else 4)
+        run_baseline(args.baseline, quick, repeats, args.seed, args.out_dir)
+        return
     config = {
         "quick": quick,
         "seed": args.seed,

@@ -37,10 +37,11 @@ from uwdock.dockcore.provenance import write_provenance
 from uwdock.rl.baselines import PIDController
 from uwdock.rl.config import EnvConfig, ObsSourceName, check_env_files
 from uwdock.rl.env import DockingEnv
+from uwdock.rl.env_settings import policy_env_layer, policy_training_env, resolve_env
 from uwdock.rl.episode import EpisodeVideoConfig, record_episode
 from uwdock.rl.error_model import ErrorModelConfig, fit_error_model, save_error_model
 from uwdock.rl.export import export_onnx
-from uwdock.rl.policy_io import policy_env_settings, policy_error_model
+from uwdock.rl.policy_io import policy_env_settings
 from uwdock.rl.report import evaluate_to_folder
 from uwdock.rl.sweep import SweepConfig, parse_grid, run_sweep
 from uwdock.rl.train import TrainConfig, run_config
@@ -59,7 +60,10 @@ _VIDEO = "uwdock.rl.episode:EpisodeVideoConfig"
 
 #: ``rl episode``'s values of EnvConfig fields that neither a flag nor ``--config`` sets (the
 #: camera's render width is the env's own, ``WorldConfig.camera_width_px``).
-_EPISODE_DEFAULTS = {"episode_s": 30.0}
+_EPISODE_DEFAULTS = {"episode_s": 30.0, "world": {"water_preset": "coastal"}}
+#: ``rl eval``'s values of EnvConfig fields that neither a flag, ``--config`` nor the policy's
+#: training env sets: the camera in the loop, both success rates on the same episodes.
+_EVAL_DEFAULTS = {"terminate_on": "strict", "obs_source": "camera"}
 OBS_CHOICES = click.Choice(list(get_args(ObsSourceName)))
 #: ``--water``: the water of the camera sources (``EnvConfig.world.water_preset``).
 WATER_OPTION = click.option(
@@ -76,6 +80,36 @@ USBL_OPTION = click.option(
     help="Acoustic (USBL) positioning model, a preset of uwdock.sim.usbl; fields of the "
     "--config's [usbl] table still override it [ideal].",
 )
+
+
+#: ``--env-from``: another policy's training env (e.g. the PID under a policy's settings).
+ENV_FROM_OPTION = click.option(
+    "--env-from",
+    "env_from",
+    type=click.Path(path_type=Path, exists=True),
+    help="Take the env settings from this policy folder (policy.zip / run folder / .onnx) "
+    "instead of --policy's, e.g. `--policy pid --env-from rl/policies/P` [--policy's].",
+)
+
+
+def _resolve_env(
+    policy: str,
+    env_from: Path | None,
+    config_path: Path | None,
+    flags: dict,
+    defaults: dict,
+):
+    """The env of a command (:mod:`uwdock.rl.env_settings`): ``defaults``, the training env of
+    ``env_from`` (else of ``policy``), the ``--config`` file's ``[env]``, then ``flags`` (None
+    values and empty tables: not given)."""
+    source = str(env_from) if env_from is not None else policy
+    layer, origin = policy_env_layer(source)
+    given = {k: v for k, v in flags.items() if v is not None and v != {}}
+    if "usbl" in given:  # --usbl names a whole model: the policy's own USBL fields do not apply
+        layer.pop("usbl", None)
+    file = config_data(config_path, section="env") if config_path is not None else {}
+    layers = [("default", defaults), ("policy config", layer), ("--config", file), ("flag", given)]
+    return resolve_env(layers, policy_config=origin)
 
 
 @command_group()
@@ -233,11 +267,35 @@ def sweep(config_path, seeds, grid, concurrent, ray_address, out_dir) -> None:
     help="policy.zip / run folder / .onnx, or 'pid' for the classical baseline.",
 )
 @click.option("--episodes", type=domain_type(Count), default=100, show_default=True)
-@click.option("--obs", type=OBS_CHOICES, default="camera", show_default=True)
-@click.option("--error-model", "error_model", type=click.Path(path_type=Path))
-@USBL_OPTION
-@WATER_OPTION
-@config_option("TOML overriding EnvConfig.")
+@click.option("--obs", type=OBS_CHOICES, help="Observation source [camera].")
+@click.option(
+    "--error-model",
+    "error_model",
+    type=click.Path(path_type=Path),
+    help="Fitted error model file (for --obs error-model) [the one the policy trained on].",
+)
+@click.option(
+    "--usbl",
+    "usbl",
+    type=click.Choice(list(USBL_PRESETS)),
+    help="Acoustic (USBL) positioning model, a preset of uwdock.sim.usbl [the policy's "
+    "training preset; ideal without one].",
+)
+@click.option(
+    "--water",
+    "water",
+    help="Water of the downward camera: a preset or a water file (.toml, `sim fit-water`) "
+    "[the policy's training water; clear_tank without one].",
+)
+@click.option(
+    "--width",
+    "width_px",
+    type=field_type(_WORLD, "camera_width_px"),
+    help="Downward camera render width (px) [the policy's training width; "
+    f"{WorldConfig.camera_width_px} without one].",
+)
+@ENV_FROM_OPTION
+@config_option("TOML overriding EnvConfig (over the policy's training env, under the flags).")
 @seed_option(domain_type(Seed), default=1000, show_default=True)
 @click.option(
     "--videos",
@@ -248,10 +306,9 @@ def sweep(config_path, seeds, grid, concurrent, ray_address, out_dir) -> None:
 @click.option(
     "--terminate-on",
     type=click.Choice(["strict", "paper"]),
-    default="strict",
-    show_default=True,
     help="What ends an episode early: 'strict' runs on past the paper's condition, so both "
-    "success rates are measured on the same episodes.",
+    "success rates are measured on the same episodes [the policy's training setting; strict "
+    "without one].",
 )
 @click.option("--stress", is_flag=True, help="Also run the graded stress tables.")
 @click.option("--stress-episodes", type=domain_type(Count), default=20, show_default=True)
@@ -269,6 +326,8 @@ def eval_cmd(
     error_model,
     usbl,
     water,
+    width_px,
+    env_from,
     config_path,
     seed,
     videos,
@@ -280,26 +339,30 @@ def eval_cmd(
     ray_address,
     out_dir,
 ) -> None:
-    """Evaluate a policy (or the PID baseline) over seeded episodes."""
-    em = str(error_model) if error_model else None
-    if em is None and obs == "error-model":
-        # neither --error-model nor the --config file names one: the one the policy trained on
-        in_file = config_path is not None and "error_model_path" in config_data(config_path, "env")
-        em = None if in_file else policy_error_model(str(policy))
-    env_cfg = load_config(
-        EnvConfig,
-        config_path,
-        section="env",
-        overrides={
-            "obs_source": obs,
-            "error_model_path": em,
-            "terminate_on": terminate_on,
-            "usbl": {"preset": usbl} if usbl else None,
-            "world": {"water_preset": water_choice(water)} if water else None,
+    """Evaluate a policy (or the PID baseline) over seeded episodes.
+
+    The env is the policy's training env (USBL, water, camera width, termination, spawn,
+    vehicle, ...; `--env-from` another policy's, e.g. for the PID), then the --config file, then
+    the flags; one line names the settings used and where each came from.
+    """
+    flags = {
+        "obs_source": obs,
+        "error_model_path": str(error_model) if error_model else None,
+        "terminate_on": terminate_on,
+        "usbl": {"preset": usbl} if usbl else None,
+        "world": {
+            k: v
+            for k, v in {
+                "water_preset": water_choice(water) if water else None,
+                "camera_width_px": width_px,
+            }.items()
+            if v is not None
         },
-    )
+    }
+    resolved = _resolve_env(str(policy), env_from, config_path, flags, _EVAL_DEFAULTS)
     # the policy's observation layout and action scaling come from its own run config
-    env_cfg = replace(env_cfg, **policy_env_settings(str(policy)))
+    env_cfg = replace(resolved.cfg, **policy_env_settings(str(policy)))
+    click.echo(resolved.line("rl eval"))
     try:
         vids = tuple(int(v, 10) for v in videos.split(",") if v.strip())
     except ValueError:
@@ -321,6 +384,7 @@ def eval_cmd(
         workers=workers,
         backend=backend,
         ray_address=ray_address,
+        env_settings=resolved.settings(),
     )
     click.echo(
         f"success {summary['success_rate']:.1%} (strict "
@@ -333,8 +397,16 @@ def eval_cmd(
 @click.option("--policy", required=True, type=click.Path(path_type=Path))
 @out_file_option("ONNX file to write.", required=True)
 def export(policy, out_path) -> None:
-    """Export a policy to ONNX (observation normalisation included)."""
-    click.echo(f"wrote {export_onnx(policy, out_path)}")
+    """Export a policy to ONNX (observation normalisation included); the .json beside it
+    carries the env the policy was trained in (one line names its settings), which `rl eval`
+    and the deployment runner take by default."""
+    written = export_onnx(policy, out_path)
+    trained = policy_training_env(str(policy))
+    if trained is None:
+        click.echo(f"rl export env: no run config beside {policy}: only its interface is known")
+    else:
+        click.echo(trained.line("rl export"))
+    click.echo(f"wrote {written}")
 
 
 @cli.command("fit-error-model")
@@ -377,7 +449,7 @@ def _fmt_rho(rho: list[float]) -> str:
 @click.option(
     "--water",
     help="Water of the downward view: a preset, a water file (.toml, `sim fit-water`) or 'none' "
-    "[coastal].",
+    "[the --config's, else the --env-from policy's training water, else coastal].",
 )
 @click.option(
     "--seconds",
@@ -390,8 +462,9 @@ def _fmt_rho(rho: list[float]) -> str:
     "width_px",
     type=field_type(_WORLD, "camera_width_px"),
     help="Downward camera render width (px) [default: the --config's world.camera_width_px, "
-    f"else the env's, {WorldConfig.camera_width_px}].",
+    f"else the --env-from policy's, else the env's, {WorldConfig.camera_width_px}].",
 )
+@ENV_FROM_OPTION
 @click.option(
     "--outside-width",
     "outside_width_px",
@@ -403,19 +476,24 @@ def _fmt_rho(rho: list[float]) -> str:
 @config_option("TOML overriding rl.config.EnvConfig (obs_source defaults to 'proxy').")
 @quiet_option("No progress bar; print only the video path.")
 def episode(
-    out_dir, controller, seed, water, seconds, width_px, outside_width_px, config_path, quiet
-) -> None:
+    out_dir, controller, seed, water, seconds, width_px, env_from, outside_width_px, config_path,
+    quiet,
+) -> None:  # fmt: skip
     """Run the scripted PID controller in the docking env and write a side-by-side MP4 of the
-    downward camera (with water) and an outside view, plus summary.json."""
-    water_name = water_choice(water or "coastal", allow_random=False)
-    given = config_data(config_path, section="env") if config_path is not None else {}
-    given = lift_moved_keys(EnvConfig, given)  # a file of the old flat layout
-    flags = {
-        "episode_s": seconds,
-        "world": {"camera_width_px": width_px} if width_px is not None else None,
-    }
-    data = merge(merge(_EPISODE_DEFAULTS, given), {k: v for k, v in flags.items() if v is not None})
-    env_cfg = from_dict(EnvConfig, data)  # a flag, else the file's value, else our default
+    downward camera (with water) and an outside view, plus summary.json.
+
+    `--env-from POLICY` runs it under a policy's training env (USBL, water, camera width,
+    termination, ...); the --config file and the flags override it. One line names the settings
+    used and where each came from.
+    """
+    film_water = water_choice(water, allow_random=False) if water else None
+    world = {"camera_width_px": width_px} if width_px is not None else {}
+    if film_water not in (None, "none"):
+        world["water_preset"] = film_water
+    flags = {"episode_s": seconds, "world": world}
+    resolved = _resolve_env("pid", env_from, config_path, flags, _EPISODE_DEFAULTS)
+    env_cfg = resolved.cfg  # a flag, else the file's value, else the policy's, else our default
+    water_name = film_water or env_cfg.world.water_preset
     outside_height_px = max(16, round(outside_width_px * 3 / 4))
     video_cfg = from_dict(
         EpisodeVideoConfig,
@@ -428,6 +506,7 @@ def episode(
     env = DockingEnv(env_cfg, render_mode="rgb_array")  # may still refuse the config
     try:
         with claim_output_dir(out_dir, "rl episode") as out:
+            click.echo(resolved.line("rl episode"), err=quiet)  # --quiet: stdout is the video
             policy = PIDController.for_env(env_cfg)
             steps = round(env_cfg.episode_s * env_cfg.control_hz)
             disable = True if quiet else None

@@ -9,14 +9,17 @@ reads only the leading ``actor_obs_dim`` values (its privileged block is ignored
 from __future__ import annotations
 
 import io
+import json
 import os
 import warnings
 from pathlib import Path
 
 import numpy as np
 
+from uwdock.dockcore.config import to_dict
 from uwdock.dockcore.errors import DockError
-from uwdock.dockcore.io import atomic_write_bytes, atomic_write_json
+from uwdock.dockcore.io import atomic_write_files
+from uwdock.rl.env_settings import policy_training_env
 from uwdock.rl.policy_io import load_policy, policy_env_settings
 
 
@@ -28,7 +31,9 @@ def _actor_module(model, vecnorm):
 
 
 def export_onnx(policy_path: str | os.PathLike[str], out: str | os.PathLike[str]) -> Path:
-    """Write ``out`` (.onnx) and ``<out>.json`` (observation layout, limits, provenance)."""
+    """Write ``out`` (.onnx) and ``<out>.json`` (observation layout, limits, the training env,
+    provenance) as one unit (:func:`dockcore.io.atomic_write_files`): both new, or the old
+    pair as it was."""
     import torch
 
     model, vecnorm = load_policy(policy_path)
@@ -48,18 +53,26 @@ def export_onnx(policy_path: str | os.PathLike[str], out: str | os.PathLike[str]
             opset_version=17,
             dynamo=False,
         )
-    out = atomic_write_bytes(Path(out), buf.getvalue())
-    atomic_write_json(
-        out.with_suffix(".json"),
+    out = Path(out)
+    trained = policy_training_env(str(policy_path))
+    sidecar = {
+        "obs_dim": int(dim),
+        "action_dim": 6,
+        "source_policy": str(policy_path),
+        "action_meaning": "body wrench / wrench_limits, [Fx, Fy, Fz, Mx, My, Mz]",
+        # the env the policy was trained in (every EnvConfig field: observation layout, limits,
+        # rate, USBL, water, camera width, termination, ...), so `rl eval` and the runner
+        # rebuild the observation and the settings it was trained with; without a run config,
+        # only what is known of its interface
+        "env": to_dict(trained.cfg) if trained else policy_env_settings(str(policy_path)),
+        "env_from": trained.policy_config if trained else None,
+    }
+    # one unit: an .onnx without its .json would be run with another observation layout
+    atomic_write_files(
         {
-            "obs_dim": int(dim),
-            "action_dim": 6,
-            "source_policy": str(policy_path),
-            "action_meaning": "body wrench / wrench_limits, [Fx, Fy, Fz, Mx, My, Mz]",
-            # the EnvConfig fields of the policy's interface (observation layout, limits, rate),
-            # so `rl eval` and the runner rebuild the observation it was trained on
-            "env": policy_env_settings(str(policy_path)),
-        },
+            out: buf.getvalue(),
+            out.with_suffix(".json"): (json.dumps(sidecar, indent=2) + "\n").encode("utf-8"),
+        }
     )
     return out
 

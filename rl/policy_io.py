@@ -19,6 +19,7 @@ import numpy as np
 
 from uwdock.dockcore.config import read_toml
 from uwdock.dockcore.errors import DockError
+from uwdock.dockcore.io import check_regular_file
 from uwdock.rl.baselines import PIDController
 from uwdock.rl.checkpoint import require_finite_policy
 from uwdock.rl.config import EnvConfig
@@ -51,14 +52,26 @@ def policy_train_env(policy: str) -> dict[str, Any]:
             raise DockError(f"cannot read {meta}: {exc}") from None
         env = data.get("env", {}) if isinstance(data, dict) else {}
         return env if isinstance(env, dict) else {}
+    train, cand = policy_train_settings(p)
+    env = train.get("env", {})
+    if not isinstance(env, dict):
+        raise DockError(f"{cand}: [train.env] is not a table")
+    return env
+
+
+def policy_train_settings(policy: str | os.PathLike[str]) -> tuple[dict[str, Any], Path | None]:
+    """The ``[train]`` table of the run config a policy folder or ``policy.zip`` comes from
+    (``config.toml`` beside it or one level up, as for ``best/``) and that file; ``({}, None)``
+    without one."""
+    p = Path(policy)
     folder = p if p.is_dir() else p.parent
     for cand in (folder / "config.toml", folder.parent / "config.toml"):
         if cand.is_file():
-            env = read_toml(cand, what="run config").get("train", {}).get("env", {})
-            if not isinstance(env, dict):
-                raise DockError(f"{cand}: [train.env] is not a table")
-            return env
-    return {}
+            train = read_toml(cand, what="run config").get("train", {})
+            if not isinstance(train, dict):
+                raise DockError(f"{cand}: [train] is not a table")
+            return train, cand
+    return {}, None
 
 
 def policy_env_settings(policy: str) -> dict[str, Any]:
@@ -102,8 +115,7 @@ def load_policy(path: str | os.PathLike[str]):
     p = Path(path)
     if p.is_dir():
         p = p / "policy.zip"
-    if not p.is_file():
-        raise DockError(f"policy file not found: {p}")
+    check_regular_file(p, "policy file")
     model, reasons = None, []
     for cls in (PPO, SAC):
         try:
@@ -118,6 +130,13 @@ def load_policy(path: str | os.PathLike[str]):
     require_finite_policy(model, f"policy {p}")
     vecnorm = None
     vn = p.with_name("vecnormalize.pkl")
+    train, run_config = policy_train_settings(p)
+    normalised = train.get("normalize_obs") is True
+    if normalised and not vn.exists():
+        raise DockError(
+            f"policy {p}: its run config {run_config} says normalize_obs = true but "
+            f"{vn.name} is missing beside it (the policy reads normalised observations)"
+        )
     if vn.exists():
         try:
             with vn.open("rb") as fh:
@@ -127,6 +146,11 @@ def load_policy(path: str | os.PathLike[str]):
             raise DockError(f"cannot read normalisation {vn}: {type(exc).__name__}") from None
         if not all(np.all(np.isfinite(a)) for a in stats):
             raise DockError(f"normalisation {vn} holds NaN or infinity")
+        if normalised and not getattr(vecnorm, "norm_obs", False):
+            raise DockError(
+                f"normalisation {vn} does not normalise observations, but the run config "
+                f"{run_config} says normalize_obs = true"
+            )
         vecnorm.training = False
     return model, vecnorm
 
@@ -148,8 +172,7 @@ class OnnxPolicy:
         import onnxruntime as ort
 
         p = Path(path)
-        if not p.is_file():
-            raise DockError(f"ONNX policy not found: {p}")
+        check_regular_file(p, "ONNX policy")
         opts = ort.SessionOptions()
         opts.intra_op_num_threads = 1
         opts.log_severity_level = 4

@@ -214,8 +214,14 @@ def evaluate_to_folder(
     workers: int = 1,
     backend: str = "local",
     ray_address: str | None = None,
+    env_settings: dict[str, dict[str, Any]] | None = None,
 ) -> dict[str, Any]:
     """Run the evaluation and write the report folder; returns the summary.
+
+    The summary names the sensor presets it ran (``usbl_preset``; ``nav_preset``, None while
+    navigation presets do not exist) and, given ``env_settings``
+    (:meth:`uwdock.rl.env_settings.ResolvedEnv.settings`), where each reported setting came
+    from (``env_settings``: policy config, ``--config``, flag or default).
 
     ``workers`` processes (``backend = "local"``) or Ray actors (``"ray"``, on a local Ray
     instance or the cluster at ``ray_address``) run the episodes, handed out one at a time; the
@@ -239,7 +245,7 @@ def evaluate_to_folder(
     with claim_output_dir(out_dir, "rl eval") as out:
         return _evaluate_into(
             out, policy, label, env_cfg, episodes, seed, video_episodes, stress,
-            stress_episodes, pool,
+            stress_episodes, pool, env_settings,
         )  # fmt: skip
 
 
@@ -254,6 +260,7 @@ def _evaluate_into(
     stress: bool,
     stress_episodes: int,
     pool: PoolConfig,
+    env_settings: dict[str, dict[str, Any]] | None = None,
 ) -> dict[str, Any]:
     workers = pool.workers
     bar = tqdm(total=episodes, desc=f"eval {env_cfg.obs_source}", unit="ep")
@@ -279,6 +286,12 @@ def _evaluate_into(
     summary = {
         "policy": label,
         "obs_source": env_cfg.obs_source,
+        "usbl_preset": env_cfg.usbl.preset,
+        "nav_preset": None,  # no navigation presets yet: the vehicle knows its true pose
+        "water_preset": env_cfg.world.water_preset,
+        "camera_width_px": env_cfg.world.camera_width_px,
+        "terminate_on": env_cfg.terminate_on,
+        **({"env_settings": env_settings} if env_settings is not None else {}),
         **res.summary,
         "wall_clock_s": wall,
         "control_steps_per_s": steps / wall,

@@ -23,16 +23,16 @@ import cv2
 import numpy as np
 
 from uwdock.calibration.camera import resolve_camera
-from uwdock.dockcore.config import replace
 from uwdock.dockcore.errors import DockError
 from uwdock.markers.config import MarkerConfig
 from uwdock.markers.markerset import load_marker_set, marker_set_from_config
 from uwdock.perception.ds_pose import DSPoseEstimator
 from uwdock.rl.camera_source import measurement
 from uwdock.rl.config import EnvConfig
+from uwdock.rl.env_settings import policy_training_env
 from uwdock.rl.estimator import DSPoseFilter
 from uwdock.rl.observation import PRIVILEGED_DIM, observation_frame, observation_size
-from uwdock.rl.policy_io import OnnxPolicy, policy_env_settings
+from uwdock.rl.policy_io import OnnxPolicy
 
 
 @dataclass(frozen=True)
@@ -63,8 +63,10 @@ class DockingRunner:
             frames of the file's size are resized to that width before detection, so the
             policy sees the estimator it was trained with.
         marker_set: the DS marker set file; None: the reference DS set.
-        env_cfg: the environment the policy was trained in (observation layout, limits, filter);
-            None: the defaults with the interface fields stored beside an exported policy.
+        env_cfg: the environment the policy was trained in (observation layout, limits, filter,
+            camera width, USBL); None: the training env stored beside an exported policy
+            (``rl export``'s .json; an older .json holds only the observation layout and
+            limits, the rest is the EnvConfig defaults).
     """
 
     def __init__(
@@ -74,9 +76,13 @@ class DockingRunner:
         marker_set: str | os.PathLike[str] | None = None,
         env_cfg: EnvConfig | None = None,
     ) -> None:
-        if env_cfg is None:  # an exported policy carries its observation layout and limits
+        #: the file the env settings came from (an exported policy's .json), None: given/defaults
+        self.env_from: str | None = None
+        if env_cfg is None:  # an exported policy carries the env it was trained in
             exported = isinstance(policy, (str, os.PathLike))
-            env_cfg = replace(EnvConfig(), **(policy_env_settings(str(policy)) if exported else {}))
+            trained = policy_training_env(str(policy)) if exported else None
+            env_cfg = trained.cfg if trained is not None else EnvConfig()
+            self.env_from = trained.policy_config if trained is not None else None
         self.cfg = env_cfg
         self.policy = OnnxPolicy(policy) if isinstance(policy, (str, os.PathLike)) else policy
         self.camera, self.T_body_cam = resolve_camera(camera_file, self.cfg.world.camera_width_px)

@@ -5,7 +5,9 @@
 #
 #   bash scripts/make_artefacts.sh models    # rl/models/error_model_clear_tank_{480,640}.json
 #   bash scripts/make_artefacts.sh policy    # rl/policies/error_model_ppo/ (DAgger + PPO, the option), docs/results/training_curve.png
-#   bash scripts/make_artefacts.sh scratch   # rl/policies/scratch_error_model_ppo/ (PPO from scratch, shipped), docs/results/training_curve_scratch.png
+#   bash scripts/make_artefacts.sh scratch   # trains PPO from scratch into $WORK; with SHIP=1 (or --ship) it
+#                                            # replaces rl/policies/scratch_error_model_ppo/ (the shipped policy)
+#                                            # and docs/results/training_curve_scratch.png
 #   bash scripts/make_artefacts.sh figures   # docs/results/ (evaluation summaries and figures of the shipped policy)
 #
 # Seeds and data: datasets `datasets synth --n 2500 --water clear_tank --seed 0` at 480 and 640 px
@@ -59,12 +61,16 @@ train() {
 }
 
 # ship RUN DEST CURVE: copy RUN's best/ checkpoint and its records into DEST, its curve to
-# $RESULTS/CURVE
+# $RESULTS/CURVE; DEST/checksums.sha256 holds the SHA-256 of the best/ files (`sha256sum -c
+# checksums.sha256` in DEST checks the shipped weights, and against a kept run's best/)
 ship() {
   local run=$1 dest=$2 curve=$3
   say "shipping best/ (the best evaluated checkpoint) into $dest"
   mkdir -p "$dest"
   cp "$run/best/policy.zip" "$run/best/vecnormalize.pkl" "$dest/"
+  (cd "$run/best" && sha256sum policy.zip vecnormalize.pkl) >"$dest/checksums.sha256"
+  (cd "$dest" && sha256sum -c --quiet checksums.sha256) \
+    || die "the files copied into $dest differ from $run/best/"
   cp "$run/config.toml" "$run/provenance.json" "$run/eval_history.jsonl" "$dest/"
   rm -f "$dest/imitation.json" "$dest/resume_log.jsonl"
   [ ! -f "$run/imitation.json" ] || cp "$run/imitation.json" "$dest/"  # the DAgger warm start
@@ -83,6 +89,11 @@ scratch() {  # stage 1: PPO from scratch; stage 2: its best/ fine-tuned (collisi
   train configs/scratch_error_model_precision_ppo.toml "$w" --seed "$seed"
   train configs/scratch_error_model_precision_soft_ppo.toml "${w}_soft" --seed "$seed" \
     --init-policy "$w/best"
+  if [ "$SHIP" != 1 ]; then
+    say "trained ${w}_soft; the shipped policy $POLICY is left as it is (SHIP=1 or --ship replaces it)"
+    (cd "${w}_soft/best" && sha256sum policy.zip vecnormalize.pkl)
+    return
+  fi
   ship "${w}_soft" "$POLICY" training_curve_scratch.png
   cp "$w/provenance.json" "$POLICY/stage1_provenance.json"  # stage 1's records beside stage 2's
   cp "$w/eval_history.jsonl" "$POLICY/stage1_eval_history.jsonl"
@@ -137,11 +148,13 @@ PY
   fi
 }
 
+SHIP=${SHIP:-0}
+[ "${2:-}" != --ship ] || SHIP=1
 case "${1:-}" in
   models) models ;;
   policy) policy ;;
   scratch) scratch ;;
   figures) figures ;;
-  *) die "usage: bash scripts/make_artefacts.sh models|policy|scratch|figures" ;;
+  *) die "usage: bash scripts/make_artefacts.sh models|policy|scratch [--ship]|figures" ;;
 esac
 say "done: review and commit what changed (git status)"

@@ -105,7 +105,9 @@ COMMANDS: dict[str, tuple[str, dict[str, str]]] = {
             "side-by-side MP4 of the downward camera (with water) and an outside view, plus "
             "summary.json.",
             "eval": "Evaluate a policy (or the PID baseline) over seeded episodes.",
-            "export": "Export a policy to ONNX (observation normalisation included).",
+            "export": "Export a policy to ONNX (observation normalisation included); the .json "
+            "beside it carries the env the policy was trained in (one line names its settings), "
+            "which `rl eval` and the deployment runner take by default.",
             "fit-error-model": "Fit the image-derived error model from a labelled dataset "
             "(`datasets synth`).",
             "sweep": "Sweep whole training runs over seeds and config values with Ray Tune, each "
