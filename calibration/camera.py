@@ -38,13 +38,14 @@ from numpy.typing import ArrayLike
 
 from uwdock.calibration.frames import check_T
 from uwdock.dockcore.errors import DockError
-from uwdock.dockcore.io import atomic_write_json, atomic_write_text, read_text
+from uwdock.dockcore.io import atomic_write_files, check_regular_file, read_text
 from uwdock.dockcore.media import quiet_native_stderr
 
 __all__ = [
     "CAMERA_FILE_VERSION",
     "REFERENCE_T_BODYFRD_CAMCV",
     "CameraModel",
+    "check_plausible",
     "filestorage_yaml_text",
     "load_camera",
     "raw_integer",
@@ -264,10 +265,113 @@ class CameraModel:
             )
 
 
+#: Fields of view (deg, pinhole, between the outer pixel edges) a camera file may state: outside,
+#: the focal length does not belong to the image size (fx = 1e-9 px, a 180 deg pinhole).
+MIN_FOV_DEG = 1.0
+MAX_FOV_DEG = 179.0
+#: Range of the radial distortion's scale ``r_d / r`` (distorted over undistorted normalised
+#: radius) out to the image corners: a lens that shrinks or stretches its corner rays by more
+#: than this is a wrong file (k1 = 1000 scales the reference camera's corners 271 times).
+MIN_RADIAL_SCALE = 0.2
+MAX_RADIAL_SCALE = 5.0
+#: Radii at which the radial distortion is sampled between the centre and the farthest corner.
+_RADIAL_SAMPLES = 1024
+
+
+def radial_distortion(cam: CameraModel, r: ArrayLike) -> np.ndarray:
+    """The distorted normalised radius ``r_d`` of the undistorted normalised radius ``r``.
+
+    OpenCV's radial terms only (tangential and thin-prism terms are small by construction):
+    ``r_d = r (1 + k1 r^2 + k2 r^4 + k3 r^6) / (1 + k4 r^2 + k5 r^4 + k6 r^6)``.
+
+    Args:
+        cam: the camera model.
+        r: undistorted normalised radii ``sqrt(x^2 + y^2)`` with ``x = X / Z`` (-), any shape.
+
+    Returns:
+        ``r_d`` of the same shape (-); NaN where the rational model's denominator is <= 0.
+    """
+    k = list(cam.dist) + [0.0] * (8 - min(len(cam.dist), 8))
+    k1, k2, p1, p2, k3, k4, k5, k6 = k[:8]
+    del p1, p2
+    r = np.asarray(r, dtype=np.float64)
+    r2 = r * r
+    num = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    den = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(den > 0.0, r * num / den, np.nan)
+
+
+def corner_radius(cam: CameraModel) -> float:
+    """The largest normalised pinhole radius of the four image corners (pixel edges) (-)."""
+    u = np.array([-0.5, cam.width_px - 0.5])
+    v = np.array([-0.5, cam.height_px - 0.5])
+    x = (u - cam.cx_px) / cam.fx_px
+    y = (v - cam.cy_px) / cam.fy_px
+    return float(np.sqrt(np.max(x * x) + np.max(y * y)))
+
+
+def check_plausible(cam: CameraModel) -> None:
+    """Check that ``cam`` can be a physical camera (on top of :meth:`CameraModel.validate`).
+
+    * the principal point lies inside the image (pixel edges: ``-0.5 <= cx <= width - 0.5``);
+    * the focal lengths give a pinhole field of view of ``MIN_FOV_DEG`` ... ``MAX_FOV_DEG``
+      across the image, horizontally (fx) and vertically (fy);
+    * the radial distortion is monotonic: the distorted radius grows strictly with the
+      undistorted one from the centre out to the farthest image corner (taken at the corner's
+      pinhole radius), and its scale ``r_d / r`` stays within ``MIN_RADIAL_SCALE`` ...
+      ``MAX_RADIAL_SCALE`` there.
+
+    Called by the camera file readers (:func:`load_camera`, the imports of other tools' files),
+    not by the constructor: a model built in code may be anything ``validate`` allows.
+
+    Raises:
+        ValueError: one line naming the field and its value.
+    """
+    for key, size in (("cx_px", cam.width_px), ("cy_px", cam.height_px)):
+        c = getattr(cam, key)
+        if not -0.5 <= c <= size - 0.5:
+            raise ValueError(
+                f"{key}: the principal point must lie inside the image (-0.5 ... "
+                f"{size - 0.5:g} px), got {c:g}"
+            )
+    for key, size, fov in (
+        ("fx_px", cam.width_px, cam.hfov_deg),
+        ("fy_px", cam.height_px, cam.vfov_deg),
+    ):
+        if not MIN_FOV_DEG <= fov <= MAX_FOV_DEG:
+            raise ValueError(
+                f"{key}: {getattr(cam, key):g} px gives a field of view of {fov:.4g} deg across "
+                f"{size} px (a pinhole camera sees {MIN_FOV_DEG:g} ... {MAX_FOV_DEG:g} deg)"
+            )
+    if not any(cam.dist):
+        return
+    r_max = corner_radius(cam)
+    r = np.linspace(0.0, r_max, _RADIAL_SAMPLES + 1)
+    r_d = radial_distortion(cam, r)
+    shown = ", ".join(f"{d:g}" for d in cam.dist)
+    step = np.diff(r_d)
+    if not np.all(step > 0.0):  # NaN (a pole of the rational model) fails too
+        k = int(np.argmax(~(step > 0.0)))  # the first step that does not grow
+        raise ValueError(
+            f"dist: ({shown}) is not monotonic over the image: the distorted radius stops "
+            f"growing at normalised radius {r[k]:.3g} ({100 * r[k] / r_max:.0f} % of the way "
+            "to the image corner)"
+        )
+    scale = r_d[1:] / r[1:]
+    worst = int(np.argmax(np.abs(np.log(scale))))
+    if not MIN_RADIAL_SCALE <= scale[worst] <= MAX_RADIAL_SCALE:
+        raise ValueError(
+            f"dist: ({shown}) scales the radius by {scale[worst]:.3g} at normalised radius "
+            f"{r[worst + 1]:.3g} (a lens stays within {MIN_RADIAL_SCALE:g} ... "
+            f"{MAX_RADIAL_SCALE:g} out to the image corners)"
+        )
+
+
 def reference_camera() -> CameraModel:
     """The Girona AUV downward camera of the reference: 968 x 732 px, HFOV 55 deg, no distortion.
 
-    f is about 929.7 px and the VFOV about 43.0 deg (reference.md, section 3).
+    f is about 929.7 px and the VFOV about 43.0 deg (docs/reference-system.md, section 3).
     """
     return CameraModel.from_hfov(968, 732, 55.0, name="girona_downward")
 
@@ -305,9 +409,9 @@ def filestorage_yaml_text(items: list[tuple[str, Any]]) -> str:
     """OpenCV FileStorage YAML of ``(key, value)`` pairs (ints, floats, strings, 2-D arrays),
     built in memory.
 
-    Written to disk by the caller with a Python write (``atomic_write_text``): FileStorage's own
-    file writer does not report a failed write, so on a full disk it left an empty temporary
-    file that the atomic rename then put over the user's camera file.
+    Written to disk by the caller with a Python write (``dockcore.io.atomic_write_files``):
+    FileStorage's own file writer does not report a failed write, so on a full disk it left an
+    empty temporary file that the atomic rename then put over the user's camera file.
     """
     fs = cv2.FileStorage(
         "camera.yaml",
@@ -351,7 +455,7 @@ def save_camera(
         items.append(("rms_px", float(cam.rms_px)))
     if T is not None:
         items.append(("T_body_cam", T))
-    atomic_write_text(yaml_path, filestorage_yaml_text(items))
+    yaml_text = filestorage_yaml_text(items)
 
     doc: dict[str, Any] = {
         "format_version": CAMERA_FILE_VERSION,
@@ -365,7 +469,13 @@ def save_camera(
         doc["rms_px"] = float(cam.rms_px)
     if T is not None:
         doc["T_body_cam"] = T.tolist()
-    atomic_write_json(json_path, doc)
+    # the twins as one unit: both new or both as they were (twins that disagree are refused)
+    atomic_write_files(
+        {
+            yaml_path: yaml_text.encode("utf-8"),
+            json_path: (json.dumps(doc, indent=2) + "\n").encode("utf-8"),
+        }
+    )
     return yaml_path, json_path
 
 
@@ -502,6 +612,7 @@ def _model_from_raw(raw: dict[str, Any], path: Path) -> tuple[CameraModel, np.nd
             rms_px=rms,
             name=name,
         )
+        check_plausible(cam)
     except ValueError as exc:
         raise DockError(f"{path}: {exc}") from None
     T = None
@@ -524,20 +635,74 @@ def load_camera(path: str | os.PathLike[str]) -> tuple[CameraModel, np.ndarray |
 
     Raises:
         DockError: one line naming the file (and the key, where one is at fault) when the file
-            is missing, unreadable or malformed, a required key is missing, or a value is
-            invalid.
+            is missing, unreadable or malformed, a required key is missing, a value is invalid
+            or physically impossible (:func:`check_plausible`), or when its twin (the same stem
+            with the other suffix, :func:`save_camera`) exists and is unusable or disagrees
+            with it: a command that rewrites the camera would otherwise overwrite one of them
+            silently.
     """
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in (".yaml", ".yml", ".json"):
         raise DockError(f"camera file must end in .yaml, .yml or .json: {path}")
-    if not path.is_file():
-        raise DockError(f"camera file not found: {path}")
+    check_regular_file(path, "camera file")
+    cam, T = _load_one(path)
+    twin = twin_paths(path)[1 if suffix != ".json" else 0]
+    if twin.exists():
+        if not twin.is_file():
+            raise DockError(f"{twin}, the twin of camera file {path}, is not a file")
+        try:
+            twin_cam, twin_T = _load_one(twin)
+        except DockError as exc:
+            raise DockError(
+                f"the twin of camera file {path} is unusable ({' '.join(str(exc).split())}): "
+                "fix or delete it"
+            ) from None
+        diff = _twin_difference((cam, T), (twin_cam, twin_T))
+        if diff:
+            raise DockError(
+                f"camera file {path} and its twin {twin.name} disagree on {diff}: edit both "
+                "the same way or delete the stale one (the toolkit writes both)"
+            )
+    return cam, T
+
+
+def _load_one(path: Path) -> tuple[CameraModel, np.ndarray | None]:
+    """One camera file, without its twin (:func:`load_camera`)."""
     try:
-        raw = _read_json(path) if suffix == ".json" else read_filestorage_yaml(path)
+        raw = _read_json(path) if path.suffix.lower() == ".json" else read_filestorage_yaml(path)
     except OSError as exc:
         raise DockError(f"cannot read camera file {path}: {exc.strerror or exc}") from None
     return _model_from_raw(raw, path)
+
+
+def _twin_difference(
+    a: tuple[CameraModel, np.ndarray | None], b: tuple[CameraModel, np.ndarray | None]
+) -> str | None:
+    """The first field on which two twins' contents differ (``"fx_px (500 vs 501)"``), or None.
+
+    Numbers agree within 1e-9 relative (both twins are written at full precision)."""
+    (ca, Ta), (cb, Tb) = a, b
+    for f in dataclasses.fields(CameraModel):
+        va, vb = getattr(ca, f.name), getattr(cb, f.name)
+        if isinstance(va, str) or va is None or vb is None:
+            same = va == vb
+        else:
+            x, y = np.atleast_1d(np.asarray(va, float)), np.atleast_1d(np.asarray(vb, float))
+            same = x.shape == y.shape and np.allclose(x, y, rtol=1e-9, atol=1e-12)
+        if not same:
+            return f"{f.name} ({_short(va)} vs {_short(vb)})"
+    if (Ta is None) != (Tb is None):
+        return "T_body_cam (present in one only)"
+    if Ta is not None and not np.allclose(Ta, Tb, rtol=1e-9, atol=1e-12):
+        return "T_body_cam"
+    return None
+
+
+def _short(value: Any) -> str:
+    if isinstance(value, tuple):
+        return "(" + ", ".join(f"{v:g}" for v in value) + ")"
+    return f"{value:g}" if isinstance(value, float) else repr(value)
 
 
 # ---------------------------------------------------------------------------- resolution

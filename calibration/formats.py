@@ -51,10 +51,12 @@ import numpy as np
 from numpy.typing import ArrayLike
 from ruamel.yaml import YAML
 from ruamel.yaml.error import MarkedYAMLError, YAMLError
+from ruamel.yaml.events import AliasEvent
 
 from uwdock.calibration.camera import (
     MAX_IMAGE_PX,
     CameraModel,
+    check_plausible,
     load_camera,
     save_camera,
     twin_paths,
@@ -144,14 +146,44 @@ def _plain_data(value: Any) -> Any:
     return value
 
 
+def _refuse_anchors(text: str, where: str) -> None:
+    """Refuse YAML anchors and aliases (``&a`` / ``*a``) before anything is built from ``text``.
+
+    A camera file has no use for them, and they are how a small file becomes a huge or endless
+    structure: ``a: &a [*a]`` refers to itself, and nine levels of nine aliases each ("billion
+    laughs") expand a 1 kB file to 10^9 values. The check walks the parser's event stream, which
+    is linear in the text and expands nothing; a file the parser refuses is left to the loader
+    (which reports the line).
+
+    Raises:
+        DockError: one line naming the file, the line and the anchor.
+    """
+    try:
+        for event in YAML(typ="safe", pure=True).parse(text):
+            anchor = getattr(event, "anchor", None)
+            if anchor is None:
+                continue
+            sign = "*" if isinstance(event, AliasEvent) else "&"
+            mark = event.start_mark
+            line = f"line {mark.line + 1}: " if mark is not None else ""
+            raise DockError(
+                f"{where}: {line}YAML anchors and aliases ({sign}{anchor}) are not accepted in a "
+                "camera file (they can expand without bound): write the values out"
+            )
+    except (YAMLError, RecursionError, ValueError):
+        return
+
+
 def read_yaml_mapping(path: str | os.PathLike[str]) -> dict[str, Any]:
     """The top-level mapping of a YAML camera file of another tool (``ruamel.yaml``, safe
     loader: plain data only, no tags or objects).
 
     Raises:
         DockError: one line naming the file (and the line where the YAML parser stopped) when
-            it is missing, larger than ``MAX_FILE_BYTES``, not UTF-8, an OpenCV FileStorage
-            file, not YAML, holds several documents, or is not a mapping at the top level.
+            it is missing, a special file (FIFO, device), larger than ``MAX_FILE_BYTES``, not
+            UTF-8, an OpenCV FileStorage file, not YAML, uses anchors or aliases (refused
+            before anything is expanded), holds several documents, or is not a mapping at the
+            top level.
     """
     path = Path(path)
     with contextlib.suppress(OSError):
@@ -164,6 +196,7 @@ def read_yaml_mapping(path: str | os.PathLike[str]) -> dict[str, Any]:
             f"{where}: an OpenCV FileStorage file (the toolkit's own camera format): "
             "use it as the camera file directly"
         )
+    _refuse_anchors(text, where)
     try:
         docs = list(YAML(typ="safe", pure=True).load_all(text))
     except MarkedYAMLError as exc:
@@ -240,7 +273,9 @@ def _string(value: Any, where: str, key: str) -> str:
 
 def _model(where: str, **fields: Any) -> CameraModel:
     try:
-        return CameraModel(**fields)
+        cam = CameraModel(**fields)
+        check_plausible(cam)
+        return cam
     except ValueError as exc:
         raise DockError(f"{where}: {exc}") from None
 

@@ -51,7 +51,7 @@ from uwdock.dockcore.bags import Bag, is_bag
 from uwdock.dockcore.config import to_dict, validated
 from uwdock.dockcore.domains import Interval
 from uwdock.dockcore.errors import DockError
-from uwdock.dockcore.io import atomic_path, atomic_write_json
+from uwdock.dockcore.io import atomic_path, atomic_write_json, check_regular_file
 from uwdock.dockcore.media import (
     IMAGE_SUFFIXES,
     MAX_CONSECUTIVE_VIDEO_FAILURES,
@@ -461,10 +461,13 @@ def iter_views(
         that cannot be decoded)).
 
     Raises:
-        DockError: missing input, a folder without images, an unreadable video.
+        DockError: missing input, a special file (FIFO, device: refused before it is opened),
+            a folder without images, an unreadable video.
     """
     path = Path(source)
-    if path.exists() and is_bag(path):
+    if not path.is_dir():
+        check_regular_file(path, "input")
+    if is_bag(path):
         if topic is None:
             raise DockError(f"{path} is a bag: name its image topic (--topic)")
         return _bag_frames(path, topic, video_max_frames)
@@ -475,9 +478,7 @@ def iter_views(
         if not files:
             raise DockError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in folder {path}")
         return len(files), ((p.name, to_grey(read_image(p))) for p in files)
-    if path.is_file():
-        return _video_frames(path, video_max_frames)
-    raise DockError(f"input not found: {path}")
+    return _video_frames(check_regular_file(path, "input"), video_max_frames)
 
 
 # --------------------------------------------------------------------------- view selection

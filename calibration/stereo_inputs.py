@@ -17,6 +17,7 @@ import numpy as np
 from uwdock.calibration.intrinsics import to_grey
 from uwdock.dockcore.bags import Bag, is_bag, nearest_in_time
 from uwdock.dockcore.errors import DockError
+from uwdock.dockcore.io import check_regular_file
 from uwdock.dockcore.media import (
     IMAGE_SUFFIXES,
     MAX_CONSECUTIVE_VIDEO_FAILURES,
@@ -211,9 +212,13 @@ def stereo_pairs(
         (pairs expected, iterator of (name, left grey uint8 or None, right grey or None)).
 
     Raises:
-        DockError: one line: missing inputs, inputs of two kinds, unpaired images (unless
-            ``skip_unpaired``), no pair within the stamp tolerance, bag topics not named.
+        DockError: one line: missing inputs, special files (FIFO, device), inputs of two
+            kinds, unpaired images (unless ``skip_unpaired``), no pair within the stamp
+            tolerance, bag topics not named.
     """
+    for p in (left, right):  # a FIFO or device would block the reader: refused first
+        if p is not None and p.exists() and not p.is_dir():
+            check_regular_file(p, "input")
     if left.exists() and is_bag(left):
         if right is not None:
             raise DockError(f"{left} is a bag: give it alone, with --left-topic and --right-topic")

@@ -39,7 +39,7 @@ from uwdock.datasets.sequences import (
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_path, read_text
 from uwdock.markers.markerset import MarkerSet, load_marker_set
-from uwdock.perception.groundtruth import FrameTruth, load_dataset
+from uwdock.perception.groundtruth import FrameTruth, csv_number, load_dataset
 from uwdock.perception.video import FrameSource, open_frames, read_image
 
 __all__ = [
@@ -168,6 +168,32 @@ class FootageSource:
         return f"FootageSource({str(self.path)!r}, kind={self.kind!r}, frames={self.total})"
 
 
+#: Largest position (m, |x|, |y|, |z|), Euler angle (deg; unwrapped logs of many turns pass) and
+#: time (s) a pose CSV may hold: beyond, a value is a wrong column or a corrupt file (a yaw of
+#: 1e300 deg has no meaningful sine).
+MAX_POSE_COORD_M = 1e6
+MAX_POSE_ANGLE_DEG = 1e5
+MAX_POSE_TIME_S = 1e9
+_POSE_BOUNDS = {
+    "x_m": MAX_POSE_COORD_M,
+    "y_m": MAX_POSE_COORD_M,
+    "z_m": MAX_POSE_COORD_M,
+    "roll_deg": MAX_POSE_ANGLE_DEG,
+    "pitch_deg": MAX_POSE_ANGLE_DEG,
+    "yaw_deg": MAX_POSE_ANGLE_DEG,
+    "time_s": MAX_POSE_TIME_S,
+}
+
+
+def _pose_value(text: object, column: str, where: str) -> float:
+    """One cell of a pose CSV as a finite number within the column's bound (``_POSE_BOUNDS``).
+
+    Raises:
+        DockError: one line naming ``where`` (file and line) and the column.
+    """
+    return csv_number(text, column, where, _POSE_BOUNDS.get(column))
+
+
 def load_poses_csv(path: str | os.PathLike[str]) -> np.ndarray:
     """Vehicle poses (N, 4, 4) ``T_world_body`` from a CSV (see :func:`load_pose_track_csv`)."""
     return load_pose_track_csv(path)[0]
@@ -217,18 +243,15 @@ def load_pose_track_csv(
     poses, seq_rows = [], []
     for row in reader:
         where = f"{path} line {reader.line_num}"
-        try:
-            v = [float(str(row[c]).strip()) for c in (*need, *seq_cols)]
-        except (TypeError, ValueError):
-            raise DockError(f"{where}: non-numeric value") from None
-        if not all(math.isfinite(x) for x in v):
-            raise DockError(f"{where}: non-finite value")
+        v = [_pose_value(row.get(c), c, where) for c in (*need, *seq_cols)]
         seq_rows.append(v[len(need) :])
         if rot is quat:
             q = np.array(v[3:7])
-            if np.linalg.norm(q) < 1e-9:
-                raise DockError(f"{where}: zero quaternion")
-            R = R_from_quat_wxyz(q / np.linalg.norm(q))
+            with np.errstate(over="ignore"):
+                norm = float(np.linalg.norm(q))
+            if not 1e-9 <= norm < math.inf:
+                raise DockError(f"{where}: quaternion (qw, qx, qy, qz) has norm {norm:g}")
+            R = R_from_quat_wxyz(q / norm)
         else:
             R = R_from_rpy(*np.radians(v[3:6]))
         poses.append(make_T(R, v[:3]))

@@ -9,12 +9,14 @@ its output folder when it starts (:func:`dockcore.outdir.claim_output_dir`).
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
 import re
 import shutil
+import stat
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -95,17 +97,69 @@ def _name_target(exc: OSError, path: Path) -> OSError:
     return type(exc)(exc.errno, exc.strerror or str(exc), str(path))
 
 
+def _sync(path: Path) -> int:
+    """Flush a written temporary file to the disk and return its size (bytes).
+
+    The step between a write and its rename: a write error the kernel reports late (a full
+    disk or quota under delayed allocation, NFS) surfaces here as an ``OSError``, while the
+    file it would replace still holds its bytes; and a crash after the rename cannot leave a
+    0-byte file in its place (the data is on the disk before the name moves). Tests simulate
+    a full disk by making this raise ``OSError(errno.ENOSPC)``.
+    """
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+        return os.fstat(fd).st_size
+    finally:
+        os.close(fd)
+
+
+def _write_all(path: Path, data: bytes) -> None:
+    """Write ``data`` into the (temporary) file ``path``, replacing its content."""
+    path.write_bytes(data)
+
+
+#: Largest payload :func:`atomic_write_bytes` reads back after writing (bytes); larger ones are
+#: checked by size only.
+READ_BACK_MAX_BYTES = 64 * 2**20
+
+
+def _verify(path: Path, data: bytes) -> None:
+    """Check that the temporary file ``path`` holds exactly ``data`` (size, then a read-back of
+    payloads up to ``READ_BACK_MAX_BYTES``); an ``OSError`` (EIO) naming ``path`` if not."""
+    size = _sync(path)
+    ok = size == len(data)
+    if ok and len(data) <= READ_BACK_MAX_BYTES:
+        ok = path.read_bytes() == data
+    if not ok:
+        raise OSError(
+            errno.EIO,
+            f"the written file does not read back ({size} of {len(data)} bytes)",
+            str(path),
+        )
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
-    """Yield a temporary path beside ``path``; on success it is renamed onto ``path``.
+    """Yield a temporary path beside ``path``; on success it is flushed to the disk
+    (:func:`_sync`) and renamed onto ``path``.
 
     On an exception the temporary file is removed and ``path`` is left as it was; a failed
     write (disk full, read-only disk) is an ``OSError`` naming ``path``, not the temporary file.
     """
+    with _atomic_path(path, sync=True) as tmp:
+        yield tmp
+
+
+@contextlib.contextmanager
+def _atomic_path(path: str | os.PathLike[str], sync: bool) -> Iterator[Path]:
+    """:func:`atomic_path`; ``sync=False`` when the block has flushed and verified the file."""
     path = Path(path)
     tmp_path = temp_sibling(path)
     try:
         yield tmp_path
+        if sync:
+            _sync(tmp_path)
         os.chmod(tmp_path, 0o644)
         os.replace(tmp_path, path)
     except OSError as exc:
@@ -119,10 +173,77 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
 
 
 def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> Path:
-    """Write ``data`` to ``path`` atomically and return the path."""
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(data)
+    """Write ``data`` to ``path`` atomically, verified before the rename (size and read-back),
+    and return the path."""
+    with _atomic_path(path, sync=False) as tmp:
+        _write_all(tmp, data)
+        _verify(tmp, data)  # flushes it
     return Path(path)
+
+
+def atomic_write_files(files: Mapping[str | os.PathLike[str], bytes]) -> list[Path]:
+    """Write several files as one unit: a file and its sidecar (``.onnx`` + ``.json``), a
+    camera's YAML and JSON twins.
+
+    Every file is written to a temporary sibling and verified (:func:`_verify`) before any is
+    renamed; the renames then run one after the other, and if one fails the files already
+    renamed get their previous content back (kept as hard links until the end). So a failure
+    (a full disk, an interrupt) leaves either all the new files or the old set as it was
+    (a file that did not exist before is removed again).
+
+    Args:
+        files: target path -> content, in the order of the renames.
+
+    Returns:
+        The paths written.
+
+    Raises:
+        OSError: naming the target whose write or rename failed.
+    """
+    targets = [Path(p) for p in files]
+    temps: list[Path] = []
+    backups: dict[Path, Path | None] = {}
+    done: list[Path] = []
+    try:
+        for target, data in zip(targets, files.values(), strict=True):
+            tmp = temp_sibling(target)
+            temps.append(tmp)
+            try:
+                _write_all(tmp, data)
+                _verify(tmp, data)
+                os.chmod(tmp, 0o644)
+            except OSError as exc:
+                raise _name_target(exc, target) from None
+        for target in targets:  # keep the old versions until every rename went through
+            backups[target] = None
+            if target.is_file():
+                backup = temp_sibling(target)
+                backup.unlink()
+                try:
+                    os.link(target, backup)
+                except OSError:  # a file system without hard links: a copy
+                    shutil.copy2(target, backup)
+                backups[target] = backup
+        for target, tmp in zip(targets, temps, strict=True):
+            try:
+                os.replace(tmp, target)
+            except OSError as exc:
+                raise _name_target(exc, target) from None
+            done.append(target)
+    except BaseException:
+        for target in reversed(done):  # put the old set back
+            with contextlib.suppress(OSError):
+                backup = backups.get(target)
+                if backup is not None:
+                    os.replace(backup, target)
+                else:
+                    target.unlink()
+        raise
+    finally:
+        for p in [*temps, *(b for b in backups.values() if b is not None)]:
+            with contextlib.suppress(OSError):
+                p.unlink(missing_ok=True)
+    return targets
 
 
 def atomic_write_text(path: str | os.PathLike[str], text: str) -> Path:
@@ -150,14 +271,59 @@ def ensure_writable_dir(path: str | os.PathLike[str]) -> Path:
     return path
 
 
+_SPECIAL_KINDS = (
+    (stat.S_ISFIFO, "a FIFO (named pipe)"),
+    (stat.S_ISCHR, "a character device"),
+    (stat.S_ISBLK, "a block device"),
+    (stat.S_ISSOCK, "a socket"),
+)
+
+
+def special_file_kind(path: str | os.PathLike[str]) -> str | None:
+    """What ``path`` is when it is a special file ("a FIFO (named pipe)", "a character device",
+    "a block device", "a socket"; a symlink is followed), else None (a regular file, a folder,
+    or nothing there). Only ``stat``: nothing is opened, so a FIFO does not block."""
+    try:
+        mode = os.stat(path).st_mode
+    except (OSError, ValueError):
+        return None
+    for test, kind in _SPECIAL_KINDS:
+        if test(mode):
+            return kind
+    return None
+
+
+def check_regular_file(path: str | os.PathLike[str], what: str = "file") -> Path:
+    """``path`` as a ``Path`` when it is a regular file (or a symlink to one), checked before
+    anything reads it: a FIFO would block the reader until someone writes into it, a device
+    may never end.
+
+    Raises:
+        DockError: one line calling the file ``what``: missing, a folder, or a special file.
+    """
+    path = Path(path)
+    kind = special_file_kind(path)
+    if kind is not None:
+        raise DockError(f"{what} {path} is {kind}, not a regular file")
+    if path.is_dir():
+        raise DockError(f"{what} is a folder, not a file: {path}")
+    if not path.is_file():
+        raise DockError(f"{what} not found: {path}")
+    return path
+
+
 def read_text(path: str | os.PathLike[str], what: str = "file") -> str:
     """A user's UTF-8 text file (a byte-order mark is accepted), as text.
 
     Raises:
-        ConfigError: one line calling the file ``what``: missing, a folder, unreadable, or not
-            UTF-8 (naming the first bad byte).
+        ConfigError: one line calling the file ``what``: missing, a folder, a special file
+            (FIFO, device, socket: refused before it is opened), unreadable, or not UTF-8
+            (naming the first bad byte).
     """
     path = Path(path)
+    kind = special_file_kind(path)
+    if kind is not None:
+        raise ConfigError(f"{what} {path} is {kind}, not a regular file")
     try:
         data = path.read_bytes()
     except FileNotFoundError:

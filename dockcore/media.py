@@ -34,7 +34,7 @@ import cv2
 import numpy as np
 
 from uwdock.dockcore.errors import DockError
-from uwdock.dockcore.io import temp_sibling
+from uwdock.dockcore.io import special_file_kind, temp_sibling
 
 __all__ = [
     "H264_CRF",
@@ -107,6 +107,8 @@ def read_image(path: str | os.PathLike[str], grey: bool = False) -> np.ndarray |
         (H, W) uint8 grey when ``grey``; else (H, W) grey or (H, W, 3) BGR, uint8 or uint16
         (alpha dropped).
     """
+    if special_file_kind(path) is not None:  # a FIFO would block the read
+        return None
     try:
         data = np.fromfile(Path(path), dtype=np.uint8)
     except OSError:

@@ -13,6 +13,12 @@ claims it first with :func:`claim_output_dir`:
 * **no leftovers**: temporary files of processes that were killed are removed
   (:func:`dockcore.io.clean_stale_temps`); a folder made for a command that then fails before
   writing anything is removed again.
+* **no stale files**: a command that tracks its outputs (:func:`tracked_outputs`: ``markers
+  generate``, ``perception detect``, ``perception eval``) lists them in ``.uwdock-files.json``;
+  its rerun into the same folder removes the files of the previous run it did not write again
+  (only those listed: never a user's own files).
+* **ownership up the tree**: a folder inside another tool's output folder is refused too
+  (``perception detect --out`` into a synth dataset's ``images/``).
 
 Example:
     >>> with claim_output_dir("runs/a", "rl train") as run:
@@ -35,6 +41,9 @@ from uwdock.dockcore.io import atomic_write_json, clean_stale_temps, ensure_writ
 
 OWNER_FILE = ".uwdock-owner.json"
 LOCK_FILE = ".uwdock.lock"
+#: The files a command wrote into its output folder on its last run (relative paths), so that a
+#: rerun removes what it no longer writes (:func:`tracked_outputs`).
+MANIFEST_FILE = ".uwdock-files.json"
 
 #: Tools recognised from the ``command`` of a legacy ``provenance.json`` (first two words).
 _GROUPS = ("markers", "perception", "calibration", "datasets", "sim", "rl")
@@ -68,12 +77,21 @@ def _holder(path: Path) -> str:
 
 
 def _refuse_foreign(folder: Path, tool: str) -> None:
+    """Refuse ``folder`` when it, or a folder above it, holds the output of another tool
+    (``perception detect --out`` into a synth dataset's ``images/``)."""
     owner = folder_owner(folder) if folder.is_dir() else None
     if owner is not None and owner != tool:
         raise DockError(
             f"{folder} holds the output of `{owner}`; `{tool}` will not write into it: "
             "use another --out"
         )
+    for parent in folder.parents:
+        owner = folder_owner(parent) if parent.is_dir() else None
+        if owner is not None and owner != tool:
+            raise DockError(
+                f"{folder} is inside {parent}, the output of `{owner}`; `{tool}` will not "
+                "write into it: use another --out"
+            )
 
 
 @contextlib.contextmanager
@@ -132,8 +150,115 @@ def _remove_if_untouched(folder: Path, made: list[Path]) -> None:
     if not made:
         return
     with contextlib.suppress(OSError):
-        if {p.name for p in folder.iterdir()} <= {OWNER_FILE, LOCK_FILE}:
-            for name in (OWNER_FILE, LOCK_FILE):
+        if {p.name for p in folder.iterdir()} <= {OWNER_FILE, LOCK_FILE, MANIFEST_FILE}:
+            for name in (OWNER_FILE, LOCK_FILE, MANIFEST_FILE):
                 (folder / name).unlink(missing_ok=True)
             for d in made:  # innermost first; each is empty by now
                 d.rmdir()
+
+
+# ---------------------------------------------------------------------------- stale outputs
+
+
+class OutputSet:
+    """The files a run writes into its output folder (see :func:`tracked_outputs`).
+
+    Args:
+        folder: the claimed output folder.
+    """
+
+    def __init__(self, folder: Path) -> None:
+        self.folder = Path(os.path.realpath(folder))
+        self.previous = _read_manifest(self.folder)
+        self.written: set[str] = set()
+
+    def add(self, *paths: str | os.PathLike[str]) -> None:
+        """Record files written by this run (absolute, or relative to the folder); paths
+        outside the folder are ignored."""
+        for p in paths:
+            rel = _relative(self.folder, Path(p))
+            if rel is not None:
+                self.written.add(rel)
+
+    def stale(self) -> list[Path]:
+        """Files of the previous run that this run did not write (and that still exist)."""
+        out = []
+        for rel in sorted(self.previous - self.written):
+            p = self.folder / rel
+            if p.is_file() and not p.is_symlink():
+                out.append(p)
+        return out
+
+    def prune(self) -> list[Path]:
+        """Remove :meth:`stale` files (and folders they leave empty); returns them."""
+        removed = []
+        for p in self.stale():
+            with contextlib.suppress(OSError):
+                p.unlink()
+                removed.append(p)
+                for parent in p.parents:  # a folder of the run's own left empty
+                    if parent == self.folder or not parent.is_relative_to(self.folder):
+                        break
+                    parent.rmdir()  # OSError when not empty: stop
+        return removed
+
+    def save(self, keep_previous: bool = False) -> None:
+        """Write the manifest: this run's files (with the previous run's, after a failure)."""
+        files = self.written | (self.previous if keep_previous else set())
+        atomic_write_json(self.folder / MANIFEST_FILE, {"files": sorted(files)})
+
+
+def _relative(folder: Path, path: Path) -> str | None:
+    """``path`` relative to ``folder`` as a POSIX string, or None when outside it."""
+    p = path if path.is_absolute() else folder / path
+    try:
+        rel = Path(os.path.realpath(p)).relative_to(folder)
+    except ValueError:
+        return None
+    text = rel.as_posix()
+    return None if text in (".", "") or text.startswith("..") else text
+
+
+def _read_manifest(folder: Path) -> set[str]:
+    """The previous run's files (relative paths inside ``folder``); empty when the manifest is
+    missing or unreadable. Entries that would leave the folder are dropped."""
+    try:
+        data = json.loads((folder / MANIFEST_FILE).read_text(encoding="utf-8"))
+        files = data["files"] if isinstance(data, dict) else []
+    except (OSError, ValueError, KeyError):
+        return set()
+    out = set()
+    for f in files if isinstance(files, list) else []:
+        if isinstance(f, str) and f and not Path(f).is_absolute():
+            rel = _relative(folder, Path(f))
+            if rel is not None and rel != MANIFEST_FILE:
+                out.add(rel)
+    return out
+
+
+@contextlib.contextmanager
+def tracked_outputs(
+    folder: str | os.PathLike[str], written: list[Path] | None = None
+) -> Iterator[OutputSet]:
+    """Track the files a run writes into its (claimed) output folder, so that a rerun into the
+    same folder removes the files of the previous run that it no longer writes.
+
+    The block records what it writes with :meth:`OutputSet.add`, or appends the paths to
+    ``written`` (read when the block ends, however it ends). On success the previous run's
+    files not written again are removed (only files listed in ``.uwdock-files.json``: the
+    toolkit's own, never a user's) and the manifest is rewritten; on a failure nothing is
+    removed and the manifest lists the files of both runs, so the next successful run removes
+    what it does not write.
+    """
+    outputs = OutputSet(Path(folder))
+    try:
+        yield outputs
+    except BaseException:
+        outputs.add(*(written or ()))
+        if outputs.written - outputs.previous:
+            with contextlib.suppress(OSError):
+                outputs.save(keep_previous=True)
+        raise
+    outputs.add(*(written or ()))
+    outputs.prune()
+    outputs.save()

@@ -32,12 +32,12 @@ PartHeightMm = Annotated[float, Interval(ge=0.2, le=1000.0)]
 #: Construction styles of the printed marker (:func:`markers.geometry.build_solids`).
 MARKER_STYLES = ("solid", "published")
 
-#: The docking-station marker set of the reference system (reference.md, section 4).
+#: The docking-station marker set of the reference system (docs/reference-system.md, section 4).
 DS_MARKER_IDS: tuple[int, ...] = (13, 14, 15, 28, 34)
 
 #: Marker centres on the reference DS, in the DS frame (x forward, y starboard, z down; metres)
 #: and the marker's in-plane yaw (degrees, about the DS z axis). The reference gives positions only;
-#: we take every marker's x axis along the DS x axis. Source: reference.md section 4.
+#: we take every marker's x axis along the DS x axis. Source: docs/reference-system.md section 4.
 REFERENCE_DS_LAYOUT: dict[str, tuple[float, float, float, float]] = {
     "13": (0.87, -1.05, -1.756, 0.0),
     "34": (0.87, 1.05, -1.756, 0.0),
@@ -53,7 +53,7 @@ class MarkerConfig:
 
     The 3DBM is a white insert with through-openings where the ArUco tag is white, seated in a
     pocket on top of a black enclosure (a square column on a wider base). Seen from above it is
-    the photometric negative of the flat tag. Defaults: reference.md section 5.
+    the photometric negative of the flat tag. Defaults: docs/reference-system.md section 5.
 
     Attributes:
         dictionary: OpenCV dictionary name (``DICT_4X4_50``; any ``cv2.aruco.DICT_*``).
@@ -217,3 +217,11 @@ class MarkerConfig:
         for key in self.layout:  # (each pose's length and domains are its declared type)
             if not (key.isascii() and key.isdigit() and str(int(key)) == key):
                 raise ValueError(f"layout: keys are marker IDs such as '13', got {key!r}")
+        # a layout of one's own places only markers that are generated (the default one, for
+        # the DS set, may stand beside other ids: its entries then place nothing)
+        stray = sorted((k for k in self.layout if int(k) not in self.ids), key=int)
+        if stray and self.layout != REFERENCE_DS_LAYOUT:
+            raise ValueError(
+                f"layout: entries for marker ID(s) {', '.join(stray)} that are not generated "
+                f"(ids = {list(self.ids)}): add them to ids or remove them from the layout"
+            )

@@ -13,7 +13,7 @@ import numpy as np
 from uwdock.dockcore.config import validated
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_path, atomic_write_bytes
-from uwdock.dockcore.outdir import claim_output_dir
+from uwdock.dockcore.outdir import claim_output_dir, tracked_outputs
 from uwdock.dockcore.provenance import write_provenance
 from uwdock.markers.config import MarkerConfig
 from uwdock.markers.dictionary import marker_cells, normalise_dictionary_name
@@ -155,7 +155,9 @@ def generate(
     atomically, the marker set file last. Per ID: ``<stem>_insert.stl`` (white part),
     ``<stem>_enclosure.stl`` (black part), ``<stem>.glb`` (render mesh, metres, with materials),
     ``<stem>_preview.png``; then ``sheet.pdf`` / ``sheet.svg``, ``markerset.toml``,
-    ``config.toml`` and ``provenance.json``.
+    ``config.toml`` and ``provenance.json``. A rerun into the same folder removes the files of
+    the previous run that it does not write again (:func:`dockcore.outdir.tracked_outputs`: the
+    parts of IDs no longer in the set).
 
     Before anything is written, the STL parts are checked for printability
     (:mod:`markers.meshcheck`: watertight, edge/vertex-manifold, no self-intersections) when
@@ -195,10 +197,10 @@ def generate(
     )
     checked, check_line = check_parts(stl, check_meshes)  # once every value is known to work
 
-    with claim_output_dir(out_dir, TOOL) as claimed:
+    written: list[Path] = []  # tracked: a rerun removes the files of IDs no longer in the set
+    with claim_output_dir(out_dir, TOOL) as claimed, tracked_outputs(claimed, written):
         out = claimed.resolve()
         say(check_line)
-        written: list[Path] = []
         for i in ids:
             stem = file_stem(dictionary, i)
             s = solids[i]

@@ -15,8 +15,8 @@ Construction (manifold3d, so every solid is manifold by construction):
   ``clearance/2``) rise from the pocket floor to depth ``relief_depth_mm``.
 
 The ``published`` style (``MarkerConfig.style``) follows the construction of the published,
-tank-proven marker (reference.md section 5: a thin insert over a hollow shell, its openings
-looking into a dark cavity), in our own geometry:
+tank-proven marker (docs/reference-system.md section 5: a thin insert over a hollow shell,
+its openings looking into a dark cavity), in our own geometry:
 
 * insert: a plate ``plate_thickness_mm`` thick with the same openings, and four locating tabs
   (a press fit) under the tag's border cells, one per side;

@@ -159,19 +159,16 @@ def marker_set_from_config(
     pitch_m = 1.5 * max(cfg.base_side, cfg.enclosure_side) / 1000.0
     unplaced = [i for i in ids if str(i) not in cfg.layout]
     cols = max(1, math.ceil(math.sqrt(len(unplaced))))
+    placed = np.array(
+        [[float(v) for v in cfg.layout[str(i)][:3]] for i in ids if str(i) in cfg.layout]
+    ).reshape(-1, 3)
+    cells = _grid_cells(len(unplaced), cols, pitch_m, placed, cfg.size_m)
     specs = []
     for marker_id in ids:
         if str(marker_id) in cfg.layout:
             x, y, z, yaw = (float(v) for v in cfg.layout[str(marker_id)])
         else:
-            k = unplaced.index(marker_id)
-            r, c = divmod(k, cols)
-            x, y, z, yaw = (
-                (r - (len(unplaced) - 1) // cols / 2) * pitch_m,
-                (c - (cols - 1) / 2) * pitch_m,
-                -0.26,
-                0.0,
-            )
+            x, y, z, yaw = (*cells[unplaced.index(marker_id)], 0.0)
         specs.append(
             MarkerSpec(
                 marker_id,
@@ -181,9 +178,60 @@ def marker_set_from_config(
                 (mesh_names or {}).get(marker_id),
             )
         )
+    complaint = overlap_complaint(specs)
+    if complaint:
+        raise ConfigError(f"layout: {complaint}")
     resolved = {"enclosure_side_mm": cfg.enclosure_side, "base_side_mm": cfg.base_side}
     geometry = {k: resolved.get(k, getattr(cfg, k)) for k in _GEOMETRY_KEYS}
     return MarkerSet(tuple(specs), geometry)
+
+
+def _grid_cells(
+    n: int, cols: int, pitch_m: float, placed: np.ndarray, side_m: float
+) -> list[tuple[float, float, float]]:
+    """``n`` face-up positions (m, DS frame) on a grid on the DS floor, ``cols`` wide, centred on
+    the DS origin, skipping the cells where a marker of the layout (``placed``, (P, 3) centres)
+    already sits (closer than a marker side)."""
+    cells: list[tuple[float, float, float]] = []
+    k = 0
+    while len(cells) < n:
+        r, c = divmod(k, cols)
+        cell = ((r - (n - 1) // cols / 2) * pitch_m, (c - (cols - 1) / 2) * pitch_m, -0.26)
+        k += 1
+        if len(placed) and np.linalg.norm(placed - np.array(cell), axis=1).min() < side_m:
+            continue
+        cells.append(cell)
+    return cells
+
+
+def overlap_complaint(specs: tuple[MarkerSpec, ...] | list[MarkerSpec]) -> str | None:
+    """One line naming the first two markers that overlap, else None.
+
+    Two markers overlap when their centres are closer than their mean side: then the discs
+    inscribed in the two tags intersect (for coplanar tags: the tags themselves do). A set with
+    every marker at one pose is the extreme case: PnP on it has no geometry to solve with.
+    """
+    if len(specs) < 2:
+        return None
+    centres = np.array([np.asarray(s.T_ds_marker)[:3, 3] for s in specs])
+    sides = np.array([s.side_m for s in specs])
+    d = np.linalg.norm(centres[:, None] - centres[None], axis=2)
+    close = d < (sides[:, None] + sides[None]) / 2
+    np.fill_diagonal(close, False)
+    if not close.any():
+        return None
+    i, j = (int(v) for v in np.argwhere(close)[0])
+    a, b = specs[i], specs[j]
+    same = sum(bool(close[i, k]) for k in range(len(specs))) + 1
+    what = (
+        f"{same} markers, {a.marker_id} and {b.marker_id} among them,"
+        if same > 2
+        else (f"markers {a.marker_id} and {b.marker_id}")
+    )
+    return (
+        f"{what} overlap: centres {d[i, j]:.3g} m apart, less than a marker side "
+        f"({(a.side_m + b.side_m) / 2:g} m); give each marker its own place"
+    )
 
 
 def save_marker_set(path: str | os.PathLike[str], ms: MarkerSet) -> Path:
@@ -345,4 +393,7 @@ def load_marker_set(path: str | os.PathLike[str]) -> MarkerSet:
         raise _fail(path, f"marker ID {dup[0]} appears twice")
     if len({s.dictionary for s in specs}) > 1:
         raise _fail(path, "markers use different dictionaries")
+    complaint = overlap_complaint(specs)
+    if complaint:
+        raise _fail(path, complaint)
     return MarkerSet(tuple(specs), geometry, path.resolve())

@@ -42,7 +42,7 @@ def cli() -> None:
 
 
 def _note(msg: str) -> None:
-    click.echo(f"note: {msg}", err=True)
+    click.echo(msg if msg.startswith("warning: ") else f"note: {msg}", err=True)
 
 
 def _config(config_path: Path | None, pipeline: str | None, level_ds: bool | None = None):

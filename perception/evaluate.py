@@ -16,7 +16,10 @@ The config, markers, camera and input are checked before the output folder is cl
 (:func:`dockcore.outdir.claim_output_dir`: locked while the command runs, refused when another
 tool made it, temporary files of killed runs removed). Files are written atomically: a failure
 part-way leaves earlier complete files (and older versions of the others) intact, and a folder
-made for a run that fails before writing anything is removed again.
+made for a run that fails before writing anything is removed again. A rerun into its own folder
+removes the files of the previous run that it does not write again (compare files, plots,
+annotated frames; :func:`dockcore.outdir.tracked_outputs`). The folder's owner is checked up the
+tree: a folder inside another tool's output (a synth dataset's ``images/``) is refused.
 """
 
 from __future__ import annotations
@@ -40,12 +43,13 @@ from uwdock.dockcore.config import to_dict, validated
 from uwdock.dockcore.domains import check, split_annotated
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_path, atomic_write_bytes, atomic_write_json, atomic_write_text
-from uwdock.dockcore.outdir import claim_output_dir
+from uwdock.dockcore.outdir import claim_output_dir, tracked_outputs
 from uwdock.dockcore.provenance import provenance, write_provenance
 from uwdock.markers.config import MarkerConfig, MarkerSideM
 from uwdock.markers.dictionary import normalise_dictionary_name
 from uwdock.markers.markerset import load_marker_set, marker_set_from_config
 from uwdock.perception.detector import Detection, DetectorConfig
+from uwdock.perception.dictionary_hint import FrameSampler, dictionary_warning
 from uwdock.perception.ds_pose import DSPoseConfig, DSPoseEstimator
 from uwdock.perception.groundtruth import FrameTruth
 from uwdock.perception.pose import BoardPose, BoardPoseConfig, MarkerPose, solve_marker
@@ -456,13 +460,15 @@ def run_detect(
     cfg = validated(cfg or PerceptionConfig())
     proc = FrameProcessor(setup, cfg.detector, cfg.board, cfg.pose)
     source = open_frames(input_path, topic)
+    written: list[Path] = []  # tracked: a rerun removes the annotated frames it does not write
     try:
-        with claim_output_dir(out_dir, "perception detect") as out:
+        with claim_output_dir(out_dir, "perception detect") as out, tracked_outputs(out, written):
             counts, outputs = _detect_frames(
-                source, out, setup, proc, cfg, camera, annotate_frames, progress, note
+                source, out, setup, proc, cfg, camera, annotate_frames, progress, note, written
             )
             extra = {"input": str(input_path), "markers": setup.description, "counts": counts}
             write_provenance(out, {"perception": cfg}, extra)
+            written.extend([*outputs, out / "config.toml", out / "provenance.json"])
     finally:
         source.close()
     return {**counts, "corrupt_frames": source.corrupt, "outputs": [str(p) for p in outputs]}
@@ -478,8 +484,10 @@ def _detect_frames(
     annotate_frames: bool,
     progress: bool | None,
     note: Note,
+    outputs: list[Path] | None = None,
 ) -> tuple[dict[str, int], list[Path]]:
-    """The frame loop of :func:`run_detect` in a claimed folder: (counts, paths written)."""
+    """The frame loop of :func:`run_detect` in a claimed folder: (counts, paths written);
+    annotated frames are appended to ``outputs`` as they are written."""
     resolver = CameraResolver(camera, note)
     video = None
     if annotate_frames and source.kind in ("video", "bag"):
@@ -487,7 +495,8 @@ def _detect_frames(
     counts: dict[str, int] = dict.fromkeys(
         ("frames", "frames_with_detection", "frames_with_pose", "markers_detected_total"), 0
     )
-    outputs: list[Path] = []
+    outputs = [] if outputs is None else outputs
+    sampler = FrameSampler()  # for the wrong-dictionary hint
     jsonl, table = out / "detections.jsonl", out / "detections.csv"
     try:
         with atomic_path(jsonl) as tmp_j, atomic_path(table) as tmp_c:
@@ -497,6 +506,7 @@ def _detect_frames(
                 for index, name, image in _progress(source, progress, "detect"):
                     res = None
                     if image is not None:
+                        sampler.offer(image)
                         cam = resolver(image.shape[1], image.shape[0])
                         res = proc.process(image, cam)
                         counts["frames"] += 1
@@ -523,6 +533,8 @@ def _detect_frames(
         raise
     for warning in source.warnings:
         note(warning)
+    if not counts["frames_with_detection"]:
+        note(dictionary_warning(setup.dictionary, sampler.frames, sampler.offered))
     return counts, [*outputs, jsonl, table]
 
 
@@ -646,10 +658,22 @@ def run_eval(
     }
     T_bc = None if T_body_cam is None else check_T(T_body_cam, "T_body_cam")
     source = open_frames(input_path, topic)
+    written: list[Path] = []  # tracked: a rerun removes compare files and plots it does not write
     try:
-        with claim_output_dir(out_dir, "perception eval") as out:
+        with claim_output_dir(out_dir, "perception eval") as out, tracked_outputs(out, written):
             return _evaluate(
-                source, out, setup, camera, cfg, procs, truth, truth_source, progress, note, T_bc
+                source,
+                out,
+                setup,
+                camera,
+                cfg,
+                procs,
+                truth,
+                truth_source,
+                progress,
+                note,
+                T_bc,
+                written,
             )
     finally:
         source.close()
@@ -667,13 +691,17 @@ def _evaluate(
     progress: bool | None,
     note: Note,
     T_body_cam: np.ndarray | None = None,
+    written: list[Path] | None = None,
 ) -> dict[str, Any]:
-    """The frame loop and the report of :func:`run_eval`, in a claimed folder."""
+    """The frame loop and the report of :func:`run_eval`, in a claimed folder; the files are
+    appended to ``written`` as they are written."""
+    written = [] if written is None else written
     names = list(procs)
     input_path = source.path
     lookup = _truth_lookup(truth, source.kind)
     resolver = CameraResolver(camera, note)
     records: dict[str, list[EvalRecord]] = {p: [] for p in names}
+    sampler = FrameSampler()  # for the wrong-dictionary hint
     thumbs = ThumbnailBuffer(cfg.report.contact_sheet_frames, cfg.report.thumbnail_width_px)
     # video frames follow each other: with pose.search_from_prior, each frame searches around
     # the previous frame's DS pose first (a corrupt frame or one without a pose drops the prior)
@@ -685,6 +713,7 @@ def _evaluate(
             for p in names:
                 records[p].append(EvalRecord(index, name, corrupt=True))
             continue
+        sampler.offer(img_bgr)
         ft = lookup(index, name)
         cam = resolver(img_bgr.shape[1], img_bgr.shape[0])
         T_world_cam = None
@@ -705,6 +734,8 @@ def _evaluate(
     main = records[names[0]]
     if not any(not r.corrupt for r in main):
         raise DockError(f"no decodable frame in {input_path} ({source.corrupt} corrupt)")
+    if not any(r.ids for rs in records.values() for r in rs):
+        note(dictionary_warning(setup.dictionary, sampler.frames, sampler.offered))
     with_truth = truth is not None
     if with_truth and not any(r.truth is not None for r in main):
         raise DockError(
@@ -736,29 +767,38 @@ def _evaluate(
         "plots": [],
     }
     stamps = source.timestamps_ns  # a bag's frame times
-    _write_jsonl(
-        out / "frames.jsonl",
-        (
-            {**r.to_json(), "stamp_ns": stamps[k]} if stamps else r.to_json()
-            for k, r in enumerate(main)
-        ),
-    )
-    atomic_write_json(out / "report.json", report)
-    if rows is not None:
-        atomic_write_json(
-            out / "compare.json",
-            {"columns": list(COMPARE_COLUMNS), "rows": rows, "summaries": summaries},
+    written.append(
+        _write_jsonl(
+            out / "frames.jsonl",
+            (
+                {**r.to_json(), "stamp_ns": stamps[k]} if stamps else r.to_json()
+                for k, r in enumerate(main)
+            ),
         )
-        atomic_write_text(out / "compare.md", markdown_table(rows, COMPARE_COLUMNS))
+    )
+    written.append(atomic_write_json(out / "report.json", report))
+    if rows is not None:
+        written.append(
+            atomic_write_json(
+                out / "compare.json",
+                {"columns": list(COMPARE_COLUMNS), "rows": rows, "summaries": summaries},
+            )
+        )
+        written.append(atomic_write_text(out / "compare.md", markdown_table(rows, COMPARE_COLUMNS)))
     plots = [plot_timeline(out / "timeline.png", [r.to_json() for r in main])]
+    written.extend(plots)
     if with_truth:
         by_range = {p: s["by_range"] for p, s in summaries.items()}
         plots.append(plot_rate_vs_range(out / "rate_vs_range.png", by_range))
+        written.append(plots[-1])
         plots.append(plot_error_vs_range(out / "error_vs_range.png", by_range))
+        written.append(plots[-1])
     sheet = write_contact_sheet(out / "contact_sheet.png", thumbs.pick())
     if sheet is not None:
         plots.append(sheet)
+        written.append(sheet)
     report["plots"] = [p.name for p in plots]
     atomic_write_json(out / "report.json", report)
     write_provenance(out, {"perception": cfg}, extra)
+    written.extend([out / "config.toml", out / "provenance.json"])
     return report

@@ -467,17 +467,40 @@ def load_pose_csv(path: str | os.PathLike[str]) -> dict[int, FrameTruth]:
     return out
 
 
+#: Largest |x|, |y|, |z| of a ground-truth DS position (m) and frame index a pose CSV may hold:
+#: beyond, a value is a wrong column or a corrupt file.
+MAX_TRUTH_COORD_M = 1e6
+MAX_FRAME_INDEX = 10**9
+_CSV_BOUNDS = {
+    "frame": MAX_FRAME_INDEX,
+    "x_m": MAX_TRUTH_COORD_M,
+    "y_m": MAX_TRUTH_COORD_M,
+    "z_m": MAX_TRUTH_COORD_M,
+}
+
+
+def csv_number(text: object, column: str, where: str, bound: float | None = None) -> float:
+    """One cell of a CSV as a finite number, within ``[-bound, bound]`` when a bound is given
+    (the pose CSVs' readers share it).
+
+    Raises:
+        DockError: one line naming ``where`` (file and line), the column and the value.
+    """
+    try:
+        v = float(str(text).strip())
+    except (TypeError, ValueError):
+        raise DockError(f"{where}: column '{column}' is not a number ({text!r})") from None
+    if not math.isfinite(v):
+        raise DockError(f"{where}: column '{column}' is not finite ({text!r})")
+    if bound is not None and abs(v) > bound:
+        raise DockError(f"{where}: column '{column}' is {v:g}, outside [-{bound:g}, {bound:g}]")
+    return v
+
+
 def _csv_row(row: Mapping[str, Any], where: str) -> FrameTruth:
     values = []
     for col in CSV_COLUMNS:
-        text = row.get(col)
-        try:
-            v = float(str(text).strip())
-        except (TypeError, ValueError):
-            raise DockError(f"{where}: column '{col}' is not a number ({text!r})") from None
-        if not math.isfinite(v):
-            raise DockError(f"{where}: column '{col}' is not finite ({text!r})")
-        values.append(v)
+        values.append(csv_number(row.get(col), col, where, _CSV_BOUNDS.get(col)))
     frame = values[0]
     if frame < 0 or frame != int(frame):
         raise DockError(f"{where}: frame must be an integer >= 0, got {row.get('frame')!r}")

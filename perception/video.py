@@ -49,7 +49,7 @@ import numpy as np
 from uwdock.calibration.camera import CameraModel
 from uwdock.dockcore.bags import Bag, is_bag
 from uwdock.dockcore.errors import DockError
-from uwdock.dockcore.io import atomic_write_bytes
+from uwdock.dockcore.io import atomic_write_bytes, check_regular_file
 from uwdock.dockcore.media import (
     IMAGE_SUFFIXES,
     MAX_CONSECUTIVE_VIDEO_FAILURES,
@@ -288,15 +288,18 @@ def open_frames(path: str | os.PathLike[str], topic: str | None = None) -> Frame
     docstring; :func:`dockcore.bags.resolve_image_topic` picks the topic).
 
     Raises:
-        DockError: one line when the path is missing, a folder holds no image files, a single
-            image cannot be decoded, a video cannot be opened or has no decodable frame, or a
-            bag has no such image topic (or none was named). Corrupt images in a folder and
+        DockError: one line when the path is missing or a special file (a FIFO, a device:
+            refused before it is opened), a folder holds no image files, a single image cannot
+            be decoded, a video cannot be opened or has no decodable frame, or a bag has no
+            such image topic (or none was named). Corrupt images in a folder and
             corrupt frames in a video or bag are not errors: they are yielded as None and
             counted in :attr:`FrameSource.corrupt`.
     """
     path = Path(path)
     if not path.exists():
         raise DockError(f"input not found: {path}")
+    if not path.is_dir():
+        check_regular_file(path, "input")
     if is_bag(path):
         if topic is None:
             raise DockError(f"{path} is a bag: name its image topic (--topic)")

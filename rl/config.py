@@ -48,7 +48,7 @@ LEGACY_WORLD_KEYS = (
 
 @dataclass(frozen=True)
 class EnvConfig:
-    """The docking environment (reference.md section 1 and the paper's appendix table).
+    """The docking environment (docs/reference-system.md section 1 and the paper's appendix table).
 
     The simulated world (tank, DS markers, camera, water, vehicle, currents) is one nested
     config, :attr:`world` (:class:`~uwdock.sim.world_config.WorldConfig`, the TOML table

@@ -49,14 +49,15 @@ from tqdm import tqdm
 from uwdock.calibration.camera import (
     REFERENCE_T_BODYFRD_CAMCV,
     CameraModel,
+    check_plausible,
     resolve_camera,
 )
-from uwdock.calibration.frames import inv_T, make_T
+from uwdock.calibration.frames import check_T, inv_T, make_T
 from uwdock.datasets.sequences import FrameSequences, sequences_from_manifest
 from uwdock.dockcore.config import to_dict
 from uwdock.dockcore.domains import Interval
 from uwdock.dockcore.errors import DockError
-from uwdock.dockcore.io import atomic_write_json
+from uwdock.dockcore.io import atomic_write_json, check_regular_file, read_text
 from uwdock.dockcore.provenance import provenance
 from uwdock.markers.markerset import load_marker_set
 from uwdock.markers.view import markers_in_view
@@ -421,21 +422,31 @@ class ErrorModel:
         self.data = data
         self.path = path
         c = data["config"]
-        self.range_bin_m = float(c["range_bin_m"])
+        self.range_bin_m = float(_numbers(c["range_bin_m"], "config.range_bin_m", (), gt=0))
+        if not isinstance(data["tables"], dict) or "all" not in data["tables"]:
+            raise ValueError("tables: must hold an 'all' table")
         self.n_bins = len(data["tables"]["all"]["bins"])
         cam = data["camera"]
-        self.camera = CameraModel(
-            width_px=int(cam["width_px"]),
-            height_px=int(cam["height_px"]),
-            fx_px=float(cam["fx_px"]),
-            fy_px=float(cam["fy_px"]),
-            cx_px=float(cam["cx_px"]),
-            cy_px=float(cam["cy_px"]),
-            dist=tuple(cam["dist"]),
-        )
+        try:
+            self.camera = CameraModel(
+                width_px=int(cam["width_px"]),
+                height_px=int(cam["height_px"]),
+                fx_px=float(cam["fx_px"]),
+                fy_px=float(cam["fy_px"]),
+                cx_px=float(cam["cx_px"]),
+                cy_px=float(cam["cy_px"]),
+                dist=tuple(cam["dist"]),
+            )
+            check_plausible(self.camera)
+        except ValueError as exc:
+            raise ValueError(f"camera.{exc}") from None
         tb = cam.get("T_body_cam")
-        self.T_body_cam = np.asarray(tb) if tb is not None else np.array(REFERENCE_T_BODYFRD_CAMCV)
-        self.corners_ds = np.asarray(data["board_corners_ds_m"], dtype=np.float64)
+        self.T_body_cam = (
+            check_T(_numbers(tb, "camera.T_body_cam", (4, 4)), "camera.T_body_cam")
+            if tb is not None
+            else np.array(REFERENCE_T_BODYFRD_CAMCV)
+        )
+        self.corners_ds = _numbers(data["board_corners_ds_m"], "board_corners_ds_m", (-1, 4, 3))
         memory = data.get("version", VERSION) >= 2  # version 1: memoryless
         seqs = data.get("sequences") if memory else None
         step = seqs.get("step_s") if isinstance(seqs, dict) else None
@@ -443,25 +454,104 @@ class ErrorModel:
         self.step_s: float | None = None if step is None else float(step)
         self._tables = {}
         for water, t in data["tables"].items():
-            bins = t["bins"]
             rho = _rho(t.get("ar1") if memory else None, water)
             if np.any(rho != 0) and not (self.step_s is not None and 0 < self.step_s < math.inf):
                 raise ValueError(f"table '{water}': ar1 rho needs sequences.step_s > 0")
-            self._tables[water] = {
-                "rho": rho,
-                "p": np.asarray(t["p_detect"]),
-                "bias": np.asarray([b["bias"] for b in bins]),
-                "chol": np.stack([np.linalg.cholesky(_psd(np.asarray(b["cov"]))) for b in bins]),
-                "cov": np.stack([np.asarray(b["cov"]) for b in bins]),
-                "p_out": np.asarray([b["p_outlier"] for b in bins]),
-                "outliers": [np.asarray(b["outliers"]) for b in bins],
-            }
+            table = _checked_table(t, f"tables.{water}", self.n_bins)
+            table["rho"] = rho
+            self._tables[water] = table
 
     def table(self, water: str) -> dict[str, Any]:
         return self._tables.get(water, self._tables["all"])
 
     def range_bin(self, range_m: float) -> int:
         return min(int(range_m / self.range_bin_m), self.n_bins - 1)
+
+
+def _numbers(
+    value: Any,
+    key: str,
+    shape: tuple[int, ...] | None = None,
+    lo: float = -math.inf,
+    hi: float = math.inf,
+    gt: float | None = None,
+) -> np.ndarray:
+    """``value`` of a model file as a float64 array of ``shape`` (-1: any length) whose every
+    element is finite and in ``[lo, hi]`` (``> gt`` when given).
+
+    Raises:
+        ValueError: one line naming ``key`` and the first bad element (``key[3][1]``).
+    """
+    if isinstance(value, (bool, str)) or value is None:
+        raise ValueError(f"{key}: must be numbers, got {_show(value)}")
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{key}: must be numbers, got {_show(value)}") from None
+    fits = shape is None or (
+        arr.ndim == len(shape) and all(n in (-1, m) for n, m in zip(shape, arr.shape, strict=True))
+    )
+    if not fits:
+        want = " x ".join("N" if n == -1 else str(n) for n in shape) or "a number"
+        raise ValueError(f"{key}: must be {want}, got shape {arr.shape}")
+    with np.errstate(invalid="ignore"):
+        bad = ~np.isfinite(arr) | (arr < lo) | (arr > hi)
+        if gt is not None:
+            bad |= arr <= gt
+    if bad.any():
+        idx = tuple(int(i) for i in np.argwhere(bad)[0])
+        where = key + "".join(f"[{i}]" for i in idx)
+        if gt is not None:
+            domain = f" > {gt:g}"
+        elif lo > -math.inf and hi < math.inf:
+            domain = f" in [{lo:g}, {hi:g}]"
+        elif lo > -math.inf:
+            domain = f" >= {lo:g}"
+        else:
+            domain = ""
+        raise ValueError(f"{where}: must be a finite number{domain}, got {float(arr[idx])!r}")
+    return arr
+
+
+def _show(value: Any) -> str:
+    text = " ".join(repr(value).split())
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _checked_table(t: Any, key: str, n_bins: int) -> dict[str, Any]:
+    """A table of a model file as arrays, every value in its domain: detection and outlier
+    probabilities in [0, 1], finite biases, covariances with non-negative variances, finite
+    outlier samples (ValueError naming the key otherwise)."""
+    if not isinstance(t, dict):
+        raise ValueError(f"{key}: must be a table, got {_show(t)}")
+    bins = t["bins"]
+    if not isinstance(bins, list) or len(bins) != n_bins:
+        raise ValueError(f"{key}.bins: must be a list of {n_bins} bins (as tables.all)")
+    p = _numbers(t["p_detect"], f"{key}.p_detect", (n_bins, N_VISIBLE_BINS), 0.0, 1.0)
+    bias, cov, p_out, outliers = [], [], [], []
+    for k, b in enumerate(bins):
+        where = f"{key}.bins[{k}]"
+        if not isinstance(b, dict):
+            raise ValueError(f"{where}: must be a table, got {_show(b)}")
+        bias.append(_numbers(b["bias"], f"{where}.bias", (N_ERR,)))
+        c = _numbers(b["cov"], f"{where}.cov", (N_ERR, N_ERR))
+        _numbers(np.diag(c), f"{where}.cov diagonal (variances)", (N_ERR,), lo=0.0)
+        cov.append(c)
+        p_out.append(float(_numbers(b["p_outlier"], f"{where}.p_outlier", (), 0.0, 1.0)))
+        raw = b["outliers"]
+        outliers.append(
+            np.zeros((0, N_ERR))
+            if isinstance(raw, list) and not raw
+            else _numbers(raw, f"{where}.outliers", (-1, N_ERR))
+        )
+    return {
+        "p": p,
+        "bias": np.asarray(bias),
+        "chol": np.stack([np.linalg.cholesky(_psd(c)) for c in cov]),
+        "cov": np.stack(cov),
+        "p_out": np.asarray(p_out),
+        "outliers": outliers,
+    }
 
 
 def _rho(ar1: Any, water: str) -> np.ndarray:
@@ -492,11 +582,10 @@ def load_error_model(path: str | os.PathLike[str] | None) -> ErrorModel:
     if path is None:
         raise DockError("no error model given: fit one with `rl fit-error-model`")
     p = Path(path)
-    if not p.is_file():
-        raise DockError(f"error model file not found: {p}")
+    check_regular_file(p, "error model file")
     try:
-        data = json.loads(p.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        data = json.loads(read_text(p, "error model file"))
+    except json.JSONDecodeError as exc:
         raise DockError(f"{p}: malformed JSON ({exc})") from None
     version = data.get("version") if isinstance(data, dict) else None
     if data.get("format") != FORMAT or isinstance(version, bool) or version not in READ_VERSIONS:

@@ -23,7 +23,7 @@ _Reward = Annotated[float, Interval(ge=0, le=1e6)]
 
 @dataclass(frozen=True)
 class RewardConfig:
-    """Reward constants (reference.md section 1; paper appendix table).
+    """Reward constants (docs/reference-system.md section 1; paper appendix table).
 
     Attributes:
         w_xyz: weights of |e_x|, |e_y|, |e_z| in r_dist (1/m).

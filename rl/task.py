@@ -26,7 +26,7 @@ _Point = tuple[_Coord, _Coord, _Coord]
 
 @dataclass(frozen=True)
 class DockingTaskConfig:
-    """Geometry and criteria of the docking task (reference.md sections 1, 2 and 4).
+    """Geometry and criteria of the docking task (docs/reference-system.md sections 1, 2 and 4).
 
     Attributes:
         dock_height_m: AUV origin above the DS origin when docked (m).

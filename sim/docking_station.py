@@ -2,7 +2,7 @@
 
 Frames (see :mod:`calibration.frames`):
     ds:        x forward, y starboard, z down, origin on the top of the DS floor plate; heights
-               above the floor are negative z (the reference's numbers, reference.md section 4).
+               above the floor are negative z (docs/reference-system.md section 4).
     world_ned: x north, y east, z down, origin on the water surface at the tank centre; the tank
                floor is at z = ``tank_depth_m``.
     SAPIEN's world is ``world_zup``. The one conversion happens in :func:`sapien_pose`: every
@@ -10,7 +10,8 @@ Frames (see :mod:`calibration.frames`):
     ``T_WORLDZUP_WORLDNED @ T_worldned_frame`` (a proper rotation, so SAPIEN accepts it), and all
     shapes are placed inside it with their DS (or NED) coordinates unchanged.
 
-Geometry (defaults from reference.md section 4; all editable in :class:`DockingStationConfig`):
+Geometry (defaults from docs/reference-system.md section 4; all editable in
+:class:`DockingStationConfig`):
     * floor plate and an open-top cage frame (corner posts, rim beams) of 1.94 x 2.28 m, rim at
       1.64 m (the rim markers' pedestals stand on brackets at that height; their faces at 1.756 m);
     * X-guides: vertical plates at x = +-0.57 m over y in [-0.85, 0.85] whose top edge is a

@@ -79,7 +79,7 @@ class ThrusterConfig:
             raise ValueError(f"axis: must be non-zero (thruster {self.name})")
 
 
-#: The five thrusters of the reference vehicle (reference.md section 3), body FRD.
+#: The five thrusters of the reference vehicle (docs/reference-system.md section 3), body FRD.
 DEFAULT_THRUSTERS: tuple[ThrusterConfig, ...] = (
     ThrusterConfig("SurgePort", (-0.330, -0.259, -0.021), (1.0, 0.0, 0.0)),
     ThrusterConfig("SurgeStarboard", (-0.330, 0.259, -0.021), (1.0, 0.0, 0.0)),

@@ -140,10 +140,11 @@ class ImuConfig:
 class VehicleConfig:
     """Rigid body, hydrodynamic and actuator parameters of the Girona AUV (body FRD, origin O).
 
-    Sources (reference.md section 3): mass ~150 kg, CG ~0.11 m below and CB ~0.18 m above the
-    origin, ~+3 kg net buoyancy; damping, translational added mass and thruster lag from the
-    published G500 dynamics file. Inertia and rotational added mass are our estimates from a
-    three-hull mass model (not published); all of it is randomised per episode.
+    Sources (docs/reference-system.md section 3): mass ~150 kg, CG ~0.11 m below and CB
+    ~0.18 m above the origin, ~+3 kg net buoyancy; damping, translational added mass and
+    thruster lag from the published G500 dynamics file. Inertia and rotational added mass are
+    our estimates from a three-hull mass model (not published); all of it is randomised per
+    episode.
 
     Attributes:
         mass_kg: dry rigid-body mass m (kg); the weight m*g acts at ``cg_m``.

@@ -74,7 +74,8 @@ def test_hfov_edge_projects_to_outer_pixel_edges():
 
 
 def test_marker_size_in_pixels_matches_reference():
-    # reference.md: a 0.10 m marker spans about 93 px at 1 m, 46 px at 2 m, 19 px at 5 m
+    # docs/reference-system.md section 3: a 0.10 m marker spans about 93 px at 1 m, 46 px at
+    # 2 m, 19 px at 5 m
     cam = reference_camera()
     for z, span in ((1.0, 93), (2.0, 46), (5.0, 19)):
         px = cam.project([[-0.05, 0.0, z], [0.05, 0.0, z]])

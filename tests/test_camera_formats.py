@@ -701,8 +701,9 @@ def test_cli_import_no_stereo_and_refusals(run_cli, tmp_path):
     assert not out2.exists() and not (tmp_path / "c2_stereo.yaml").exists()
     r = run_cli(calibration_cli.main, "import", fisheye, "--no-stereo", "--out", out2)
     assert r.code == 0 and load_camera(out2)[0].name == "cam0"
-    # different image sizes cannot form one stereo file
-    text = KALIBR.replace("[1280, 1024]\n  rostopic: /cam1", "[640, 512]\n  rostopic: /cam1")
+    # different image sizes cannot form one stereo file (a size that still holds cam1's
+    # principal point: one outside the image is refused first, by check_plausible)
+    text = KALIBR.replace("[1280, 1024]\n  rostopic: /cam1", "[1300, 1040]\n  rostopic: /cam1")
     sizes = _write(tmp_path, text, "s.yaml")
     r = run_cli(calibration_cli.main, "import", sizes, "--out", out2)
     assert r.code != 0 and r.err.count("\n") == 1 and "differ in size" in r.err, r.err

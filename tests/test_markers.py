@@ -220,7 +220,8 @@ def test_generate_writes_every_file(generated):
     for name in ("sheet.pdf", "sheet.svg", "markerset.toml", "config.toml", "provenance.json"):
         assert (generated / name).is_file()
     hidden = {p.name for p in generated.glob(".*")}
-    assert hidden <= {".uwdock.lock", ".uwdock-owner.json"}, hidden  # the folder's claim only
+    # the folder's claim and the list of files it wrote (a rerun removes the ones it drops)
+    assert hidden <= {".uwdock.lock", ".uwdock-owner.json", ".uwdock-files.json"}, hidden
     assert json.loads((generated / ".uwdock-owner.json").read_text())["tool"] == "markers generate"
     prov = json.loads((generated / "provenance.json").read_text())
     assert prov["config"]["marker"]["ids"] == list(DS_MARKER_IDS)

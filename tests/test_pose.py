@@ -1,6 +1,6 @@
 """Marker and docking-station PnP against projected ground truth.
 
-The board is the reference docking station (reference.md section 4): markers 13 and 34 on the
+The board is the reference DS (docs/reference-system.md section 4): markers 13 and 34 on the
 top rim, 14, 15 and 28 on the floor, 0.10 m tags facing up (marker z = -z_ds). The camera is the
 reference one (968 x 732 px, f = 930 px) looking down at the board like a docking vehicle
 (tilt <= 20 deg, image x within 20 deg of the DS y axis, as when docked yawed 90 deg), aimed at
