@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# README command 2: lint (ruff, shellcheck) and run the test suite. Extra arguments go to pytest:
+# README command 2: lint (ruff, shellcheck), build the docs strictly (mkdocs) and run the test
+# suite. Extra arguments go to pytest:
 #   scripts/test.sh                 the suite (tests marked slow or gpu are excluded)
 #   scripts/test.sh -m render       only the SAPIEN rendering tests
 #   scripts/test.sh tests/test_markers.py -k decode
@@ -19,5 +20,14 @@ if [ ! -x "$VENV/bin/shellcheck" ]; then
   exit 1
 fi
 "$VENV/bin/shellcheck" scripts/*.sh .ci/run
+echo "[test] docs (mkdocs build --strict: a broken link, anchor or page fails)"
+if [ ! -x "$VENV/bin/mkdocs" ]; then
+  echo "error: no mkdocs in $VENV (mkdocs, a dev dependency): rerun scripts/setup.sh" >&2
+  exit 1
+fi
+SITE=$(mktemp -d)
+NO_MKDOCS_2_WARNING=1 "$VENV/bin/mkdocs" build --strict --site-dir "$SITE" \
+  || { rm -rf "$SITE"; echo "error: the documentation does not build (see above)" >&2; exit 1; }
+rm -rf "$SITE"
 echo "[test] pytest"
 exec "$VENV/bin/python" -m pytest "$@"
