@@ -14,7 +14,6 @@ ChArUco board (OpenCV's conventions; see :mod:`calibration.patterns`).
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import math
 import os
@@ -22,14 +21,13 @@ import sys
 from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import cv2
 import numpy as np
 from tqdm import tqdm
 
-from uwdock.calibration.camera import CameraModel, load_camera, save_camera
+from uwdock.calibration.camera import CameraModel
 from uwdock.calibration.crossval import (
     INTRINSIC_NAMES,
     CrossValidation,
@@ -37,6 +35,8 @@ from uwdock.calibration.crossval import (
     cross_validate,
     fit_views,
 )
+from uwdock.calibration.intrinsics_inputs import iter_views, to_grey
+from uwdock.calibration.intrinsics_report import write_outputs
 from uwdock.calibration.patterns import (
     PATTERNS,
     Detection,
@@ -47,19 +47,12 @@ from uwdock.calibration.patterns import (
     spread_subset,
     view_quad_px,
 )
-from uwdock.dockcore.bags import Bag, is_bag
 from uwdock.dockcore.config import to_dict, validated
 from uwdock.dockcore.domains import Interval
 from uwdock.dockcore.errors import DockError
-from uwdock.dockcore.io import atomic_path, atomic_write_json, check_regular_file
 from uwdock.dockcore.media import (
     IMAGE_SUFFIXES,
-    MAX_CONSECUTIVE_VIDEO_FAILURES,
-    open_video,
-    quiet_native_stderr,
-    read_image,
 )
-from uwdock.dockcore.provenance import provenance
 
 __all__ = [
     "IMAGE_SUFFIXES",
@@ -351,134 +344,6 @@ class IntrinsicsResult:
 
 def _round(x: float | None, digits: int = 6) -> float | None:
     return None if x is None or not math.isfinite(x) else round(float(x), digits)
-
-
-# --------------------------------------------------------------------------- input views
-
-
-def to_grey(image: np.ndarray | None) -> np.ndarray | None:
-    """The one greyscale conversion of every input (folder, video, bag), so that the same
-    frames give the same corners whatever their container.
-
-    Args:
-        image: a decoded frame: (H, W) or (H, W, 3) BGR, uint8 or uint16; None passes through.
-
-    Returns:
-        (H, W) uint8: 16-bit keeps its top byte (as ``cv2.imread``'s greyscale flag does),
-        colour goes through ``cv2.COLOR_BGR2GRAY`` (0.299 R + 0.587 G + 0.114 B).
-    """
-    if image is None:
-        return None
-    if image.dtype == np.uint16:
-        image = (image >> 8).astype(np.uint8)
-    elif image.dtype != np.uint8:
-        image = np.clip(image, 0, 255).astype(np.uint8)
-    if image.ndim == 3:
-        image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
-    return image
-
-
-def _video_frames(
-    path: Path, max_frames: int
-) -> tuple[int, Iterator[tuple[str, np.ndarray | None]]]:
-    """(views expected, views) of a video: every ``stride``-th frame, at most ``max_frames``.
-
-    A frame that cannot be decoded is a view ``None`` (counted as unreadable) and reading goes
-    on past it; it stops at the end of the stream or after
-    ``dockcore.media.MAX_CONSECUTIVE_VIDEO_FAILURES`` failed reads in a row; corrupt leading
-    frames are skipped. Decoding is quiet (:func:`dockcore.media.quiet_native_stderr`).
-    """
-    cap, first, leading = open_video(path)
-    count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
-    stride = max(1, math.ceil(count / max_frames)) if count > 0 else 1
-    total = min(max_frames, math.ceil(count / stride)) if count > 0 else max_frames
-
-    def read() -> np.ndarray | None:
-        with quiet_native_stderr():
-            for _ in range(stride - 1):
-                cap.grab()
-            ok, frame = cap.read()
-        return frame if ok else None
-
-    def frames() -> Iterator[tuple[str, np.ndarray | None]]:
-        try:
-            index, frame, n, failures = leading, first, 0, 0
-            while n < max_frames and failures < MAX_CONSECUTIVE_VIDEO_FAILURES:
-                if count > 0 and index >= count:
-                    break
-                if frame is None:
-                    failures += 1
-                else:
-                    failures = 0
-                    frame = to_grey(frame)
-                yield f"frame_{index:06d}", frame
-                n += 1
-                index += stride
-                frame = read()
-        finally:
-            cap.release()
-
-    return total, frames()
-
-
-def _bag_frames(
-    path: Path, topic: str, max_frames: int
-) -> tuple[int, Iterator[tuple[str, np.ndarray | None]]]:
-    """(views expected, views) of a bag's image topic: every ``stride``-th message, at most
-    ``max_frames``, greyscale; an undecodable message is a view None."""
-    with Bag(path) as bag:
-        count = bag.topic(topic, ("image",)).count
-    stride = max(1, math.ceil(count / max_frames))
-    total = min(max_frames, math.ceil(count / stride))
-
-    def frames() -> Iterator[tuple[str, np.ndarray | None]]:
-        with Bag(path) as bag:
-            n = 0
-            for k, (_, image) in enumerate(bag.images(topic)):
-                if k % stride or n >= total:
-                    continue
-                yield f"frame_{k:06d}", to_grey(image)
-                n += 1
-
-    return total, frames()
-
-
-def iter_views(
-    source: str | os.PathLike[str], video_max_frames: int = 300, topic: str | None = None
-) -> tuple[int, Iterator[tuple[str, np.ndarray | None]]]:
-    """The views of an input: an image folder (sorted by name), a video file (sampled) or a
-    ROS bag's image topic (sampled, :mod:`dockcore.bags`).
-
-    Args:
-        source: folder of images (``IMAGE_SUFFIXES``), a video file ``cv2.VideoCapture`` reads,
-            or a bag (``.bag``, ``.db3``, ``.mcap``, ROS 2 folder).
-        video_max_frames: most frames taken from a video or bag, evenly spaced over its length.
-        topic: a bag's image topic (required for a bag: see
-            :func:`dockcore.bags.resolve_image_topic`).
-
-    Returns:
-        (expected number of views, iterator of (name, greyscale uint8 image or None for a file
-        that cannot be decoded)).
-
-    Raises:
-        DockError: missing input, a special file (FIFO, device: refused before it is opened),
-            a folder without images, an unreadable video.
-    """
-    path = Path(source)
-    if not path.is_dir():
-        check_regular_file(path, "input")
-    if is_bag(path):
-        if topic is None:
-            raise DockError(f"{path} is a bag: name its image topic (--topic)")
-        return _bag_frames(path, topic, video_max_frames)
-    if path.is_dir():
-        files = sorted(
-            p for p in path.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
-        )
-        if not files:
-            raise DockError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in folder {path}")
-        return len(files), ((p.name, to_grey(read_image(p))) for p in files)
-    return _video_frames(check_regular_file(path, "input"), video_max_frames)
 
 
 # --------------------------------------------------------------------------- view selection
@@ -801,99 +666,3 @@ def _fit_rejecting_outliers(
         rec.error_px = float(err)
     cal[:] = views
     return fit, cv
-
-
-# --------------------------------------------------------------------------- outputs
-
-
-def _plot_errors(result: IntrinsicsResult, path: Path) -> None:
-    """Per-view RMS error in the fit and held out (px), and each fold's fx / fy against the
-    final fit's (the spread the uncertainty comes from)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    used = [v for v in result.views if v.status == "calibration" or v.reason == "outlier"]
-    fig, (ax, ax2) = plt.subplots(
-        1,
-        2,
-        figsize=(max(8.0, 0.3 * len(used) + 5.0), 3.8),
-        dpi=100,
-        gridspec_kw={"width_ratios": [max(2.0, 0.3 * len(used)), 3.0]},
-    )
-    x = np.arange(len(used))
-    fit_err = [v.error_px or 0.0 for v in used]
-    cv_err = [v.cv_error_px if v.cv_error_px is not None else 0.0 for v in used]
-    ax.bar(x - 0.2, fit_err, 0.4, color="tab:blue", label="in the fit")
-    colours = ["tab:red" if v.reason == "outlier" else "tab:orange" for v in used]
-    ax.bar(x + 0.2, cv_err, 0.4, color=colours, label="held out (red: outlier)")
-    rms = result.camera.rms_px or 0.0
-    ax.axhline(rms, color="tab:blue", ls="--", lw=1, label=f"fit RMS {rms:.3f} px")
-    ax.axhline(
-        result.cv_rms_px,
-        color="tab:orange",
-        ls="--",
-        lw=1,
-        label=f"{result.cv.scheme} RMS {result.cv_rms_px:.3f} px",
-    )
-    ax.set_xticks(x)
-    ax.set_xticklabels([v.name for v in used], rotation=90, fontsize=6)
-    ax.set_ylabel("RMS reprojection error (px)")
-    ax.set_title("Per view")
-    ax.legend(fontsize=7)
-    cam = result.camera
-    p = result.cv.params
-    for j, (label, value, colour) in enumerate(
-        (("fx", cam.fx_px, "tab:blue"), ("fy", cam.fy_px, "tab:green"))
-    ):
-        rel = 100.0 * (p[:, j] - value) / value
-        ax2.plot(np.arange(len(rel)), rel, "o", ms=3, color=colour, label=label)
-    unc = result.uncertainty_frac()
-    fx_band = 100.0 * unc["fx_px"]
-    limit = 100.0 * result.config.uncertainty_warn_frac
-    ax2.axhspan(-fx_band, fx_band, color="0.88", zorder=0, label="fx +-1 sigma (jackknife)")
-    for sign in (-1.0, 1.0):
-        ax2.axhline(sign * limit, color="tab:red", ls=":", lw=1)
-    ax2.axhline(0.0, color="k", lw=0.8)
-    ax2.set_xlabel(f"fold ({result.cv.scheme}; red: {limit:g} % warning limit)")
-    ax2.set_ylabel("fold's value - final (%)")
-    ax2.set_title(
-        f"Folds: fx +-{100 * unc['fx_px']:.2f} %, fy +-{100 * unc['fy_px']:.2f} % (jackknife)",
-        fontsize=9,
-    )
-    ax2.legend(fontsize=7)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
-
-
-def write_outputs(
-    result: IntrinsicsResult, out: str | os.PathLike[str], keep_extrinsics: bool = True
-) -> tuple[list[Path], bool]:
-    """Write the camera file twins, ``<stem>_report.json`` and ``<stem>_errors.png``.
-
-    Args:
-        result: a calibration.
-        out: camera file path (``.yaml``, ``.yml`` or ``.json``).
-        keep_extrinsics: when ``out`` already holds a readable camera file with ``T_body_cam``,
-            carry it over (intrinsics do not change where the camera is mounted).
-
-    Returns:
-        (the paths written, whether ``T_body_cam`` was carried over).
-    """
-    out = Path(out)
-    T = None
-    if keep_extrinsics and out.is_file():
-        with contextlib.suppress(DockError):
-            T = load_camera(out)[1]
-    yaml_path, json_path = save_camera(out, result.camera, T)
-    report = result.report()
-    report["T_body_cam_kept"] = T is not None
-    report["provenance"] = provenance()  # code version, packages, machine, command line
-    report_path = out.with_name(f"{out.stem}_report.json")
-    plot_path = out.with_name(f"{out.stem}_errors.png")
-    atomic_write_json(report_path, report)
-    _plot_errors(result, plot_path)
-    return [yaml_path, json_path, report_path, plot_path], T is not None

@@ -1,0 +1,115 @@
+"""What ``calibration intrinsics`` writes: the camera file, its JSON report and a figure of the
+per-view errors and the folds' spread (:func:`write_outputs`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from uwdock.calibration.camera import load_camera, save_camera
+from uwdock.dockcore.errors import DockError
+from uwdock.dockcore.io import atomic_path, atomic_write_json
+from uwdock.dockcore.provenance import provenance
+
+if TYPE_CHECKING:  # the result's class; that module imports this one
+    from uwdock.calibration.intrinsics import IntrinsicsResult
+
+__all__ = ["write_outputs"]
+
+
+def _plot_errors(result: IntrinsicsResult, path: Path) -> None:
+    """Per-view RMS error in the fit and held out (px), and each fold's fx / fy against the
+    final fit's (the spread the uncertainty comes from)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    used = [v for v in result.views if v.status == "calibration" or v.reason == "outlier"]
+    fig, (ax, ax2) = plt.subplots(
+        1,
+        2,
+        figsize=(max(8.0, 0.3 * len(used) + 5.0), 3.8),
+        dpi=100,
+        gridspec_kw={"width_ratios": [max(2.0, 0.3 * len(used)), 3.0]},
+    )
+    x = np.arange(len(used))
+    fit_err = [v.error_px or 0.0 for v in used]
+    cv_err = [v.cv_error_px if v.cv_error_px is not None else 0.0 for v in used]
+    ax.bar(x - 0.2, fit_err, 0.4, color="tab:blue", label="in the fit")
+    colours = ["tab:red" if v.reason == "outlier" else "tab:orange" for v in used]
+    ax.bar(x + 0.2, cv_err, 0.4, color=colours, label="held out (red: outlier)")
+    rms = result.camera.rms_px or 0.0
+    ax.axhline(rms, color="tab:blue", ls="--", lw=1, label=f"fit RMS {rms:.3f} px")
+    ax.axhline(
+        result.cv_rms_px,
+        color="tab:orange",
+        ls="--",
+        lw=1,
+        label=f"{result.cv.scheme} RMS {result.cv_rms_px:.3f} px",
+    )
+    ax.set_xticks(x)
+    ax.set_xticklabels([v.name for v in used], rotation=90, fontsize=6)
+    ax.set_ylabel("RMS reprojection error (px)")
+    ax.set_title("Per view")
+    ax.legend(fontsize=7)
+    cam = result.camera
+    p = result.cv.params
+    for j, (label, value, colour) in enumerate(
+        (("fx", cam.fx_px, "tab:blue"), ("fy", cam.fy_px, "tab:green"))
+    ):
+        rel = 100.0 * (p[:, j] - value) / value
+        ax2.plot(np.arange(len(rel)), rel, "o", ms=3, color=colour, label=label)
+    unc = result.uncertainty_frac()
+    fx_band = 100.0 * unc["fx_px"]
+    limit = 100.0 * result.config.uncertainty_warn_frac
+    ax2.axhspan(-fx_band, fx_band, color="0.88", zorder=0, label="fx +-1 sigma (jackknife)")
+    for sign in (-1.0, 1.0):
+        ax2.axhline(sign * limit, color="tab:red", ls=":", lw=1)
+    ax2.axhline(0.0, color="k", lw=0.8)
+    ax2.set_xlabel(f"fold ({result.cv.scheme}; red: {limit:g} % warning limit)")
+    ax2.set_ylabel("fold's value - final (%)")
+    ax2.set_title(
+        f"Folds: fx +-{100 * unc['fx_px']:.2f} %, fy +-{100 * unc['fy_px']:.2f} % (jackknife)",
+        fontsize=9,
+    )
+    ax2.legend(fontsize=7)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+
+
+def write_outputs(
+    result: IntrinsicsResult, out: str | os.PathLike[str], keep_extrinsics: bool = True
+) -> tuple[list[Path], bool]:
+    """Write the camera file twins, ``<stem>_report.json`` and ``<stem>_errors.png``.
+
+    Args:
+        result: a calibration.
+        out: camera file path (``.yaml``, ``.yml`` or ``.json``).
+        keep_extrinsics: when ``out`` already holds a readable camera file with ``T_body_cam``,
+            carry it over (intrinsics do not change where the camera is mounted).
+
+    Returns:
+        (the paths written, whether ``T_body_cam`` was carried over).
+    """
+    out = Path(out)
+    T = None
+    if keep_extrinsics and out.is_file():
+        with contextlib.suppress(DockError):
+            T = load_camera(out)[1]
+    yaml_path, json_path = save_camera(out, result.camera, T)
+    report = result.report()
+    report["T_body_cam_kept"] = T is not None
+    report["provenance"] = provenance()  # code version, packages, machine, command line
+    report_path = out.with_name(f"{out.stem}_report.json")
+    plot_path = out.with_name(f"{out.stem}_errors.png")
+    atomic_write_json(report_path, report)
+    _plot_errors(result, plot_path)
+    return [yaml_path, json_path, report_path, plot_path], T is not None
