@@ -17,10 +17,12 @@ from uwdock.calibration.extrinsics import (
     write_reference_camera,
 )
 from uwdock.calibration.formats import (
-    EXPORT_FORMATS,
     IMPORT_FORMATS,
-    export_camera_file,
     import_camera_file,
+)
+from uwdock.calibration.formats_export import (
+    EXPORT_FORMATS,
+    export_camera_file,
 )
 from uwdock.calibration.intrinsics import IntrinsicsConfig, calibrate_intrinsics, write_outputs
 from uwdock.calibration.stereo import StereoConfig, calibrate_stereo, write_stereo_outputs

@@ -39,7 +39,6 @@ them as floats.
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import re
 from collections.abc import Mapping
@@ -48,7 +47,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from numpy.typing import ArrayLike
 from ruamel.yaml import YAML
 from ruamel.yaml.error import MarkedYAMLError, YAMLError
 from ruamel.yaml.events import AliasEvent
@@ -63,10 +61,9 @@ from uwdock.calibration.camera import (
 )
 from uwdock.calibration.frames import check_T
 from uwdock.dockcore.errors import DockError
-from uwdock.dockcore.io import atomic_write_text, read_text
+from uwdock.dockcore.io import read_text
 
 __all__ = [
-    "EXPORT_FORMATS",
     "IMPORT_FORMATS",
     "MAX_FILE_BYTES",
     "ImportedCamera",
@@ -74,27 +71,20 @@ __all__ = [
     "camera_from_kalibr",
     "camera_from_ros",
     "detect_format",
-    "export_camera_file",
     "import_camera_file",
-    "kalibr_camchain_yaml",
-    "kalibr_camera_lines",
     "read_camera_yaml",
     "read_yaml_mapping",
-    "ros_camera_info_yaml",
-    "ros_distortion_model",
+    "show_value",
 ]
 
 #: ``--format`` of ``calibration import``: ``ros`` covers ost.yaml and a saved CameraInfo.
 IMPORT_FORMATS = ("auto", "ros", "kalibr")
-#: ``--format`` of ``calibration export``.
-EXPORT_FORMATS = ("ros", "kalibr")
 #: Largest file read (bytes): camera files are a few kB.
 MAX_FILE_BYTES = 1 << 20
 #: Deepest nesting of YAML collections read (a camera file needs 3).
 _MAX_DEPTH = 32
 _CAM_KEY = re.compile(r"cam[0-9]+")
 #: Names of the OpenCV distortion coefficients after p2, for messages.
-_HIGHER = ("k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4", "tx", "ty")
 
 
 @dataclass(frozen=True, eq=False)
@@ -128,13 +118,13 @@ class ImportedCamera:
 # ---------------------------------------------------------------------------- YAML
 
 
-def _show(value: Any) -> str:
+def show_value(value: Any) -> str:
     text = " ".join(repr(value).split())  # one line, even for an array
     return text if len(text) <= 60 else text[:57] + "..."
 
 
 def _kind(value: Any) -> str:
-    return "nothing" if value is None else _show(value)
+    return "nothing" if value is None else show_value(value)
 
 
 def _plain_data(value: Any) -> Any:
@@ -317,7 +307,7 @@ def _dist_from_ros(model: Any, d: np.ndarray, where: str, key: str) -> tuple[flo
     counts = {"plumb_bob": (0, 4, 5), "rational_polynomial": (8, 12, 14), "": (0,)}
     if model not in counts:
         raise DockError(
-            f"{where}: unknown distortion model {_show(model)} "
+            f"{where}: unknown distortion model {show_value(model)} "
             "(expected plumb_bob or rational_polynomial)"
         )
     if d.size not in counts[model]:
@@ -472,7 +462,7 @@ def camera_from_kalibr(
             than pinhole and a distortion model other than radtan or none.
     """
     if not isinstance(cam_key, str) or not _CAM_KEY.fullmatch(cam_key):
-        raise DockError(f"camera key must be cam0, cam1, ..., got {_show(cam_key)}")
+        raise DockError(f"camera key must be cam0, cam1, ..., got {show_value(cam_key)}")
     cams = sorted((k for k in doc if _CAM_KEY.fullmatch(str(k))), key=lambda k: int(k[3:]))
     if cam_key not in doc:
         raise DockError(
@@ -483,7 +473,7 @@ def camera_from_kalibr(
     model = _string(_get(c, "camera_model", where, k), where, f"{k}camera_model")
     if model != "pinhole":
         raise DockError(
-            f"{where}: camera model {_show(model)} of '{cam_key}' cannot be held by the "
+            f"{where}: camera model {show_value(model)} of '{cam_key}' cannot be held by the "
             "toolkit's camera model (pinhole only)"
         )
     dmodel = _string(_get(c, "distortion_model", where, k), where, f"{k}distortion_model")
@@ -494,7 +484,7 @@ def camera_from_kalibr(
             "toolkit's camera model (pinhole with OpenCV radial-tangential distortion)"
         )
     if dmodel not in ("radtan", "none"):
-        raise DockError(f"{where}: unknown distortion model {_show(dmodel)} (expected radtan)")
+        raise DockError(f"{where}: unknown distortion model {show_value(dmodel)} (expected radtan)")
     want = 4 if dmodel == "radtan" else 0
     if coeffs.size != want:
         raise DockError(
@@ -565,7 +555,7 @@ def read_camera_yaml(
         DockError: one line naming the file and the problem.
     """
     if fmt not in IMPORT_FORMATS:
-        raise DockError(f"format must be one of {', '.join(IMPORT_FORMATS)}, got {_show(fmt)}")
+        raise DockError(f"format must be one of {', '.join(IMPORT_FORMATS)}, got {show_value(fmt)}")
     doc = read_yaml_mapping(path)
     where = str(path)
     try:
@@ -617,211 +607,3 @@ def import_camera_file(
         with contextlib.suppress(DockError):
             T = load_camera(out)[1]
     return imported, save_camera(out, imported.camera, T), T is not None
-
-
-# ---------------------------------------------------------------------------- export
-
-
-def _num(x: float) -> str:
-    """Shortest round-trip text of ``x`` with a '.' before any exponent (PyYAML's floats)."""
-    text = repr(float(x))
-    mantissa, e, exponent = text.partition("e")
-    return f"{mantissa}.0e{exponent}" if e and "." not in mantissa else text
-
-
-def _yaml_str(text: str) -> str:
-    """``text`` as a YAML scalar: plain where every reader keeps it a string, else quoted."""
-    keyword = text.lower() in ("y", "n", "yes", "no", "on", "off", "true", "false", "null")
-    if re.fullmatch(r"[A-Za-z_/][A-Za-z0-9_./-]*", text) and not keyword:
-        return text
-    return json.dumps(text)
-
-
-def _flow_list(values: ArrayLike) -> str:
-    return "[" + ", ".join(_num(v) for v in np.asarray(values, dtype=np.float64).ravel()) + "]"
-
-
-def _padded(cam: CameraModel) -> list[float]:
-    return list(cam.dist) + [0.0] * (14 - len(cam.dist))
-
-
-def ros_distortion_model(cam: CameraModel, where: str = "camera") -> str:
-    """``plumb_bob`` or ``rational_polynomial``: the ROS distortion model ``cam`` exports as.
-
-    Raises:
-        DockError: thin-prism or tilt coefficients are not zero.
-    """
-    return _ros_distortion(cam, where)[0]
-
-
-def _ros_distortion(cam: CameraModel, where: str) -> tuple[str, list[float]]:
-    d = _padded(cam)
-    if not any(d[5:]):
-        return "plumb_bob", d[:5]
-    if not any(d[8:]):
-        return "rational_polynomial", d[:8]
-    raise DockError(
-        f"{where}: thin-prism or tilt coefficients (s1..s4, tx, ty) are not zero: ROS "
-        "camera_info has no distortion model for them"
-    )
-
-
-def ros_camera_info_yaml(
-    cam: CameraModel,
-    where: str | None = None,
-    R: ArrayLike | None = None,
-    P: ArrayLike | None = None,
-) -> str:
-    """``cam`` as ROS camera_info YAML, laid out as ``camera_calibration`` writes it.
-
-    The distortion model is ``plumb_bob`` (5 coefficients) when k4 and higher are zero, else
-    ``rational_polynomial`` (8). A single camera has R = I and P = [K | 0] (the rectified image
-    keeps K); one camera of a stereo pair has the pair's R1 / P1 (left) or R2 / P2 (right, whose
-    ``P[0, 3] = -fx' * baseline`` is ROS's Tx; :mod:`calibration.stereo_formats`).
-
-    Args:
-        cam: the camera.
-        where: what to call the camera in errors (default: its name).
-        R: (3, 3) rectification matrix (default the identity).
-        P: (3, 4) projection matrix (default [K | 0]).
-
-    Raises:
-        DockError: thin-prism or tilt coefficients are not zero.
-    """
-    model, d = _ros_distortion(cam, where or f"camera {cam.name!r}")
-
-    def matrix(key: str, values: np.ndarray) -> list[str]:
-        rows, cols = values.shape
-        return [f"{key}:", f"  rows: {rows}", f"  cols: {cols}", f"  data: {_flow_list(values)}"]
-
-    lines = [
-        f"image_width: {cam.width_px}",
-        f"image_height: {cam.height_px}",
-        f"camera_name: {_yaml_str(cam.name)}",
-        *matrix("camera_matrix", cam.K),
-        f"distortion_model: {model}",
-        *matrix("distortion_coefficients", np.array([d])),
-        *matrix("rectification_matrix", np.eye(3) if R is None else np.reshape(R, (3, 3))),
-        *matrix(
-            "projection_matrix",
-            np.hstack([cam.K, np.zeros((3, 1))]) if P is None else np.reshape(P, (3, 4)),
-        ),
-    ]
-    return "\n".join(lines) + "\n"
-
-
-def kalibr_camchain_yaml(
-    cam: CameraModel,
-    T_cam_imu: ArrayLike | None = None,
-    rostopic: str = "/cam0/image_raw",
-    where: str | None = None,
-) -> str:
-    """``cam`` as a one-camera Kalibr camchain (``cam0``, pinhole-radtan), keys sorted as
-    Kalibr writes them.
-
-    Args:
-        cam: the camera; its coefficients after p2 must be zero (radtan has no k3).
-        T_cam_imu: optional (4, 4) ``T_camcv_imu`` (IMU frame in the camera frame, m).
-        rostopic: the image topic Kalibr's tools read the camera from.
-        where: what to call the camera in errors (default: its name).
-
-    Raises:
-        DockError: k3 (or a higher coefficient) is not zero, ``T_cam_imu`` is not a rigid
-            transform, or ``rostopic`` is not a non-empty single line.
-    """
-    lines = kalibr_camera_lines(
-        "cam0", cam, rostopic, where or f"camera {cam.name!r}", T_cam_imu=T_cam_imu
-    )
-    return "\n".join(lines) + "\n"
-
-
-def kalibr_camera_lines(
-    key: str,
-    cam: CameraModel,
-    rostopic: str,
-    where: str,
-    T_cam_imu: ArrayLike | None = None,
-    T_cn_cnm1: ArrayLike | None = None,
-    overlaps: tuple[int, ...] = (),
-) -> list[str]:
-    """One camera of a camchain: ``camN:`` and its keys (sorted as PyYAML writes them).
-
-    Args:
-        key: "cam0", "cam1", ...
-        cam: the camera; its coefficients after p2 must be zero (radtan has no k3).
-        rostopic: the image topic.
-        where: what to call the camera in errors.
-        T_cam_imu: optional (4, 4) ``T_camcv_imu`` (m).
-        T_cn_cnm1: optional (4, 4) previous camera's frame in this one's (m).
-        overlaps: ``cam_overlaps``: indices of the cameras that see what this one sees.
-
-    Raises:
-        DockError: k3 (or higher) not zero, a transform that is not rigid, a bad topic.
-    """
-    higher = [f"{n} = {v:g}" for n, v in zip(_HIGHER, _padded(cam)[4:], strict=True) if v]
-    if higher:
-        raise DockError(
-            f"{where}: {', '.join(higher)} not zero: Kalibr's radtan holds k1 k2 p1 p2 only "
-            "(calibrate with --distortion-model k1k2p1p2, or export --format ros)"
-        )
-    if not isinstance(rostopic, str) or not rostopic.strip() or "\n" in rostopic:
-        raise DockError(f"rostopic must be a non-empty single line, got {_show(rostopic)}")
-    lines = [f"{key}:"]
-    for name, value in (("T_cam_imu", T_cam_imu), ("T_cn_cnm1", T_cn_cnm1)):
-        if value is not None:
-            try:
-                T = check_T(value, name)
-            except ValueError as exc:
-                raise DockError(str(exc)) from None
-            lines += [f"  {name}:", *(f"  - {_flow_list(row)}" for row in T)]
-    lines += [
-        f"  cam_overlaps: [{', '.join(str(i) for i in overlaps)}]",
-        "  camera_model: pinhole",
-        f"  distortion_coeffs: {_flow_list(cam.dist[:4])}",
-        "  distortion_model: radtan",
-        f"  intrinsics: {_flow_list([cam.fx_px, cam.fy_px, cam.cx_px, cam.cy_px])}",
-        f"  resolution: [{cam.width_px}, {cam.height_px}]",
-        f"  rostopic: {_yaml_str(rostopic)}",
-    ]
-    return lines
-
-
-def export_camera_file(
-    camera_file: str | os.PathLike[str],
-    out: str | os.PathLike[str],
-    fmt: str,
-    rostopic: str = "/cam0/image_raw",
-) -> tuple[Path, str]:
-    """Write a camera file's intrinsics as ROS camera_info YAML or a Kalibr camchain, atomically.
-
-    ``T_body_cam`` is not exported: camera_info has no extrinsics, and Kalibr's ``T_cam_imu``
-    is relative to the IMU, not the body frame.
-
-    Args:
-        camera_file: the toolkit's camera file (:func:`load_camera`).
-        out: the YAML file to write (``.yaml`` or ``.yml``).
-        fmt: "ros" or "kalibr".
-        rostopic: Kalibr: the image topic.
-
-    Returns:
-        (the path written, the distortion model written: plumb_bob, rational_polynomial or
-        radtan).
-
-    Raises:
-        DockError: one line: a malformed camera file, an unknown format, a suffix other than
-            .yaml / .yml, ``out`` being the camera file, or coefficients the format cannot hold.
-    """
-    camera_file, out = Path(camera_file), Path(out)
-    if fmt not in EXPORT_FORMATS:
-        raise DockError(f"format must be one of {', '.join(EXPORT_FORMATS)}, got {_show(fmt)}")
-    if out.suffix.lower() not in (".yaml", ".yml"):
-        raise DockError(f"--out must end in .yaml or .yml: {out}")
-    if out.resolve() in {p.resolve() for p in twin_paths(camera_file)}:
-        raise DockError(f"--out {out} would overwrite the camera file {camera_file}")
-    cam, _ = load_camera(camera_file)
-    where = str(camera_file)
-    if fmt == "ros":
-        text, model = ros_camera_info_yaml(cam, where), _ros_distortion(cam, where)[0]
-    else:
-        text, model = kalibr_camchain_yaml(cam, rostopic=rostopic, where=where), "radtan"
-    return atomic_write_text(out, text), model

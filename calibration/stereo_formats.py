@@ -23,12 +23,14 @@ from typing import Any
 
 from uwdock.calibration.camera import twin_paths
 from uwdock.calibration.formats import (
-    EXPORT_FORMATS,
     camera_from_kalibr,
     detect_format,
-    kalibr_camera_lines,
     read_camera_yaml,
     read_yaml_mapping,
+)
+from uwdock.calibration.formats_export import (
+    EXPORT_FORMATS,
+    kalibr_camera_lines,
     ros_camera_info_yaml,
     ros_distortion_model,
 )

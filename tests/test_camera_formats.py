@@ -24,11 +24,13 @@ from uwdock.calibration.formats import (
     MAX_FILE_BYTES,
     camera_from_camera_info_msg,
     detect_format,
-    export_camera_file,
     import_camera_file,
-    kalibr_camchain_yaml,
     read_camera_yaml,
     read_yaml_mapping,
+)
+from uwdock.calibration.formats_export import (
+    export_camera_file,
+    kalibr_camchain_yaml,
     ros_camera_info_yaml,
 )
 from uwdock.dockcore.errors import DockError

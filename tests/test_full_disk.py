@@ -115,7 +115,7 @@ def _prep_extrinsics(d: Path) -> list:
 
 def _prep_import(d: Path) -> list:
     from uwdock.calibration.camera import reference_camera
-    from uwdock.calibration.formats import ros_camera_info_yaml
+    from uwdock.calibration.formats_export import ros_camera_info_yaml
 
     (d / "ost.yaml").write_text(ros_camera_info_yaml(reference_camera().scaled(640, 484)))
     _prep_reference(d)
