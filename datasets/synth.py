@@ -42,14 +42,10 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import hashlib
 import json
 import math
 import os
-import re
-import shutil
 import time
-import zlib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -60,17 +56,25 @@ import numpy as np
 from numpy.typing import ArrayLike
 from tqdm import tqdm
 
-from uwdock.calibration.camera import CameraModel, resolve_camera, save_camera
+from uwdock.calibration.camera import CameraModel, resolve_camera
 from uwdock.calibration.frames import R_from_rpy, check_T, inv_T, make_T
 from uwdock.datasets.sequences import FrameSequences
-from uwdock.dockcore.config import changed_keys, from_dict, to_dict, validated
+from uwdock.datasets.synth_folder import (
+    IMAGE_NAME,
+    PARTIAL_DIR,
+    STATE_FILE,
+    assemble_labels,
+    check_folder,
+    done_frames,
+    folder_state,
+    prepare_folder,
+)
+from uwdock.dockcore.config import from_dict, to_dict, validated
 from uwdock.dockcore.domains import Fraction, Interval, Seed, check, split_annotated
 from uwdock.dockcore.errors import ConfigError, DockError
 from uwdock.dockcore.io import atomic_path, atomic_write_bytes, atomic_write_json
 from uwdock.dockcore.outdir import claim_output_dir
 from uwdock.dockcore.pool import PoolConfig, preflight, worker_pool
-from uwdock.dockcore.provenance import write_provenance
-from uwdock.markers.markerset import MarkerSet, save_marker_set
 from uwdock.perception.groundtruth import (
     FrameTruth,
     MarkerTruth,
@@ -102,14 +106,7 @@ __all__ = [
     "sample_pose",
 ]
 
-#: Image and partial-label names of frame k.
-IMAGE_NAME = "{:06d}.png"
-_IMAGE_RE = re.compile(r"^(\d{6})\.png$")
-_PARTIAL_RE = re.compile(r"^(\d{6})\.json$")
-_PARTIAL = ".partial"
-_STATE = ".synth.json"
 _MAX_DRAWS = 200
-_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 #: Worker processes of a run (each holds a renderer: a few hundred MB).
 Workers = Annotated[int, Interval(ge=1, le=64)]
@@ -466,7 +463,7 @@ def _write_frame(out_dir: Path, k: int, png: bytes, label: dict[str, Any]) -> in
     """Frame k's image, then its partial label, each written atomically (so a frame whose
     partial label exists is complete)."""
     atomic_write_bytes(out_dir / "images" / IMAGE_NAME.format(k), png)
-    atomic_write_text_line(out_dir / _PARTIAL / f"{k:06d}.json", label)
+    atomic_write_text_line(out_dir / PARTIAL_DIR / f"{k:06d}.json", label)
     return k
 
 
@@ -498,192 +495,6 @@ class FrameWorker:
 
 
 # ----------------------------------------------------------------------------- the run
-
-
-def _read_jsonl_lenient(path: Path) -> dict[int, str]:
-    """frame -> line of an existing labels.jsonl (lines that do not parse are dropped)."""
-    out: dict[int, str] = {}
-    try:
-        lines = path.read_text(encoding="utf-8").splitlines()
-    except (OSError, UnicodeDecodeError):
-        return out
-    for line in lines:
-        try:
-            obj = json.loads(line)
-        except json.JSONDecodeError:
-            continue
-        if isinstance(obj, dict) and isinstance(obj.get("frame"), int):
-            out[obj["frame"]] = line.strip() + "\n"
-    return out
-
-
-def _state(
-    cfg: SynthConfig, poses: np.ndarray | None, sequences: FrameSequences | None = None
-) -> dict[str, Any]:
-    """What must match for a resume: the config without n_frames, the given poses and their
-    sequence labels (a key only when given, so folders of earlier runs still resume)."""
-    digest = None
-    if poses is not None:
-        digest = hashlib.sha1(np.ascontiguousarray(poses, np.float64).tobytes()).hexdigest()
-    state = {"config": {**to_dict(cfg), "n_frames": None}, "poses_sha1": digest}
-    if sequences is not None:
-        text = json.dumps(sequences.to_json(), sort_keys=True).encode()
-        state["sequences_sha1"] = hashlib.sha1(text).hexdigest()
-    return state
-
-
-def _check_resume(out_dir: Path, state: dict[str, Any]) -> None:
-    """Refuse a folder holding frames of another config (or of no known config)."""
-    path = out_dir / _STATE
-    if not path.is_file():
-        ours = (out_dir / "labels.jsonl", out_dir / _PARTIAL)
-        images = out_dir / "images"
-        if any(p.exists() for p in ours) or (images.is_dir() and any(images.glob("*.png"))):
-            raise DockError(
-                f"{out_dir} holds frames of unknown origin (no {_STATE}); use a new --out"
-            )
-        return
-    try:
-        old = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as exc:
-        reason = " ".join(str(exc).split())
-        raise DockError(f"{path}: unreadable ({reason}); use a new --out") from None
-    new = json.loads(json.dumps(state))
-    if old != new:
-        changed = [k.removeprefix("config.").removesuffix("_sha1") for k in changed_keys(old, new)]
-        raise DockError(
-            f"{out_dir} holds a dataset made with another config (differs in "
-            f"{', '.join(changed[:4]) or 'format'}); use a new --out (or the same settings "
-            "to resume)"
-        )
-
-
-def _indices(folder: Path, pattern: re.Pattern[str]) -> list[int]:
-    """Frame indices of the files in ``folder`` whose names match ``pattern`` (group 1)."""
-    try:
-        names = os.listdir(folder)
-    except OSError:
-        return []
-    return [int(m.group(1)) for m in map(pattern.match, names) if m]
-
-
-def _check_no_frames_beyond(out_dir: Path, n: int, old_lines: dict[int, str]) -> None:
-    """Refuse to shrink a dataset: ``n`` frames into a folder holding frames >= n would delete
-    them (images, partial labels or ``old_lines``, those of ``labels.jsonl``)."""
-    held = [
-        *_indices(out_dir / "images", _IMAGE_RE),
-        *_indices(out_dir / _PARTIAL, _PARTIAL_RE),
-        *old_lines,
-    ]
-    last = max(held, default=-1)
-    if last >= n:
-        raise DockError(
-            f"{out_dir} holds frames up to {last} of this dataset: {n} frames would delete "
-            f"frames {n}-{last}; ask for {last + 1} or more to resume or extend it, or use "
-            "another --out"
-        )
-
-
-def _check_folder(out_dir: Path, state: dict[str, Any], n: int) -> dict[int, str]:
-    """Everything that must hold before a run writes into ``out_dir`` (read only); returns the
-    lines of its ``labels.jsonl`` by frame (empty without one)."""
-    if not out_dir.is_dir():
-        return {}
-    _check_resume(out_dir, state)
-    old_lines = _read_jsonl_lenient(out_dir / "labels.jsonl")
-    _check_no_frames_beyond(out_dir, n, old_lines)
-    return old_lines
-
-
-def _prepare(
-    out_dir: Path,
-    cfg: SynthConfig,
-    camera: CameraModel,
-    T_body_cam: np.ndarray,
-    marker_set: MarkerSet,
-) -> None:
-    """Camera file, marker set copy (without render meshes), provenance."""
-    save_camera(out_dir / "camera.yaml", camera, T_body_cam)
-    plain = MarkerSet(
-        tuple(dataclasses.replace(m, render_mesh=None) for m in marker_set.markers),
-        dict(marker_set.geometry),
-    )
-    save_marker_set(out_dir / "markerset.toml", plain)
-    write_provenance(out_dir, {"synth": cfg})
-
-
-def _png_ok(path: Path, size_px: tuple[int, int]) -> bool:
-    """True when ``path`` is a whole PNG image of ``size_px`` (width, height).
-
-    Reads the chunk structure and checks every chunk's CRC, the IHDR size and the final IEND,
-    without decoding pixels (about 1 ms per MB): an empty, truncated or corrupted file, or an
-    image of another size, is False.
-    """
-    try:
-        data = memoryview(path.read_bytes())
-    except OSError:
-        return False
-    if bytes(data[:8]) != _PNG_SIGNATURE:
-        return False
-    pos = 8
-    while pos + 12 <= len(data):
-        length = int.from_bytes(data[pos : pos + 4], "big")
-        kind = bytes(data[pos + 4 : pos + 8])
-        end = pos + 12 + length
-        if end > len(data):
-            return False
-        if zlib.crc32(data[pos + 4 : end - 4]) != int.from_bytes(data[end - 4 : end], "big"):
-            return False
-        if pos == 8:
-            if kind != b"IHDR" or length < 8:
-                return False
-            width = int.from_bytes(data[pos + 8 : pos + 12], "big")
-            height = int.from_bytes(data[pos + 12 : pos + 16], "big")
-            if (width, height) != size_px:
-                return False
-        if kind == b"IEND":
-            return end == len(data)
-        pos = end
-    return False
-
-
-def _partial_ok(path: Path, k: int) -> bool:
-    """True when ``path`` holds frame k's label: one line of JSON naming the frame."""
-    try:
-        text = path.read_text(encoding="utf-8")
-        obj = json.loads(text)
-    except (OSError, ValueError):
-        return False
-    one_line = text.endswith("\n") and text.count("\n") == 1
-    return one_line and isinstance(obj, dict) and obj.get("frame") == k
-
-
-def _done_frames(
-    out_dir: Path, n: int, old_lines: dict[int, str], size_px: tuple[int, int]
-) -> set[int]:
-    """Frames < n whose image and label are both whole (a bad partial label is removed, so
-    the frame's line of labels.jsonl, if any, counts instead)."""
-    images = out_dir / "images"
-    partial = out_dir / _PARTIAL
-    done = set()
-    for k in range(n):
-        label = partial / f"{k:06d}.json"
-        has_label = _partial_ok(label, k)
-        if not has_label:
-            label.unlink(missing_ok=True)
-        if (has_label or k in old_lines) and _png_ok(images / IMAGE_NAME.format(k), size_px):
-            done.add(k)
-    return done
-
-
-def _assemble(out_dir: Path, n: int, old_lines: dict[int, str]) -> None:
-    """labels.jsonl from the partial files and the old lines, in frame order; cleanup."""
-    partial = out_dir / _PARTIAL
-    with atomic_path(out_dir / "labels.jsonl") as tmp, tmp.open("w", encoding="utf-8") as fh:
-        for k in range(n):
-            p = partial / f"{k:06d}.json"
-            fh.write(p.read_text(encoding="utf-8") if p.is_file() else old_lines[k])
-    shutil.rmtree(partial, ignore_errors=True)
 
 
 def _render_all(
@@ -822,18 +633,18 @@ def generate(
     if pose_arr is not None:
         _check_cameras_in_water(pose_arr, T_body_cam, ds_cfg)
     marker_set = resolve_marker_set(ds_cfg)
-    state = _state(cfg, pose_arr, sequences)
+    state = folder_state(cfg, pose_arr, sequences)
     n = cfg.n_frames
-    _check_folder(Path(out_dir), state, n)
+    check_folder(Path(out_dir), state, n)
     with claim_output_dir(out_dir, tool) as out:
-        old_lines = _check_folder(out, state, n)  # again, now that no other run can change it
+        old_lines = check_folder(out, state, n)  # again, now that no other run can change it
         (out / "dataset.json").unlink(missing_ok=True)  # incomplete until written again
-        atomic_write_json(out / _STATE, state)
+        atomic_write_json(out / STATE_FILE, state)
         (out / "images").mkdir(exist_ok=True)
-        (out / _PARTIAL).mkdir(exist_ok=True)
-        _prepare(out, cfg, camera, T_body_cam, marker_set)
+        (out / PARTIAL_DIR).mkdir(exist_ok=True)
+        prepare_folder(out, cfg, camera, T_body_cam, marker_set)
 
-        done = _done_frames(out, n, old_lines, (camera.width_px, camera.height_px))
+        done = done_frames(out, n, old_lines, (camera.width_px, camera.height_px))
         todo = [k for k in range(n) if k not in done]
         rendered: list[int] = []
         disable = None if progress is None else not progress  # None: tqdm shows it on a tty
@@ -844,7 +655,7 @@ def generate(
                 bar.update(1)
 
             _render_all(out, cfg, todo, pool_cfg, pose_arr, on_frame)
-        _assemble(out, n, old_lines)
+        assemble_labels(out, n, old_lines)
         extra = {} if sequences is None else {"sequences": sequences.to_json()}
         write_dataset_json(
             out, n, config=to_dict(cfg), generator=tool, seed=cfg.seed, water=cfg.water, **extra
