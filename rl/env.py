@@ -44,7 +44,13 @@ from uwdock.rl.observation import (
     privileged_block,
 )
 from uwdock.rl.rewards import DockingReward
-from uwdock.rl.task import docking_errors, ds_visible, paper_success, pegs_seated
+from uwdock.rl.task import (
+    DockingTaskConfig,
+    docking_errors,
+    ds_visible,
+    paper_success,
+    pegs_seated,
+)
 from uwdock.sim.usbl import UsblSensor
 from uwdock.sim.world import DockingWorld
 
@@ -119,6 +125,21 @@ class DockingEnv(gym.Env):
         field = curriculum_z_field(self.cfg)
         self._task = replace(self.cfg.task, **{field: float(z_tolerance_m)})
         self._spawn_scale = float(spawn_scale)
+
+    @property
+    def task(self) -> DockingTaskConfig:
+        """The task the success tests use now (the config's, or a curriculum's easier one)."""
+        return self._task
+
+    @property
+    def hold_steps(self) -> int:
+        """Control steps the pegs must stay seated for strict success."""
+        return self._hold_steps
+
+    @property
+    def action_limits(self) -> np.ndarray:
+        """(6,) body wrench of a unit action (N, N m)."""
+        return self._limits.copy()
 
     # ------------------------------------------------------------------ setup
     def _make_source(self) -> ObservationSource:

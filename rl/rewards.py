@@ -94,6 +94,16 @@ class DockingReward:
     def reset(self) -> None:
         self.gamma_mps2 = self.cfg.gamma_set_mps2
 
+    @property
+    def smooth_mask(self) -> np.ndarray:
+        """(6,) bool: the action components r_smooth sums over."""
+        return self._smooth_mask.copy()
+
+    @property
+    def weights(self) -> dict[str, float]:
+        """Each term's weight (1 unless ``cfg.weights`` says otherwise)."""
+        return dict(self._w)
+
     def collision(self, acc_mps2: np.ndarray, prev_acc_mps2: np.ndarray) -> bool:
         """Detect a collision from the IMU jump and adapt Gamma (doubles on a hit, halves back)."""
         hit = float(np.linalg.norm(np.asarray(acc_mps2) - prev_acc_mps2)) > self.gamma_mps2

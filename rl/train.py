@@ -36,6 +36,7 @@ from uwdock.dockcore.io import atomic_write_bytes, atomic_write_json, atomic_wri
 from uwdock.dockcore.outdir import claim_output_dir
 from uwdock.dockcore.pool import PoolConfig, preflight
 from uwdock.dockcore.provenance import git_commit, write_provenance
+from uwdock.rl.batch_parts import BATCH_SOURCES
 from uwdock.rl.checkpoint import (
     has_legacy_checkpoints,
     latest_unit,
@@ -143,6 +144,9 @@ class TrainConfig:
         sac: SAC hyperparameters.
         imitation: teacher-guided warm start before RL (``teacher = "none"``: pure RL).
         curriculum: success-tolerance and spawn-distance curriculum (:mod:`rl.curriculum`).
+        simulator: "per-env" (one :class:`rl.env.DockingEnv` per env, in worker processes) or
+            "batched" (all ``n_envs`` stepped as arrays in this process:
+            :class:`rl.batch_env.BatchDockingEnv`; not the camera source); the same env model.
     """
 
     algo: Literal["ppo", "sac"] = "ppo"
@@ -159,8 +163,14 @@ class TrainConfig:
     sac: SACConfig = field(default_factory=SACConfig)
     imitation: ImitationConfig = field(default_factory=lambda: ImitationConfig(teacher="none"))
     curriculum: CurriculumConfig = field(default_factory=CurriculumConfig)
+    simulator: Literal["per-env", "batched"] = "per-env"
 
     def validate(self) -> None:
+        if self.simulator == "batched" and self.env.obs_source not in BATCH_SOURCES:
+            raise ValueError(
+                f"simulator: 'batched' cannot run obs_source '{self.env.obs_source}' (one render "
+                f"per env and step); it runs {', '.join(BATCH_SOURCES)}"
+            )
         if self.algo == "ppo" and self.ppo.n_steps * self.n_envs < 2:
             raise ValueError("ppo.n_steps: n_steps x n_envs must be >= 2 (a rollout to learn from)")
         if self.algo == "sac" and self.env.obs_privileged:
@@ -388,8 +398,14 @@ def _run(
     torch.set_num_threads(1)
     algo_cls = PPO if cfg.algo == "ppo" else SAC
     gamma = cfg.ppo.gamma if cfg.algo == "ppo" else cfg.sac.gamma
-    if pool.backend == "ray":
-        workers: Any = RayEnvWorkers(cfg.env, cfg.n_envs, cfg.seed, pool.ray_address, per_worker)
+    if cfg.simulator == "batched":
+        if pool.backend == "ray":
+            raise DockError("simulator 'batched' runs in this process: use --backend local")
+        from uwdock.rl.batch_env import BatchWorkers  # SB3 at module level
+
+        workers: Any = BatchWorkers(cfg.env, cfg.n_envs, cfg.seed)
+    elif pool.backend == "ray":
+        workers = RayEnvWorkers(cfg.env, cfg.n_envs, cfg.seed, pool.ray_address, per_worker)
     else:
         workers = EnvWorkers(cfg.env, cfg.n_envs, cfg.seed, per_worker)
     session = None

@@ -294,12 +294,19 @@ class _StaticBody:
         self.render = sapien.render.RenderBodyComponent() if visual else None
         self.physx = sapien.physx.PhysxRigidStaticComponent()
         self.material = physx_material
+        self._looks: dict[_Material, sapien.render.RenderMaterial] = {}
+
+    def _look(self, material: _Material) -> sapien.render.RenderMaterial:
+        """The render material of ``material``, made once per body."""
+        if material not in self._looks:
+            self._looks[material] = material.render()
+        return self._looks[material]
 
     def box(
         self,
         center: Sequence[float],
         half_size: Sequence[float],
-        material: sapien.render.RenderMaterial,
+        material: _Material,
         T_rot: np.ndarray | None = None,
         collision: bool = True,
     ) -> None:
@@ -307,7 +314,9 @@ class _StaticBody:
         T = make_T(None if T_rot is None else T_rot[:3, :3], center)
         pose = _local_pose(T)
         if self.render is not None:
-            shape = sapien.render.RenderShapeBox(np.asarray(half_size, np.float32), material)
+            shape = sapien.render.RenderShapeBox(
+                np.asarray(half_size, np.float32), self._look(material)
+            )
             shape.local_pose = pose
             self.render.attach(shape)
         if collision:
@@ -317,7 +326,7 @@ class _StaticBody:
             col.local_pose = pose
             self.physx.attach(col)
 
-    def convex(self, vertices: np.ndarray, material: sapien.render.RenderMaterial) -> None:
+    def convex(self, vertices: np.ndarray, material: _Material) -> None:
         """A convex polyhedron (the hull of ``vertices`` (N, 3), body frame), flat shaded."""
         v = np.asarray(vertices, np.float64)
         self.physx.attach(
@@ -339,7 +348,9 @@ class _StaticBody:
         faces = np.arange(len(corners), dtype=np.uint32).reshape(-1, 3)
         uvs = np.zeros((len(corners), 2), np.float32)
         self.render.attach(
-            sapien.render.RenderShapeTriangleMesh(corners, faces, normals, uvs, material)
+            sapien.render.RenderShapeTriangleMesh(
+                corners, faces, normals, uvs, self._look(material)
+            )
         )
 
     def mesh_file(self, path: Path, T_body_mesh: np.ndarray) -> None:
@@ -363,12 +374,23 @@ class _StaticBody:
         return entity
 
 
-def _render_material(
-    rgb: RGB, roughness: float = 0.7, metallic: float = 0.0
-) -> sapien.render.RenderMaterial:
-    return sapien.render.RenderMaterial(
-        base_color=[*map(float, rgb), 1.0], roughness=roughness, metallic=metallic
-    )
+@dataclass(frozen=True)
+class _Material:
+    """A surface's look; made into a SAPIEN render material only by bodies that render (a
+    ``RenderMaterial`` costs ~20 ms, wasted on the physics-only worlds of training)."""
+
+    rgb: tuple[float, ...]
+    roughness: float
+    metallic: float
+
+    def render(self) -> sapien.render.RenderMaterial:
+        return sapien.render.RenderMaterial(
+            base_color=[*self.rgb, 1.0], roughness=self.roughness, metallic=self.metallic
+        )
+
+
+def _render_material(rgb: RGB, roughness: float = 0.7, metallic: float = 0.0) -> _Material:
+    return _Material(tuple(map(float, rgb)), float(roughness), float(metallic))
 
 
 def _physx_material(cfg: DockingStationConfig) -> sapien.physx.PhysxMaterial:

@@ -315,6 +315,63 @@ class VehicleBody:
         T = self.T_world_ned_body_frd
         return self.imu.measure(T[:3, :3], self.nu, self.nu_dot_mean[:3], float(T[2, 3]))
 
+    # ------------------------------------------------------------------ batch access
+    # What :class:`uwdock.sim.batch.BatchVehicles` reads to step this body among many.
+
+    @property
+    def kernel_params(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(P, B)``: the packed hydrodynamic (71,) and PhysX body (9,) parameters of the
+        kernels (:func:`uwdock.sim.fastpath.hydro_params`, ``body_params``)."""
+        return self._P, self._B
+
+    @property
+    def hull(self) -> np.ndarray:
+        """(s, 7) the hull's collision shapes as boxes in the body frame (the contact test)."""
+        return self._hull
+
+    @property
+    def thrust_wrench_matrix(self) -> np.ndarray:
+        """(k, 6) true thrusts (N) -> body wrench (N, N m, FRD): ``wrench = thrust @ this``."""
+        return self._B_T
+
+    @property
+    def acc_mean_zup(self) -> tuple[float, ...]:
+        """Last control step's mean CoM and angular acceleration, z-up world (6 values)."""
+        return self._acc_mean_zup
+
+    def obstacle_boxes(self) -> np.ndarray | None:
+        """(m, 6) world boxes of the scene's static shapes, or None when the fast path cannot
+        stand in for PhysX (it is off, or the scene holds other moving bodies)."""
+        return self._obstacles.boxes() if self.fast_path else None
+
+    def state_zup(self) -> np.ndarray:
+        """(13,) float64: entity position, quaternion (w x y z), CoM velocity and angular
+        velocity, z-up world, as PhysX holds them."""
+        comp = self.component
+        pose = comp.get_entity_pose()
+        return np.concatenate(
+            [pose.p, pose.q, comp.get_linear_velocity(), comp.get_angular_velocity()]
+        ).astype(np.float64)
+
+    def set_state_zup(self, state: np.ndarray, thrust_n: np.ndarray, time_s: float) -> None:
+        """Put the body in ``state`` (:meth:`state_zup`'s layout), with the thrusters producing
+        ``thrust_n`` at ``time_s`` (s)."""
+        self.entity.set_pose(sapien.Pose(state[:3], state[3:7]))
+        self.component.set_linear_velocity(np.asarray(state[7:10], dtype=np.float32))
+        self.component.set_angular_velocity(np.asarray(state[10:13], dtype=np.float32))
+        self.thrust_n = np.array(thrust_n, dtype=float)
+        self.time_s = float(time_s)
+        self._T_cache = None
+
+    def substeps(self, duration_s: float) -> int:
+        """Substeps in ``duration_s`` (ValueError unless a whole multiple of the timestep)."""
+        return self._substeps(duration_s)
+
+    def run_physx(self, wrenches: np.ndarray, currents: np.ndarray) -> None:
+        """Step PhysX through the given substeps' thrust wrenches (n, 6) (FRD) and currents
+        (n, 3) (z-up world), contacts included; the clock and thrusters are the caller's."""
+        self._run(np.ascontiguousarray(wrenches), np.ascontiguousarray(currents), len(wrenches))
+
     # ------------------------------------------------------------------ stepping
 
     def _substeps(self, duration_s: float) -> int:

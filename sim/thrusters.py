@@ -224,6 +224,11 @@ class ThrusterArray:
         """
         return np.asarray(thrust_n, dtype=float) @ self.B.T
 
+    @property
+    def allocation_matrix(self) -> np.ndarray:
+        """(n, 6) weighted pseudo-inverse: unsaturated thrusts = this @ wrench (a copy)."""
+        return self._alloc.copy()
+
     def allocate_unsaturated(self, wrench: ArrayLike) -> np.ndarray:
         """Weighted least-squares thrusts for ``wrench`` (6,), ignoring the limits (N, (n,))."""
         return self._alloc @ np.asarray(wrench, dtype=float)

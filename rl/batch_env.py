@@ -1,0 +1,352 @@
+"""A vectorised docking env that steps N envs as arrays in one process: SB3 uses it directly.
+
+:class:`BatchDockingEnv` is a Stable-Baselines3 ``VecEnv`` of ``n_envs`` docking envs of one
+:class:`~uwdock.rl.config.EnvConfig`. A control step of all of them is one batched physics call
+(:class:`uwdock.sim.batch.BatchVehicles`: numba free flight, PhysX only for the vehicles near a
+static shape) and NumPy over the env axis for the rest (:mod:`rl.batch_parts`: IMU, collision
+test, error-model or proxy measurement, DS filter, success tests, reward, observation). Resets
+are rare and run the scalar :class:`rl.env.DockingEnv` of the slot (spawn, randomised vehicle,
+current, the filter's prior, the USBL's biases), whose state the batch then takes over; the
+acoustic fixes are the slot's own :class:`uwdock.sim.usbl.UsblSensor` (one call per env and
+step: it keeps the latency's pose history).
+
+What equals the scalar env and what does not:
+
+* the physics: identical (the batch is the same kernels and the same PhysX bodies; tested);
+* the maths of every step (errors, tests, filter, reward, observation): the scalar functions'
+  on the same inputs (tested);
+* the random draws: each slot's reset draws from the slot's own stream exactly as the scalar
+  env (``seed + i``, then continuing); the per-step noise (IMU, error model, proxy) comes from
+  one batch generator instead, so an episode is a different sample of the same distributions
+  (the shipped policy's success on both agrees within its confidence interval: ``bench``).
+
+The camera source cannot be batched (one render per env and step): ``obs_source = "camera"``
+is refused. Auto-reset, ``terminal_observation``, ``TimeLimit.truncated`` and Monitor's
+``episode`` entry follow ``SubprocVecEnv`` + ``Monitor``, so the learner, ``VecNormalize`` and
+the callbacks see what the per-env workers give them.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any
+
+import numpy as np
+from stable_baselines3.common.vec_env import VecEnv
+
+from uwdock.rl.batch_parts import (
+    BATCH_SOURCES,
+    BatchErrorModel,
+    BatchFilter,
+    docking_errors_b,
+    ds_visible_b,
+    inv_T_b,
+    observation_frames_b,
+    paper_success_b,
+    pegs_seated_b,
+    proxy_measure_b,
+    reward_terms_b,
+    yaw_b,
+)
+from uwdock.rl.config import EnvConfig
+from uwdock.rl.env import DockingEnv, SimulationError
+from uwdock.rl.error_model import ErrorModelSource
+from uwdock.rl.observation import OBS_BOUND, POS_SCALE_M, PRIVILEGED_DIM, frame_dim
+from uwdock.sim.batch import BatchVehicles
+
+__all__ = ["BatchDockingEnv", "BatchWorkers"]
+
+
+class BatchDockingEnv(VecEnv):
+    """``n_envs`` docking envs stepped as arrays (module docstring).
+
+    Args:
+        config: every env's config; ``obs_source`` one of :data:`BATCH_SOURCES`.
+        n_envs: how many envs.
+        seed: env ``i`` first resets with ``seed + i`` (as the per-env workers); the per-step
+            noise generator is seeded from ``seed`` too.
+        privileged: fill the observation's privileged block (training envs).
+    """
+
+    def __init__(
+        self, config: EnvConfig, n_envs: int, seed: int = 0, privileged: bool = False
+    ) -> None:
+        if config.obs_source not in BATCH_SOURCES:
+            raise ValueError(
+                f"obs_source: '{config.obs_source}' cannot be batched (one render per env and "
+                f"step); the batched simulator runs {', '.join(BATCH_SOURCES)}"
+            )
+        if not 1 <= int(n_envs) <= 4096:
+            raise ValueError(f"n_envs: must be 1-4096, got {n_envs!r}")
+        n = int(n_envs)
+        self.cfg = config
+        self.envs = [DockingEnv(config, privileged=privileged) for _ in range(n)]
+        e0 = self.envs[0]
+        super().__init__(n, e0.observation_space, e0.action_space)
+        self.privileged = bool(privileged)
+        self.seed_base = int(seed)
+        self.rng = self._noise(seed)
+        self.dt_s = e0.dt_s
+        self.max_steps = e0.max_steps
+        self.limits = e0.action_limits
+        self.physics = BatchVehicles([e.world.vehicle for e in self.envs])
+        est = e0.filter.cfg
+        q = np.array(
+            [est.drift_xyz_m_per_sqrt_s] * 3 + [math.radians(est.drift_yaw_deg_per_sqrt_s)]
+        )
+        self.filter = BatchFilter(n, est.fuse, est.gate_sigma, q**2)
+        src = e0.source
+        self.model = (
+            BatchErrorModel(src.model, src.water, src.temporal, n)
+            if isinstance(src, ErrorModelSource)
+            else None
+        )
+        self.acoustic = e0.source.needs.acoustic_fixes
+        self.frame_dim = frame_dim(config)
+        self.frames = np.zeros((n, config.obs_frames, self.frame_dim), dtype=np.float32)
+        self.T_world_ds = np.tile(np.eye(4), (n, 1, 1))
+        self.steps = np.zeros(n, dtype=np.int64)
+        self.prev_action = np.zeros((n, 6))
+        self.prev_sf = np.zeros((n, 3))
+        self.gamma = np.zeros(n)
+        self.seated = np.zeros(n, dtype=np.int64)
+        self.success_paper = np.zeros(n, dtype=bool)
+        self.success_strict = np.zeros(n, dtype=bool)
+        self.detected = np.zeros(n, dtype=bool)
+        self.ep_return = np.zeros(n)
+        self.ep_start = np.zeros(n)
+        self._first_reset = [True] * n
+        self._actions = np.zeros((n, 6))
+        self._refresh_task()
+        r = e0.reward_fn
+        self._reward_cfg, self._weights, self._smooth = r.cfg, r.weights, r.smooth_mask
+
+    @staticmethod
+    def _noise(seed: int) -> np.random.Generator:
+        """The per-step noise generator of a base seed."""
+        return np.random.default_rng([int(seed) & 0xFFFFFFFF, 0xBA7C])
+
+    def seed(self, seed: int | None = None):
+        """Seed the next reset (env ``i``: ``seed + i``) and the per-step noise from ``seed``,
+        so a run reset at a checkpoint boundary goes on exactly as it went before."""
+        if seed is not None:
+            self.rng = self._noise(seed)
+        return super().seed(seed)
+
+    def _refresh_task(self) -> None:
+        e0 = self.envs[0]
+        self.task = e0.task
+        self.hold_steps = e0.hold_steps
+
+    # ------------------------------------------------------------------ slots
+    def _reset_slot(self, i: int, seed: int | None = None) -> np.ndarray:
+        """Reset env ``i`` with the scalar code and take its state over; its first obs."""
+        env = self.envs[i]
+        if seed is None and self._first_reset[i]:
+            seed = self.seed_base + i
+        self._first_reset[i] = False
+        obs, _ = env.reset(seed=seed)
+        self.physics.load(i)
+        self.T_world_ds[i] = env.world.T_world_ds
+        self.filter.x[i], self.filter.P[i] = env.filter.x, env.filter.P
+        if self.model is not None:
+            self.model.reset(i)
+        self.steps[i] = 0
+        self.prev_action[i] = 0.0
+        self.prev_sf[i] = env.prev_specific_force
+        self.gamma[i] = env.reward_fn.gamma_mps2
+        self.seated[i] = 0
+        self.success_paper[i] = self.success_strict[i] = False
+        self.detected[i] = env.last_measurement is not None and env.last_measurement.detected
+        self.frames[i] = obs[: self.frames.shape[1] * self.frame_dim].reshape(-1, self.frame_dim)
+        self.ep_return[i] = 0.0
+        self.ep_start[i] = time.time()
+        return obs
+
+    # ------------------------------------------------------------------ VecEnv API
+    def reset(self) -> np.ndarray:
+        seeds = list(self._seeds) if self._seeds else [None] * self.num_envs
+        obs = np.stack([self._reset_slot(i, seeds[i]) for i in range(self.num_envs)])
+        self._reset_seeds()
+        self._reset_options()
+        return obs
+
+    def step_async(self, actions: np.ndarray) -> None:
+        a = np.asarray(actions, dtype=np.float64).reshape(self.num_envs, -1)
+        if a.shape[1] != 6 or not np.all(np.isfinite(a)):
+            bad = int(np.flatnonzero(~np.isfinite(a).all(axis=1))[0]) if a.shape[1] == 6 else 0
+            raise ValueError(f"actions: env {bad} must be 6 finite numbers, got {a[bad].tolist()}")
+        self._actions = np.clip(a, -1.0, 1.0)
+
+    def step_wait(self):
+        a = self._actions
+        n = self.num_envs
+        ph = self.physics
+        ph.step(a * self.limits, self.dt_s)
+        self.steps += 1
+        T = ph.T_world_body()
+        bad = ~np.isfinite(T).all(axis=(1, 2)) | (np.abs(T[:, :3, 3]).max(axis=1) > 1e3)
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise SimulationError(
+                f"simulator blew up in env {i} at t={ph.time_s[i]:.2f} s "
+                "(vehicle pose not finite/bounded)"
+            )
+        imu = ph.read_imu(self.rng)
+        sf = imu.specific_force_frd_mps2
+        collided = np.linalg.norm(sf - self.prev_sf, axis=1) > self.gamma
+        g0 = self._reward_cfg.gamma_set_mps2
+        self.gamma = np.where(collided, self.gamma * 2.0, np.maximum(g0, self.gamma / 2.0))
+        self.prev_sf = sf
+        self._measure_and_filter(T)
+        e_true, psi_true = docking_errors_b(T, self.T_world_ds, self.cfg.task)
+        visible = ds_visible_b(inv_T_b(T) @ self.T_world_ds, self.cfg.task)
+        paper = paper_success_b(e_true, psi_true, visible, self.task)
+        seated = pegs_seated_b(T, self.T_world_ds, self.task)
+        self.seated = np.where(seated, self.seated + 1, 0)
+        strict = self.seated >= self.hold_steps
+        self.success_paper |= paper
+        self.success_strict |= strict
+        docked = paper if self.cfg.terminate_on == "paper" else strict
+        truncated = ~docked & (self.steps >= self.max_steps)
+        terms = reward_terms_b(
+            self._reward_cfg, self._weights, self._smooth, e_true, psi_true, a,
+            self.prev_action, collided, docked, truncated,
+        )  # fmt: skip
+        reward = sum(terms.values())
+        self.prev_action = a.copy()
+        frame = observation_frames_b(
+            self.cfg, T, self.filter.T_world_ds(), self.filter.sigma_xy_m(),
+            imu.velocity_frd_mps, imu.angular_velocity_frd_radps[:, 2],
+            imu.acceleration_frd_mps2, self.prev_action, self.detected,
+        )  # fmt: skip
+        self.frames = np.concatenate([self.frames[:, 1:], frame[:, None]], axis=1)
+        obs = self._obs(T, e_true, psi_true)
+        self.ep_return += reward
+        dones = docked | truncated
+        sigma = np.sqrt(np.diagonal(self.filter.P, axis1=1, axis2=2)[:, :3])
+        infos: list[dict[str, Any]] = []
+        for i in range(n):
+            info = {
+                "reward_terms": {k: float(v[i]) for k, v in terms.items()},
+                "success_paper": bool(self.success_paper[i]),
+                "success_strict": bool(self.success_strict[i]),
+                "collided": bool(collided[i]),
+                "detected": bool(self.detected[i]),
+                "e_true": e_true[i],
+                "e_psi_true": float(psi_true[i]),
+                "time_s": float(ph.time_s[i]),
+                "T_world_body": T[i],
+                "T_world_ds": self.T_world_ds[i].copy(),
+                "estimate_sigma_m": sigma[i],
+            }
+            if dones[i]:
+                info["TimeLimit.truncated"] = bool(truncated[i])
+                info["terminal_observation"] = obs[i].copy()
+                info["episode"] = {
+                    "r": round(float(self.ep_return[i]), 6),
+                    "l": int(self.steps[i]),
+                    "t": round(time.time() - self.ep_start[i], 6),
+                }
+                obs[i] = self._reset_slot(i)
+            infos.append(info)
+        return obs, reward.astype(np.float32), dones, infos
+
+    def _measure_and_filter(self, T: np.ndarray) -> None:
+        """Predict, fuse the acoustic fixes due, then the source's measurements."""
+        f = self.filter
+        f.predict(self.dt_s)
+        n = self.num_envs
+        t = self.physics.time_s
+        if self.acoustic:
+            mask = np.zeros(n, dtype=bool)
+            p = np.zeros((n, 3))
+            sig = np.ones(n)
+            for i, env in enumerate(self.envs):
+                fix = env.usbl.fix(float(t[i]), T[i], self.T_world_ds[i, :3, 3], env.np_random)
+                if fix is not None:
+                    mask[i], p[i], sig[i] = True, fix.p_world_ds_m, fix.sigma_m
+            if mask.any():
+                f.update_position(mask, p, sig)
+        if self.model is not None:
+            det, T_meas, cov = self.model.measure(T, self.T_world_ds, t, self.rng)
+        elif self.cfg.obs_source == "proxy":
+            det, T_meas, cov = proxy_measure_b(T, self.T_world_ds, self.cfg.task, self.rng)
+            f.update(np.ones(n, dtype=bool), self._z(T_meas), cov)
+            self.detected = det
+            return
+        else:  # acoustic: no measurement
+            self.detected = np.zeros(n, dtype=bool)
+            return
+        f.update(det, self._z(T_meas), cov)
+        self.detected = det
+
+    @staticmethod
+    def _z(T: np.ndarray) -> np.ndarray:
+        return np.concatenate([T[:, :3, 3], yaw_b(T)[:, None]], axis=1)
+
+    def _obs(self, T: np.ndarray, e_true: np.ndarray, psi_true: np.ndarray) -> np.ndarray:
+        obs = self.frames.reshape(self.num_envs, -1)
+        if not self.cfg.obs_privileged:
+            return obs.copy()
+        block = np.zeros((self.num_envs, PRIVILEGED_DIM), dtype=np.float32)
+        if self.privileged:
+            e_hat, _ = docking_errors_b(T, self.filter.T_world_ds(), self.cfg.task)
+            s = POS_SCALE_M
+            parts = [
+                np.clip(e_true, -s, s) / s,
+                (psi_true / math.pi)[:, None],
+                np.clip(e_hat - e_true, -s, s) / s,
+                (1.0 - self.steps / self.max_steps)[:, None],
+                (self.seated / self.hold_steps)[:, None],
+            ]
+            block = np.clip(np.concatenate(parts, axis=1), -OBS_BOUND, OBS_BOUND).astype(np.float32)
+        return np.concatenate([obs, block], axis=1)
+
+    # ------------------------------------------------------------------ the rest of VecEnv
+    def close(self) -> None:
+        for env in self.envs:
+            env.close()
+
+    def _slots(self, indices) -> list[int]:
+        return list(self._get_indices(indices))
+
+    def get_attr(self, attr_name: str, indices=None) -> list[Any]:
+        return [getattr(self.envs[i], attr_name) for i in self._slots(indices)]
+
+    def set_attr(self, attr_name: str, value: Any, indices=None) -> None:
+        for i in self._slots(indices):
+            setattr(self.envs[i], attr_name, value)
+
+    def env_method(self, method_name: str, *method_args, indices=None, **method_kwargs) -> list:
+        out = [
+            getattr(self.envs[i], method_name)(*method_args, **method_kwargs)
+            for i in self._slots(indices)
+        ]
+        self._refresh_task()  # e.g. set_curriculum changed the success test's tolerance
+        return out
+
+    def env_is_wrapped(self, wrapper_class: type, indices=None) -> list[bool]:
+        return [False for _ in self._slots(indices)]
+
+    def set_curriculum(self, z_tolerance_m: float, spawn_scale: float) -> None:
+        """The curriculum level for every env (:meth:`rl.env.DockingEnv.set_curriculum`)."""
+        self.env_method("set_curriculum", z_tolerance_m, spawn_scale)
+
+
+class BatchWorkers:
+    """The batched simulator where the trainer expects its env workers (:class:`rl.vec_envs.
+    EnvWorkers`'s interface): one :class:`BatchDockingEnv` in this process, no worker to fail."""
+
+    def __init__(self, env_cfg: EnvConfig, n_envs: int, seed: int) -> None:
+        self.venv = BatchDockingEnv(env_cfg, n_envs, seed=seed, privileged=True)
+
+    def worker_errors(self) -> list[str]:
+        return []
+
+    def raise_worker_error(self, exc: BaseException) -> None:
+        raise exc
+
+    def close(self, force: bool = False) -> None:
+        self.venv.close()

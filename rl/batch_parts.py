@@ -1,0 +1,404 @@
+"""The docking env's per-step maths over many envs at once (arrays with a leading env axis).
+
+Each function or class here is the batched twin of one scalar piece of :class:`rl.env.DockingEnv`
+and is tested against it on the same inputs (``tests/test_batch_env.py``):
+
+=============================  ===========================================================
+batched                        scalar
+=============================  ===========================================================
+:func:`docking_errors_b`       :func:`rl.task.docking_errors`
+:func:`ds_visible_b`           :func:`rl.task.ds_visible`
+:func:`paper_success_b`        :func:`rl.task.paper_success`
+:func:`pegs_seated_b`          :func:`rl.task.pegs_seated`
+:class:`BatchFilter`           :class:`rl.estimator.DSPoseFilter`
+:func:`reward_terms_b`         :class:`rl.rewards.DockingReward` (``__call__``)
+:class:`BatchErrorModel`       :class:`rl.error_model.ErrorModelSource` (``measure``)
+:func:`proxy_measure_b`        :class:`rl.obs_sources.ProxySource` (``measure``)
+:func:`observation_frames_b`   :func:`rl.observation.observation_frame`
+=============================  ===========================================================
+
+Poses are (N, 4, 4) ``T_world_body`` (world NED, body FRD) and ``T_world_ds``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+
+from uwdock.calibration.frames import wrap_angle_rad
+from uwdock.rl.config import EnvConfig
+from uwdock.rl.error_model import MIN_VIEW_DEPTH_M, N_ERR, N_VISIBLE_BINS, ErrorModel
+from uwdock.rl.observation import ACC_SCALE_MPS2, OBS_BOUND, POS_SCALE_M
+from uwdock.rl.rewards import RewardConfig
+from uwdock.rl.task import DockingTaskConfig
+
+__all__ = [
+    "BATCH_SOURCES",
+    "BatchErrorModel",
+    "BatchFilter",
+    "docking_errors_b",
+    "ds_visible_b",
+    "inv_T_b",
+    "observation_frames_b",
+    "paper_success_b",
+    "pegs_seated_b",
+    "proxy_measure_b",
+    "reward_terms_b",
+    "rotvec_to_R_b",
+    "yaw_b",
+]
+
+
+#: The observation sources a batch can step (the camera renders per env and step).
+BATCH_SOURCES = ("proxy", "error-model", "acoustic")
+
+
+# --------------------------------------------------------------------------- geometry
+
+
+def inv_T_b(T: np.ndarray) -> np.ndarray:
+    """(N, 4, 4) inverses of rigid transforms."""
+    out = np.zeros_like(T)
+    R_t = np.swapaxes(T[:, :3, :3], 1, 2)
+    out[:, :3, :3] = R_t
+    out[:, :3, 3] = -np.einsum("nij,nj->ni", R_t, T[:, :3, 3])
+    out[:, 3, 3] = 1.0
+    return out
+
+
+def yaw_b(T: np.ndarray) -> np.ndarray:
+    """(N,) yaw (rad, ZYX) of (N, 4, 4) poses (:func:`rl.task.yaw_of` away from gimbal lock)."""
+    return np.arctan2(T[:, 1, 0], T[:, 0, 0])
+
+
+def yaw_T_b(xyz: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+    """(N, 4, 4) level poses from positions (N, 3) and yaws (N,)."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    T = np.zeros((len(yaw), 4, 4))
+    T[:, 0, 0], T[:, 0, 1], T[:, 1, 0], T[:, 1, 1] = c, -s, s, c
+    T[:, 2, 2] = T[:, 3, 3] = 1.0
+    T[:, :3, 3] = xyz
+    return T
+
+
+def rotvec_to_R_b(rv: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) rotation matrices of rotation vectors (N, 3) (Rodrigues)."""
+    theta = np.linalg.norm(rv, axis=1)
+    small = theta < 1e-12
+    k = rv / np.where(small, 1.0, theta)[:, None]
+    K = np.zeros((len(rv), 3, 3))
+    K[:, 0, 1], K[:, 0, 2] = -k[:, 2], k[:, 1]
+    K[:, 1, 0], K[:, 1, 2] = k[:, 2], -k[:, 0]
+    K[:, 2, 0], K[:, 2, 1] = -k[:, 1], k[:, 0]
+    s, c = np.sin(theta)[:, None, None], np.cos(theta)[:, None, None]
+    R = np.eye(3)[None] + s * K + (1.0 - c) * (K @ K)
+    R[small] = np.eye(3)
+    return R
+
+
+# --------------------------------------------------------------------------- task
+
+
+def docking_errors_b(
+    T_world_body: np.ndarray, T_world_ds: np.ndarray, cfg: DockingTaskConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) target position in the body frame (m) and (N,) wrapped yaw error (rad)."""
+    T_target = T_world_ds @ cfg.T_ds_target
+    d = T_target[:, :3, 3] - T_world_body[:, :3, 3]
+    e = np.einsum("nji,nj->ni", T_world_body[:, :3, :3], d)
+    psi = wrap_angle_rad(yaw_b(T_target) - yaw_b(T_world_body))
+    return e, psi
+
+
+def ds_visible_b(T_body_ds: np.ndarray, cfg: DockingTaskConfig) -> np.ndarray:
+    """(N,) bool: the reference visibility test of each ``T_body_ds``."""
+    p = T_body_ds[:, :3, 3]
+    ax, ay = (math.tan(math.radians(a)) for a in cfg.visibility_half_angles_deg)
+    z = np.where(p[:, 2] > 0, p[:, 2], 1.0)
+    inside = (p[:, 0] / (z * ax)) ** 2 + (p[:, 1] / (z * ay)) ** 2 <= 1.0
+    return (p[:, 2] > 0) & (np.linalg.norm(p, axis=1) <= cfg.visibility_range_m) & inside
+
+
+def paper_success_b(
+    e_xyz: np.ndarray, e_psi: np.ndarray, visible: np.ndarray, cfg: DockingTaskConfig
+) -> np.ndarray:
+    """(N,) bool: the paper's docking condition."""
+    ok = (
+        (np.abs(e_xyz[:, 0]) < cfg.success_xy_m)
+        & (np.abs(e_xyz[:, 1]) < cfg.success_xy_m)
+        & (np.abs(e_xyz[:, 2]) < cfg.success_z_m)
+        & (np.abs(e_psi) < math.radians(cfg.success_yaw_deg))
+    )
+    return ok & (visible | (not cfg.success_requires_visible))
+
+
+def pegs_seated_b(
+    T_world_body: np.ndarray, T_world_ds: np.ndarray, cfg: DockingTaskConfig
+) -> np.ndarray:
+    """(N,) bool: every peg within tolerance of its nearest notch seat (strict criterion)."""
+    T_ds_body = inv_T_b(T_world_ds) @ T_world_body
+    pegs_body = np.asarray(cfg.peg_positions_body_m, dtype=np.float64)  # (P, 3)
+    pegs = np.einsum("nij,pj->npi", T_ds_body[:, :3, :3], pegs_body) + T_ds_body[:, None, :3, 3]
+    notches = np.asarray(cfg.notch_positions_ds_m, dtype=np.float64)  # (Q, 3)
+    d = notches[None, None, :, :] - pegs[:, :, None, :]  # (N, P, Q, 3)
+    dxy = np.linalg.norm(d[..., :2], axis=3)
+    k = np.argmin(dxy, axis=2)  # (N, P)
+    best_xy = np.take_along_axis(dxy, k[..., None], axis=2)[..., 0]
+    best_z = np.take_along_axis(d[..., 2], k[..., None], axis=2)[..., 0]
+    ok = (best_xy <= cfg.strict_peg_xy_m) & (np.abs(best_z) <= cfg.strict_peg_z_m)
+    return ok.all(axis=1)
+
+
+# --------------------------------------------------------------------------- filter
+
+
+class BatchFilter:
+    """:class:`rl.estimator.DSPoseFilter` for N envs: states ``x`` (N, 4) [x, y, z, yaw] of the
+    DS in the world and covariances ``P`` (N, 4, 4). Every env shares the filter's config
+    (``fuse``, ``gate_sigma``, drift)."""
+
+    def __init__(self, n: int, fuse: bool, gate_sigma: float, q_per_s: np.ndarray) -> None:
+        self.fuse = bool(fuse)
+        self.gate_sigma = float(gate_sigma)
+        self.q_per_s = np.asarray(q_per_s, dtype=np.float64)  # (4,) variance growth per second
+        self.x = np.zeros((n, 4))
+        self.P = np.tile(np.eye(4), (n, 1, 1))
+
+    def predict(self, dt_s: float) -> None:
+        self.P = self.P + np.diag(self.q_per_s * dt_s)[None]
+
+    def T_world_ds(self) -> np.ndarray:
+        """(N, 4, 4) estimated DS poses (level)."""
+        return yaw_T_b(self.x[:, :3], self.x[:, 3])
+
+    def update(self, mask: np.ndarray, z: np.ndarray, R: np.ndarray) -> np.ndarray:
+        """Fuse measurements ``z`` (N, 4) with covariances ``R`` (N, 4, 4) into the envs of
+        ``mask``; (N,) bool of the envs that accepted theirs (gating)."""
+        idx = np.flatnonzero(mask)
+        accepted = np.zeros(len(mask), dtype=bool)
+        if idx.size == 0:
+            return accepted
+        zi, Ri = z[idx], R[idx]
+        if not self.fuse:
+            self.x[idx], self.P[idx] = zi, Ri
+            accepted[idx] = True
+            return accepted
+        x, P = self.x[idx], self.P[idx]
+        innov = zi - x
+        innov[:, 3] = wrap_angle_rad(innov[:, 3])
+        S = P + Ri
+        S_inv = np.linalg.inv(S)
+        ok = np.ones(idx.size, dtype=bool)
+        if self.gate_sigma > 0:
+            d2 = np.einsum("ni,nij,nj->n", innov, S_inv, innov)
+            ok = d2 <= self.gate_sigma**2
+        K = P @ S_inv
+        x_new = x + np.einsum("nij,nj->ni", K, innov)
+        x_new[:, 3] = wrap_angle_rad(x_new[:, 3])
+        P_new = (np.eye(4)[None] - K) @ P
+        self.x[idx[ok]], self.P[idx[ok]] = x_new[ok], P_new[ok]
+        accepted[idx[ok]] = True
+        return accepted
+
+    def update_position(self, mask: np.ndarray, p_m: np.ndarray, sigma_m: np.ndarray) -> None:
+        """Fuse position-only fixes (N, 3) with standard deviations (N,) (m); yaw kept."""
+        z = np.concatenate([p_m, self.x[:, 3:4]], axis=1)
+        var = np.asarray(sigma_m, dtype=np.float64) ** 2
+        R = np.zeros((len(var), 4, 4))
+        R[:, 0, 0] = R[:, 1, 1] = R[:, 2, 2] = var
+        R[:, 3, 3] = 1e6
+        self.update(mask, z, R)
+
+    def sigma_xy_m(self) -> np.ndarray:
+        """(N,) the observation's horizontal standard deviation (m)."""
+        return np.sqrt(0.5 * (self.P[:, 0, 0] + self.P[:, 1, 1]))
+
+
+# --------------------------------------------------------------------------- reward
+
+
+def reward_terms_b(
+    cfg: RewardConfig,
+    weights: dict[str, float],
+    smooth_mask: np.ndarray,
+    e_xyz: np.ndarray,
+    e_psi: np.ndarray,
+    action: np.ndarray,
+    prev_action: np.ndarray,
+    collided: np.ndarray,
+    docked: np.ndarray,
+    truncated: np.ndarray,
+) -> dict[str, np.ndarray]:
+    """The weighted reward terms (N,) each, as :class:`rl.rewards.DockingReward` computes them."""
+    da = np.abs(action - prev_action)[:, smooth_mask]
+    abs_psi = np.abs(e_psi)
+    precision = np.zeros(len(e_psi))
+    if cfg.precision_gain > 0:
+        x = np.linalg.norm(e_xyz, axis=1) / cfg.precision_scale_m
+        if cfg.precision_yaw_scale_rad > 0:
+            x = x + abs_psi / cfg.precision_yaw_scale_rad
+        precision = cfg.precision_gain * np.exp(-x)
+    terms = {
+        "dist": -(np.abs(e_xyz) @ np.asarray(cfg.w_xyz, dtype=np.float64)),
+        "angle": np.exp(-cfg.angle_gain * abs_psi) - 1.0 - cfg.angle_linear * abs_psi / math.pi,
+        "smooth": -(cfg.smooth_scale / max(da.shape[1], 1)) * np.exp(da.sum(axis=1)),
+        "collision": np.where(collided, -cfg.collision_penalty, 0.0),
+        "mission": np.where(
+            docked, cfg.success_reward, np.where(truncated, -cfg.truncation_penalty, 0.0)
+        ),
+        "precision": precision,
+    }
+    return {k: weights[k] * v for k, v in terms.items()}
+
+
+# --------------------------------------------------------------------------- sources
+
+
+class BatchErrorModel:
+    """:class:`rl.error_model.ErrorModelSource` for N envs (same model, water and memory flag):
+    detection drawn from the table cell (range bin, markers in view), then an outlier or the
+    biased, correlated (AR(1)) error; per env the memory of the last inlier."""
+
+    def __init__(self, model: ErrorModel, water: str, temporal: bool, n: int) -> None:
+        self.model = model
+        self.table = model.table(water)
+        self.temporal = bool(temporal)
+        self.z_prev = np.zeros((n, N_ERR))
+        self.has_prev = np.zeros(n, dtype=bool)
+        self.t_prev_s = np.zeros(n)
+        self._corners = np.asarray(model.corners_ds, dtype=np.float64).reshape(-1, 3)
+        self._n_markers = len(model.corners_ds)
+
+    def reset(self, i: int) -> None:
+        """Forget env ``i``'s memory (a new episode)."""
+        self.has_prev[i] = False
+
+    def count_in_view(self, T_cam_ds: np.ndarray) -> np.ndarray:
+        """(N,) markers with all four corners in front of the camera and in the image."""
+        cam = self.model.camera
+        p = np.einsum("nij,mj->nmi", T_cam_ds[:, :3, :3], self._corners) + T_cam_ds[:, None, :3, 3]
+        flat = p.reshape(-1, 3)
+        z = flat[:, 2]
+        px = np.full((len(flat), 2), np.nan)
+        ok = np.isfinite(flat).all(axis=1) & (z > 0.0)
+        if ok.any():
+            if any(cam.dist):
+                uv, _ = cv2.projectPoints(
+                    flat[ok].reshape(-1, 1, 3), np.zeros(3), np.zeros(3), cam.K, cam.dist_coeffs
+                )
+                px[ok] = uv.reshape(-1, 2)
+            else:
+                px[ok, 0] = cam.fx_px * flat[ok, 0] / z[ok] + cam.cx_px
+                px[ok, 1] = cam.fy_px * flat[ok, 1] / z[ok] + cam.cy_px
+        inside = cam.in_image(px) & (z > MIN_VIEW_DEPTH_M)
+        per_marker = inside.reshape(len(T_cam_ds), self._n_markers, 4).all(axis=2)
+        return per_marker.sum(axis=1)
+
+    def measure(
+        self,
+        T_world_body: np.ndarray,
+        T_world_ds: np.ndarray,
+        time_s: np.ndarray,
+        rng: np.random.Generator,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(detected (N,) bool, T_world_ds measured (N, 4, 4), cov (N, 4, 4))``; rows of
+        undetected envs are meaningless."""
+        m, t = self.model, self.table
+        n = len(T_world_body)
+        T_world_cam = T_world_body @ m.T_body_cam
+        T_cam_ds = inv_T_b(T_world_cam) @ T_world_ds
+        r = np.linalg.norm(T_cam_ds[:, :3, 3], axis=1)
+        n_vis = np.minimum(self.count_in_view(T_cam_ds), N_VISIBLE_BINS - 1)
+        k = np.minimum((r / m.range_bin_m).astype(np.int64), m.n_bins - 1)
+        u = rng.random((n, 2))
+        w = rng.standard_normal((n, N_ERR))
+        detected = u[:, 0] < t["p"][k, n_vis]
+        has_out = np.array([t["outliers"][j].size > 0 for j in range(m.n_bins)])[k]
+        outlier = detected & has_out & (u[:, 1] < t["p_out"][k])
+        inlier = detected & ~outlier
+        # the AR(1) memory of each env's last inlier (misses and gross errors break the chain)
+        z = w.copy()
+        rho = t["rho"]
+        if self.temporal and m.step_s and np.any(rho != 0):
+            chained = inlier & self.has_prev
+            steps = (time_s - self.t_prev_s) / m.step_s
+            chained &= steps > 0
+            if chained.any():
+                s = steps[chained][:, None]
+                c = np.sign(rho) ** np.round(s) * np.abs(rho) ** s
+                z[chained] = c * self.z_prev[chained] + np.sqrt(1.0 - c * c) * w[chained]
+        err = np.zeros((n, N_ERR))
+        err[inlier] = t["bias"][k[inlier]] + np.einsum(
+            "nij,nj->ni", t["chol"][k[inlier]], z[inlier]
+        )
+        for i in np.flatnonzero(outlier):
+            samples = t["outliers"][k[i]]
+            err[i] = samples[rng.integers(len(samples))]
+        self.z_prev[inlier] = z[inlier]
+        self.t_prev_s[inlier] = time_s[inlier]
+        self.has_prev = inlier.copy()
+        # the measured pose: the error applied in the camera frame
+        T_est = T_cam_ds.copy()
+        T_est[:, :3, :3] = rotvec_to_R_b(err[:, 3:]) @ T_cam_ds[:, :3, :3]
+        T_est[:, :3, 3] += err[:, :3]
+        T_meas = T_world_cam @ T_est
+        R = T_world_cam[:, :3, :3]
+        cov = np.zeros((n, 4, 4))
+        cov[:, :3, :3] = R @ t["cov"][k][:, :3, :3] @ np.swapaxes(R, 1, 2) + np.eye(3) * 1e-4
+        cov[:, 3, 3] = t["cov"][k][:, 5, 5] + 2.5e-5
+        return detected, T_meas, cov
+
+
+def proxy_measure_b(
+    T_world_body: np.ndarray,
+    T_world_ds: np.ndarray,
+    cfg: DockingTaskConfig,
+    rng: np.random.Generator,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The paper's proxy for N envs: ``(visible (N,), T_world_ds measured, cov)`` (it always
+    measures; ``visible`` is its detection flag)."""
+    e, _ = docking_errors_b(T_world_body, T_world_ds, cfg)
+    visible = ds_visible_b(inv_T_b(T_world_body) @ T_world_ds, cfg)
+    sigma = np.linalg.norm(e, axis=1) / 6.0
+    draws = rng.standard_normal((len(sigma), 6))
+    noise = draws[:, :3] * (sigma / 2.0)[:, None]
+    noise += np.where(visible, 0.0, sigma)[:, None] * draws[:, 3:]
+    var = (sigma / 2.0) ** 2 + np.where(visible, 0.0, sigma**2)
+    T = T_world_ds.copy()
+    T[:, :3, 3] += np.einsum("nij,nj->ni", T_world_body[:, :3, :3], noise)
+    cov = np.zeros((len(sigma), 4, 4))
+    cov[:, 0, 0] = cov[:, 1, 1] = cov[:, 2, 2] = var
+    cov[:, 3, 3] = 1e-6
+    return visible, T, cov
+
+
+# --------------------------------------------------------------------------- observation
+
+
+def observation_frames_b(
+    cfg: EnvConfig,
+    T_world_body: np.ndarray,
+    T_world_ds_est: np.ndarray,
+    sigma_xy_m: np.ndarray,
+    velocity_frd_mps: np.ndarray,
+    yaw_rate_radps: np.ndarray,
+    acceleration_frd_mps2: np.ndarray,
+    prev_action: np.ndarray,
+    detected: np.ndarray,
+) -> np.ndarray:
+    """(N, frame_dim) float32 observation frames (:func:`rl.observation.observation_frame`)."""
+    e_hat, psi_hat = docking_errors_b(T_world_body, T_world_ds_est, cfg.task)
+    parts = [
+        np.clip(e_hat, -POS_SCALE_M, POS_SCALE_M) / POS_SCALE_M,
+        (psi_hat / math.pi)[:, None],
+        velocity_frd_mps,
+        yaw_rate_radps[:, None],
+        acceleration_frd_mps2 / ACC_SCALE_MPS2,
+    ]
+    if cfg.obs_last_action:
+        parts.append(prev_action)
+    if cfg.obs_uncertainty:
+        parts.append(np.stack([np.minimum(sigma_xy_m, 2.0), detected.astype(np.float64)], axis=1))
+    return np.clip(np.concatenate(parts, axis=1), -OBS_BOUND, OBS_BOUND).astype(np.float32)

@@ -1,0 +1,264 @@
+"""The batched docking env (rl.batch_env, rl.batch_parts) against the scalar DockingEnv: each
+batched piece equals its scalar twin on the same inputs, and whole episodes agree where no
+per-step noise is drawn."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from uwdock.calibration.frames import R_from_rpy, make_T
+from uwdock.dockcore.config import replace
+from uwdock.rl.batch_env import BatchDockingEnv
+from uwdock.rl.batch_parts import (
+    BatchErrorModel,
+    BatchFilter,
+    docking_errors_b,
+    ds_visible_b,
+    inv_T_b,
+    observation_frames_b,
+    paper_success_b,
+    pegs_seated_b,
+    reward_terms_b,
+    rotvec_to_R_b,
+)
+from uwdock.rl.config import EnvConfig
+from uwdock.rl.env import DockingEnv
+from uwdock.rl.error_model import apply_error, count_in_view, load_error_model, pose_error
+from uwdock.rl.estimator import DSPoseFilter, EstimatorConfig
+from uwdock.rl.observation import observation_frame
+from uwdock.rl.rewards import DockingReward, RewardConfig
+from uwdock.rl.task import DockingTaskConfig, docking_errors, ds_visible, paper_success, pegs_seated
+from uwdock.sim.usbl import UsblConfig
+from uwdock.sim.vehicle import ImuConfig, VehicleConfig
+from uwdock.sim.world_config import WorldConfig
+
+MODEL = "rl/models/error_model_clear_tank_480_ar1.json"
+TASK = DockingTaskConfig()
+
+
+def _poses(n: int, seed: int, near_dock: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Random DS poses on a floor and vehicle poses above them (half of them nearly docked)."""
+    rng = np.random.default_rng(seed)
+    T_ds = np.stack(
+        [
+            make_T(R_from_rpy(0, 0, rng.uniform(-3, 3)), [*rng.uniform(-2, 2, 2), 4.9])
+            for _ in range(n)
+        ]
+    )
+    T_body = []
+    for i in range(n):
+        if near_dock or i % 2:
+            dT = make_T(R_from_rpy(*rng.normal(0, 0.02, 3)), rng.normal(0, 0.03, 3))
+            T_body.append(T_ds[i] @ TASK.T_ds_target @ dT)
+        else:
+            rpy = rng.normal(0, 0.1, 3) + np.array([0.0, 0.0, rng.uniform(-3, 3)])
+            T_body.append(make_T(R_from_rpy(*rpy), [*rng.uniform(-4, 4, 2), rng.uniform(1, 4.5)]))
+    return np.stack(T_body), T_ds
+
+
+def test_task_tests_equal_the_scalar_ones():
+    T_body, T_ds = _poses(200, 0)
+    e, psi = docking_errors_b(T_body, T_ds, TASK)
+    vis = ds_visible_b(inv_T_b(T_body) @ T_ds, TASK)
+    paper = paper_success_b(e, psi, vis, TASK)
+    seated = pegs_seated_b(T_body, T_ds, TASK)
+    assert 0 < seated.sum() < 200 and 0 < vis.sum() < 200 and paper.sum() > 0
+    for i in range(200):
+        e_s, psi_s = docking_errors(T_body[i], T_ds[i], TASK)
+        np.testing.assert_allclose(e[i], e_s, atol=1e-12)
+        assert psi[i] == pytest.approx(psi_s, abs=1e-12)
+        v = ds_visible(np.linalg.inv(T_body[i]) @ T_ds[i], TASK)
+        assert vis[i] == v
+        assert paper[i] == paper_success(e_s, psi_s, v, TASK)
+        assert seated[i] == pegs_seated(T_body[i], T_ds[i], TASK)
+
+
+def test_rotvec_and_error_application_match_scipy():
+    rng = np.random.default_rng(4)
+    rv = np.concatenate([rng.normal(0, 0.5, (50, 3)), np.zeros((1, 3))])
+    T = make_T(R_from_rpy(0.1, 0.2, 0.3), [0.1, 0.2, 1.5])
+    for i, R in enumerate(rotvec_to_R_b(rv)):
+        np.testing.assert_allclose(
+            R, apply_error(T, np.r_[0, 0, 0, rv[i]])[:3, :3] @ T[:3, :3].T, atol=1e-12
+        )
+
+
+def test_filter_equals_the_scalar_filter():
+    cfg = EstimatorConfig(gate_sigma=3.0)
+    rng = np.random.default_rng(2)
+    n = 6
+    scalars = [DSPoseFilter(cfg) for _ in range(n)]
+    T0 = [make_T(R_from_rpy(0, 0, rng.uniform(-3, 3)), rng.normal(0, 2, 3)) for _ in range(n)]
+    for f, T in zip(scalars, T0, strict=True):
+        f.reset(T, rng)
+    q = np.array([cfg.drift_xyz_m_per_sqrt_s] * 3 + [math.radians(cfg.drift_yaw_deg_per_sqrt_s)])
+    batch = BatchFilter(n, cfg.fuse, cfg.gate_sigma, q**2)
+    batch.x[:] = [f.x for f in scalars]
+    batch.P[:] = [f.P for f in scalars]
+    for step in range(40):
+        batch.predict(0.2)
+        for f in scalars:
+            f.predict(0.2)
+        if step % 5 == 0:  # a position fix for some
+            mask = rng.random(n) < 0.6
+            p = np.stack(T0)[:, :3, 3] + rng.normal(0, 0.3, (n, 3))
+            sig = rng.uniform(0.1, 0.5, n)
+            batch.update_position(mask, p, sig)
+            for i in np.flatnonzero(mask):
+                scalars[i].update_position(p[i], sig[i])
+        mask = rng.random(n) < 0.5
+        z = np.concatenate([np.stack(T0)[:, :3, 3], np.zeros((n, 1))], axis=1)
+        z += rng.normal(0, 0.2, (n, 4)) * (1 + 20 * (rng.random((n, 1)) < 0.1))  # outliers
+        z[:, 3] += [math.atan2(T[1, 0], T[0, 0]) for T in T0]
+        R = np.stack([np.diag(rng.uniform(0.01, 0.1, 4)) for _ in range(n)])
+        acc = batch.update(mask, z, R)
+        for i in np.flatnonzero(mask):
+            Tm = make_T(R_from_rpy(0, 0, z[i, 3]), z[i, :3])
+            assert acc[i] == scalars[i].update(Tm, R[i])
+        np.testing.assert_allclose(batch.x, [f.x for f in scalars], atol=1e-9)
+        np.testing.assert_allclose(batch.P, [f.P for f in scalars], atol=1e-9)
+    np.testing.assert_allclose(batch.T_world_ds(), [f.T_world_ds for f in scalars], atol=1e-9)
+
+
+def test_reward_terms_equal_the_scalar_reward():
+    cfg = RewardConfig(precision_gain=2.0, precision_yaw_scale_rad=0.5, angle_linear=1.0)
+    actuated = np.array([1, 1, 1, 0, 1, 1], dtype=bool)
+    scalar = DockingReward(cfg, actuated)
+    rng = np.random.default_rng(3)
+    n = 50
+    e, psi = rng.normal(0, 1, (n, 3)), rng.uniform(-3, 3, n)
+    a, prev = rng.uniform(-1, 1, (n, 6)), rng.uniform(-1, 1, (n, 6))
+    col, docked, trunc = rng.random(n) < 0.3, rng.random(n) < 0.2, rng.random(n) < 0.2
+    docked &= ~trunc
+    terms = reward_terms_b(
+        cfg, scalar.weights, scalar.smooth_mask, e, psi, a, prev, col, docked, trunc
+    )
+    for i in range(n):
+        ref = scalar(e[i], psi[i], a[i], prev[i], col[i], docked[i], trunc[i])
+        for k, v in ref.items():
+            assert terms[k][i] == pytest.approx(v, rel=1e-12, abs=1e-12), k
+
+
+def test_observation_frames_equal_the_scalar_frames():
+    cfg = EnvConfig(obs_last_action=True)
+    T_body, T_ds = _poses(20, 5)
+    rng = np.random.default_rng(6)
+    f = DSPoseFilter(cfg.estimator)
+    vel, acc = rng.normal(0, 0.3, (20, 3)), rng.normal(0, 2, (20, 3))
+    w, prev, det = rng.normal(0, 0.1, 20), rng.uniform(-1, 1, (20, 6)), rng.random(20) < 0.5
+    ests, sig = [], []
+    for i in range(20):
+        f.reset(T_ds[i], rng)
+        ests.append(f.T_world_ds)
+        sig.append(math.sqrt(0.5 * (f.P[0, 0] + f.P[1, 1])))
+        ref = observation_frame(cfg, T_body[i], f, vel[i], w[i], acc[i], prev[i], bool(det[i]))
+        out = observation_frames_b(
+            cfg, T_body[i : i + 1], np.stack(ests[-1:]), np.array(sig[-1:]),
+            vel[i : i + 1], w[i : i + 1], acc[i : i + 1], prev[i : i + 1], det[i : i + 1],
+        )  # fmt: skip
+        np.testing.assert_allclose(out[0], ref, atol=1e-6)
+
+
+def test_error_model_counts_and_samples_as_the_table_says():
+    model = load_error_model(MODEL)
+    T_body, T_ds = _poses(60, 7)
+    rng = np.random.default_rng(9)
+    for i in range(0, 60, 3):  # a third of them 1.5-3 m above the DS, looking at it
+        up = make_T(
+            R_from_rpy(0, 0, rng.uniform(-3, 3)), [*rng.normal(0, 0.3, 2), -rng.uniform(1.5, 3)]
+        )
+        T_body[i] = T_ds[i] @ up
+    b = BatchErrorModel(model, "clear_tank", temporal=False, n=60)
+    T_world_cam = T_body @ model.T_body_cam
+    T_cam_ds = inv_T_b(T_world_cam) @ T_ds
+    counts = b.count_in_view(T_cam_ds)
+    for i in range(60):
+        assert counts[i] == count_in_view(model.camera, T_cam_ds[i], model.corners_ds)
+    # one pose, many draws: the detection rate and the error's moments (no gross outliers)
+    n = 4000
+    i = int(np.flatnonzero(counts >= 3)[0])
+    b = BatchErrorModel(model, "clear_tank", temporal=False, n=n)
+    t = b.table = dict(b.table, p_out=np.zeros_like(b.table["p_out"]))
+    rng = np.random.default_rng(8)
+    body, ds = np.repeat(T_body[i : i + 1], n, 0), np.repeat(T_ds[i : i + 1], n, 0)
+    det, T_meas, _ = b.measure(body, ds, np.full(n, 1.0), rng)
+    k = model.range_bin(np.linalg.norm(T_cam_ds[i, :3, 3]))
+    p = t["p"][k, 3]
+    assert abs(det.mean() - p) < 4 * math.sqrt(p * (1 - p) / n) + 1e-9
+    cam_inv = np.linalg.inv(T_world_cam[i])
+    errs = np.array([pose_error(cam_inv @ T_meas[j], T_cam_ds[i]) for j in np.flatnonzero(det)])
+    sem = np.sqrt(np.diag(t["cov"][k]) / len(errs))
+    assert np.all(np.abs(errs.mean(0) - t["bias"][k]) < 4 * sem + 1e-9)
+    np.testing.assert_allclose(np.cov(errs.T), t["cov"][k], atol=0.1 * np.abs(t["cov"][k]).max())
+
+
+def _quiet_cfg(**kw) -> EnvConfig:
+    """No per-step draws: IMU without noise (biases drawn at reset), the acoustic source, and
+    noise-free acoustic fixes every second (the scalar IMU draws its zero noise from the
+    episode's stream, the batch's from its own: any draw after the reset would differ)."""
+    vehicle = replace(VehicleConfig(), imu=ImuConfig(0.0, 0.02, 0.0, 0.001, 0.0, 0.0))
+    world = replace(WorldConfig(), vehicle=vehicle, randomise_vehicle=True)
+    est = EstimatorConfig(usbl_sigma_floor_m=0.0, usbl_sigma_per_m=0.0)
+    base = {"obs_source": "acoustic", "world": world, "estimator": est, "usbl": UsblConfig()}
+    return EnvConfig(**(base | kw))
+
+
+@pytest.mark.parametrize("terminate_on", ["paper", "strict"])
+def test_batched_episodes_equal_scalar_episodes(terminate_on):
+    cfg = _quiet_cfg(terminate_on=terminate_on, episode_s=6.0, obs_frames=2, obs_privileged=True)
+    n, seed = 3, 11
+    batch = BatchDockingEnv(cfg, n, seed=seed, privileged=True)
+    scalars = [DockingEnv(cfg, privileged=True) for _ in range(n)]
+    obs_b = batch.reset()
+    obs_s = np.stack([e.reset(seed=seed + i)[0] for i, e in enumerate(scalars)])
+    np.testing.assert_allclose(obs_b, obs_s, atol=1e-6)
+    rng = np.random.default_rng(0)
+    for k in range(30):  # one whole episode (6 s): every env truncates or docks
+        a = rng.uniform(-1, 1, (n, 6)).astype(np.float32)
+        ob, rb, db, ib = batch.step(a)
+        for i, e in enumerate(scalars):
+            o, r, term, trunc, info = e.step(a[i])
+            assert rb[i] == pytest.approx(r, rel=1e-9, abs=1e-9), (k, i)
+            assert db[i] == (term or trunc)
+            assert ib[i]["success_strict"] == info["success_strict"]
+            np.testing.assert_allclose(ib[i]["T_world_body"], info["T_world_body"], atol=1e-9)
+            if term or trunc:
+                np.testing.assert_allclose(ib[i]["terminal_observation"], o, atol=1e-6)
+                assert ib[i]["TimeLimit.truncated"] == (trunc and not term)
+                assert ib[i]["episode"]["l"] == e.steps
+                # auto-reset: a fresh spawn (its draws continue the env's own stream, which the
+                # scalar env's IMU also draws from: not compared)
+                assert batch.steps[i] == 0 and np.isfinite(ob[i]).all()
+            else:
+                np.testing.assert_allclose(ob[i], o, atol=1e-6, err_msg=f"step {k} env {i}")
+    assert db.all()
+
+
+def test_error_model_batch_runs_and_reports_detections():
+    cfg = EnvConfig(obs_source="error-model", error_model_path=MODEL, episode_s=4.0)
+    env = BatchDockingEnv(cfg, 4, seed=0)
+    obs = env.reset()
+    assert obs.shape == (4, env.observation_space.shape[0])
+    for _ in range(25):
+        obs, r, d, infos = env.step(np.zeros((4, 6), dtype=np.float32))
+        assert np.isfinite(obs).all() and np.isfinite(r).all()
+    assert all("episode" in i for i in infos) or d.sum() == 0
+
+
+def test_camera_source_and_bad_actions_are_refused():
+    with pytest.raises(ValueError, match="cannot be batched"):
+        BatchDockingEnv(EnvConfig(obs_source="camera"), 2)
+    env = BatchDockingEnv(_quiet_cfg(), 2)
+    env.reset()
+    with pytest.raises(ValueError, match="env 1"):
+        env.step(np.array([[0.0] * 6, [np.nan] + [0.0] * 5]))
+
+
+def test_curriculum_reaches_every_env():
+    env = BatchDockingEnv(_quiet_cfg(terminate_on="strict"), 2)
+    env.set_curriculum(0.5, 0.3)
+    assert env.task.strict_peg_z_m == 0.5
+    assert all(t.strict_peg_z_m == 0.5 for t in env.get_attr("task"))

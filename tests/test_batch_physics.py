@@ -1,0 +1,118 @@
+"""The batched physics (sim.batch) against the scalar VehicleBody: same wrenches, same
+trajectory, in free flight and through PhysX contacts (the surface lid, the docking station)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from uwdock.calibration.frames import R_from_rpy, make_T
+from uwdock.dockcore.config import replace
+from uwdock.sim.batch import BatchVehicles
+from uwdock.sim.vehicle import CurrentConfig, ImuConfig, VehicleConfig
+from uwdock.sim.world import DockingWorld
+from uwdock.sim.world_config import WorldConfig
+
+_QUIET_IMU = ImuConfig(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+
+
+def _world(cfg: WorldConfig, seed: int, T_world_body: np.ndarray, ds_xy=(0.5, 0.2)) -> DockingWorld:
+    w = DockingWorld(cfg)
+    T_ds = make_T(R_from_rpy(0, 0, 0.3), [ds_xy[0], ds_xy[1], w.floor_z_m])
+    w.reset(T_ds, T_world_body, np.random.default_rng(seed))
+    return w
+
+
+def _compare(cfg: WorldConfig, T_start: np.ndarray, wrench_of_step, n_steps: int):
+    """Step a scalar world and the first slot of a two-vehicle batch with the same wrenches;
+    return the largest difference of pose, body velocity and mean acceleration, and how many
+    steps went through PhysX."""
+    scalar = _world(cfg, 1, T_start)
+    twin = _world(cfg, 1, T_start)
+    other = _world(cfg, 2, make_T(np.eye(3), [3.0, 1.0, 3.0]))
+    batch = BatchVehicles([twin.vehicle, other.vehicle])
+    worst, physx = 0.0, 0
+    for k in range(n_steps):
+        w = wrench_of_step(k)
+        scalar.vehicle.step(w, 0.2)
+        batch.step(np.stack([w, -w]), 0.2)
+        v = scalar.vehicle
+        worst = max(
+            worst,
+            np.abs(v.T_world_ned_body_frd - batch.T_world_body()[0]).max(),
+            np.abs(v.nu - batch.nu()[0]).max(),
+            np.abs(v.nu_dot_mean - batch.nu_dot_mean()[0]).max(),
+        )
+        assert v.last_step_fast == (not batch.last_physx[0]), f"step {k}: paths differ"
+        physx += int(batch.last_physx[0])
+    return worst, physx, scalar, batch
+
+
+def test_free_flight_and_surface_contact_equal_the_scalar_body():
+    cfg = replace(WorldConfig(), randomise_vehicle=True)
+    T0 = make_T(R_from_rpy(0, 0, 1.0), [0.8, 0.0, 1.9])
+
+    def wrench(k):
+        w = np.array([60.0, 10.0, 120.0 if k < 60 else 200.0, 0.0, 3.0, 5.0])
+        return w if k < 100 else -0.5 * w
+
+    worst, physx, _, _ = _compare(cfg, T0, wrench, 150)
+    assert physx > 50  # the lid: a positively buoyant vehicle rests against it
+    assert worst < 1e-9
+
+
+def test_docking_station_contact_equals_the_scalar_body():
+    """Pushed down onto the DS frame, then sideways: PhysX contacts with the DS."""
+    cfg = replace(WorldConfig(), current=CurrentConfig(mode="varying"))
+    T0 = make_T(R_from_rpy(0, 0, 0.2), [0.5, 0.2, 2.2])
+
+    def wrench(k):
+        return np.array([0.0, 40.0 if k > 30 else 0.0, 268.0, 0.0, 0.0, 20.0])
+
+    worst, physx, scalar, _ = _compare(cfg, T0, wrench, 60)
+    assert physx > 20
+    assert scalar.T_world_body[2, 3] > 3.0  # it went down to the DS
+    assert worst < 1e-9
+
+
+def test_batch_imu_equals_the_scalar_imu_without_noise():
+    vehicle = replace(VehicleConfig(), imu=_QUIET_IMU)
+    cfg = replace(WorldConfig(), vehicle=vehicle)
+    T0 = make_T(R_from_rpy(0.1, -0.05, 0.4), [1.0, -1.0, 3.0])
+    scalar, twin = _world(cfg, 3, T0), _world(cfg, 3, T0)
+    batch = BatchVehicles([twin.vehicle])
+    rng = np.random.default_rng(0)
+    for k in range(5):
+        w = np.array([80.0, -20.0, 30.0, 0.0, 5.0, 10.0 * k])
+        scalar.vehicle.step(w, 0.2)
+        batch.step(w[None], 0.2)
+        a, b = scalar.vehicle.read_imu(), batch.read_imu(rng)
+        for name in (
+            "specific_force_frd_mps2",
+            "acceleration_frd_mps2",
+            "angular_velocity_frd_radps",
+            "velocity_frd_mps",
+        ):
+            np.testing.assert_allclose(getattr(b, name)[0], getattr(a, name), atol=1e-9)
+        assert b.depth_m[0] == pytest.approx(a.depth_m, abs=1e-12)
+
+
+def test_batch_imu_noise_has_the_configured_spread():
+    cfg = WorldConfig()
+    worlds = [_world(cfg, s, make_T(np.eye(3), [0.0, 0.0, 3.0])) for s in range(2)]
+    batch = BatchVehicles([w.vehicle for w in worlds])
+    rng = np.random.default_rng(1)
+    vel = np.array([batch.read_imu(rng).velocity_frd_mps for _ in range(3000)])
+    std = vel.reshape(-1, 3).std(axis=0)
+    np.testing.assert_allclose(std, cfg.vehicle.imu.velocity_noise_std_mps, rtol=0.08)
+
+
+def test_bad_wrench_shape_is_refused():
+    w = _world(WorldConfig(), 0, make_T(np.eye(3), [0.0, 0.0, 3.0]))
+    batch = BatchVehicles([w.vehicle])
+    with pytest.raises(ValueError, match="wrench_frd"):
+        batch.step(np.zeros((2, 6)), 0.2)
+    with pytest.raises(ValueError):
+        batch.step(np.zeros((1, 6)), 0.2015)
+    with pytest.raises(ValueError, match="no vehicles"):
+        BatchVehicles([])
