@@ -1,10 +1,11 @@
-"""Training throughput: environment steps per second of a training recipe, by number of envs.
+"""Training throughput: env steps per second of a training recipe, per-env and batched simulator.
 
 Usage::
 
-    python bench/bench_train_speed.py [--config configs/scratch_error_model_precision_ppo.toml]
-        [--envs 2] [--rollouts 8] [--repeats 3] [--seed 1] [--init-policy POLICY]
-        [--name train_speed]
+    python bench/bench_train_speed.py [--quick] [--json] [--config configs/...toml]
+        [--simulators per-env,batched] [--envs 2] [--batch-envs 64] [--batch-workers 2]
+        [--rollouts 8]
+        [--repeats 3] [--seed 1] [--init-policy POLICY] [--name train_speed]
 
 Each measurement trains the recipe (``rl.train.train``, no progress bar) from scratch in a
 temporary run folder, in a fresh process (a process that has started SAPIEN cannot fork
@@ -12,13 +13,24 @@ working env workers on a GPU's Vulkan driver), with the periodic evaluation and 
 switched off: once for one PPO rollout of ``n_steps x n_envs`` steps and once for ``rollouts``
 rollouts. The difference gives the steady rate (steps/s of stepping and PPO updates) and the
 start cost (processes, SAPIEN, the first observations). The table gives the median, min and max
-of the steady rate over ``repeats`` pairs per env count, the median start cost, and the hours
-the recipe's ``total_steps`` would take at the median (the recipe's own evaluations come on
-top). More envs than the recipe's ``n_envs`` change the recipe (larger batches per update):
-those rows measure the machine, not a validated recipe. ``--init-policy`` starts every run from
-a trained policy (``rl train --init-policy``): an early policy's episodes are mostly free flight
-far from the DS, a trained one's end in contact, which costs the physics more per step, so the
-two bracket a training run's mix.
+of the steady rate over ``repeats`` pairs per row, the median start cost, and the minutes the
+recipe's ``total_steps`` would take at the median (the recipe's own evaluations come on top).
+
+Two simulators, side by side in one run on the same machine (``--simulators``):
+
+* ``per-env``: the recipe as written, one :class:`rl.env.DockingEnv` per worker process
+  (``--envs`` env counts; more than the recipe's change its batches: those rows measure the
+  machine, not a validated recipe);
+* ``batched``: :class:`rl.batch_env.BatchDockingEnv`, ``--batch-envs`` envs stepped as arrays,
+  split over ``--batch-workers`` processes (1: the trainer's own), ``n_steps`` scaled so that a
+  rollout holds as many steps as the recipe's (``n_steps x n_envs``); the update (batch size,
+  epochs) is the recipe's.
+
+``--init-policy`` starts every run from a trained policy (``rl train --init-policy``): an early
+policy's episodes are mostly free flight far from the DS, a trained one's end in contact, which
+costs the physics more per step, so the two bracket a training run's mix. ``--quick``: 3
+rollouts, 1 repeat. ``--json`` prints one JSON line last: ``batched_steps_per_s``,
+``per_env_steps_per_s`` (the recipe's env count) and their ratio.
 
 Writes ``bench/results/<name>.json`` (rows + machine, commit, packages).
 """
@@ -26,6 +38,7 @@ Writes ``bench/results/<name>.json`` (rows + machine, commit, packages).
 from __future__ import annotations
 
 import argparse
+import json
 import multiprocessing
 import statistics
 import sys
@@ -43,7 +56,7 @@ OFF = 10**9  # an evaluation / checkpoint interval no run reaches
 
 
 def _measure(
-    cfg: TrainConfig, envs: int, rollouts: int, init: str | None = None
+    cfg: TrainConfig, envs: int, rollouts: int, init: str | None = None, batch_workers: int = 1
 ) -> tuple[int, float]:
     """Train ``rollouts`` rollouts with ``envs`` envs (from policy ``init`` if given); returns
     (steps, wall seconds)."""
@@ -51,19 +64,24 @@ def _measure(
     run_cfg = replace(cfg, n_envs=envs, total_steps=steps, eval_every=OFF, checkpoint_every=OFF)
     with tempfile.TemporaryDirectory(prefix="bench_train_") as tmp:
         t0 = time.perf_counter()
-        train(run_cfg, Path(tmp) / "run", progress=False, init_policy=init, note=lambda _m: None)
+        train(
+            run_cfg, Path(tmp) / "run", progress=False, init_policy=init,
+            note=lambda _m: None, batch_workers=batch_workers,
+        )  # fmt: skip
         return steps, time.perf_counter() - t0
 
 
-def _child(cfg: TrainConfig, envs: int, rollouts: int, init, out: multiprocessing.Queue) -> None:
-    out.put(_measure(cfg, envs, rollouts, init))
+def _child(cfg: TrainConfig, envs: int, rollouts: int, init, workers: int, out) -> None:
+    out.put(_measure(cfg, envs, rollouts, init, workers))
 
 
-def measure(cfg: TrainConfig, envs: int, rollouts: int, init: str | None = None):
+def measure(
+    cfg: TrainConfig, envs: int, rollouts: int, init: str | None = None, batch_workers: int = 1
+):
     """:func:`_measure` in a fresh (spawned, non-daemonic: it starts env workers) process."""
     ctx = multiprocessing.get_context("spawn")
     out = ctx.Queue()
-    proc = ctx.Process(target=_child, args=(cfg, envs, rollouts, init, out))
+    proc = ctx.Process(target=_child, args=(cfg, envs, rollouts, init, batch_workers, out))
     proc.start()
     proc.join()
     if proc.exitcode != 0:
@@ -71,59 +89,104 @@ def measure(cfg: TrainConfig, envs: int, rollouts: int, init: str | None = None)
     return out.get()
 
 
+def batched(cfg: TrainConfig, batch_envs: int) -> TrainConfig:
+    """The recipe on the batched simulator: ``batch_envs`` envs, a rollout as long as the
+    recipe's (``n_steps`` scaled, at least 1 per env)."""
+    n_steps = max(1, cfg.ppo.n_steps * cfg.n_envs // batch_envs)
+    return replace(
+        cfg, simulator="batched", n_envs=batch_envs, ppo=replace(cfg.ppo, n_steps=n_steps)
+    )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--config", default="configs/scratch_error_model_precision_ppo.toml")
-    ap.add_argument("--envs", default=None, help="comma-separated env counts [the recipe's]")
+    ap.add_argument("--simulators", default="per-env,batched")
+    ap.add_argument("--envs", default=None, help="per-env: comma-separated env counts [recipe's]")
+    ap.add_argument("--batch-envs", type=int, default=64, help="batched: envs in the batch")
+    ap.add_argument(
+        "--batch-workers", type=int, default=2, help="batched: processes the batch is split over"
+    )
     ap.add_argument("--rollouts", type=int, default=8)
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--quick", action="store_true", help="3 rollouts, 1 repeat")
+    ap.add_argument("--json", action="store_true", help="print one JSON summary line last")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--init-policy", default=None, help="start every run from this policy")
     ap.add_argument("--name", default="train_speed")
     ap.add_argument("--out-dir", type=Path, default=None)
     a = ap.parse_args()
+    if a.quick:
+        a.rollouts, a.repeats = 3, 1
+    sims = [x.strip() for x in a.simulators.split(",") if x.strip()]
     if a.rollouts < 2 or a.repeats < 1:
         sys.exit("error: --rollouts must be at least 2 and --repeats at least 1")
-    cfg = replace(load_config(TrainConfig, a.config, section="train"), seed=a.seed)
-    env_counts = [int(e) for e in a.envs.split(",")] if a.envs else [cfg.n_envs]
+    if not sims or any(x not in ("per-env", "batched") for x in sims):
+        sys.exit("error: --simulators takes per-env and/or batched")
+    recipe = replace(load_config(TrainConfig, a.config, section="train"), seed=a.seed)
+    runs = []
+    if "per-env" in sims:
+        counts = [int(e) for e in a.envs.split(",")] if a.envs else [recipe.n_envs]
+        runs += [("per-env", replace(recipe, n_envs=e)) for e in counts]
+    if "batched" in sims:
+        runs.append(("batched", batched(recipe, a.batch_envs)))
+    workers = {"per-env": 1, "batched": a.batch_workers}
     rows = []
-    for envs in env_counts:
+    for sim, cfg in runs:
         rates, starts = [], []
+        envs = cfg.n_envs
         for k in range(a.repeats):
-            steps_1, wall_1 = measure(cfg, envs, 1, a.init_policy)
-            steps, wall_s = measure(cfg, envs, a.rollouts, a.init_policy)
+            steps_1, wall_1 = measure(cfg, envs, 1, a.init_policy, workers[sim])
+            steps, wall_s = measure(cfg, envs, a.rollouts, a.init_policy, workers[sim])
             rates.append((steps - steps_1) / (wall_s - wall_1))
             starts.append(wall_1 - steps_1 / rates[-1])
             print(
-                f"envs {envs}, pair {k + 1}/{a.repeats}: {steps_1:,} steps in {wall_1:.1f} s, "
-                f"{steps:,} in {wall_s:.1f} s: {rates[-1]:.0f} steps/s, start {starts[-1]:.1f} s",
+                f"{sim}, {envs} envs, pair {k + 1}/{a.repeats}: {steps_1:,} steps in "
+                f"{wall_1:.1f} s, {steps:,} in {wall_s:.1f} s: {rates[-1]:.0f} steps/s, "
+                f"start {starts[-1]:.1f} s",
                 flush=True,
             )
         med = statistics.median(rates)
         rows.append(
             {
+                "simulator": sim,
                 "envs": envs,
-                "recipe": envs == cfg.n_envs,
+                "processes": envs if sim == "per-env" and envs > 1 else workers[sim],
+                "n_steps": cfg.ppo.n_steps,
+                "recipe": sim == "batched" or envs == recipe.n_envs,
                 "steps_per_run": a.rollouts * cfg.ppo.n_steps * envs,
                 "steps_per_s_median": med,
                 "steps_per_s_min": min(rates),
                 "steps_per_s_max": max(rates),
                 "start_s_median": statistics.median(starts),
-                "recipe_total_steps_h": cfg.total_steps / med / 3600.0,
+                "recipe_total_steps_min": recipe.total_steps / med / 60.0,
             }
         )
     print(format_table(rows, list(rows[0])))
+    rate = {r["simulator"]: r["steps_per_s_median"] for r in rows if r["recipe"]}
+    summary = {
+        "batched_steps_per_s": rate.get("batched"),
+        "per_env_steps_per_s": rate.get("per-env"),
+        "ratio": rate["batched"] / rate["per-env"] if len(rate) == 2 else None,
+    }
     bench_cfg = {
         "config": a.config,
         "seed": a.seed,
         "init_policy": a.init_policy,
         "rollouts": a.rollouts,
         "repeats": a.repeats,
-        "n_steps": cfg.ppo.n_steps,
-        "recipe_n_envs": cfg.n_envs,
-        "recipe_total_steps": cfg.total_steps,
+        "batch_envs": a.batch_envs,
+        "batch_workers": a.batch_workers,
+        "recipe_n_steps": recipe.ppo.n_steps,
+        "recipe_n_envs": recipe.n_envs,
+        "recipe_total_steps": recipe.total_steps,
+        "summary": summary,
     }
     print("wrote", save_results(a.name, rows, bench_cfg, a.out_dir))
+    if summary["ratio"] is not None:
+        print(f"batched / per-env: {summary['ratio']:.1f}x")
+    if a.json:
+        print(json.dumps(summary))
 
 
 if __name__ == "__main__":

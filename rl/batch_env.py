@@ -15,10 +15,11 @@ What equals the scalar env and what does not:
 * the physics: identical (the batch is the same kernels and the same PhysX bodies; tested);
 * the maths of every step (errors, tests, filter, reward, observation): the scalar functions'
   on the same inputs (tested);
-* the random draws: each slot's reset draws from the slot's own stream exactly as the scalar
-  env (``seed + i``, then continuing); the per-step noise (IMU, error model, proxy) comes from
-  one batch generator instead, so an episode is a different sample of the same distributions
-  (the shipped policy's success on both agrees within its confidence interval: ``bench``).
+* the random draws: each env's reset draws from the env's own stream exactly as the scalar
+  env (``seed + i``, then continuing); its per-step noise (IMU, error model, proxy) comes from a
+  second generator of its own (seeded from ``seed + i`` too) in a fixed number of draws per
+  step, so an episode is a different sample of the same distributions than the scalar env's,
+  and the same whether the envs run in one batch or split over worker processes.
 
 The camera source cannot be batched (one render per env and step): ``obs_source = "camera"``
 is refused. Auto-reset, ``terminal_observation``, ``TimeLimit.truncated`` and Monitor's
@@ -29,7 +30,9 @@ the callbacks see what the per-env workers give them.
 from __future__ import annotations
 
 import math
+import pickle
 import time
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -53,6 +56,7 @@ from uwdock.rl.config import EnvConfig
 from uwdock.rl.env import DockingEnv, SimulationError
 from uwdock.rl.error_model import ErrorModelSource
 from uwdock.rl.observation import OBS_BOUND, POS_SCALE_M, PRIVILEGED_DIM, frame_dim
+from uwdock.rl.vec_envs import EnvWorkers
 from uwdock.sim.batch import BatchVehicles
 
 __all__ = ["BatchDockingEnv", "BatchWorkers"]
@@ -86,7 +90,7 @@ class BatchDockingEnv(VecEnv):
         super().__init__(n, e0.observation_space, e0.action_space)
         self.privileged = bool(privileged)
         self.seed_base = int(seed)
-        self.rng = self._noise(seed)
+        self._gens = [self._noise(self.seed_base + i) for i in range(n)]
         self.dt_s = e0.dt_s
         self.max_steps = e0.max_steps
         self.limits = e0.action_limits
@@ -124,15 +128,22 @@ class BatchDockingEnv(VecEnv):
 
     @staticmethod
     def _noise(seed: int) -> np.random.Generator:
-        """The per-step noise generator of a base seed."""
+        """An env's per-step noise generator for its seed."""
         return np.random.default_rng([int(seed) & 0xFFFFFFFF, 0xBA7C])
 
     def seed(self, seed: int | None = None):
-        """Seed the next reset (env ``i``: ``seed + i``) and the per-step noise from ``seed``,
-        so a run reset at a checkpoint boundary goes on exactly as it went before."""
+        """Seed the next reset (env ``i``: ``seed + i``) and each env's per-step noise, so a
+        run reset at a checkpoint boundary goes on exactly as it went before."""
         if seed is not None:
-            self.rng = self._noise(seed)
+            self._gens = [self._noise(int(seed) + i) for i in range(self.num_envs)]
         return super().seed(seed)
+
+    def _draws(self) -> tuple[np.ndarray, np.ndarray | None]:
+        """This step's draws of every env from its own generator: (N, 16) standard normals
+        (IMU 10, then the source's 6) and (N, 3) uniforms (the error model's)."""
+        normals = np.stack([g.standard_normal(16) for g in self._gens])
+        uniforms = np.stack([g.random(3) for g in self._gens]) if self.model else None
+        return normals, uniforms
 
     def _refresh_task(self) -> None:
         e0 = self.envs[0]
@@ -193,13 +204,14 @@ class BatchDockingEnv(VecEnv):
                 f"simulator blew up in env {i} at t={ph.time_s[i]:.2f} s "
                 "(vehicle pose not finite/bounded)"
             )
-        imu = ph.read_imu(self.rng)
+        normals, uniforms = self._draws()
+        imu = ph.read_imu(normals[:, :10])
         sf = imu.specific_force_frd_mps2
         collided = np.linalg.norm(sf - self.prev_sf, axis=1) > self.gamma
         g0 = self._reward_cfg.gamma_set_mps2
         self.gamma = np.where(collided, self.gamma * 2.0, np.maximum(g0, self.gamma / 2.0))
         self.prev_sf = sf
-        self._measure_and_filter(T)
+        self._measure_and_filter(T, normals[:, 10:], uniforms)
         e_true, psi_true = docking_errors_b(T, self.T_world_ds, self.cfg.task)
         visible = ds_visible_b(inv_T_b(T) @ self.T_world_ds, self.cfg.task)
         paper = paper_success_b(e_true, psi_true, visible, self.task)
@@ -253,8 +265,11 @@ class BatchDockingEnv(VecEnv):
             infos.append(info)
         return obs, reward.astype(np.float32), dones, infos
 
-    def _measure_and_filter(self, T: np.ndarray) -> None:
-        """Predict, fuse the acoustic fixes due, then the source's measurements."""
+    def _measure_and_filter(
+        self, T: np.ndarray, normals: np.ndarray, uniforms: np.ndarray | None
+    ) -> None:
+        """Predict, fuse the acoustic fixes due, then the source's measurements (made of this
+        step's draws)."""
         f = self.filter
         f.predict(self.dt_s)
         n = self.num_envs
@@ -270,9 +285,9 @@ class BatchDockingEnv(VecEnv):
             if mask.any():
                 f.update_position(mask, p, sig)
         if self.model is not None:
-            det, T_meas, cov = self.model.measure(T, self.T_world_ds, t, self.rng)
+            det, T_meas, cov = self.model.measure(T, self.T_world_ds, t, uniforms, normals)
         elif self.cfg.obs_source == "proxy":
-            det, T_meas, cov = proxy_measure_b(T, self.T_world_ds, self.cfg.task, self.rng)
+            det, T_meas, cov = proxy_measure_b(T, self.T_world_ds, self.cfg.task, normals)
             f.update(np.ones(n, dtype=bool), self._z(T_meas), cov)
             self.detected = det
             return
@@ -335,18 +350,99 @@ class BatchDockingEnv(VecEnv):
         self.env_method("set_curriculum", z_tolerance_m, spawn_scale)
 
 
+class BatchGroup:
+    """A worker process's share of a batched training env: the envs of ``indices`` as one
+    :class:`BatchDockingEnv`, behind :class:`rl.vec_envs.EnvGroup`'s interface (slots in, one
+    result per env out) so that :class:`rl.vec_envs.PipeHosts` and
+    :class:`rl.grouped_vec_env.GroupedVecEnv` carry it unchanged. Env ``i`` is seeded with
+    ``seed + i`` whatever group holds it, so the rollouts do not depend on the split."""
+
+    def __init__(self, indices: Sequence[int]) -> None:
+        self.indices = [int(i) for i in indices]
+        self.current = self.indices[0]
+        self.venv: BatchDockingEnv | None = None
+
+    def build(self, env_cfg: EnvConfig, seed: int) -> None:
+        self.venv = BatchDockingEnv(
+            env_cfg, len(self.indices), seed=seed + self.indices[0], privileged=True
+        )
+
+    def _batch(self) -> BatchDockingEnv:
+        if self.venv is None:
+            raise RuntimeError("BatchGroup: build() first")
+        return self.venv
+
+    def spaces(self) -> bytes:
+        v = self._batch()
+        return pickle.dumps((v.observation_space, v.action_space))
+
+    def step(self, actions: Sequence[np.ndarray]) -> list[tuple[Any, float, bool, dict, dict]]:
+        obs, rew, done, infos = self._batch().step(np.stack(actions))
+        return [(obs[k], float(rew[k]), bool(done[k]), infos[k], {}) for k in range(len(obs))]
+
+    def reset(self, seeds: Sequence[int | None], options: Sequence[dict | None]) -> list:
+        v = self._batch()
+        if seeds and seeds[0] is not None:
+            v.seed(int(seeds[0]))  # the learner's seeds are consecutive: seed + index
+        obs = v.reset()
+        return [(obs[k], {}) for k in range(len(obs))]
+
+    def env_method(self, slots: Sequence[int], name: str, args: tuple, kwargs: dict) -> list:
+        return self._batch().env_method(name, *args, indices=list(slots), **kwargs)
+
+    def get_attr(self, slots: Sequence[int], name: str) -> list:
+        return self._batch().get_attr(name, list(slots))
+
+    def has_attr(self, slots: Sequence[int], name: str) -> list[bool]:
+        return [hasattr(self._batch().envs[s], name) for s in slots]
+
+    def set_attr(self, slots: Sequence[int], name: str, value: Any) -> list[None]:
+        self._batch().set_attr(name, value, list(slots))
+        return [None] * len(slots)
+
+    def is_wrapped(self, slots: Sequence[int], wrapper_class: type) -> list[bool]:
+        return [False] * len(slots)
+
+    def render(self, slots: Sequence[int]) -> list:
+        return [None] * len(slots)
+
+    def close(self) -> None:
+        if self.venv is not None:
+            self.venv.close()
+
+
 class BatchWorkers:
     """The batched simulator where the trainer expects its env workers (:class:`rl.vec_envs.
-    EnvWorkers`'s interface): one :class:`BatchDockingEnv` in this process, no worker to fail."""
+    EnvWorkers`'s interface): with one worker, one :class:`BatchDockingEnv` in this process;
+    with more, the envs split into that many consecutive groups, each a batch in its own worker
+    process (:class:`BatchGroup`), to use more cores. The rollouts are the same either way.
 
-    def __init__(self, env_cfg: EnvConfig, n_envs: int, seed: int) -> None:
-        self.venv = BatchDockingEnv(env_cfg, n_envs, seed=seed, privileged=True)
+    Args:
+        env_cfg: the training env.
+        n_envs: envs in all.
+        seed: env ``i`` first resets with ``seed + i``.
+        workers: processes to step the envs in (1: this one).
+    """
+
+    def __init__(self, env_cfg: EnvConfig, n_envs: int, seed: int, workers: int = 1) -> None:
+        self._pool = None
+        if workers <= 1:
+            self.venv: Any = BatchDockingEnv(env_cfg, n_envs, seed=seed, privileged=True)
+            return
+        per = -(-n_envs // min(workers, n_envs))  # ceil
+        self._pool = EnvWorkers(env_cfg, n_envs, seed, per, group_cls=BatchGroup)
+        self.venv = self._pool.venv
 
     def worker_errors(self) -> list[str]:
-        return []
+        return self._pool.worker_errors() if self._pool is not None else []
 
     def raise_worker_error(self, exc: BaseException) -> None:
+        if self._pool is not None:
+            self._pool.raise_worker_error(exc)
         raise exc
 
     def close(self, force: bool = False) -> None:
-        self.venv.close()
+        if self._pool is not None:
+            self._pool.close(force)
+        else:
+            self.venv.close()

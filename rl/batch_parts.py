@@ -301,10 +301,12 @@ class BatchErrorModel:
         T_world_body: np.ndarray,
         T_world_ds: np.ndarray,
         time_s: np.ndarray,
-        rng: np.random.Generator,
+        uniforms: np.ndarray,
+        normals: np.ndarray,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(detected (N,) bool, T_world_ds measured (N, 4, 4), cov (N, 4, 4))``; rows of
-        undetected envs are meaningless."""
+        undetected envs are meaningless. The draws: ``uniforms`` (N, 3) in [0, 1) (detection,
+        outlier, which outlier sample) and ``normals`` (N, 6) standard normal."""
         m, t = self.model, self.table
         n = len(T_world_body)
         T_world_cam = T_world_body @ m.T_body_cam
@@ -312,8 +314,8 @@ class BatchErrorModel:
         r = np.linalg.norm(T_cam_ds[:, :3, 3], axis=1)
         n_vis = np.minimum(self.count_in_view(T_cam_ds), N_VISIBLE_BINS - 1)
         k = np.minimum((r / m.range_bin_m).astype(np.int64), m.n_bins - 1)
-        u = rng.random((n, 2))
-        w = rng.standard_normal((n, N_ERR))
+        u = np.asarray(uniforms, dtype=np.float64)
+        w = np.asarray(normals, dtype=np.float64)
         detected = u[:, 0] < t["p"][k, n_vis]
         has_out = np.array([t["outliers"][j].size > 0 for j in range(m.n_bins)])[k]
         outlier = detected & has_out & (u[:, 1] < t["p_out"][k])
@@ -335,7 +337,7 @@ class BatchErrorModel:
         )
         for i in np.flatnonzero(outlier):
             samples = t["outliers"][k[i]]
-            err[i] = samples[rng.integers(len(samples))]
+            err[i] = samples[min(int(u[i, 2] * len(samples)), len(samples) - 1)]
         self.z_prev[inlier] = z[inlier]
         self.t_prev_s[inlier] = time_s[inlier]
         self.has_prev = inlier.copy()
@@ -355,14 +357,14 @@ def proxy_measure_b(
     T_world_body: np.ndarray,
     T_world_ds: np.ndarray,
     cfg: DockingTaskConfig,
-    rng: np.random.Generator,
+    normals: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The paper's proxy for N envs: ``(visible (N,), T_world_ds measured, cov)`` (it always
-    measures; ``visible`` is its detection flag)."""
+    measures; ``visible`` is its detection flag); ``normals`` (N, 6) standard normal draws."""
     e, _ = docking_errors_b(T_world_body, T_world_ds, cfg)
     visible = ds_visible_b(inv_T_b(T_world_body) @ T_world_ds, cfg)
     sigma = np.linalg.norm(e, axis=1) / 6.0
-    draws = rng.standard_normal((len(sigma), 6))
+    draws = np.asarray(normals, dtype=np.float64)
     noise = draws[:, :3] * (sigma / 2.0)[:, None]
     noise += np.where(visible, 0.0, sigma)[:, None] * draws[:, 3:]
     var = (sigma / 2.0) ** 2 + np.where(visible, 0.0, sigma**2)

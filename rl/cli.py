@@ -161,10 +161,19 @@ def cli() -> None:
     help="Envs each worker process (or Ray actor) holds, sharing its renderer, torch and "
     "memory; with Ray, one round trip per worker and step (the same rollouts).",
 )
+@click.option(
+    "--batch-workers",
+    "batch_workers",
+    type=click.IntRange(1, 64),
+    default=1,
+    show_default=True,
+    help="With --simulator batched: processes the batch is split over, to use more cores "
+    "(the same rollouts).",
+)
 @out_dir_option("Run folder.", required=True)
 def train(
     config_path, obs, error_model, usbl, water, algo, steps, envs, simulator, seed, init_policy,
-    resume, allow_config_change, backend, ray_address, envs_per_worker, out_dir,
+    resume, allow_config_change, backend, ray_address, envs_per_worker, batch_workers, out_dir,
 ) -> None:  # fmt: skip
     """Train a docking policy (PPO with the paper's hyperparameters by default).
 
@@ -204,6 +213,7 @@ def train(
         backend=backend,
         ray_address=ray_address,
         envs_per_worker=envs_per_worker,
+        batch_workers=batch_workers,
     )
     click.echo(f"policy: {final}")
 

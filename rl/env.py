@@ -111,6 +111,7 @@ class DockingEnv(gym.Env):
         self._hold_steps = max(1, round(c.task.strict_hold_s * c.control_hz))
         self._task = c.task  # the success tests' task (a curriculum may relax one z tolerance)
         self._spawn_scale = 1.0
+        self._curriculum_level: tuple[float, float] | None = None
 
     def set_curriculum(self, z_tolerance_m: float, spawn_scale: float) -> None:
         """Training curriculum (:mod:`rl.curriculum`): from now on the z tolerance (m) of the
@@ -122,6 +123,10 @@ class DockingEnv(gym.Env):
             raise ValueError(
                 f"curriculum level out of range: z {z_tolerance_m!r} m, spawn {spawn_scale!r}"
             )
+        level = (float(z_tolerance_m), float(spawn_scale))
+        if level == self._curriculum_level:
+            return  # pushed every rollout: the same level costs nothing
+        self._curriculum_level = level
         field = curriculum_z_field(self.cfg)
         self._task = replace(self.cfg.task, **{field: float(z_tolerance_m)})
         self._spawn_scale = float(spawn_scale)

@@ -298,6 +298,7 @@ def train(
     backend: str = "local",
     ray_address: str | None = None,
     envs_per_worker: int = 1,
+    batch_workers: int = 1,
 ) -> Path:
     """Train (or resume) into ``run_dir``; returns the final policy path.
 
@@ -321,6 +322,8 @@ def train(
         ray_address: the Ray cluster (None: a local Ray instance with a CPU per worker).
         envs_per_worker: envs each worker process or actor holds, sharing its renderer
             (:mod:`rl.vec_envs`; the same rollouts). Not part of the run's config either.
+        batch_workers: with ``simulator = "batched"``, the processes the batch is split over
+            (1: the trainer's own; the same rollouts). Not part of the run's config.
 
     Raises:
         DockError: a bad config, a run folder that does not fit the request, a damaged or
@@ -337,6 +340,8 @@ def train(
     except ValueError as exc:
         raise DockError(str(exc)) from None
     preflight(pool)  # before the run folder is claimed
+    if not 1 <= int(batch_workers) <= 64:
+        raise DockError(f"batch_workers: must be 1-64, got {batch_workers!r}")
     if resume and init_policy:
         raise DockError("--init-policy starts a new run; it cannot be combined with --resume")
     check_env_files(cfg.env)
@@ -370,7 +375,7 @@ def train(
             write_provenance(run, {"train": cfg})
         done.unlink(missing_ok=True)
         _note_rollout_rounding(cfg, note)
-        return _run(cfg, run, unit, init, progress, note, pool, envs_per_worker)
+        return _run(cfg, run, unit, init, progress, note, pool, envs_per_worker, batch_workers)
 
 
 def _log_resume(run: Path, unit, changed: list[str], cfg: TrainConfig) -> None:
@@ -389,7 +394,15 @@ def _log_resume(run: Path, unit, changed: list[str], cfg: TrainConfig) -> None:
 
 
 def _run(
-    cfg: TrainConfig, run: Path, unit, init, progress: bool, note, pool: PoolConfig, per_worker: int
+    cfg: TrainConfig,
+    run: Path,
+    unit,
+    init,
+    progress: bool,
+    note,
+    pool: PoolConfig,
+    per_worker: int,
+    batch_workers: int = 1,
 ) -> Path:
     import torch
     from stable_baselines3 import PPO, SAC
@@ -403,7 +416,7 @@ def _run(
             raise DockError("simulator 'batched' runs in this process: use --backend local")
         from uwdock.rl.batch_env import BatchWorkers  # SB3 at module level
 
-        workers: Any = BatchWorkers(cfg.env, cfg.n_envs, cfg.seed)
+        workers: Any = BatchWorkers(cfg.env, cfg.n_envs, cfg.seed, batch_workers)
     elif pool.backend == "ray":
         workers = RayEnvWorkers(cfg.env, cfg.n_envs, cfg.seed, pool.ray_address, per_worker)
     else:

@@ -172,14 +172,14 @@ class Hosts(Protocol):
 
 def _group_worker(
     conn: Any, parent_end: Any, env_cfg: EnvConfig, seed: int, indices: list[int],
-    error_dir: str, parent: int,
+    error_dir: str, parent: int, group_cls: type = EnvGroup,
 ) -> None:  # fmt: skip
     """A local worker process: build the group, then answer the learner's calls until
     ``close``. A failure writes ``env{i}.err`` (its one-line reason) and ends the process; the
     learner, finding the pipe closed, reads the reason (:class:`rl.workers.EnvWorkers`)."""
     parent_end.close()
     setup_worker_process(parent)
-    group = EnvGroup(indices)
+    group = group_cls(indices)
     try:
         group.build(env_cfg, seed)
         while True:
@@ -205,13 +205,21 @@ class PipeHosts:
         seed: env ``i`` is first reset with ``seed + i``.
         groups: the env indices of each worker (:func:`env_groups`).
         error_dir: where a failing worker writes ``env{i}.err``.
+        group_cls: what a worker holds: :class:`EnvGroup` (one docking env per index) or a
+            class with its interface (:class:`rl.batch_env.BatchGroup`: the indices' envs as
+            one batch).
 
     Attributes:
         processes: the worker processes.
     """
 
     def __init__(
-        self, env_cfg: EnvConfig, seed: int, groups: list[list[int]], error_dir: str
+        self,
+        env_cfg: EnvConfig,
+        seed: int,
+        groups: list[list[int]],
+        error_dir: str,
+        group_cls: type = EnvGroup,
     ) -> None:
         ctx = multiprocessing.get_context("fork" if os.name == "posix" else "spawn")
         self.conns: list[Any] = []
@@ -221,7 +229,7 @@ class PipeHosts:
             here, there = ctx.Pipe()
             p = ctx.Process(
                 target=_group_worker,
-                args=(there, here, env_cfg, seed, indices, error_dir, parent),
+                args=(there, here, env_cfg, seed, indices, error_dir, parent, group_cls),
                 daemon=True,
             )
             p.start()
@@ -253,6 +261,8 @@ class EnvWorkers:
         n_envs: number of envs.
         seed: env ``i`` is first reset with ``seed + i``.
         envs_per_worker: envs each worker process holds (module docstring).
+        group_cls: what each worker holds (:class:`PipeHosts`); not :class:`EnvGroup` means
+            worker processes even for one env per worker.
 
     Attributes:
         venv: the SB3 VecEnv (``DummyVecEnv`` for one env, ``SubprocVecEnv`` for one env per
@@ -260,20 +270,25 @@ class EnvWorkers:
     """
 
     def __init__(
-        self, env_cfg: EnvConfig, n_envs: int, seed: int, envs_per_worker: int = 1
+        self,
+        env_cfg: EnvConfig,
+        n_envs: int,
+        seed: int,
+        envs_per_worker: int = 1,
+        group_cls: type = EnvGroup,
     ) -> None:
         from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
         from uwdock.rl.grouped_vec_env import GroupedVecEnv  # SB3 at module level
 
         self._dir = None
-        if n_envs == 1:
+        if n_envs == 1 and group_cls is EnvGroup:
             self.venv = DummyVecEnv([make_env_fn(env_cfg, seed, 0, None, None)])
             return
         self._dir = tempfile.TemporaryDirectory(prefix="uwdock-workers-")
         groups = env_groups(n_envs, envs_per_worker)
-        if len(groups) < n_envs:
-            self._hosts = PipeHosts(env_cfg, seed, groups, self._dir.name)
+        if len(groups) < n_envs or group_cls is not EnvGroup:
+            self._hosts = PipeHosts(env_cfg, seed, groups, self._dir.name, group_cls)
             try:
                 self.venv = GroupedVecEnv(self._hosts, groups)
             except (EOFError, ConnectionError) as exc:

@@ -6,8 +6,8 @@ of its own physics scene (tank, docking station, vehicle), by one control step i
 * thruster allocation (the nominal vehicle), setpoints, the true thrusters' first-order
   response and the thrust wrench per substep, as NumPy arrays over all vehicles;
 * the whole step of every vehicle that cannot touch anything in one numba kernel call
-  (:func:`free_flight_all`, a loop over :func:`uwdock.sim.fastpath.free_flight`: the same
-  Fossen model, the same integration as PhysX's);
+  (:func:`uwdock.sim.fastpath.free_flight_all`, a loop over ``free_flight``: the same Fossen
+  model, the same integration as PhysX's);
 * PhysX only for the vehicles whose swept hull may touch a static shape (the docking station,
   the floor, the walls): their body is given the batch's state, stepped by
   ``VehicleBody``'s own PhysX loop, and read back.
@@ -33,40 +33,15 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 
 from uwdock.calibration.frames import T_WORLDZUP_WORLDNED
-from uwdock.sim.fastpath import HYDRO_PARAMS, free_flight
+from uwdock.sim.fastpath import HYDRO_PARAMS, free_flight_all
 from uwdock.sim.physics import FREE_FLIGHT_MARGIN_M, VehicleBody
 
-__all__ = ["BatchImu", "BatchVehicles", "free_flight_all"]
+__all__ = ["BatchImu", "BatchVehicles"]
 
 _S_BODY = np.array([1.0, -1.0, -1.0])  # FRD <-> FLU component signs
 _R_ZUP_NED = np.array(T_WORLDZUP_WORLDNED[:3, :3])
-
-
-@njit(cache=True)
-def free_flight_all(P, B, state, wrenches, currents, dt, hull, obstacles, n_obstacles, margin, acc):
-    """:func:`uwdock.sim.fastpath.free_flight` for every vehicle; (N,) bool: True where the step
-    was integrated (no contact possible), False where the caller must step PhysX (that
-    vehicle's ``state`` and ``acc`` rows are then untouched). ``n_obstacles[i] < 0`` forces
-    PhysX for vehicle ``i``."""
-    n = state.shape[0]
-    out = np.zeros(n, dtype=np.bool_)
-    row = np.empty(13)
-    a = np.empty(6)
-    for i in range(n):
-        k = n_obstacles[i]
-        if k < 0:
-            continue
-        row[:] = state[i]
-        if free_flight(
-            P[i], B[i], row, wrenches[i], currents[i], dt, hull, obstacles[i, :k], margin, a
-        ):
-            state[i] = row
-            acc[i] = a
-            out[i] = True
-    return out
 
 
 @dataclass(frozen=True)
@@ -108,9 +83,21 @@ class BatchVehicles:
         self.n = n
         self.dt_s = b0.dt_s
         self.hull = np.ascontiguousarray(b0.hull)
+        self.spheres, self.planes, _ = b0.plane_params
         for b in self.bodies:
-            if b.dt_s != self.dt_s or b.thrusters.n != k or b.hull.shape != self.hull.shape:
-                raise ValueError("BatchVehicles: every body needs the same substep and hull")
+            spheres, planes, _ = b.plane_params
+            same = (
+                b.dt_s == self.dt_s
+                and b.thrusters.n == k
+                and b.hull.shape == self.hull.shape
+                and np.array_equal(spheres, self.spheres)
+                and np.array_equal(planes, self.planes)
+            )
+            if not same:
+                raise ValueError(
+                    "BatchVehicles: every body needs the same substep, hull and tank planes"
+                )
+        self.contact = np.zeros((n, 5))
         self.state = np.zeros((n, 13))
         self.P = np.zeros((n, HYDRO_PARAMS))
         self.B = np.zeros((n, 9))
@@ -150,6 +137,7 @@ class BatchVehicles:
         b = self.bodies[i]
         self.state[i] = b.state_zup()
         self.P[i], self.B[i] = b.kernel_params
+        self.contact[i] = b.plane_params[2]
         self.alloc[i] = b.allocator.allocation_matrix
         self.max_nominal_n[i] = b.allocator.max_thrust_n
         self.max_true_n[i] = b.thrusters.max_thrust_n
@@ -224,16 +212,19 @@ class BatchVehicles:
         currents = np.ascontiguousarray(self._currents_zup(n_sub))
         v0 = self.state[:, 7:13].copy()
         acc = np.zeros((self.n, 6))
-        free = free_flight_all(
+        done = free_flight_all(
             self.P, self.B, self.state, wrenches, currents, dt,
             self.hull, self.obstacles, self.n_obstacles, FREE_FLIGHT_MARGIN_M, acc,
+            self.spheres, self.planes, self.contact,
         )  # fmt: skip
-        self.state[free] = _f32(self.state[free])  # what PhysX keeps of it
-        self._held[free] = False
-        self.last_physx = ~free
-        for i in np.flatnonzero(~free):
-            self._physx_step(i, wrenches[i], currents[i], n_sub)
-        self.physx_steps += int((~free).sum())
+        moved = done > 0
+        self.state[moved] = _f32(self.state[moved])  # what PhysX keeps of it
+        self._held[moved] = False
+        self.last_physx = done < n_sub
+        for i in np.flatnonzero(self.last_physx):
+            k = int(done[i])  # PhysX from the first substep that may touch
+            self._physx_step(i, wrenches[i, k:], currents[i, k:])
+        self.physx_steps += int(self.last_physx.sum())
         self.thrust_n = response[:, -1, :].copy()
         self.time_s = self.time_s + n_sub * dt
         self.acc_mean_zup = (self.state[:, 7:13] - v0) / (n_sub * dt)
@@ -249,7 +240,7 @@ class BatchVehicles:
             out[i] = self.bodies[i].current.velocity_ned_at(times) @ _R_ZUP_NED.T
         return out
 
-    def _physx_step(self, i: int, wrenches: np.ndarray, currents: np.ndarray, n_sub: int) -> None:
+    def _physx_step(self, i: int, wrenches: np.ndarray, currents: np.ndarray) -> None:
         """Vehicle ``i``'s step through PhysX (its body's own loop), state read back."""
         if not self._held[i]:
             self.store(i)
@@ -310,14 +301,17 @@ class BatchVehicles:
         a_o = a_cg - np.cross(alpha, c) - np.cross(w, np.cross(w, c))
         return np.concatenate([a_o, alpha], axis=1)
 
-    def read_imu(self, rng: np.random.Generator) -> BatchImu:
+    def read_imu(self, normals: np.ndarray) -> BatchImu:
         """Sample every vehicle's navigation sensors now (:meth:`uwdock.sim.vehicle.Imu.measure`
-        for all; the noise drawn from ``rng``)."""
+        for all), the noise made of ``normals`` (N, 10) standard normal draws (accelerometer 3,
+        gyro 3, velocity 3, depth 1)."""
         T = self.T_world_body()
         R = T[:, :3, :3]
         nu = self.nu()
         g_body = R[:, 2, :] * self.gravity_mps2[:, None]  # R^T (0, 0, g)
-        noise = rng.standard_normal((self.n, 10))
+        noise = np.asarray(normals, dtype=np.float64)
+        if noise.shape != (self.n, 10):
+            raise ValueError(f"normals: expected shape ({self.n}, 10), got {noise.shape}")
         s = self.imu_std
         acc = self.nu_dot_mean()[:, :3] + self.accel_bias + s[:, 0:1] * noise[:, 0:3]
         return BatchImu(

@@ -559,6 +559,7 @@ def build_tank(
     cfg: DockingStationConfig | None = None,
     visual: bool = True,
     surface_lid: bool = False,
+    collision: bool = True,
 ) -> sapien.Entity:
     """Add the tank (floor at world_ned z = depth, four walls up to the surface) to ``scene``.
 
@@ -566,9 +567,12 @@ def build_tank(
         scene: the scene.
         cfg: tank geometry.
         visual: False builds collision shapes only (for a physics-only scene).
+        collision: give the floor and walls PhysX collision shapes; False: visual only (the
+            docking world's vehicle touches them through its own plane contact instead:
+            :meth:`uwdock.sim.physics.VehicleBody.set_tank_planes`).
         surface_lid: add an invisible collision slab just above the water surface, so a
-            positively buoyant vehicle stops at the surface (the hydrodynamics has no
-            free-surface model).
+            positively buoyant vehicle without a free surface (``VehicleConfig.
+            surface_band_m = 0``) stops at the surface.
 
     Returns:
         The static tank entity (frame = world_ned).
@@ -582,10 +586,10 @@ def build_tank(
         cfg.tank_depth_m,
         cfg.tank_wall_thickness_m,
     )
-    body.box([0, 0, d + t / 2], [hx + t, hy + t, t / 2], floor)
+    body.box([0, 0, d + t / 2], [hx + t, hy + t, t / 2], floor, collision=collision)
     for s in (-1, 1):
-        body.box([s * (hx + t / 2), 0, d / 2], [t / 2, hy + t, d / 2], wall)
-        body.box([0, s * (hy + t / 2), d / 2], [hx, t / 2, d / 2], wall)
+        body.box([s * (hx + t / 2), 0, d / 2], [t / 2, hy + t, d / 2], wall, collision=collision)
+        body.box([0, s * (hy + t / 2), d / 2], [hx, t / 2, d / 2], wall, collision=collision)
     if surface_lid:
         lid = sapien.physx.PhysxCollisionShapeBox(
             np.array([hx, hy, t / 2], np.float32), body.material

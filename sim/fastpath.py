@@ -54,24 +54,29 @@ __all__ = [
     "StaticObstacles",
     "body_params",
     "free_flight",
+    "free_flight_all",
     "hull_boxes",
     "hydro_accel",
     "hydro_params",
     "physx_wrench",
+    "plane_contacts",
 ]
 
 #: Length of :func:`hydro_params`'s vector: m, W-B, W r_g - B r_b (3), r_g (3), added mass (6),
-#: linear (6) and quadratic (6) damping, I_O (9, row-major), (M_RB + M_A)^-1 (36, row-major).
-HYDRO_PARAMS = 71
+#: linear (6) and quadratic (6) damping, I_O (9, row-major), (M_RB + M_A)^-1 (36, row-major),
+#: then the free surface: B, r_b (3), the surface band (m).
+HYDRO_PARAMS = 76
 #: Unbounded side of an obstacle box (a half-space, or a shape we cannot bound).
 _FAR = 1e30
+#: Substeps per chunk when a step that may touch is retried chunk by chunk (:func:`free_flight`).
+CHUNK_SUBSTEPS = 6
 
 
 # --------------------------------------------------------------------------- parameters
 
 
 def hydro_params(hydro: Hydrodynamics) -> np.ndarray:
-    """Pack a vehicle's hydrodynamic constants for :func:`hydro_accel` ((71,) float64)."""
+    """Pack a vehicle's hydrodynamic constants for :func:`hydro_accel` ((76,) float64)."""
     c = hydro.config
     rg = np.asarray(c.cg_m, dtype=float)
     rb = np.asarray(c.cb_m, dtype=float)
@@ -86,6 +91,9 @@ def hydro_params(hydro: Hydrodynamics) -> np.ndarray:
             np.asarray(c.quadratic_damping, dtype=float),
             np.asarray(hydro.I_O, dtype=float).ravel(),
             np.asarray(hydro.M_inv, dtype=float).ravel(),
+            [c.buoyancy_n],
+            rb,
+            [c.surface_band_m],
         ]
     )
     assert P.shape == (HYDRO_PARAMS,)
@@ -121,15 +129,16 @@ def body_params(
 
 
 @njit(cache=True)
-def hydro_accel(P, dx, dy, dz, u, v, w, p, q, r, cu, cv, cw, X, Y, Z, K, M, N):
+def hydro_accel(P, dx, dy, dz, u, v, w, p, q, r, cu, cv, cw, X, Y, Z, K, M, N, depth_cb):
     """Body acceleration ``nu_dot`` of the Fossen model (``Hydrodynamics.acceleration``).
 
     Args:
-        P: (71,) :func:`hydro_params`.
+        P: (76,) :func:`hydro_params`.
         dx, dy, dz: NED down direction in body FRD (row 2 of ``R_ned_frd``).
         u, v, w, p, q, r: body velocity of the origin, FRD (m/s, rad/s).
         cu, cv, cw: water velocity in body FRD (m/s).
         X, Y, Z, K, M, N: applied wrench about the origin, FRD (N, N m).
+        depth_cb: depth of the centre of buoyancy below the surface (m; ``inf``: deep).
 
     Returns:
         6-tuple ``nu_dot`` (m/s^2, rad/s^2), FRD.
@@ -137,6 +146,13 @@ def hydro_accel(P, dx, dy, dz, u, v, w, p, q, r, cu, cv, cw, X, Y, Z, K, M, N):
     m = P[0]
     wb = P[1]
     hx, hy, hz = P[2], P[3], P[4]
+    band = P[75]
+    if band > 0.0 and depth_cb < 0.5 * band:  # the free surface: the buoyancy lost above it
+        lost = P[71] * (1.0 - max(0.0, 0.5 + depth_cb / band))
+        wb += lost
+        hx += lost * P[72]
+        hy += lost * P[73]
+        hz += lost * P[74]
     gx, gy, gz = P[5], P[6], P[7]
     a0, a1, a2, a3, a4, a5 = P[8], P[9], P[10], P[11], P[12], P[13]
     ur = u - cu
@@ -189,11 +205,12 @@ def hydro_accel(P, dx, dy, dz, u, v, w, p, q, r, cu, cv, cw, X, Y, Z, K, M, N):
 
 
 @njit(cache=True)
-def _bridge(P, B, qw, qx, qy, qz, vx, vy, vz, ox, oy, oz, ax_, ay_, az_, X, Y, Z, K, M, N):
+def _bridge(P, B, pz, qw, qx, qy, qz, vx, vy, vz, ox, oy, oz, ax_, ay_, az_, X, Y, Z, K, M, N):
     """World force and torque (6-tuple, z-up) PhysX needs to realise the model's acceleration.
 
-    ``q``: body FLU attitude (w, x, y, z); ``v``: CoM velocity and ``o``: angular velocity
-    (z-up world); ``a_``: water velocity (z-up world); ``X..N``: thruster wrench (FRD).
+    ``pz``: the entity origin's height (z-up world, m; the surface at 0); ``q``: body FLU
+    attitude (w, x, y, z); ``v``: CoM velocity and ``o``: angular velocity (z-up world);
+    ``a_``: water velocity (z-up world); ``X..N``: thruster wrench (FRD).
     ``F = m_e a_cg`` and ``T = I_e omega_dot + omega x I_e omega`` (see ``sim.physics``).
     """
     me = B[0]
@@ -222,11 +239,13 @@ def _bridge(P, B, qw, qx, qy, qz, vx, vy, vz, ox, oy, oz, ax_, ay_, az_, X, Y, Z
     cu = r00 * ax_ + r10 * ay_ + r20 * az_
     cv = -(r01 * ax_ + r11 * ay_ + r21 * az_)
     cw = -(r02 * ax_ + r12 * ay_ + r22 * az_)
+    # the CB's depth: -(z-up height of origin + R (CB in FLU)), CB in FLU = (bx, -by, -bz)
+    depth_cb = -(pz + r20 * P[72] - r21 * P[73] - r22 * P[74])
     # origin velocity v_O = v_cg - omega x c; NED down in FRD = (-r20, r21, r22)
     ud, vd, wd, pd, qd, rd = hydro_accel(
         P, -r20, r21, r22,
         ug - (q * cz - r * cy), vg - (r * cx - p * cz), wg - (p * cy - q * cx),
-        p, q, r, cu, cv, cw, X, Y, Z, K, M, N,
+        p, q, r, cu, cv, cw, X, Y, Z, K, M, N, depth_cb,
     )  # fmt: skip
     # CoM acceleration in body FRD: v_O_dot + omega_dot x c + omega x v_cg
     fx = me * (ud + qd * cz - rd * cy + q * wg - r * vg)
@@ -245,29 +264,115 @@ def _bridge(P, B, qw, qx, qy, qz, vx, vy, vz, ox, oy, oz, ax_, ay_, az_, X, Y, Z
 
 
 @njit(cache=True)
-def physx_wrench(P, B, quat, vel, omega, currents, wrenches, k):
+def physx_wrench(P, B, pos, quat, vel, omega, currents, wrenches, k, spheres, planes, contact):
     """The PhysX path's per-substep call: world force and torque for substep ``k``.
 
     Args:
-        P: (71,) :func:`hydro_params`; B: (9,) :func:`body_params`.
+        P: (76,) :func:`hydro_params`; B: (9,) :func:`body_params`.
+        pos: (3,) entity position, z-up world (m; the surface at z = 0).
         quat: (4,) entity attitude (w, x, y, z) as PhysX returns it (float32 is fine).
         vel: (3,) CoM velocity, z-up world (m/s); omega: (3,) angular velocity (rad/s).
         currents: (n, 3) water velocity per substep, z-up world (m/s).
         wrenches: (n, 6) thruster wrench per substep, FRD about the origin (N, N m).
         k: substep index.
+        spheres, planes, contact: the tank planes' contact (:func:`plane_contacts`; no planes:
+            none).
 
     Returns:
         ``((Fx, Fy, Fz), (Tx, Ty, Tz))`` for ``add_force_torque`` (N, N m, z-up world).
     """
     f = _bridge(
-        P, B, np.float64(quat[0]), np.float64(quat[1]), np.float64(quat[2]), np.float64(quat[3]),
+        P, B, np.float64(pos[2]),
+        np.float64(quat[0]), np.float64(quat[1]), np.float64(quat[2]), np.float64(quat[3]),
         np.float64(vel[0]), np.float64(vel[1]), np.float64(vel[2]),
         np.float64(omega[0]), np.float64(omega[1]), np.float64(omega[2]),
         currents[k, 0], currents[k, 1], currents[k, 2],
         wrenches[k, 0], wrenches[k, 1], wrenches[k, 2],
         wrenches[k, 3], wrenches[k, 4], wrenches[k, 5],
     )  # fmt: skip
-    return (f[0], f[1], f[2]), (f[3], f[4], f[5])
+    if planes.shape[0] == 0:
+        return (f[0], f[1], f[2]), (f[3], f[4], f[5])
+    R = np.empty((3, 3))
+    _rot(R, np.float64(quat[0]), np.float64(quat[1]), np.float64(quat[2]), np.float64(quat[3]))
+    x, y, z = np.float64(pos[0]), np.float64(pos[1]), np.float64(pos[2])
+    cx, cy, cz = P[5], -P[6], -P[7]  # CoM in body FLU
+    gx = x + R[0, 0] * cx + R[0, 1] * cy + R[0, 2] * cz
+    gy = y + R[1, 0] * cx + R[1, 1] * cy + R[1, 2] * cz
+    gz = z + R[2, 0] * cx + R[2, 1] * cy + R[2, 2] * cz
+    out = np.zeros(6)
+    plane_contacts(
+        spheres, planes, contact, x, y, z, R, gx, gy, gz,
+        np.float64(vel[0]), np.float64(vel[1]), np.float64(vel[2]),
+        np.float64(omega[0]), np.float64(omega[1]), np.float64(omega[2]), out,
+    )  # fmt: skip
+    return (f[0] + out[0], f[1] + out[1], f[2] + out[2]), (
+        f[3] + out[3],
+        f[4] + out[4],
+        f[5] + out[5],
+    )
+
+
+# --------------------------------------------------------------------------- tank planes
+
+
+@njit(cache=True)
+def plane_contacts(
+    spheres, planes, contact, px, py, pz, R, gx, gy, gz, vx, vy, vz, ox, oy, oz, out
+):
+    """Add the tank planes' contact force and torque on the hull to ``out`` (6,) (world z-up,
+    force on the CoM and torque about it).
+
+    Every hull shape is a set of spheres that touch a plane exactly where the shape does (a
+    capsule: its two end spheres; a box: its eight corners, radius 0). A sphere that reaches
+    past a plane by ``delta`` pushes back along the plane's normal with a spring and damper
+    ``k delta - c v_n`` (never pulling) and rubs along it with regularised Coulomb friction
+    ``-mu F_n v_t / max(|v_t|, v_eps)``, at its deepest point.
+
+    Args:
+        spheres: (s, 4) centre in the body FLU frame (m) and radius (m).
+        planes: (k, 4) unit normal into the water (z-up world) and offset ``d``: a point ``p``
+            is in the water while ``n . p >= d``.
+        contact: (5,) stiffness ``k`` (N/m), damping ``c`` (N s/m), friction ``mu``, ``v_eps``
+            (m/s) and the hull's reach (m: no sphere reaches farther from the entity origin),
+            which skips the planes out of reach.
+        px, py, pz: entity origin; R: (3, 3) attitude (body FLU -> world); gx, gy, gz: CoM;
+        vx, vy, vz: CoM velocity; ox, oy, oz: angular velocity (all z-up world).
+        out: (6,) accumulated into.
+    """
+    k, c, mu, v_eps, reach = contact[0], contact[1], contact[2], contact[3], contact[4]
+    for j in range(planes.shape[0]):
+        nx, ny, nz, d = planes[j, 0], planes[j, 1], planes[j, 2], planes[j, 3]
+        if nx * px + ny * py + nz * pz - d > reach:
+            continue  # the whole hull is clear of this plane
+        for i in range(spheres.shape[0]):
+            bx, by, bz, rad = spheres[i, 0], spheres[i, 1], spheres[i, 2], spheres[i, 3]
+            wx = px + R[0, 0] * bx + R[0, 1] * by + R[0, 2] * bz
+            wy = py + R[1, 0] * bx + R[1, 1] * by + R[1, 2] * bz
+            wz = pz + R[2, 0] * bx + R[2, 1] * by + R[2, 2] * bz
+            delta = d - (nx * wx + ny * wy + nz * wz) + rad
+            if delta <= 0.0:
+                continue
+            # the deepest point of the sphere, relative to the CoM
+            cx_, cy_, cz_ = wx - rad * nx - gx, wy - rad * ny - gy, wz - rad * nz - gz
+            ux = vx + oy * cz_ - oz * cy_
+            uy = vy + oz * cx_ - ox * cz_
+            uz = vz + ox * cy_ - oy * cx_
+            vn = ux * nx + uy * ny + uz * nz
+            fn = k * delta - c * vn
+            if fn <= 0.0:
+                continue
+            tx_, ty_, tz_ = ux - vn * nx, uy - vn * ny, uz - vn * nz
+            vt = math.sqrt(tx_ * tx_ + ty_ * ty_ + tz_ * tz_)
+            ft = mu * fn / max(vt, v_eps)
+            fx = fn * nx - ft * tx_
+            fy = fn * ny - ft * ty_
+            fz = fn * nz - ft * tz_
+            out[0] += fx
+            out[1] += fy
+            out[2] += fz
+            out[3] += cy_ * fz - cz_ * fy
+            out[4] += cz_ * fx - cx_ * fz
+            out[5] += cx_ * fy - cy_ * fx
 
 
 # --------------------------------------------------------------------------- free flight
@@ -320,27 +425,11 @@ def _overlaps(boxes, obstacles, lo, hi, R0, theta, margin):
 
 
 @njit(cache=True)
-def free_flight(P, B, state, wrenches, currents, dt, boxes, obstacles, margin, acc):
-    """Integrate ``n`` substeps without PhysX, exactly as PhysX would without contacts.
-
-    Args:
-        P: (71,) :func:`hydro_params`; B: (9,) :func:`body_params`.
-        state: (13,) in/out: entity position (3, z-up, m), attitude (w, x, y, z), CoM velocity
-            (3, m/s) and angular velocity (3, rad/s), z-up world. Overwritten with the state
-            after the step (meaningful only when the function returns True).
-        wrenches: (n, 6) thruster wrench per substep (FRD, N, N m); currents: (n, 3) water
-            velocity per substep (z-up world, m/s).
-        dt: substep (s).
-        boxes: (s, 7) hull shapes in the body FLU frame: centre (3), half size (3), and
-            ``rho``, the largest distance of the shape from the body origin (m).
-        obstacles: (k, 6) static boxes [min xyz, max xyz], z-up world (m).
-        margin: clearance below which a contact counts as possible (m).
-        acc: (6,) out: last substep's CoM and angular acceleration, z-up world.
-
-    Returns:
-        True if no hull shape came within ``margin`` of an obstacle box during the step (the
-        result is then what PhysX would have produced); False if a contact was possible.
-    """
+def _advance(P, B, state, wrenches, currents, dt, k0, k1, acc, spheres, planes, contact, sweep):
+    """Integrate substeps ``k0 .. k1 - 1`` in place on ``state`` (:func:`free_flight`'s
+    arguments), PhysX's integration without contacts; ``acc`` gets the last substep's
+    accelerations and ``sweep`` (7,) the swept origin box [min xyz, max xyz] and the rotation
+    angle ``theta`` (rad) of the substeps."""
     w_max, me, ie0, ie1, ie2 = B[4], B[5], B[6], B[7], B[8]  # PhysX's copies
     cx, cy, cz = P[5], -P[6], -P[7]  # CoM in body FLU
     px, py, pz = state[0], state[1], state[2]
@@ -349,7 +438,6 @@ def free_flight(P, B, state, wrenches, currents, dt, boxes, obstacles, margin, a
     ox, oy, oz = state[10], state[11], state[12]
     R = np.empty((3, 3))
     _rot(R, qw, qx, qy, qz)
-    R0 = R.copy()
     lo = np.array([px, py, pz])
     hi = lo.copy()
     theta = 0.0
@@ -359,22 +447,32 @@ def free_flight(P, B, state, wrenches, currents, dt, boxes, obstacles, margin, a
     gz = pz + R[2, 0] * cx + R[2, 1] * cy + R[2, 2] * cz
     inv_me = 1.0 / me
     v0x = v0y = v0z = o0x = o0y = o0z = 0.0
-    n = wrenches.shape[0]
-    for k in range(n):
+    touch = np.zeros(6)
+    with_planes = planes.shape[0] > 0
+    for k in range(k0, k1):
         v0x, v0y, v0z, o0x, o0y, o0z = vx, vy, vz, ox, oy, oz
         f = _bridge(
-            P, B, qw, qx, qy, qz, vx, vy, vz, ox, oy, oz,
+            P, B, pz, qw, qx, qy, qz, vx, vy, vz, ox, oy, oz,
             currents[k, 0], currents[k, 1], currents[k, 2],
             wrenches[k, 0], wrenches[k, 1], wrenches[k, 2],
             wrenches[k, 3], wrenches[k, 4], wrenches[k, 5],
         )  # fmt: skip
+        f0, f1, f2, f3, f4, f5 = f[0], f[1], f[2], f[3], f[4], f[5]
+        if with_planes:
+            touch[:] = 0.0
+            plane_contacts(
+                spheres, planes, contact, px, py, pz, R, gx, gy, gz,
+                vx, vy, vz, ox, oy, oz, touch,
+            )  # fmt: skip
+            f0, f1, f2 = f0 + touch[0], f1 + touch[1], f2 + touch[2]
+            f3, f4, f5 = f3 + touch[3], f4 + touch[4], f5 + touch[5]
         # external force and torque: v += dt F / m_e, w += dt R I_e^-1 R^T T
-        vx += dt * f[0] * inv_me
-        vy += dt * f[1] * inv_me
-        vz += dt * f[2] * inv_me
-        tlx = R[0, 0] * f[3] + R[1, 0] * f[4] + R[2, 0] * f[5]
-        tly = R[0, 1] * f[3] + R[1, 1] * f[4] + R[2, 1] * f[5]
-        tlz = R[0, 2] * f[3] + R[1, 2] * f[4] + R[2, 2] * f[5]
+        vx += dt * f0 * inv_me
+        vy += dt * f1 * inv_me
+        vz += dt * f2 * inv_me
+        tlx = R[0, 0] * f3 + R[1, 0] * f4 + R[2, 0] * f5
+        tly = R[0, 1] * f3 + R[1, 1] * f4 + R[2, 1] * f5
+        tlz = R[0, 2] * f3 + R[1, 2] * f4 + R[2, 2] * f5
         ax_, ay_, az_ = dt * tlx / ie0, dt * tly / ie1, dt * tlz / ie2
         ox += R[0, 0] * ax_ + R[0, 1] * ay_ + R[0, 2] * az_
         oy += R[1, 0] * ax_ + R[1, 1] * ay_ + R[1, 2] * az_
@@ -424,17 +522,111 @@ def free_flight(P, B, state, wrenches, currents, dt, boxes, obstacles, margin, a
         lo[0], hi[0] = min(lo[0], px), max(hi[0], px)
         lo[1], hi[1] = min(lo[1], py), max(hi[1], py)
         lo[2], hi[2] = min(lo[2], pz), max(hi[2], pz)
-    if _overlaps(boxes, obstacles, lo, hi, R0, theta, margin):
-        return False
     state[0], state[1], state[2] = px, py, pz
     state[3], state[4], state[5], state[6] = qw, qx, qy, qz
     state[7], state[8], state[9] = vx, vy, vz
     state[10], state[11], state[12] = ox, oy, oz
-    if n > 0:
+    if k1 > k0:
         inv_dt = 1.0 / dt
         acc[0], acc[1], acc[2] = (vx - v0x) * inv_dt, (vy - v0y) * inv_dt, (vz - v0z) * inv_dt
         acc[3], acc[4], acc[5] = (ox - o0x) * inv_dt, (oy - o0y) * inv_dt, (oz - o0z) * inv_dt
-    return True
+    sweep[0], sweep[1], sweep[2] = lo[0], lo[1], lo[2]
+    sweep[3], sweep[4], sweep[5] = hi[0], hi[1], hi[2]
+    sweep[6] = theta
+
+
+@njit(cache=True)
+def free_flight(
+    P, B, state, wrenches, currents, dt, boxes, obstacles, margin, acc, spheres, planes, contact
+):
+    """Integrate ``n`` substeps without PhysX, exactly as PhysX would without contacts, as far
+    as no contact with an obstacle is possible.
+
+    The whole step is integrated and its swept volume tested first; when a contact was
+    possible, the step is integrated again in chunks of :data:`CHUNK_SUBSTEPS`, each tested on
+    its own (a smaller swept volume), up to the first chunk that may touch: PhysX takes over
+    from there.
+
+    Args:
+        P: (76,) :func:`hydro_params`; B: (9,) :func:`body_params`.
+        state: (13,) in/out: entity position (3, z-up, m), attitude (w, x, y, z), CoM velocity
+            (3, m/s) and angular velocity (3, rad/s), z-up world. Overwritten with the state
+            after the substeps integrated here.
+        wrenches: (n, 6) thruster wrench per substep (FRD, N, N m); currents: (n, 3) water
+            velocity per substep (z-up world, m/s).
+        dt: substep (s).
+        boxes: (s, 7) hull shapes in the body FLU frame: centre (3), half size (3), and
+            ``rho``, the largest distance of the shape from the body origin (m).
+        obstacles: (k, 6) static boxes [min xyz, max xyz], z-up world (m).
+        margin: clearance below which a contact counts as possible (m).
+        acc: (6,) out: last integrated substep's CoM and angular acceleration, z-up world.
+        spheres, planes, contact: the tank planes, whose contact is ours, not PhysX's
+            (:func:`plane_contacts`), added to the force and torque of every substep.
+
+    Returns:
+        How many substeps were integrated: ``n`` when no hull shape came within ``margin`` of
+        an obstacle box (the result is then what PhysX would have produced), else the
+        substeps before the first chunk that may touch (PhysX must run the rest from
+        ``state``).
+    """
+    n = wrenches.shape[0]
+    start = state.copy()
+    trial = state.copy()
+    sweep = np.empty(7)
+    a = np.zeros(6)
+    R0 = np.empty((3, 3))
+    _advance(P, B, trial, wrenches, currents, dt, 0, n, a, spheres, planes, contact, sweep)
+    _rot(R0, start[3], start[4], start[5], start[6])
+    if not _overlaps(boxes, obstacles, sweep[:3], sweep[3:6], R0, sweep[6], margin):
+        state[:] = trial
+        acc[:] = a
+        return n
+    # chunk by chunk from the start, up to the first chunk that may touch
+    done = 0
+    while done < n:
+        end = min(n, done + CHUNK_SUBSTEPS)
+        trial[:] = start
+        _advance(P, B, trial, wrenches, currents, dt, done, end, a, spheres, planes, contact, sweep)
+        _rot(R0, start[3], start[4], start[5], start[6])
+        if _overlaps(boxes, obstacles, sweep[:3], sweep[3:6], R0, sweep[6], margin):
+            break
+        start[:] = trial
+        acc[:] = a
+        done = end
+    state[:] = start
+    return done
+
+
+@njit(cache=True)
+def free_flight_all(
+    P, B, state, wrenches, currents, dt, hull, obstacles, n_obstacles, margin, acc,
+    spheres, planes, contact,
+):  # fmt: skip
+    """:func:`free_flight` for every vehicle; (N,) int64: the substeps integrated per vehicle
+    (all of them, or PhysX must run the rest from the vehicle's ``state`` row; ``acc`` rows
+    of vehicles with none integrated are untouched). ``n_obstacles[i] < 0`` forces PhysX for
+    vehicle ``i`` (0 substeps).
+
+    It lives beside :func:`free_flight` on purpose: numba's on-disk cache of a function is
+    invalidated by a change of its own file only, not of the functions it compiles in."""
+    n = state.shape[0]
+    out = np.zeros(n, dtype=np.int64)
+    row = np.empty(13)
+    a = np.zeros(6)
+    for i in range(n):
+        k = n_obstacles[i]
+        if k < 0:
+            continue
+        row[:] = state[i]
+        done = free_flight(
+            P[i], B[i], row, wrenches[i], currents[i], dt, hull, obstacles[i, :k], margin, a,
+            spheres, planes, contact[i],
+        )  # fmt: skip
+        state[i] = row
+        if done > 0:
+            acc[i] = a
+        out[i] = done
+    return out
 
 
 # --------------------------------------------------------------------------- geometry

@@ -71,8 +71,11 @@ from uwdock.sim.vehicle import Current, CurrentConfig, Hydrodynamics, Imu, ImuRe
 __all__ = [
     "FREE_FLIGHT_MARGIN_M",
     "PHYSICS_RATE_HZ",
+    "PLANE_STIFFNESS_N_PER_M",
     "VehicleBody",
+    "hull_spheres",
     "make_physics_scene",
+    "tank_planes",
 ]
 
 #: Default physics rate (Hz): the reference's 300 Hz.
@@ -80,6 +83,53 @@ PHYSICS_RATE_HZ = 300.0
 #: The fast path is used only if every hull shape's swept box stays this far (m) from every
 #: static shape's box (on top of both shapes' PhysX contact offsets).
 FREE_FLIGHT_MARGIN_M = 0.05
+#: The tank planes' contact (:func:`uwdock.sim.fastpath.plane_contacts`): stiffness (N/m), about
+#: 1 mm of give under full thrust, stiff enough for 300 Hz (sqrt(k / m) * dt ~ 0.1); the damping
+#: is critical for the vehicle's folded mass; friction is regularised below this speed (m/s).
+PLANE_STIFFNESS_N_PER_M = 2.0e5
+PLANE_FRICTION_V_EPS_MPS = 0.01
+
+
+def hull_spheres(shapes) -> np.ndarray:
+    """(s, 4) spheres (centre in body FLU, radius; m) that touch a plane where the hull's
+    collision shapes (body FRD :class:`uwdock.sim.vehicle.CollisionShape`) do: a capsule's two
+    end spheres, a box's eight corners (radius 0)."""
+    rows = []
+    for sh in shapes:
+        c = np.asarray(sh.center_m, dtype=float)
+        if sh.kind == "capsule":
+            r, half = float(sh.size_m[0]), float(sh.size_m[1])
+            axis = np.zeros(3)
+            axis["xyz".index(sh.axis)] = 1.0
+            rows += [[*((c + s * half * axis) * _S_BODY), r] for s in (-1.0, 1.0)]
+        else:
+            h = np.asarray(sh.size_m, dtype=float)
+            rows += [
+                [*((c + np.array([sx, sy, sz]) * h) * _S_BODY), 0.0]
+                for sx in (-1.0, 1.0)
+                for sy in (-1.0, 1.0)
+                for sz in (-1.0, 1.0)
+            ]
+    return np.ascontiguousarray(np.array(rows, dtype=float).reshape(-1, 4))
+
+
+def tank_planes(length_m: float, width_m: float, depth_m: float, lid: bool = False) -> np.ndarray:
+    """(5, 4) the tank's floor and walls as planes (normal into the water, z-up world, and
+    offset; :func:`uwdock.sim.fastpath.plane_contacts`), plus the water surface as a sixth
+    with ``lid`` (a vehicle without a free surface): tank centred on the world origin, the
+    floor ``depth_m`` below the surface."""
+    hx, hy = 0.5 * length_m, 0.5 * width_m
+    planes = [
+        [0.0, 0.0, 1.0, -depth_m],
+        [1.0, 0.0, 0.0, -hx],
+        [-1.0, 0.0, 0.0, -hx],
+        [0.0, 1.0, 0.0, -hy],
+        [0.0, -1.0, 0.0, -hy],
+    ]
+    if lid:
+        planes.append([0.0, 0.0, -1.0, 0.0])
+    return np.array(planes)
+
 
 # The scalar loop converts body vectors FLU <-> FRD by negating y and z: check that assumption.
 if not np.array_equal(T_BODYFLU_BODYFRD[:3, :3], np.diag([1.0, -1.0, -1.0])):  # pragma: no cover
@@ -160,6 +210,9 @@ class VehicleBody:
         comp.set_sleep_threshold(0.0)
         self._hull = hull_boxes(comp)  # (s, 7) body-frame boxes for the contact test
         self._obstacles = StaticObstacles(scene, comp)
+        self._spheres = hull_spheres(config.collision)  # the hull against the tank planes
+        self._planes = np.zeros((0, 4))
+        self._plane_friction = 0.0
         self.current = current if current is not None else Current(CurrentConfig("constant"))
         self._rng = rng if rng is not None else np.random.default_rng(0)
         self.set_config(config, nominal_config)
@@ -227,6 +280,31 @@ class VehicleBody:
         comp.set_inertia(np.asarray(self.engine_inertia_kgm2, dtype=np.float32))
         comp.set_cmass_local_pose(sapien.Pose((np.asarray(config.cg_m) * _S_BODY).tolist()))
         self._B = body_params(self.engine_mass_kg, self.engine_inertia_kgm2, comp)
+        self._set_contact()
+
+    def _set_contact(self) -> None:
+        k = PLANE_STIFFNESS_N_PER_M
+        mu = 0.5 * (self.config.friction + self._plane_friction)  # PhysX's "average" combine
+        c = 2.0 * math.sqrt(k * self.engine_mass_kg)
+        s = self._spheres
+        reach = float(np.max(np.linalg.norm(s[:, :3], axis=1) + s[:, 3])) if len(s) else 0.0
+        self._contact = np.array([k, c, mu, PLANE_FRICTION_V_EPS_MPS, reach])
+
+    def set_tank_planes(self, planes: np.ndarray, friction: float) -> None:
+        """Let the hull touch these planes (:func:`tank_planes`) through our contact model
+        instead of PhysX shapes (build the tank without collision shapes then): their contact
+        is integrated in free flight, so only the docking station needs PhysX.
+
+        Args:
+            planes: (k, 4) unit normal into the water (z-up world) and offset.
+            friction: the planes' dynamic friction coefficient (averaged with the hull's).
+        """
+        p = np.asarray(planes, dtype=float).reshape(-1, 4)
+        if not np.all(np.isfinite(p)):
+            raise ValueError("planes: must be finite")
+        self._planes = np.ascontiguousarray(p)
+        self._plane_friction = float(friction)
+        self._set_contact()
 
     # ------------------------------------------------------------------ state
 
@@ -330,6 +408,11 @@ class VehicleBody:
         return self._hull
 
     @property
+    def plane_params(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(spheres, planes, contact)`` of the tank planes' contact (:meth:`set_tank_planes`)."""
+        return self._spheres, self._planes, self._contact
+
+    @property
     def thrust_wrench_matrix(self) -> np.ndarray:
         """(k, 6) true thrusts (N) -> body wrench (N, N m, FRD): ``wrench = thrust @ this``."""
         return self._B_T
@@ -407,9 +490,10 @@ class VehicleBody:
         wrenches = np.ascontiguousarray(thrust @ self._B_T)
         times = self.time_s + dt * np.arange(n)
         currents = np.ascontiguousarray(self.current.velocity_ned_at(times) @ _R_ZUP_NED.T)
-        self.last_step_fast = self.fast_path and self._run_free(wrenches, currents)
-        if not self.last_step_fast:
-            self._run(wrenches, currents, n)
+        done = self._run_free(wrenches, currents) if self.fast_path else 0
+        self.last_step_fast = done == n
+        if done < n:  # PhysX for the substeps that may touch the docking station
+            self._run(wrenches[done:], currents[done:], n - done)
         self.thrust_command_n = cmd
         self.thrust_n = thrust[-1].copy()
         self.time_s += n * dt
@@ -420,29 +504,30 @@ class VehicleBody:
             / span
         )
 
-    def _run_free(self, wrenches: np.ndarray, currents: np.ndarray) -> bool:
-        """Try the control step without PhysX; False (nothing changed) if a contact was
-        possible or the scene holds other moving bodies."""
+    def _run_free(self, wrenches: np.ndarray, currents: np.ndarray) -> int:
+        """Integrate the control step without PhysX as far as no contact is possible; returns
+        the substeps done (0: nothing changed, e.g. the scene holds other moving bodies)."""
         obstacles = self._obstacles.boxes()
         if obstacles is None:
-            return False
+            return 0
         comp = self.component
         pose = comp.get_entity_pose()
         state = np.concatenate(
             [pose.p, pose.q, comp.get_linear_velocity(), comp.get_angular_velocity()]
         ).astype(np.float64)
         acc = np.zeros(6)
-        free = free_flight(
+        done = free_flight(
             self._P, self._B, state, wrenches, currents, self.dt_s,
             self._hull, obstacles, FREE_FLIGHT_MARGIN_M, acc,
+            self._spheres, self._planes, self._contact,
         )  # fmt: skip
-        if not free:
-            return False
+        if done == 0:
+            return 0
         self.entity.set_pose(sapien.Pose(state[:3], state[3:7]))
         comp.set_linear_velocity(state[7:10])
         comp.set_angular_velocity(state[10:13])
         self._acc_zup = tuple(acc.tolist())
-        return True
+        return int(done)
 
     def _run(self, wrenches: np.ndarray, currents: np.ndarray, n: int) -> None:
         """The PhysX loop: ``n`` substeps with the given per-substep wrench (n, 6) (FRD) and
@@ -454,11 +539,15 @@ class VehicleBody:
         add = comp.add_force_torque
         step = self.scene.physx_system.step  # what scene.step() calls, without its Python frame
         P, B = self._P, self._B
+        spheres, planes, contact = self._spheres, self._planes, self._contact
         v = w = np.zeros(3)
         for k in range(n):
             v = get_v()  # CoM velocity, z-up world
             w = get_w()
-            force, torque = physx_wrench(P, B, get_pose().q, v, w, currents, wrenches, k)
+            pose = get_pose()
+            force, torque = physx_wrench(
+                P, B, pose.p, pose.q, v, w, currents, wrenches, k, spheres, planes, contact
+            )
             add(force, torque)
             step()
         if n:

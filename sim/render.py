@@ -477,6 +477,7 @@ def make_render_scene(
     cache_dir: str | os.PathLike[str] | None = None,
     scene: sapien.Scene | None = None,
     surface_lid: bool = False,
+    tank_collision: bool = True,
 ) -> RenderScene:
     """Build (once) a scene with the tank, the DS, ambient light and the camera with its lamp.
 
@@ -490,6 +491,7 @@ def make_render_scene(
         cache_dir: where the default marker set is generated.
         scene: an existing scene to add everything to; None: a new ``sapien.Scene()``.
         surface_lid: close the tank at the water surface (see :func:`build_tank`).
+        tank_collision: give the tank PhysX collision shapes (see :func:`build_tank`).
 
     Returns:
         The :class:`RenderScene`.
@@ -497,7 +499,7 @@ def make_render_scene(
     render_cfg = validated(render_cfg or RenderConfig())
     scene = scene if scene is not None else sapien.Scene()
     scene.ambient_light = list(render_cfg.ambient_rgb)
-    tank = build_tank(scene, ds_cfg, surface_lid=surface_lid)
+    tank = build_tank(scene, ds_cfg, surface_lid=surface_lid, collision=tank_collision)
     ds = build_docking_station(scene, ds_cfg, marker_set, T_worldned_ds, cache_dir)
     rig = CameraRig(scene, camera_model, T_bodyfrd_camcv, render_cfg)
     return RenderScene(scene, ds, tank, rig)

@@ -158,6 +158,13 @@ class VehicleConfig:
         linear_damping: (6,) linear damping (N s/m; N m s/rad), positive.
         quadratic_damping: (6,) quadratic damping (N s^2/m^2; N m s^2/rad^2), positive.
         gravity_mps2: gravitational acceleration g (m/s^2).
+        surface_band_m: the free surface (m): buoyancy fades linearly from all to none as the
+            centre of buoyancy rises through a band of this height centred on the water
+            surface (the hull above water displaces nothing), so a positively buoyant vehicle
+            floats at the surface with part of its top hulls out, as a surfaced Girona does.
+            The default is the top hulls' diameter (they carry the buoyancy: section 3 of
+            docs/reference-system.md). 0: buoyancy never fades (the model before, whose tank
+            needs a lid to keep the vehicle in the water).
         collision: primitive collision shapes (body FRD) for PhysX contacts.
         friction: static = dynamic friction coefficient of the hull (-).
         thrusters: thruster geometry, limits, lags and allocation weights.
@@ -173,6 +180,7 @@ class VehicleConfig:
     linear_damping: _Coefficients6 = (20.0, 20.0, 20.0, 130.0, 130.0, 130.0)
     quadratic_damping: _Coefficients6 = (148.0, 148.0, 148.0, 180.0, 180.0, 180.0)
     gravity_mps2: Annotated[float, Interval(gt=0, le=100)] = 9.81
+    surface_band_m: Annotated[float, Interval(ge=0, le=10)] = 0.26
     collision: tuple[CollisionShape, ...] = DEFAULT_COLLISION
     friction: Friction = 0.3
     thrusters: ThrusterArrayConfig = field(default_factory=ThrusterArrayConfig)
@@ -312,14 +320,23 @@ class Hydrodynamics:
 
     # ----------------------------------------------------------------- reference (NumPy)
 
-    def restoring_wrench(self, R_ned_body: ArrayLike) -> np.ndarray:
-        """Weight at the CG plus buoyancy at the CB, as a body wrench (6,) about O (N, N m).
+    def submerged_fraction(self, depth_cb_m: float) -> float:
+        """Fraction (0-1) of the buoyancy acting when the centre of buoyancy is ``depth_cb_m``
+        below the surface (NED z, m; ``VehicleConfig.surface_band_m``)."""
+        band = self.config.surface_band_m
+        if band <= 0 or depth_cb_m >= 0.5 * band:
+            return 1.0
+        return min(1.0, max(0.0, 0.5 + depth_cb_m / band))
+
+    def restoring_wrench(self, R_ned_body: ArrayLike, depth_cb_m: float = math.inf) -> np.ndarray:
+        """Weight at the CG plus buoyancy at the CB, as a body wrench (6,) about O (N, N m),
+        with the CB ``depth_cb_m`` below the surface (default: deep, all buoyancy).
 
         This is ``-g(R)`` in Fossen's notation (the force acting on the vehicle).
         """
         down = np.asarray(R_ned_body, dtype=float)[2, :]  # NED +z in body coordinates
         f_w = self.config.weight_n * down
-        f_b = -self.config.buoyancy_n * down
+        f_b = -self.config.buoyancy_n * self.submerged_fraction(depth_cb_m) * down
         return np.concatenate([f_w + f_b, np.cross(self._rg, f_w) + np.cross(self._rb, f_b)])
 
     def damping_wrench(self, nu_r: ArrayLike) -> np.ndarray:
@@ -354,6 +371,7 @@ class Hydrodynamics:
         nu: ArrayLike,
         v_current_ned: ArrayLike,
         tau: ArrayLike,
+        depth_cb_m: float = math.inf,
     ) -> np.ndarray:
         """Body acceleration ``nu_dot`` (6,) (m/s^2, rad/s^2) from the full model.
 
@@ -362,6 +380,8 @@ class Hydrodynamics:
             nu: (6,) body velocity [u, v, w, p, q, r] (m/s, rad/s), FRD.
             v_current_ned: (3,) water velocity in NED (m/s).
             tau: (6,) applied wrench (thrusters, N, N m about O), FRD.
+            depth_cb_m: depth of the centre of buoyancy below the surface (m; the free
+                surface, :meth:`submerged_fraction`); default deep.
         """
         R = check_R(R_ned_body, "R_ned_body")
         nu = np.asarray(nu, dtype=float)
@@ -370,7 +390,7 @@ class Hydrodynamics:
         nu_c_dot = np.concatenate([-np.cross(nu[3:], v_c), np.zeros(3)])
         rhs = (
             np.asarray(tau, dtype=float)
-            + self.restoring_wrench(R)
+            + self.restoring_wrench(R, depth_cb_m)
             + self.damping_wrench(nu_r)
             + self.added_mass_coriolis_wrench(nu_r)
             + self.rigid_body_coriolis_wrench(nu)
@@ -385,10 +405,11 @@ class Hydrodynamics:
         (:func:`sim.fastpath.hydro_accel`) with this vehicle's constants bound.
 
         Returns:
-            ``f(dx, dy, dz, u, v, w, p, q, r, cu, cv, cw, X, Y, Z, K, M, N) -> nu_dot`` (6-tuple)
-            where (dx, dy, dz) is the NED down direction in body FRD (row 2 of ``R_ned_frd``),
-            (u..r) the body velocity, (cu, cv, cw) the current in body FRD and (X..N) the
-            applied wrench; all floats.
+            ``f(dx, dy, dz, u, v, w, p, q, r, cu, cv, cw, X, Y, Z, K, M, N, depth_cb) -> nu_dot``
+            (6-tuple) where (dx, dy, dz) is the NED down direction in body FRD (row 2 of
+            ``R_ned_frd``), (u..r) the body velocity, (cu, cv, cw) the current in body FRD,
+            (X..N) the applied wrench and ``depth_cb`` the CB's depth (m, ``inf``: deep); all
+            floats.
         """
         params = hydro_params(self)
 

@@ -21,8 +21,8 @@ import sapien
 from uwdock.calibration.camera import resolve_camera
 from uwdock.calibration.frames import R_from_rpy, inv_T, make_T
 from uwdock.sim.camera import Frame, SimCamera
-from uwdock.sim.docking_station import DockingStationConfig, build_docking_station, build_tank
-from uwdock.sim.physics import VehicleBody, make_physics_scene
+from uwdock.sim.docking_station import DockingStationConfig, build_docking_station
+from uwdock.sim.physics import VehicleBody, make_physics_scene, tank_planes
 from uwdock.sim.render import make_render_scene
 from uwdock.sim.vehicle import Current
 from uwdock.sim.water import resolve_water
@@ -49,6 +49,8 @@ class DockingWorld:
         )
         self.render_scene = None
         self.camera: SimCamera | None = None
+        # a vehicle without a free surface (surface_band_m = 0) needs a lid to stay in the water
+        lid = cfg.vehicle.surface_band_m <= 0
         if with_camera:
             scene = sapien.Scene()
             scene.set_timestep(1.0 / cfg.physics_hz)
@@ -58,7 +60,7 @@ class DockingWorld:
                 camera_model=cam,
                 T_bodyfrd_camcv=T_body_cam,
                 scene=scene,
-                surface_lid=True,
+                tank_collision=False,  # the vehicle's own plane contact (below)
             )
             self.camera = SimCamera(
                 self.render_scene.rig, resolve_water(cfg.water_preset), cfg.water_device
@@ -67,10 +69,14 @@ class DockingWorld:
             self.ds = self.render_scene.ds
         else:
             self.scene = make_physics_scene(1.0 / cfg.physics_hz)
-            build_tank(self.scene, self.ds_cfg, visual=False, surface_lid=True)
             self.ds = build_docking_station(self.scene, self.ds_cfg, visual=False)
         self.current = Current(cfg.current)
         self.vehicle = VehicleBody(self.scene, cfg.vehicle, self.current)
+        # the tank's floor and walls (and the surface, for a vehicle without a free surface)
+        # are planes of the vehicle's own contact model: only the DS needs PhysX
+        self.vehicle.set_tank_planes(
+            tank_planes(L, W, D, lid=lid), friction=self.ds_cfg.dynamic_friction
+        )
         #: (4, 4) this episode's mounting error, the true camera frame in the calibrated one
         self.T_camcal_camtrue = np.eye(4)
         self._T_body_rendered: np.ndarray | None = None  # the body pose correction it implies

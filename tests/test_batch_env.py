@@ -184,7 +184,9 @@ def test_error_model_counts_and_samples_as_the_table_says():
     t = b.table = dict(b.table, p_out=np.zeros_like(b.table["p_out"]))
     rng = np.random.default_rng(8)
     body, ds = np.repeat(T_body[i : i + 1], n, 0), np.repeat(T_ds[i : i + 1], n, 0)
-    det, T_meas, _ = b.measure(body, ds, np.full(n, 1.0), rng)
+    det, T_meas, _ = b.measure(
+        body, ds, np.full(n, 1.0), rng.random((n, 3)), rng.standard_normal((n, 6))
+    )
     k = model.range_bin(np.linalg.norm(T_cam_ds[i, :3, 3]))
     p = t["p"][k, 3]
     assert abs(det.mean() - p) < 4 * math.sqrt(p * (1 - p) / n) + 1e-9
@@ -262,3 +264,31 @@ def test_curriculum_reaches_every_env():
     env.set_curriculum(0.5, 0.3)
     assert env.task.strict_peg_z_m == 0.5
     assert all(t.strict_peg_z_m == 0.5 for t in env.get_attr("task"))
+
+
+def test_batch_split_over_worker_processes_gives_the_same_rollouts():
+    """Two worker processes holding two envs each step exactly as one batch of four."""
+    from uwdock.rl.batch_env import BatchWorkers
+
+    cfg = EnvConfig(obs_source="error-model", error_model_path=MODEL, episode_s=3.0)
+    one = BatchWorkers(cfg, 4, seed=5, workers=1)
+    two = BatchWorkers(cfg, 4, seed=5, workers=2)
+    try:
+        for venv in (one.venv, two.venv):
+            venv.seed(40)
+            venv.env_method("set_curriculum", 1.0, 0.5)
+        o1, o2 = one.venv.reset(), two.venv.reset()
+        np.testing.assert_array_equal(o1, o2)
+        rng = np.random.default_rng(1)
+        resets = 0
+        for _ in range(20):  # through an auto-reset (15 steps per episode)
+            a = rng.uniform(-1, 1, (4, 6)).astype(np.float32)
+            r1, r2 = one.venv.step(a), two.venv.step(a)
+            np.testing.assert_array_equal(r1[0], r2[0])
+            np.testing.assert_array_equal(r1[1], r2[1])
+            np.testing.assert_array_equal(r1[2], r2[2])
+            resets += int(r1[2].sum())
+        assert resets >= 4
+    finally:
+        one.close()
+        two.close()

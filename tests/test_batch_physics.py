@@ -48,7 +48,8 @@ def _compare(cfg: WorldConfig, T_start: np.ndarray, wrench_of_step, n_steps: int
     return worst, physx, scalar, batch
 
 
-def test_free_flight_and_surface_contact_equal_the_scalar_body():
+def test_free_flight_contact_and_surface_equal_the_scalar_body():
+    """Driven down onto the DS (PhysX), then up through the free surface (free flight)."""
     cfg = replace(WorldConfig(), randomise_vehicle=True)
     T0 = make_T(R_from_rpy(0, 0, 1.0), [0.8, 0.0, 1.9])
 
@@ -56,8 +57,9 @@ def test_free_flight_and_surface_contact_equal_the_scalar_body():
         w = np.array([60.0, 10.0, 120.0 if k < 60 else 200.0, 0.0, 3.0, 5.0])
         return w if k < 100 else -0.5 * w
 
-    worst, physx, _, _ = _compare(cfg, T0, wrench, 150)
-    assert physx > 50  # the lid: a positively buoyant vehicle rests against it
+    worst, physx, scalar, _ = _compare(cfg, T0, wrench, 150)
+    assert physx > 10
+    assert scalar.T_world_body[2, 3] < 0.6  # it reached the surface
     assert worst < 1e-9
 
 
@@ -86,7 +88,7 @@ def test_batch_imu_equals_the_scalar_imu_without_noise():
         w = np.array([80.0, -20.0, 30.0, 0.0, 5.0, 10.0 * k])
         scalar.vehicle.step(w, 0.2)
         batch.step(w[None], 0.2)
-        a, b = scalar.vehicle.read_imu(), batch.read_imu(rng)
+        a, b = scalar.vehicle.read_imu(), batch.read_imu(rng.standard_normal((1, 10)))
         for name in (
             "specific_force_frd_mps2",
             "acceleration_frd_mps2",
@@ -102,7 +104,9 @@ def test_batch_imu_noise_has_the_configured_spread():
     worlds = [_world(cfg, s, make_T(np.eye(3), [0.0, 0.0, 3.0])) for s in range(2)]
     batch = BatchVehicles([w.vehicle for w in worlds])
     rng = np.random.default_rng(1)
-    vel = np.array([batch.read_imu(rng).velocity_frd_mps for _ in range(3000)])
+    vel = np.array(
+        [batch.read_imu(rng.standard_normal((2, 10))).velocity_frd_mps for _ in range(3000)]
+    )
     std = vel.reshape(-1, 3).std(axis=0)
     np.testing.assert_allclose(std, cfg.vehicle.imu.velocity_noise_std_mps, rtol=0.08)
 
@@ -114,5 +118,44 @@ def test_bad_wrench_shape_is_refused():
         batch.step(np.zeros((2, 6)), 0.2)
     with pytest.raises(ValueError):
         batch.step(np.zeros((1, 6)), 0.2015)
+    with pytest.raises(ValueError, match="normals"):
+        batch.read_imu(np.zeros((1, 9)))
     with pytest.raises(ValueError, match="no vehicles"):
         BatchVehicles([])
+
+
+def _hull_extent(world: DockingWorld) -> np.ndarray:
+    """(min xyz, max xyz) of the hull's contact spheres in world NED (m)."""
+    spheres, _, _ = world.vehicle.plane_params
+    T = world.T_world_body
+    c = spheres[:, :3] * [1.0, -1.0, -1.0]  # FLU -> FRD
+    p = c @ T[:3, :3].T + T[:3, 3]
+    r = spheres[:, 3:]
+    return np.concatenate([(p - r).min(axis=0), (p + r).max(axis=0)])
+
+
+def test_tank_walls_and_floor_hold_the_vehicle_without_physx():
+    """Pushed at full surge into a wall, then at full heave onto the floor: the hull stops at
+    them (our plane contact, ~1 mm of give), in free flight, the same in the batch."""
+    cfg = WorldConfig()
+    L, _, D = cfg.tank_size_m
+    T0 = make_T(np.eye(3), [L / 2 - 2.0, -2.0, 3.0])  # heading +x, towards the end wall
+    scalar, twin = _world(cfg, 4, T0, ds_xy=(-3.0, 0.0)), _world(cfg, 4, T0, ds_xy=(-3.0, 0.0))
+    batch = BatchVehicles([twin.vehicle])
+    for k in range(100):
+        w = (
+            np.array([280.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+            if k < 50
+            else np.array([0, 0, 268.0, 0, 0, 0])
+        )
+        scalar.vehicle.step(w, 0.2)
+        batch.step(w[None], 0.2)
+        assert scalar.vehicle.last_step_fast and not batch.last_physx[0]
+        if k == 49:
+            ext = _hull_extent(scalar)
+            assert L / 2 - 0.01 < ext[3] < L / 2 + 0.003  # at the wall, not through it
+            assert abs(scalar.vehicle.nu[0]) < 0.01
+    ext = _hull_extent(scalar)
+    assert D - 0.01 < ext[5] < D + 0.003  # on the floor
+    assert abs(scalar.vehicle.nu[2]) < 0.01
+    np.testing.assert_allclose(batch.T_world_body()[0], scalar.T_world_body, atol=1e-9)

@@ -57,9 +57,37 @@ def test_scalar_accel_matches_numpy_reference():
     for _ in range(20):
         R = R_from_rpy(*rng.uniform(-1.5, 1.5, 3))
         nu, v_c, tau = rng.normal(size=6), rng.normal(size=3) * 0.3, rng.normal(size=6) * 100
-        ref = hydro.acceleration(R, nu, v_c, tau)
-        got = fast(*R[2], *nu, *(R.T @ v_c), *tau)
-        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-10)
+        for depth_cb in (math.inf, rng.uniform(-0.3, 0.3), -1.0):  # deep, in the band, above
+            ref = hydro.acceleration(R, nu, v_c, tau, depth_cb)
+            got = fast(*R[2], *nu, *(R.T @ v_c), *tau, depth_cb)
+            np.testing.assert_allclose(got, ref, rtol=0, atol=1e-10)
+
+
+def test_free_surface_buoyancy_and_floating_depth():
+    """Buoyancy fades linearly through the surface band; a level vehicle floats where what is
+    left of it equals the weight, and settles there in free flight (no lid, no contact)."""
+    cfg = VehicleConfig()
+    hydro = Hydrodynamics(cfg)
+    band = cfg.surface_band_m
+    assert hydro.submerged_fraction(math.inf) == 1.0
+    assert hydro.submerged_fraction(0.5 * band) == 1.0
+    assert hydro.submerged_fraction(0.0) == pytest.approx(0.5)
+    assert hydro.submerged_fraction(-0.5 * band) == 0.0
+    assert hydro.submerged_fraction(-5.0) == 0.0
+    d_eq = band * (cfg.weight_n / cfg.buoyancy_n - 0.5)  # CB depth where s B = W
+    assert hydro.restoring_wrench(np.eye(3), d_eq)[2] == pytest.approx(0.0, abs=1e-9)
+    assert hydro.restoring_wrench(np.eye(3), d_eq + 0.01)[2] < 0  # deeper: pushed up
+    assert hydro.restoring_wrench(np.eye(3), d_eq - 0.01)[2] > 0  # higher: pulled down
+    auv = _body(cfg)
+    auv.reset(make_T(t=[0.0, 0.0, 3.0]))
+    fast_steps = 0
+    for _ in range(300):  # 60 s
+        auv.step(np.zeros(6), 0.2)
+        fast_steps += auv.last_step_fast
+    depth_cb = auv.T_world_ned_body_frd[2, 3] + cfg.cb_m[2]
+    assert depth_cb == pytest.approx(d_eq, abs=0.01)
+    assert abs(auv.nu[2]) < 0.03  # bobbing out slowly: the heave damping is light
+    assert fast_steps == 300  # nothing to touch in open water
 
 
 def test_restoring_wrench_analytic():

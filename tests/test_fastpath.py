@@ -112,16 +112,23 @@ def test_physx_wrench_realises_the_model_acceleration():
     c = np.asarray(cfg.cg_m)
     S = np.diag([1.0, -1.0, -1.0])  # FRD <-> FLU
     for _ in range(10):
-        T_ned = make_T(R_from_rpy(*rng.uniform(-1.2, 1.2, 3)), rng.normal(size=3))
+        T_ned = make_T(R_from_rpy(*rng.uniform(-1.2, 1.2, 3)), [*rng.normal(size=2), 0.0])
+        T_ned[2, 3] = rng.uniform(-0.2, 0.6)  # near the surface: the free surface matters
         R_ned, R_zup = T_ned[:3, :3], ned_pose_to_zup(T_ned)[:3, :3]
+        p_zup = ned_pose_to_zup(T_ned)[:3, 3]
+        depth_cb = float((T_ned @ np.r_[cfg.cb_m, 1.0])[2])
         q = pos_quat_from_T(make_T(R_zup))[1]
         nu, v_c, tau = rng.normal(size=6) * 0.5, rng.normal(size=3) * 0.3, rng.normal(size=6) * 100
         w_frd = nu[3:]
         v_cg_frd = nu[:3] + np.cross(w_frd, c)
         v_cg_zup, w_zup = R_zup @ (S @ v_cg_frd), R_zup @ (S @ w_frd)
         current_zup = np.diag([1.0, -1.0, -1.0]) @ v_c  # NED -> z-up world
-        force, torque = physx_wrench(P, B, q, v_cg_zup, w_zup, current_zup[None], tau[None], 0)
-        nu_dot = hydro.acceleration(R_ned, nu, v_c, tau)
+        no_planes = np.zeros((0, 4))
+        force, torque = physx_wrench(
+            P, B, p_zup, q, v_cg_zup, w_zup, current_zup[None], tau[None], 0,
+            np.zeros((0, 4)), no_planes, np.zeros(5),
+        )  # fmt: skip
+        nu_dot = hydro.acceleration(R_ned, nu, v_c, tau, depth_cb)
         a_cg = nu_dot[:3] + np.cross(nu_dot[3:], c) + np.cross(w_frd, v_cg_frd)
         t_cg = ie * nu_dot[3:] + np.cross(w_frd, ie * w_frd)
         np.testing.assert_allclose(force, R_zup @ (S @ (me * a_cg)), rtol=1e-9, atol=1e-9)
