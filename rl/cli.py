@@ -44,7 +44,7 @@ from uwdock.rl.export import export_onnx
 from uwdock.rl.policy_io import policy_env_settings
 from uwdock.rl.report import evaluate_to_folder
 from uwdock.rl.sweep import SweepConfig, parse_grid, run_sweep
-from uwdock.rl.train import TrainConfig, run_config
+from uwdock.rl.train import BatchWorkerCount, TrainConfig, run_config
 from uwdock.rl.train import train as run
 from uwdock.rl.trajectories import record_pid_trajectories
 from uwdock.rl.vec_envs import EnvsPerWorker
@@ -164,7 +164,7 @@ def cli() -> None:
 @click.option(
     "--batch-workers",
     "batch_workers",
-    type=click.IntRange(1, 64),
+    type=domain_type(BatchWorkerCount),
     default=1,
     show_default=True,
     help="With --simulator batched: processes the batch is split over, to use more cores "

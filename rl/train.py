@@ -181,6 +181,10 @@ class TrainConfig:
             )
 
 
+#: The domain of ``batch_workers`` (``rl train --batch-workers``).
+BatchWorkerCount = Annotated[int, Interval(ge=1, le=64)]
+
+
 def _lr(cfg: PPOConfig):
     if cfg.learning_rate_final is None:
         return cfg.learning_rate
@@ -340,8 +344,9 @@ def train(
     except ValueError as exc:
         raise DockError(str(exc)) from None
     preflight(pool)  # before the run folder is claimed
-    if not 1 <= int(batch_workers) <= 64:
-        raise DockError(f"batch_workers: must be 1-64, got {batch_workers!r}")
+    why = check(batch_workers, *split_annotated(BatchWorkerCount), "batch_workers")
+    if why is not None:
+        raise DockError(why)
     if resume and init_policy:
         raise DockError("--init-policy starts a new run; it cannot be combined with --resume")
     check_env_files(cfg.env)

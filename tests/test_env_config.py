@@ -117,7 +117,7 @@ def test_shipped_policies_load_through_the_shim_unchanged(policy):
     want = raw | {"env": {k: v for k, v in raw["env"].items() if k not in moved} | {"world": moved}}
     _assert_within(want, to_dict(cfg))  # (fields added since it was written: their defaults)
     world = to_dict(cfg.env.world)
-    assert _drop_none(world) == _drop_none(to_dict(WorldConfig())) | moved
+    assert _drop_none(world) == merge(_drop_none(to_dict(WorldConfig())), moved)
     assert (policy / "config.toml").read_bytes() == raw_bytes  # read, never rewritten
     # the same config in the current layout is the same config
     assert from_dict(TrainConfig, to_dict(cfg)) == cfg
