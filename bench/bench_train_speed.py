@@ -11,8 +11,10 @@ Each measurement trains the recipe (``rl.train.train``, no progress bar) from sc
 temporary run folder, in a fresh process (a process that has started SAPIEN cannot fork
 working env workers on a GPU's Vulkan driver), with the periodic evaluation and checkpoints
 switched off: once for one PPO rollout of ``n_steps x n_envs`` steps and once for ``rollouts``
-rollouts. The difference gives the steady rate (steps/s of stepping and PPO updates) and the
-start cost (processes, SAPIEN, the first observations). The table gives the median, min and max
+rollouts, after one uncounted warm-up run (numba compiles its kernels into an on-disk cache
+on first use, which would otherwise land in one run of the first pair). The difference gives
+the steady rate (steps/s of stepping and PPO updates) and the start cost (processes, SAPIEN,
+the first observations). The table gives the median, min and max
 of the steady rate over ``repeats`` pairs per row, the median start cost, and the minutes the
 recipe's ``total_steps`` would take at the median (the recipe's own evaluations come on top).
 
@@ -135,6 +137,9 @@ def main() -> None:
     for sim, cfg in runs:
         rates, starts = [], []
         envs = cfg.n_envs
+        # a first run fills the on-disk caches (numba kernels) that a pair's first run would
+        # otherwise pay for alone; not counted
+        measure(cfg, envs, 1, a.init_policy, workers[sim])
         for k in range(a.repeats):
             steps_1, wall_1 = measure(cfg, envs, 1, a.init_policy, workers[sim])
             steps, wall_s = measure(cfg, envs, a.rollouts, a.init_policy, workers[sim])
