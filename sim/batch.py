@@ -5,12 +5,13 @@ of its own physics scene (tank, docking station, vehicle), by one control step i
 
 * thruster allocation (the nominal vehicle), setpoints, the true thrusters' first-order
   response and the thrust wrench per substep, as NumPy arrays over all vehicles;
-* the whole step of every vehicle that cannot touch anything in one numba kernel call
-  (:func:`uwdock.sim.fastpath.free_flight_all`, a loop over ``free_flight``: the same Fossen
-  model, the same integration as PhysX's);
-* PhysX only for the vehicles whose swept hull may touch a static shape (the docking station,
-  the floor, the walls): their body is given the batch's state, stepped by
-  ``VehicleBody``'s own PhysX loop, and read back.
+* the step of every vehicle in one numba kernel call (:func:`uwdock.sim.fastpath.
+  free_flight_all`, a loop over ``free_flight``: the same Fossen model and free surface, the
+  tank planes' contact, the same integration as PhysX's), as far as its swept hull cannot touch
+  the docking station;
+* PhysX only for the rest of the steps of the vehicles that may touch the docking station:
+  their body is given the batch's state, stepped by ``VehicleBody``'s own PhysX loop, and read
+  back.
 
 The state is kept as PhysX keeps it (float32 pose and velocities, written back after every
 step), so a vehicle's trajectory here is the one ``VehicleBody.step`` gives for the same

@@ -26,7 +26,10 @@ the swept volume of every hull shape over the step (the box of the origin's posi
 substeps, the shape's box at the start attitude, grown by ``rho * theta`` for the rotation,
 ``theta`` = integral of ``|w|``, ``rho`` = the shape's farthest point from the origin) and
 reports whether any grown box (plus a margin above PhysX's contact offsets) overlaps a static
-obstacle's box; the caller then discards the result and steps PhysX instead.
+obstacle's box; it then integrates again chunk by chunk (:data:`CHUNK_SUBSTEPS`) up to the
+first chunk that may touch, and the caller steps PhysX from there. Planes given to
+:func:`plane_contacts` (a docking world's tank floor and walls) are not obstacles: their
+contact is computed in the kernel.
 :class:`StaticObstacles` collects those boxes, one per collision shape of the scene's static
 actors, and refreshes them when a static actor moves (e.g. the docking station per episode).
 
