@@ -3,12 +3,13 @@
 :class:`BatchDockingEnv` is a Stable-Baselines3 ``VecEnv`` of ``n_envs`` docking envs of one
 :class:`~uwdock.rl.config.EnvConfig`. A control step of all of them is one batched physics call
 (:class:`uwdock.sim.batch.BatchVehicles`: numba free flight with the tank's planes, PhysX only
-for the vehicles at the docking station) and NumPy over the env axis for the rest (:mod:`rl.batch_parts`: IMU, collision
-test, error-model or proxy measurement, DS filter, success tests, reward, observation). Resets
-are rare and run the scalar :class:`rl.env.DockingEnv` of the slot (spawn, randomised vehicle,
-current, the filter's prior, the USBL's biases), whose state the batch then takes over; the
-acoustic fixes are the slot's own :class:`uwdock.sim.usbl.UsblSensor` (one call per env and
-step: it keeps the latency's pose history).
+for the vehicles at the docking station) and NumPy over the env axis for the rest
+(:mod:`rl.batch_parts`: IMU, collision test, error-model or proxy measurement, DS filter,
+success tests, reward, observation). Resets are rare and run the scalar
+:class:`rl.env.DockingEnv` of the slot (spawn, randomised vehicle, current, the filter's prior,
+the USBL's biases), whose state the batch then takes over; the acoustic fixes are the slot's
+own :class:`uwdock.sim.usbl.UsblSensor` (one call per env and step: it keeps the latency's pose
+history).
 
 What equals the scalar env and what does not:
 

@@ -20,18 +20,19 @@ How added mass is made stable (and exact) at 300 Hz:
     any added mass. ``m_e = m + mean(M_A[:3])`` and ``I_e = I + M_A[3:]`` ("folded" added mass)
     matter only for contacts, so a collision feels the water that moves with the hull.
 
-Speed: NumPy costs ~1 us per call on 3-vectors, so the per-substep work is one call of a
-numba kernel (``sim.fastpath.physx_wrench``: state -> hydrodynamics -> force and torque)
-between the PhysX calls; thruster responses and the varying current are computed per control
-step with NumPy. While no PhysX contact is possible during a control step (the hull's swept
-boxes stay clear of every static PhysX shape's box: the docking station; a docking world's tank
-floor and walls are planes of the kernel's own contact model, :meth:`VehicleBody.
-set_tank_planes`), the **free-flight fast path** integrates the whole step in one kernel call (``sim.fastpath.free_flight``: the same maths, then what PhysX does
-with the force and torque) and writes pose and velocities back into PhysX: ~40 us instead of
-~0.55 ms per 0.2 s control step. It needs the vehicle to be the scene's only dynamic body (the
-docking station and tank are static) and the component's damping left at 0; the two paths
-agree to PhysX's float32 round-off. A step that may touch is integrated in the kernel up to
-the first six-substep chunk that may, PhysX runs the rest. ``fast_path=False`` turns it off.
+Speed: NumPy costs ~1 us per call on 3-vectors, so the per-substep work is one call of a numba
+kernel (``sim.fastpath.physx_wrench``: state -> hydrodynamics -> force and torque) between the
+PhysX calls; thruster responses and the varying current are computed per control step with
+NumPy. While no PhysX contact is possible during a control step (the hull's swept boxes stay
+clear of every static PhysX shape's box: the docking station; a docking world's tank floor and
+walls are planes of the kernel's own contact model, :meth:`VehicleBody.set_tank_planes`), the
+**free-flight fast path** integrates the whole step in one kernel call
+(``sim.fastpath.free_flight``: the same maths, then what PhysX does with the force and torque)
+and writes pose and velocities back into PhysX: ~40 us instead of ~0.55 ms per 0.2 s control
+step. It needs the vehicle to be the scene's only dynamic body (the docking station and tank are
+static) and the component's damping left at 0; the two paths agree to PhysX's float32 round-off.
+A step that may touch is integrated in the kernel up to the first six-substep chunk that may,
+PhysX runs the rest. ``fast_path=False`` turns it off.
 
 Example:
     >>> scene = make_physics_scene()
