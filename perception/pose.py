@@ -618,15 +618,35 @@ def refine_level_board(
     T0 = T_wc @ board.T_cam_ds
     x0 = np.array([*T0[:3, 3], math.atan2(T0[1, 0], T0[0, 0])])
 
+    zero = np.zeros(3)
+
+    def project(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The corners in the camera (p_cam = R_cw (Rz(yaw) obj + xyz) + t_cw), their pixels,
+        and OpenCV's Jacobian of the pixels with respect to a shift of all points."""
+        c, s = math.cos(x[3]), math.sin(x[3])
+        Rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        p_cam = (obj @ Rz.T + x[:3]) @ R_cw.T + t_cw
+        proj, jac = cv2.projectPoints(p_cam, zero, zero, K, dist)
+        # columns 3-5 of OpenCV's Jacobian: d pixel / d tvec = d pixel / d p_cam of each point
+        return p_cam, proj.reshape(-1, 2), jac[:, 3:6]
+
     def residual(x: np.ndarray) -> np.ndarray:
-        # T_cam_ds = T_cam_world @ T_world_ds(x, y, z, yaw), composed without re-validation
-        rvec, _ = cv2.Rodrigues(R_cw @ R_from_rpy(0.0, 0.0, x[3]))
-        proj, _ = cv2.projectPoints(obj, rvec, R_cw @ x[:3] + t_cw, K, dist)
-        return (proj.reshape(-1, 2) - img).ravel()
+        return (project(x)[1] - img).ravel()
+
+    def jacobian(x: np.ndarray) -> np.ndarray:
+        """(2N, 4) d residual / d (x, y, z, yaw), from OpenCV's own derivatives."""
+        _, _, d_pix_d_p = project(x)
+        c, s = math.cos(x[3]), math.sin(x[3])
+        dRz = np.array([[-s, -c, 0.0], [c, -s, 0.0], [0.0, 0.0, 0.0]])
+        d_p_d_yaw = (obj @ dRz.T) @ R_cw.T  # (N, 3)
+        J = np.empty((len(obj) * 2, 4))
+        J[:, :3] = d_pix_d_p @ R_cw
+        J[:, 3] = np.einsum("nij,nj->ni", d_pix_d_p.reshape(-1, 2, 3), d_p_d_yaw).ravel()
+        return J
 
     from scipy.optimize import least_squares  # half a second to import, only needed here
 
-    sol = least_squares(residual, x0, method="lm", x_scale=[0.1, 0.1, 0.1, 0.05])
+    sol = least_squares(residual, x0, jac=jacobian, method="lm", x_scale=[0.1, 0.1, 0.1, 0.05])
     r = sol.fun
     dof = max(r.size - 4, 1)
     sigma2 = max(float(r @ r) / dof, sigma_floor_px**2)
