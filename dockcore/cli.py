@@ -167,6 +167,16 @@ def _oserror_line(exc: OSError) -> str:
     return f"{name}: {reason}" if name else reason
 
 
+def _is_process_entry() -> bool:
+    """Whether this process runs the command as its program (a console script, ``python -m``):
+    its ``__main__`` is the file ``argv[0]`` names. In-process callers (tests) are not."""
+    main_file = getattr(sys.modules.get("__main__"), "__file__", None)
+    try:
+        return main_file is not None and Path(main_file).resolve() == Path(sys.argv[0]).resolve()
+    except (OSError, RuntimeError):
+        return False
+
+
 def run_group(group: click.Group, args: list[str] | None = None) -> None:
     """Run a click group with the toolkit's error convention (module docstring)."""
     previous = previous_int = None
@@ -219,8 +229,14 @@ def run_group(group: click.Group, args: list[str] | None = None) -> None:
         )
         sys.exit(1)
     finally:
+        # A program whose command has finished only has the interpreter's shutdown left
+        # (joining workers, atexit): a signal landing there would end it by an unhandled
+        # KeyboardInterrupt (exit -2, no message) instead of the status the command chose, so
+        # from here such a process ignores them. An in-process caller (given ``args``, or
+        # with another ``__main__``) gets its handlers back.
+        late = signal.SIG_IGN if args is None and _is_process_entry() else None
         if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
+            signal.signal(signal.SIGTERM, late if late is not None else previous)
         if previous_int is not None:
-            signal.signal(signal.SIGINT, previous_int)
+            signal.signal(signal.SIGINT, late if late is not None else previous_int)
     sys.exit(0)

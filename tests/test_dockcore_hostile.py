@@ -366,3 +366,47 @@ def test_a_signal_landing_in_importlib_is_delivered_again_not_lost():
     finally:
         signal.signal(signal.SIGUSR1, old)
         dcli._received.clear()
+
+
+_LATE_SIGNAL_PROGRAM = """
+import atexit, pathlib, sys, time
+import click
+from uwdock.dockcore.cli import run_group
+
+@click.group()
+def grp():
+    pass
+
+@grp.command()
+@click.argument("marker")
+def work(marker):
+    atexit.register(time.sleep, 3.0)  # a slow shutdown: what joining workers looks like
+    pathlib.Path(marker).write_text("done")
+
+run_group(grp)
+"""
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_during_shutdown_keeps_the_finished_commands_status(tmp_path, sig):
+    """Ctrl-C or SIGTERM after the command finished, while the interpreter shuts down: the
+    status the command chose (0 here), no traceback, not death by the signal."""
+    import subprocess
+
+    prog = tmp_path / "prog.py"
+    prog.write_text(_LATE_SIGNAL_PROGRAM, encoding="utf-8")
+    marker = tmp_path / "done"
+    proc = subprocess.Popen(
+        [sys.executable, str(prog), "work", str(marker)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    deadline = time.monotonic() + 60
+    while not marker.exists() and time.monotonic() < deadline:
+        time.sleep(0.02)
+    time.sleep(0.5)  # inside the atexit sleep
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 0, (proc.returncode, err)
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err
