@@ -171,6 +171,8 @@ def _is_process_entry() -> bool:
     """Whether this process runs the command as its program (a console script, ``python -m``):
     its ``__main__`` is the file ``argv[0]`` names. In-process callers (tests) are not."""
     main_file = getattr(sys.modules.get("__main__"), "__file__", None)
+    if main_file is None:
+        return sys.argv[:1] == ["-c"]  # python -c "...main()": the program is the command
     try:
         return main_file is not None and Path(main_file).resolve() == Path(sys.argv[0]).resolve()
     except (OSError, RuntimeError):

@@ -23,6 +23,7 @@ Example:
 from __future__ import annotations
 
 import dataclasses
+import gc
 import math
 import os
 import time
@@ -215,6 +216,14 @@ class _Views:
                 jpeg_quality=None,
             )
 
+    def close(self) -> None:
+        """Let go of the renderer objects this adds to the env's scene (outside camera, sun,
+        vehicle shapes, the downward view) now, before the env's scene goes: left to the
+        interpreter's last collection (an interrupted episode's traceback holds them), their
+        destructors could run after the scene's and crash the process."""
+        self.outside = self.sun = self.vehicle_visual = self.down = None
+        gc.collect()
+
     def _outside_pose(self) -> np.ndarray:
         ds_cfg = self.world.ds_cfg
         T_ds, T_body = self.world.T_world_ds, self.world.T_world_body
@@ -303,7 +312,18 @@ def record_episode(
     views = _Views(env, cfg, water, rng)
     fps = float(getattr(getattr(env, "cfg", None), "control_hz", 5.0))  # real time
     t0 = time.perf_counter()
-    with AtomicVideoWriter(out / video_name, fps) as writer:
+    try:
+        summary = _film(env, policy, views, out / video_name, fps, seed, water_name, max_steps,
+                        on_step)  # fmt: skip
+    finally:
+        views.close()
+    summary["wall_s"] = time.perf_counter() - t0
+    return summary
+
+
+def _film(env, policy, views, path, fps, seed, water_name, max_steps, on_step) -> dict[str, Any]:
+    """The episode into ``path`` (record_episode's loop); its summary without ``wall_s``."""
+    with AtomicVideoWriter(path, fps) as writer:
         obs, info = env.reset(seed=seed)
         policy.reset()
         writer.write(views.render(*_lines(info, water_name)))
@@ -342,5 +362,4 @@ def record_episode(
         "detected_fraction": detected / steps if steps else 0.0,
         "seed": int(seed),
         "water": water_name,
-        "wall_s": time.perf_counter() - t0,
     }
