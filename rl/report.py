@@ -15,7 +15,7 @@ from tqdm import tqdm
 from uwdock.dockcore.config import replace, to_dict
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_path, atomic_write_json, atomic_write_text
-from uwdock.dockcore.outdir import claim_output_dir
+from uwdock.dockcore.outdir import claim_output_dir, tracked_outputs
 from uwdock.dockcore.pool import PoolConfig, preflight
 from uwdock.dockcore.provenance import provenance
 from uwdock.rl.config import EnvConfig, check_env_files
@@ -242,11 +242,17 @@ def evaluate_to_folder(
         raise DockError(f"--videos: episode {bad[0]} is not among the {episodes} episodes")
     check_env_files(env_cfg)
     _, _, label = load_controller(policy, env_cfg)  # fail fast on a bad policy
-    with claim_output_dir(out_dir, "rl eval") as out:
-        return _evaluate_into(
+    with claim_output_dir(out_dir, "rl eval") as out, tracked_outputs(out) as files:
+        summary = _evaluate_into(
             out, policy, label, env_cfg, episodes, seed, video_episodes, stress,
             stress_episodes, pool, env_settings,
         )  # fmt: skip
+        # what this run wrote: a rerun with fewer films or episodes removes the rest
+        names = ["episodes.csv", "trajectories_top.png", "summary.json"]
+        names += [f"traces_ep{k}.png" for k in sorted(set(video_episodes) | {0})]
+        names += [f"camera_ep{k}{s}" for k in video_episodes for s in (".mp4", "_frames.jpg")]
+        files.add(*(out / n for n in names if (out / n).is_file()))
+        return summary
 
 
 def _evaluate_into(

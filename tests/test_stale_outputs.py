@@ -124,3 +124,23 @@ def test_ownership_is_checked_up_the_tree(run_cli, tmp_path):
     with pytest.raises(DockError, match="is inside"):
         with claim_output_dir(ds / "x", "rl eval"):
             pass
+
+
+def test_rl_eval_rerun_removes_the_films_and_traces_it_no_longer_makes(run_cli, tmp_path):
+    from uwdock.rl import cli as rl_cli
+
+    out = tmp_path / "e"
+    env = tmp_path / "short.toml"
+    env.write_text("episode_s = 3.0\n")
+    common = ["eval", "--policy", "pid", "--obs", "proxy", "--config", env, "--out", out]
+    first = run_cli(rl_cli.main, *common, "--episodes", "2", "--videos", "1", "--width", "160")
+    assert first.code == 0, first.err
+    assert {"camera_ep1.mp4", "camera_ep1_frames.jpg", "traces_ep1.png"} <= {
+        p.name for p in out.iterdir()
+    }
+    (out / "mine.txt").write_text("a user's file")
+    second = run_cli(rl_cli.main, *common, "--episodes", "1", "--videos", "")
+    assert second.code == 0, second.err
+    names = {p.name for p in out.iterdir() if not p.name.startswith(".")}
+    assert names == {"episodes.csv", "summary.json", "traces_ep0.png", "trajectories_top.png",
+                     "mine.txt"}  # fmt: skip
