@@ -156,6 +156,19 @@ def _on_sigint(signum: int, frame: Any) -> None:
     _interrupt(signal.SIGINT, frame, KeyboardInterrupt)
 
 
+#: the signals whose handlers :func:`run_group` installed, while its command runs
+_installed: dict[int, Any] = {}
+
+
+def reclaim_signals() -> None:
+    """Put :func:`run_group`'s SIGTERM/SIGINT handlers back after a library replaced them (Ray's
+    ``ray.init`` installs a native failure handler that turns SIGTERM into a crash dump and an
+    abort, exit 134). Nothing happens outside a running command."""
+    for signum, handler in _installed.items():
+        if signal.getsignal(signum) is not handler:
+            signal.signal(signum, handler)
+
+
 def _oserror_line(exc: OSError) -> str:
     """One line for a failed file operation: the file first, then the reason."""
     reason = exc.strerror or str(exc) or type(exc).__name__
@@ -183,12 +196,16 @@ def run_group(group: click.Group, args: list[str] | None = None) -> None:
     """Run a click group with the toolkit's error convention (module docstring)."""
     previous = previous_int = None
     _received.clear()
+    _installed.clear()
     try:
         previous = signal.signal(signal.SIGTERM, _on_sigterm)
+        _installed[signal.SIGTERM] = _on_sigterm
         if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # not ignored
             previous_int = signal.signal(signal.SIGINT, _on_sigint)
+            _installed[signal.SIGINT] = _on_sigint
     except ValueError:  # not the main thread (embedded use): leave the signals alone
         previous = None
+        _installed.clear()
     argv = list(sys.argv[1:] if args is None else args)
     try:
         # click's main() without its standalone handling (which prints a blank line on an
@@ -199,6 +216,9 @@ def run_group(group: click.Group, args: list[str] | None = None) -> None:
         click.echo("error: interrupted (SIGTERM)", err=True)
         sys.exit(128 + signal.SIGTERM)
     except (KeyboardInterrupt, click.exceptions.Abort):
+        if _received[-1:] == [signal.SIGTERM]:  # a library re-raised it as a plain interrupt
+            click.echo("error: interrupted (SIGTERM)", err=True)
+            sys.exit(128 + signal.SIGTERM)
         click.echo("error: interrupted", err=True)
         sys.exit(130)
     except click.exceptions.NoArgsIsHelpError as exc:  # a bare group: its help, not an error
@@ -236,6 +256,7 @@ def run_group(group: click.Group, args: list[str] | None = None) -> None:
         # KeyboardInterrupt (exit -2, no message) instead of the status the command chose, so
         # from here such a process ignores them. An in-process caller (given ``args``, or
         # with another ``__main__``) gets its handlers back.
+        _installed.clear()
         late = signal.SIG_IGN if args is None and _is_process_entry() else None
         if previous is not None:
             signal.signal(signal.SIGTERM, late if late is not None else previous)

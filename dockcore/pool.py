@@ -36,6 +36,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Annotated, Any
 
+from uwdock.dockcore.cli import reclaim_signals
 from uwdock.dockcore.domains import Interval
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.media import quiet_native_stderr
@@ -197,6 +198,7 @@ def start_ray(ray: Any, cpus: int, address: str | None) -> None:
     except Exception as exc:  # ConnectionError, RuntimeError, ValueError ...
         where = "a local Ray instance" if address is None else f"Ray at {address!r}"
         raise DockError(f"cannot start {where}: {' '.join(str(exc).split())}") from None
+    reclaim_signals()  # ray.init's native SIGTERM handler dumps a crash report and aborts
     atexit.register(ray.shutdown)
 
 

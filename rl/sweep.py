@@ -21,6 +21,7 @@ from __future__ import annotations
 import datetime
 import itertools
 import json
+import os
 import re
 import sys
 from collections.abc import Callable, Mapping, Sequence
@@ -226,6 +227,9 @@ def run_sweep(
                 f"{out} holds another sweep (other trials or configs): use another --out"
             )
     atomic_write_json(old, {"trials": plan, "seeds": list(cfg.seeds), "grid": dict(grid)})
+    # Ctrl-C ends the command as any other (one line, exit 130; rerunning resumes every trial
+    # from its own run folder), not through Tune's graceful stop and its Tuner.restore advice
+    os.environ["TUNE_DISABLE_SIGINT_HANDLER"] = "1"
     start_ray(ray, max(t.config.n_envs + 1 for t in trials), ray_address)
     n_envs = {t.name: t.config.n_envs for t in trials}  # a grid may change it per trial
 

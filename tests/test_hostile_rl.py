@@ -269,3 +269,37 @@ def test_sigterm_during_an_episode_film_is_one_line_not_a_crash(tmp_path, delay_
     assert proc.returncode == 128 + signal.SIGTERM, (proc.returncode, err[-1500:])
     assert err.strip().splitlines()[-1] == "error: interrupted (SIGTERM)"
     assert not (out / "episode.mp4").exists()
+
+
+@pytest.mark.parametrize("sig", ["SIGTERM", "SIGINT"])
+def test_a_signal_to_rl_sweep_is_one_line(tmp_path, sig):
+    """SIGTERM or Ctrl-C to a running `rl sweep` (a local Ray instance, two trials): one line,
+    exit 143 / 130. Before, ray.init's native handler turned SIGTERM into a crash dump and an
+    abort (exit 134), and Tune caught Ctrl-C to print its Tuner.restore advice and exit 0."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    cfg = tmp_path / "sweep.toml"
+    cfg.write_text(
+        "total_steps = 200000\nn_envs = 1\neval_every = 0\ncheckpoint_every = 1024\n"
+        "[ppo]\nn_steps = 512\nbatch_size = 256\n"
+    )
+    out = tmp_path / "sw"
+    cmd = [sys.executable, "-c", "from uwdock.rl.cli import main; main()", "sweep",
+           "--config", str(cfg), "--seeds", "0,1", "--out", str(out)]  # fmt: skip
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and not list(out.glob("seed*/checkpoints/*")):
+        if proc.poll() is not None:
+            break
+        time.sleep(0.1)  # the trials are training
+    time.sleep(1.0)
+    signum = getattr(signal, sig)
+    proc.send_signal(signum)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == (143 if sig == "SIGTERM" else 130), (proc.returncode, err[-1500:])
+    assert err.strip().splitlines()[-1].startswith("error: interrupted"), err[-800:]
+    for crash in ("SIGTERM received", "Traceback", "Tuner.restore", "Aborted"):
+        assert crash not in err, err[-1500:]
