@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import math
 
-import cv2
 import numpy as np
 
 from uwdock.calibration.frames import wrap_angle_rad
@@ -84,18 +83,11 @@ def yaw_T_b(xyz: np.ndarray, yaw: np.ndarray) -> np.ndarray:
 
 
 def rotvec_to_R_b(rv: np.ndarray) -> np.ndarray:
-    """(N, 3, 3) rotation matrices of rotation vectors (N, 3) (Rodrigues)."""
-    theta = np.linalg.norm(rv, axis=1)
-    small = theta < 1e-12
-    k = rv / np.where(small, 1.0, theta)[:, None]
-    K = np.zeros((len(rv), 3, 3))
-    K[:, 0, 1], K[:, 0, 2] = -k[:, 2], k[:, 1]
-    K[:, 1, 0], K[:, 1, 2] = k[:, 2], -k[:, 0]
-    K[:, 2, 0], K[:, 2, 1] = -k[:, 1], k[:, 0]
-    s, c = np.sin(theta)[:, None, None], np.cos(theta)[:, None, None]
-    R = np.eye(3)[None] + s * K + (1.0 - c) * (K @ K)
-    R[small] = np.eye(3)
-    return R
+    """(N, 3, 3) rotation matrices of rotation vectors (N, 3): SciPy's, as the scalar
+    :func:`rl.error_model.apply_error` uses."""
+    from scipy.spatial.transform import Rotation  # as apply_error: loaded on first use
+
+    return Rotation.from_rotvec(np.asarray(rv, dtype=np.float64)).as_matrix()
 
 
 # --------------------------------------------------------------------------- task
@@ -270,6 +262,8 @@ class BatchErrorModel:
         self.t_prev_s = np.zeros(n)
         self._corners = np.asarray(model.corners_ds, dtype=np.float64).reshape(-1, 3)
         self._n_markers = len(model.corners_ds)
+        # per range bin: whether the table holds gross-error samples to draw from
+        self._has_outliers = np.array([o.size > 0 for o in self.table["outliers"]])
 
     def reset(self, i: int) -> None:
         """Forget env ``i``'s memory (a new episode)."""
@@ -280,19 +274,8 @@ class BatchErrorModel:
         cam = self.model.camera
         p = np.einsum("nij,mj->nmi", T_cam_ds[:, :3, :3], self._corners) + T_cam_ds[:, None, :3, 3]
         flat = p.reshape(-1, 3)
-        z = flat[:, 2]
-        px = np.full((len(flat), 2), np.nan)
-        ok = np.isfinite(flat).all(axis=1) & (z > 0.0)
-        if ok.any():
-            if any(cam.dist):
-                uv, _ = cv2.projectPoints(
-                    flat[ok].reshape(-1, 1, 3), np.zeros(3), np.zeros(3), cam.K, cam.dist_coeffs
-                )
-                px[ok] = uv.reshape(-1, 2)
-            else:
-                px[ok, 0] = cam.fx_px * flat[ok, 0] / z[ok] + cam.cx_px
-                px[ok, 1] = cam.fy_px * flat[ok, 1] / z[ok] + cam.cy_px
-        inside = cam.in_image(px) & (z > MIN_VIEW_DEPTH_M)
+        # the camera model's projection (one OpenCV call for every corner of every env)
+        inside = cam.in_image(cam.project(flat)) & (flat[:, 2] > MIN_VIEW_DEPTH_M)
         per_marker = inside.reshape(len(T_cam_ds), self._n_markers, 4).all(axis=2)
         return per_marker.sum(axis=1)
 
@@ -317,8 +300,7 @@ class BatchErrorModel:
         u = np.asarray(uniforms, dtype=np.float64)
         w = np.asarray(normals, dtype=np.float64)
         detected = u[:, 0] < t["p"][k, n_vis]
-        has_out = np.array([t["outliers"][j].size > 0 for j in range(m.n_bins)])[k]
-        outlier = detected & has_out & (u[:, 1] < t["p_out"][k])
+        outlier = detected & self._has_outliers[k] & (u[:, 1] < t["p_out"][k])
         inlier = detected & ~outlier
         # the AR(1) memory of each env's last inlier (misses and gross errors break the chain)
         z = w.copy()
