@@ -59,6 +59,7 @@ from uwdock.rl.error_model import ErrorModelSource
 from uwdock.rl.observation import OBS_BOUND, POS_SCALE_M, PRIVILEGED_DIM, frame_dim
 from uwdock.rl.vec_envs import EnvWorkers
 from uwdock.sim.batch import BatchVehicles
+from uwdock.sim.navigation import NavErrors, correction
 
 __all__ = ["BatchDockingEnv", "BatchWorkers"]
 
@@ -108,6 +109,8 @@ class BatchDockingEnv(VecEnv):
             else None
         )
         self.acoustic = e0.source.needs.acoustic_fixes
+        self.nav = NavErrors(config.nav, n)
+        self.T_nav = np.tile(np.eye(4), (n, 1, 1))
         self.frame_dim = frame_dim(config)
         self.frames = np.zeros((n, config.obs_frames, self.frame_dim), dtype=np.float32)
         self.T_world_ds = np.tile(np.eye(4), (n, 1, 1))
@@ -140,9 +143,11 @@ class BatchDockingEnv(VecEnv):
         return super().seed(seed)
 
     def _draws(self) -> tuple[np.ndarray, np.ndarray | None]:
-        """This step's draws of every env from its own generator: (N, 16) standard normals
-        (IMU 10, then the source's 6) and (N, 3) uniforms (the error model's)."""
-        normals = np.stack([g.standard_normal(16) for g in self._gens])
+        """This step's draws of every env from its own generator: (N, 16 + k) standard normals
+        (IMU 10, the source's 6, then the navigation's k: 0 when ideal) and (N, 3) uniforms
+        (the error model's)."""
+        k = 16 + self.nav.step_draws
+        normals = np.stack([g.standard_normal(k) for g in self._gens])
         uniforms = np.stack([g.random(3) for g in self._gens]) if self.model else None
         return normals, uniforms
 
@@ -161,6 +166,8 @@ class BatchDockingEnv(VecEnv):
         obs, _ = env.reset(seed=seed)
         self.physics.load(i)
         self.T_world_ds[i] = env.world.T_world_ds
+        self.nav.copy_row(i, env.nav)
+        self.T_nav[i] = env.T_nav
         self.filter.x[i], self.filter.P[i] = env.filter.x, env.filter.P
         if self.model is not None:
             self.model.reset(i)
@@ -212,7 +219,11 @@ class BatchDockingEnv(VecEnv):
         g0 = self._reward_cfg.gamma_set_mps2
         self.gamma = np.where(collided, self.gamma * 2.0, np.maximum(g0, self.gamma / 2.0))
         self.prev_sf = sf
-        self._measure_and_filter(T, normals[:, 10:], uniforms)
+        nav = self.nav
+        if not nav.ideal:
+            nav.step(self.dt_s, T, ph.nu()[:, :3], imu.velocity_frd_mps, normals[:, 16:])
+        self.T_nav = nav.T_nav(T, imu.depth_m)
+        self._measure_and_filter(T, normals[:, 10:16], uniforms)
         e_true, psi_true = docking_errors_b(T, self.T_world_ds, self.cfg.task)
         visible = ds_visible_b(inv_T_b(T) @ self.T_world_ds, self.cfg.task)
         paper = paper_success_b(e_true, psi_true, visible, self.task)
@@ -230,15 +241,16 @@ class BatchDockingEnv(VecEnv):
         reward = sum(terms.values())
         self.prev_action = a.copy()
         frame = observation_frames_b(
-            self.cfg, T, self.filter.T_world_ds(), self.filter.sigma_xy_m(),
-            imu.velocity_frd_mps, imu.angular_velocity_frd_radps[:, 2],
+            self.cfg, self.T_nav, self.filter.T_world_ds(), self.filter.sigma_xy_m(),
+            nav.dvl_velocity(imu.velocity_frd_mps), imu.angular_velocity_frd_radps[:, 2],
             imu.acceleration_frd_mps2, self.prev_action, self.detected,
         )  # fmt: skip
         self.frames = np.concatenate([self.frames[:, 1:], frame[:, None]], axis=1)
-        obs = self._obs(T, e_true, psi_true)
+        obs = self._obs(e_true, psi_true)
         self.ep_return += reward
         dones = docked | truncated
         sigma = np.sqrt(np.diagonal(self.filter.P, axis1=1, axis2=2)[:, :3])
+        nav_err = nav.error_m()
         infos: list[dict[str, Any]] = []
         for i in range(n):
             info = {
@@ -253,6 +265,7 @@ class BatchDockingEnv(VecEnv):
                 "T_world_body": T[i],
                 "T_world_ds": self.T_world_ds[i].copy(),
                 "estimate_sigma_m": sigma[i],
+                "nav_error_m": float(nav_err[i]),
             }
             if dones[i]:
                 info["TimeLimit.truncated"] = bool(truncated[i])
@@ -270,11 +283,13 @@ class BatchDockingEnv(VecEnv):
         self, T: np.ndarray, normals: np.ndarray, uniforms: np.ndarray | None
     ) -> None:
         """Predict, fuse the acoustic fixes due, then the source's measurements (made of this
-        step's draws)."""
+        step's draws), each moved from the true pose's frame into the navigation's
+        (:func:`uwdock.sim.navigation.correction`; neither source here is ``nav_frame``)."""
         f = self.filter
         f.predict(self.dt_s)
         n = self.num_envs
         t = self.physics.time_s
+        C = None if self.nav.ideal else correction(self.T_nav, T)
         if self.acoustic:
             mask = np.zeros(n, dtype=bool)
             p = np.zeros((n, 3))
@@ -284,17 +299,23 @@ class BatchDockingEnv(VecEnv):
                 if fix is not None:
                     mask[i], p[i], sig[i] = True, fix.p_world_ds_m, fix.sigma_m
             if mask.any():
+                if C is not None:
+                    p = np.einsum("nij,nj->ni", C[:, :3, :3], p) + C[:, :3, 3]
                 f.update_position(mask, p, sig)
         if self.model is not None:
             det, T_meas, cov = self.model.measure(T, self.T_world_ds, t, uniforms, normals)
         elif self.cfg.obs_source == "proxy":
             det, T_meas, cov = proxy_measure_b(T, self.T_world_ds, self.cfg.task, normals)
+            if C is not None:
+                T_meas = C @ T_meas
             f.update(np.ones(n, dtype=bool), self._z(T_meas), cov)
             self.detected = det
             return
         else:  # acoustic: no measurement
             self.detected = np.zeros(n, dtype=bool)
             return
+        if C is not None:
+            T_meas = C @ T_meas
         f.update(det, self._z(T_meas), cov)
         self.detected = det
 
@@ -302,13 +323,13 @@ class BatchDockingEnv(VecEnv):
     def _z(T: np.ndarray) -> np.ndarray:
         return np.concatenate([T[:, :3, 3], yaw_b(T)[:, None]], axis=1)
 
-    def _obs(self, T: np.ndarray, e_true: np.ndarray, psi_true: np.ndarray) -> np.ndarray:
+    def _obs(self, e_true: np.ndarray, psi_true: np.ndarray) -> np.ndarray:
         obs = self.frames.reshape(self.num_envs, -1)
         if not self.cfg.obs_privileged:
             return obs.copy()
         block = np.zeros((self.num_envs, PRIVILEGED_DIM), dtype=np.float32)
         if self.privileged:
-            e_hat, _ = docking_errors_b(T, self.filter.T_world_ds(), self.cfg.task)
+            e_hat, _ = docking_errors_b(self.T_nav, self.filter.T_world_ds(), self.cfg.task)
             s = POS_SCALE_M
             parts = [
                 np.clip(e_true, -s, s) / s,

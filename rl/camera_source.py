@@ -35,7 +35,7 @@ class CameraSource:
     """
 
     name = "camera"
-    needs = SourceNeeds(camera=True, fusion=True, acoustic_fixes=True)
+    needs = SourceNeeds(camera=True, fusion=True, acoustic_fixes=True, nav_frame=True)
 
     def __init__(self, world) -> None:
         if world.camera is None:
@@ -59,12 +59,13 @@ class CameraSource:
         return self.measure_frame(frame, ctx)
 
     def measure_frame(self, frame: Frame, ctx: StepContext) -> Measurement | None:
-        """The measurement from one captured frame (RGB; converted to BGR here, once)."""
+        """The measurement from one captured frame (RGB; converted to BGR here, once), in the
+        navigation frame: the estimate uses the camera pose the vehicle believes it has."""
         self.last_frame = frame
         est = self.estimator.estimate(
             frame.img_bgr(),
             self.camera,
-            ctx.T_world_body @ self.T_body_cam,
+            ctx.T_world_body_believed @ self.T_body_cam,
             ctx.T_world_ds_estimate,
         )
         self.last_detections = est.detections

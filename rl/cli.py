@@ -48,6 +48,7 @@ from uwdock.rl.train import BatchWorkerCount, TrainConfig, run_config
 from uwdock.rl.train import train as run
 from uwdock.rl.trajectories import record_pid_trajectories
 from uwdock.rl.vec_envs import EnvsPerWorker
+from uwdock.sim.navigation import NAV_PRESETS
 from uwdock.sim.usbl import USBL_PRESETS
 from uwdock.sim.water import resolve_water, water_choice
 from uwdock.sim.world_config import WorldConfig
@@ -81,6 +82,16 @@ USBL_OPTION = click.option(
     "--config's [usbl] table still override it [ideal].",
 )
 
+#: ``--nav``: the vehicle's navigation model (``EnvConfig.nav.preset``).
+NAV_OPTION = click.option(
+    "--nav",
+    "nav",
+    type=click.Choice(list(NAV_PRESETS)),
+    help="The vehicle's navigation, a preset of uwdock.sim.navigation ('ideal': its true pose; "
+    "'mems-ahrs-dvl': dead reckoning that drifts); fields of the --config's [env.nav] table "
+    "still override it [ideal].",
+)
+
 
 #: ``--env-from``: another policy's training env (e.g. the PID under a policy's settings).
 ENV_FROM_OPTION = click.option(
@@ -105,8 +116,9 @@ def _resolve_env(
     source = str(env_from) if env_from is not None else policy
     layer, origin = policy_env_layer(source)
     given = {k: v for k, v in flags.items() if v is not None and v != {}}
-    if "usbl" in given:  # --usbl names a whole model: the policy's own USBL fields do not apply
-        layer.pop("usbl", None)
+    for model in ("usbl", "nav"):  # --usbl/--nav name a whole model: the policy's own fields
+        if model in given:  # of it do not apply
+            layer.pop(model, None)
     file = config_data(config_path, section="env") if config_path is not None else {}
     layers = [("default", defaults), ("policy config", layer), ("--config", file), ("flag", given)]
     return resolve_env(layers, policy_config=origin)
@@ -127,6 +139,7 @@ def cli() -> None:
     help="Fitted error model file (for --obs error-model).",
 )
 @USBL_OPTION
+@NAV_OPTION
 @WATER_OPTION
 @click.option("--algo", type=click.Choice(["ppo", "sac"]), help="Algorithm [ppo].")
 @click.option("--steps", type=field_type(_TRAIN, "total_steps"), help="Total env steps.")
@@ -172,8 +185,9 @@ def cli() -> None:
 )
 @out_dir_option("Run folder.", required=True)
 def train(
-    config_path, obs, error_model, usbl, water, algo, steps, envs, simulator, seed, init_policy,
-    resume, allow_config_change, backend, ray_address, envs_per_worker, batch_workers, out_dir,
+    config_path, obs, error_model, usbl, nav, water, algo, steps, envs, simulator, seed,
+    init_policy, resume, allow_config_change, backend, ray_address, envs_per_worker,
+    batch_workers, out_dir,
 ) -> None:  # fmt: skip
     """Train a docking policy (PPO with the paper's hyperparameters by default).
 
@@ -184,6 +198,7 @@ def train(
         "obs_source": obs,
         "error_model_path": str(error_model) if error_model else None,
         "usbl": {"preset": usbl} if usbl else None,
+        "nav": {"preset": nav} if nav else None,
         "world": {"water_preset": water_choice(water)} if water else None,
     }
     overrides = {
@@ -299,6 +314,13 @@ def sweep(config_path, seeds, grid, concurrent, ray_address, out_dir) -> None:
     "training preset; ideal without one].",
 )
 @click.option(
+    "--nav",
+    "nav",
+    type=click.Choice(list(NAV_PRESETS)),
+    help="The vehicle's navigation, a preset of uwdock.sim.navigation [the policy's training "
+    "preset; ideal without one].",
+)
+@click.option(
     "--water",
     "water",
     help="Water of the downward camera: a preset or a water file (.toml, `sim fit-water`) "
@@ -342,6 +364,7 @@ def eval_cmd(
     obs,
     error_model,
     usbl,
+    nav,
     water,
     width_px,
     env_from,
@@ -367,6 +390,7 @@ def eval_cmd(
         "error_model_path": str(error_model) if error_model else None,
         "terminate_on": terminate_on,
         "usbl": {"preset": usbl} if usbl else None,
+        "nav": {"preset": nav} if nav else None,
         "world": {
             k: v
             for k, v in {

@@ -17,6 +17,7 @@ from uwdock.rl.error_model import load_error_model
 from uwdock.rl.estimator import EstimatorConfig
 from uwdock.rl.rewards import RewardConfig
 from uwdock.rl.task import DockingTaskConfig
+from uwdock.sim.navigation import NavConfig
 from uwdock.sim.usbl import UsblConfig
 from uwdock.sim.world_config import WorldConfig
 
@@ -104,6 +105,11 @@ class EnvConfig:
         usbl: the acoustic (USBL) positioning of the DS that sources with
             ``needs.acoustic_fixes`` receive (:mod:`uwdock.sim.usbl`): a preset name plus any
             field overriding it; :attr:`usbl_model` is the model the env simulates.
+        nav: the vehicle's navigation (:mod:`uwdock.sim.navigation`): a preset name ("ideal":
+            the vehicle knows its true pose; "mems-ahrs-dvl": dead reckoning over a DVL, an AHRS
+            and a depth sensor that drifts) plus any field overriding it. Measurements of the
+            DS are turned into the world with the navigation pose and the policy sees the
+            docking point relative to it.
         world: the simulated world: tank, DS marker set, camera (file, render width, mounting
             error), water, vehicle (nominal and randomised) and ocean current.
     """
@@ -143,6 +149,7 @@ class EnvConfig:
     reward: RewardConfig = field(default_factory=RewardConfig)
     estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
     usbl: UsblConfig = field(default_factory=UsblConfig)
+    nav: NavConfig = field(default_factory=NavConfig)
     world: WorldConfig = field(default_factory=WorldConfig)
 
     @property

@@ -3,13 +3,16 @@
 Registered with Gymnasium as ``uwdock/Docking-v0``. One step:
 
     action [-1, 1]^6 -> body wrench -> thruster allocation -> 60 substeps of hydrodynamics +
-    thrusters + PhysX contacts -> IMU/DVL -> observation source measures the DS pose ->
-    shared filter -> observation [e_x, e_y, e_z, e_psi, v_x, v_y, v_z, w_psi, acc_x, acc_y,
-    acc_z] (+ last action, + history) -> named reward terms -> paper / strict success.
+    thrusters + PhysX contacts -> IMU/DVL -> the vehicle's navigation pose (dead reckoning,
+    :mod:`uwdock.sim.navigation`) -> the observation source measures the DS pose, turned into
+    the world with that pose -> shared filter -> observation [e_x, e_y, e_z, e_psi, v_x, v_y,
+    v_z, w_psi, acc_x, acc_y, acc_z] (+ last action, + history) -> named reward terms ->
+    paper / strict success.
 
 The reward and the success tests use the true state (as the reference code does); the policy
-sees only the estimate. ``info`` carries ``reward_terms``, ``success_paper``,
-``success_strict``, ``collided``, ``detected``, ``e_true`` and the poses for plotting.
+sees only the estimate: the DS filter's, relative to the vehicle's navigation pose. ``info``
+carries ``reward_terms``, ``success_paper``, ``success_strict``, ``collided``, ``detected``,
+``e_true``, the poses for plotting and ``nav_error_m`` (the navigation's horizontal drift).
 """
 
 from __future__ import annotations
@@ -51,6 +54,8 @@ from uwdock.rl.task import (
     paper_success,
     pegs_seated,
 )
+from uwdock.sim.navigation import RESET_DRAWS as RESET_NAV_DRAWS
+from uwdock.sim.navigation import STEP_DRAWS, NavErrors, correction
 from uwdock.sim.usbl import UsblSensor
 from uwdock.sim.world import DockingWorld
 
@@ -101,6 +106,11 @@ class DockingEnv(gym.Env):
             # a memoryless source (the paper's proxy): every step replaces the estimate
             est_cfg = replace(est_cfg, fuse=False)
         self.filter = DSPoseFilter(est_cfg)
+        self.nav = NavErrors(c.nav, 1)
+        self._usbl_prior = (
+            self.nav.cfg.ds_prior == "usbl" and needs.acoustic_fixes and self.usbl.cfg.period_s > 0
+        )
+        self._usbl_prior_pending = False
         self._limits = c.action_limits
         self.reward_fn = DockingReward(c.reward, actuated=self._limits > 0)
         self.observation_space = gym.spaces.Box(
@@ -206,19 +216,24 @@ class DockingEnv(gym.Env):
         self._film_rng = np.random.default_rng(rng.bit_generator.seed_seq.spawn(1)[0])
         self.filter.reset(T_world_ds, rng)
         self.usbl.reset(rng)  # after the prior: the acoustic bias draws leave it as it was
+        # an ideal navigation draws nothing: the episode's stream is the one it always was
+        self.nav.reset(0, None if self.nav.ideal else rng.standard_normal(RESET_NAV_DRAWS))
         self.reward_fn.reset()
         self.steps = 0
         self.prev_action = np.zeros(6)
         self._seated_steps = 0
         self.success_paper = False
         self.success_strict = False
-        imu = self.world.vehicle.read_imu()
+        imu = self._last_imu = self.world.vehicle.read_imu()
         self.prev_specific_force = imu.specific_force_frd_mps2
         T_world_body = self.world.T_world_body
+        self.T_nav = self.nav.T_nav(T_world_body, [imu.depth_m])[0]
+        self._usbl_prior_pending = self._usbl_prior
         self._measure_and_filter(T_world_body, predict=False)
-        self._frames = [self._frame(imu, T_world_body)] * self.cfg.obs_frames
+        self._usbl_prior_pending = False
+        self._frames = [self._frame(imu)] * self.cfg.obs_frames
         e_true, psi_true = docking_errors(T_world_body, T_world_ds, self.cfg.task)
-        obs = self._obs(T_world_body, e_true, psi_true)
+        obs = self._obs(e_true, psi_true)
         return obs, self._info(T_world_body, e_true, psi_true, {}, collided=False)
 
     def step(self, action):
@@ -237,6 +252,7 @@ class DockingEnv(gym.Env):
         imu = self._last_imu = world.vehicle.read_imu()
         collided = self.reward_fn.collision(imu.specific_force_frd_mps2, self.prev_specific_force)
         self.prev_specific_force = imu.specific_force_frd_mps2
+        self._navigate(T_world_body, imu)
         self._measure_and_filter(T_world_body, predict=True)
 
         e_true, psi_true = docking_errors(T_world_body, world.T_world_ds, self.cfg.task)
@@ -251,9 +267,9 @@ class DockingEnv(gym.Env):
         truncated = not docked and self.steps >= self.max_steps
         terms = self.reward_fn(e_true, psi_true, a, self.prev_action, collided, docked, truncated)
         self.prev_action = a
-        self._frames = [*self._frames[1:], self._frame(imu, T_world_body)]
+        self._frames = [*self._frames[1:], self._frame(imu)]
         info = self._info(T_world_body, e_true, psi_true, terms, collided)
-        obs = self._obs(T_world_body, e_true, psi_true)
+        obs = self._obs(e_true, psi_true)
         return obs, float(sum(terms.values())), bool(docked), bool(truncated), info
 
     def render(self):
@@ -299,46 +315,75 @@ class DockingEnv(gym.Env):
         self.world.close()
 
     # ------------------------------------------------------------------ internals
+    def _navigate(self, T_world_body: np.ndarray, imu) -> None:
+        """Move the navigation errors on over the step just simulated and set :attr:`T_nav`,
+        the pose the vehicle believes it has (the true pose for an ideal navigation)."""
+        nav = self.nav
+        if not nav.ideal:
+            normals = self.np_random.standard_normal(STEP_DRAWS)
+            v_true = self.world.vehicle.nu[:3]
+            nav.step(self.dt_s, T_world_body, v_true, imu.velocity_frd_mps, normals)
+        self.T_nav = nav.T_nav(T_world_body, [imu.depth_m])[0]
+
     def _measure_and_filter(self, T_world_body: np.ndarray, predict: bool) -> None:
         world = self.world
         if predict:
             self.filter.predict(self.dt_s)
-        self._usbl_fix(T_world_body)
-        ctx = StepContext(T_world_body, world.T_world_ds, world.time_s, self.filter.T_world_ds)
+        # a measurement made with the true pose -> the one the vehicle makes with its own
+        C = None if self.nav.ideal else correction(self.T_nav, T_world_body)
+        self._usbl_fix(T_world_body, C)
+        nav_pose = None if self.nav.ideal else self.T_nav
+        ctx = StepContext(
+            T_world_body, world.T_world_ds, world.time_s, self.filter.T_world_ds, nav_pose
+        )
         m = self.source.measure(ctx)
         self.last_measurement = m
         if m is not None:
-            self.filter.update(m.T_world_ds, m.cov_xyzyaw)
+            T_meas = m.T_world_ds
+            if C is not None and not self.source.needs.nav_frame:
+                T_meas = C @ T_meas
+            self.filter.update(T_meas, m.cov_xyzyaw)
 
-    def _usbl_fix(self, T_world_body: np.ndarray) -> None:
+    def _usbl_fix(self, T_world_body: np.ndarray, C: np.ndarray | None) -> None:
         """Fuse the position-only acoustic fix the vehicle receives this step, if one arrives
         (:class:`uwdock.sim.usbl.UsblSensor` of ``EnvConfig.usbl_model``), for sources that
-        declare ``needs.acoustic_fixes``."""
+        declare ``needs.acoustic_fixes``; placed with the navigation pose (``C``: the
+        correction from the true one, None when they are equal). At reset with
+        ``nav.ds_prior = "usbl"`` the first fix is the DS prior (its yaw: the survey's)."""
         if not self.source.needs.acoustic_fixes:
             return
         world = self.world
         fix = self.usbl.fix(world.time_s, T_world_body, world.T_world_ds[:3, 3], self.np_random)
-        if fix is not None:
-            self.filter.update_position(fix.p_world_ds_m, fix.sigma_m)
+        if fix is None:
+            return
+        p = fix.p_world_ds_m if C is None else C[:3, :3] @ fix.p_world_ds_m + C[:3, 3]
+        if self._usbl_prior_pending:
+            T = self.filter.T_world_ds
+            T[:3, 3] = p
+            self.filter.set_prior(T, sigma_xy_m=fix.sigma_m, sigma_z_m=fix.sigma_m)
+        else:
+            self.filter.update_position(p, fix.sigma_m)
 
     def _detected(self) -> bool:
         """The camera (or its error model) found the DS this step (not a proxy or USBL fix)."""
         m = self.last_measurement
         return m is not None and m.detected
 
-    def _frame(self, imu, T_world_body: np.ndarray) -> np.ndarray:
+    def _frame(self, imu) -> np.ndarray:
+        """One observation frame: the DS estimate relative to the navigation pose, the DVL's
+        velocity (with its scale error), the gyro's yaw rate and the acceleration."""
         return observation_frame(
             self.cfg,
-            T_world_body,
+            self.T_nav,
             self.filter,
-            imu.velocity_frd_mps,
+            self.nav.dvl_velocity(imu.velocity_frd_mps)[0],
             float(imu.angular_velocity_frd_radps[2]),
             imu.acceleration_frd_mps2,
             self.prev_action,
             self._detected(),
         )
 
-    def _obs(self, T_world_body: np.ndarray, e_true: np.ndarray, psi_true: float) -> np.ndarray:
+    def _obs(self, e_true: np.ndarray, psi_true: float) -> np.ndarray:
         """The stacked frames, then (``obs_privileged``) the critic's block from this step's
         true errors: filled in training envs only, zeros elsewhere."""
         obs = np.concatenate(self._frames).astype(np.float32)
@@ -346,7 +391,7 @@ class DockingEnv(gym.Env):
             return obs
         block = np.zeros(PRIVILEGED_DIM, dtype=np.float32)
         if self.privileged:
-            e_hat, _ = docking_errors(T_world_body, self.filter.T_world_ds, self.cfg.task)
+            e_hat, _ = docking_errors(self.T_nav, self.filter.T_world_ds, self.cfg.task)
             block = privileged_block(
                 e_true,
                 psi_true,
@@ -377,4 +422,5 @@ class DockingEnv(gym.Env):
             "T_world_body": T_world_body,
             "T_world_ds": world.T_world_ds.copy(),
             "estimate_sigma_m": self.filter.sigma_xyz_m,
+            "nav_error_m": float(self.nav.error_m()[0]),
         }

@@ -31,6 +31,7 @@ from uwdock.rl.policy_io import policy_train_env, policy_train_settings
 #: The settings :meth:`ResolvedEnv.line` reports: (dotted EnvConfig key, short name).
 REPORTED = (
     ("usbl.preset", "usbl"),
+    ("nav.preset", "nav"),
     ("world.water_preset", "water"),
     ("world.camera_width_px", "width_px"),
     ("terminate_on", "terminate_on"),
@@ -55,14 +56,11 @@ class ResolvedEnv:
             (``"default"``, ``"policy <path>"``, ``"--config"``, ``"flag"``).
         policy_config: the file the ``"policy"`` layer was read from (a run's ``config.toml``
             or an exported policy's ``.json``); None without one.
-        nav_preset: the vehicle-navigation preset (None: navigation presets do not exist yet;
-            the vehicle's pose is its true pose).
     """
 
     cfg: EnvConfig
     sources: Mapping[str, str]
     policy_config: str | None = None
-    nav_preset: str | None = None
 
     def value(self, key: str) -> Any:
         """The value of a dotted key of :attr:`cfg` (e.g. ``"world.camera_width_px"``)."""
@@ -72,23 +70,18 @@ class ResolvedEnv:
         return obj
 
     def settings(self) -> dict[str, dict[str, Any]]:
-        """``{short name: {"value": v, "from": layer}}`` of the reported settings (JSON-ready),
-        ``nav`` included (None, "none": no navigation presets yet)."""
+        """``{short name: {"value": v, "from": layer}}`` of the reported settings (JSON-ready)."""
         out: dict[str, dict[str, Any]] = {}
         for key, name in REPORTED:
             if key == "error_model_path" and self.cfg.obs_source != "error-model":
                 continue  # not read by the other sources
             out[name] = {"value": self.value(key), "from": self.sources.get(key, "default")}
-        out["nav"] = {"value": self.nav_preset, "from": "none (no navigation presets yet)"}
         return out
 
     def line(self, command: str) -> str:
         """One line: ``<command> env: usbl evologics-s2cr (policy ...), water ... (flag), ...``."""
         parts = []
         for name, s in self.settings().items():
-            if name == "nav":
-                parts.append("nav true pose (no navigation presets yet)")
-                continue
             value = s["value"]
             shown = f"{value:g}" if isinstance(value, float) else str(value)
             parts.append(f"{name} {shown} ({s['from']})")

@@ -81,10 +81,19 @@ class DSPoseFilter:
         s_xy = c.prior_sigma_xy_m if sigma_xy_m is None else sigma_xy_m
         return np.array([s_xy, s_xy, c.prior_sigma_z_m, math.radians(c.prior_sigma_yaw_deg)])
 
-    def set_prior(self, T_world_ds_prior: np.ndarray, sigma_xy_m: float | None = None) -> None:
-        """Start from a prior DS pose (a USBL fix, a survey) with the configured uncertainty."""
+    def set_prior(
+        self,
+        T_world_ds_prior: np.ndarray,
+        sigma_xy_m: float | None = None,
+        sigma_z_m: float | None = None,
+    ) -> None:
+        """Start from a prior DS pose (a USBL fix, a survey) with the configured uncertainty
+        (``sigma_xy_m``, ``sigma_z_m``: the position's instead, m)."""
         self.x = self._state(T_world_ds_prior)
-        self.P = np.diag(np.maximum(self.prior_sigma(sigma_xy_m), 1e-6) ** 2)
+        sigma = self.prior_sigma(sigma_xy_m)
+        if sigma_z_m is not None:
+            sigma[2] = sigma_z_m
+        self.P = np.diag(np.maximum(sigma, 1e-6) ** 2)
         self.measured = False
         self.time_since_measurement_s = math.inf
 

@@ -53,22 +53,36 @@ class SourceNeeds:
             says.
         acoustic_fixes: the env fuses the position-only acoustic (USBL) fixes of the DS that
             ``EnvConfig.usbl_model`` delivers (:mod:`uwdock.sim.usbl`).
+        nav_frame: the source turns what it measures into the world with the vehicle's
+            navigation pose (``StepContext.T_world_body_nav``), as the vehicle's software does
+            (the camera: its DS-pose estimate takes the attitude from the AHRS). False: the
+            source models the measurement with the true pose and the env moves it into the
+            navigation frame (:func:`uwdock.sim.navigation.correction`).
     """
 
     camera: bool = False
     fusion: bool = True
     acoustic_fixes: bool = True
+    nav_frame: bool = False
 
 
 @dataclass(frozen=True)
 class StepContext:
-    """What a source may look at: the true poses (for models), the step time and the filter's
-    current DS estimate (a prior for disambiguating the camera's PnP)."""
+    """What a source may look at: the true poses (for models), the step time, the filter's
+    current DS estimate (a prior for disambiguating the camera's PnP) and the vehicle's
+    navigation pose (:mod:`uwdock.sim.navigation`; None: the true pose). The estimate lives in
+    the navigation frame."""
 
     T_world_body: np.ndarray
     T_world_ds: np.ndarray
     time_s: float
     T_world_ds_estimate: np.ndarray | None = None
+    T_world_body_nav: np.ndarray | None = None
+
+    @property
+    def T_world_body_believed(self) -> np.ndarray:
+        """The pose the vehicle believes it has: the navigation pose, else the true one."""
+        return self.T_world_body if self.T_world_body_nav is None else self.T_world_body_nav
 
 
 class ObservationSource(Protocol):

@@ -218,10 +218,9 @@ def evaluate_to_folder(
 ) -> dict[str, Any]:
     """Run the evaluation and write the report folder; returns the summary.
 
-    The summary names the sensor presets it ran (``usbl_preset``; ``nav_preset``, None while
-    navigation presets do not exist) and, given ``env_settings``
-    (:meth:`uwdock.rl.env_settings.ResolvedEnv.settings`), where each reported setting came
-    from (``env_settings``: policy config, ``--config``, flag or default).
+    The summary names the sensor presets it ran (``usbl_preset``, ``nav_preset``) and, given
+    ``env_settings`` (:meth:`uwdock.rl.env_settings.ResolvedEnv.settings`), where each reported
+    setting came from (``env_settings``: policy config, ``--config``, flag or default).
 
     ``workers`` processes (``backend = "local"``) or Ray actors (``"ray"``, on a local Ray
     instance or the cluster at ``ray_address``) run the episodes, handed out one at a time; the
@@ -293,7 +292,7 @@ def _evaluate_into(
         "policy": label,
         "obs_source": env_cfg.obs_source,
         "usbl_preset": env_cfg.usbl.preset,
-        "nav_preset": None,  # no navigation presets yet: the vehicle knows its true pose
+        "nav_preset": env_cfg.nav.preset,
         "water_preset": env_cfg.world.water_preset,
         "camera_width_px": env_cfg.world.camera_width_px,
         "terminate_on": env_cfg.terminate_on,

@@ -4,6 +4,7 @@
 # Run the stages in order and commit what each writes before the next:
 #
 #   bash scripts/make_artefacts.sh models    # rl/models/error_model_clear_tank_{480,640}.json
+#   bash scripts/make_artefacts.sh models_ar1  # rl/models/error_model_clear_tank_480_ar1.json (with memory)
 #   bash scripts/make_artefacts.sh policy    # rl/policies/error_model_ppo/ (DAgger + PPO, the option), docs/results/training_curve.png
 #   bash scripts/make_artefacts.sh scratch   # trains PPO from scratch into $WORK; with SHIP=1 (or --ship) it
 #                                            # replaces rl/policies/scratch_error_model_ppo/ (the shipped policy)
@@ -11,7 +12,9 @@
 #   bash scripts/make_artefacts.sh figures   # docs/results/ (evaluation summaries and figures of the shipped policy)
 #
 # Seeds and data: datasets `datasets synth --n 2500 --water clear_tank --seed 0` at 480 and 640 px
-# (their SHA-256 is recorded in each error model); training `configs/train_error_model_ppo.toml`
+# (their SHA-256 is recorded in each error model); the error model with memory from the PID's
+# docking sequences `rl trajectories --episodes 30 --seed 0` rendered at 480 px, clear tank;
+# training `configs/train_error_model_ppo.toml`
 # (seed 0); training `configs/scratch_error_model_precision_ppo.toml` then
 # `configs/scratch_error_model_precision_soft_ppo.toml` from its best/ (seed SEED, default 1: the
 # seed shipped, recorded in bench/results/scratch_runs/error_model_precision{,_soft}_s1);
@@ -46,6 +49,20 @@ models() {
     "$BIN/rl" fit-error-model "$WORK/synth_clear_$w" --out "$WORK/error_model_clear_tank_$w.json"
   done
   cp "$WORK"/error_model_clear_tank_{480,640}.json rl/models/
+}
+
+models_ar1() {  # the error model the scratch policies train on: fitted with the current detector
+  local w=480 seq=$WORK/seq480_clear
+  say "error model with memory at $w px: 30 PID docking sequences (seed 0), rendered, clear tank"
+  if [ ! -f "$WORK/traj/poses.csv" ]; then
+    rm -rf "$WORK/traj"
+    "$BIN/rl" trajectories --out "$WORK/traj" --episodes 30 --seed 0 \
+      --error-model rl/models/error_model_clear_tank_480.json
+  fi
+  "$BIN/datasets" render --poses "$WORK/traj/poses.csv" --water clear_tank --width "$w" \
+    --workers 2 --out "$seq"
+  "$BIN/rl" fit-error-model "$seq" --out "$WORK/error_model_clear_tank_${w}_ar1.json"
+  cp "$WORK/error_model_clear_tank_${w}_ar1.json" rl/models/
 }
 
 # train CONFIG RUN [rl train flags]: train CONFIG into RUN, or resume it (a finished run is kept)
@@ -152,9 +169,10 @@ SHIP=${SHIP:-0}
 [ "${2:-}" != --ship ] || SHIP=1
 case "${1:-}" in
   models) models ;;
+  models_ar1) models_ar1 ;;
   policy) policy ;;
   scratch) scratch ;;
   figures) figures ;;
-  *) die "usage: bash scripts/make_artefacts.sh models|policy|scratch [--ship]|figures" ;;
+  *) die "usage: bash scripts/make_artefacts.sh models|models_ar1|policy|scratch [--ship]|figures" ;;
 esac
 say "done: review and commit what changed (git status)"

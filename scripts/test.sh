@@ -2,6 +2,8 @@
 # README command 2: lint (ruff, shellcheck), build the docs strictly (mkdocs) and run the test
 # suite. Extra arguments go to pytest:
 #   scripts/test.sh                 the suite (tests marked slow or gpu are excluded)
+#   scripts/test.sh --slow          only the tests marked slow (long runs: Ray training and
+#                                   sweeps, renderer groups, signals to every sweep; ~4 min)
 #   scripts/test.sh -m render       only the SAPIEN rendering tests
 #   scripts/test.sh tests/test_markers.py -k decode
 set -euo pipefail
@@ -30,4 +32,8 @@ NO_MKDOCS_2_WARNING=1 "$VENV/bin/mkdocs" build --strict --site-dir "$SITE" \
   || { rm -rf "$SITE"; echo "error: the documentation does not build (see above)" >&2; exit 1; }
 rm -rf "$SITE"
 echo "[test] pytest"
+if [ "${1:-}" = --slow ]; then  # the slow target: pytest's last -m wins over pyproject's
+  shift
+  set -- -m "slow and not gpu" "$@"
+fi
 exec "$VENV/bin/python" -m pytest "$@"

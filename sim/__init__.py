@@ -9,6 +9,8 @@ Modules:
     physics:         the vehicle as a SAPIEN/PhysX rigid body at 300 Hz (the only place where
                      the marine frames meet SAPIEN's z-up world and FLU actors); free flight
                      skips PhysX when no contact is possible.
+    batch:           N vehicles stepped as arrays in one process (``BatchVehicles``, the batched
+                     training simulator), PhysX only for DS contact.
     docking_station: DS (guides, notches, 3D markers) and tank geometry.
     render:          the headless SAPIEN camera rig and ground-truth marker projection.
     camera:          THE simulated camera: ``SimCamera.capture`` = render + water, returning a
@@ -19,6 +21,8 @@ Modules:
     water:           underwater image formation (attenuation, backscatter, blur, noise, JPEG).
     usbl:            the acoustic (USBL) positioning of the DS: noise, per-episode bias,
                      outliers, dropouts and latency, with presets from published systems.
+    navigation:      the vehicle's own navigation (DVL, AHRS, depth dead reckoning) as errors
+                     on the true motion, for N vehicles at once, with a published-sensor preset.
     episode:         a video of a docking episode (``sim episode``).
     domains:         value domains shared by these modules' configs (``dockcore.domains``).
 """

@@ -100,6 +100,7 @@ def _train_process(cfg: Path, out: Path, *extra) -> dict[str, str]:
     return run_digest(out)
 
 
+@pytest.mark.slow  # 40 s; test_several_envs_per_worker_train_the_same_run covers the groups
 @pytest.mark.render
 def test_camera_envs_sharing_a_renderer_train_the_same_run(tmp_path):
     """Two camera envs (render -> water -> detector -> PnP) in one worker, sharing its SAPIEN

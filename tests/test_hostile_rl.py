@@ -271,7 +271,10 @@ def test_sigterm_during_an_episode_film_is_one_line_not_a_crash(tmp_path, delay_
     assert not (out / "episode.mp4").exists()
 
 
-@pytest.mark.parametrize("sig", ["SIGTERM", "SIGINT"])
+@pytest.mark.parametrize(
+    "sig",
+    ["SIGTERM", pytest.param("SIGINT", marks=pytest.mark.slow)],  # 18-21 s each
+)
 def test_a_signal_to_rl_sweep_is_one_line(tmp_path, sig):
     """SIGTERM or Ctrl-C to a running `rl sweep` (a local Ray instance, two trials): one line,
     exit 143 / 130. Before, ray.init's native handler turned SIGTERM into a crash dump and an

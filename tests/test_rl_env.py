@@ -514,7 +514,9 @@ def test_env_reads_what_a_source_needs_not_its_name(monkeypatch):
 
     assert ProxySource.needs == SourceNeeds(camera=False, fusion=False, acoustic_fixes=False)
     assert ErrorModelSource.needs == SourceNeeds(camera=False, fusion=True, acoustic_fixes=True)
-    assert CameraSource.needs == SourceNeeds(camera=True, fusion=True, acoustic_fixes=True)
+    assert CameraSource.needs == SourceNeeds(
+        camera=True, fusion=True, acoustic_fixes=True, nav_frame=True
+    )
     est = replace(EnvConfig().estimator, fuse=True, usbl_period_s=1.0)
     cfg = replace(SHORT, obs_source="proxy", estimator=est)
 

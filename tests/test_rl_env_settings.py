@@ -22,7 +22,7 @@ SHIPPED = ROOT / "rl" / "policies" / "scratch_error_model_ppo"
 @pytest.fixture
 def policy_dir(tmp_path: Path) -> Path:
     """The shipped weights in a run folder whose config says settings no command defaults to:
-    the Cerulean USBL, coastal water, 320 px, the paper's termination."""
+    the Cerulean USBL, a drifting navigation, coastal water, 320 px, the paper's termination."""
     folder = tmp_path / "policy"
     folder.mkdir()
     for name in ("policy.zip", "vecnormalize.pkl"):
@@ -37,6 +37,8 @@ def policy_dir(tmp_path: Path) -> Path:
     for old, new in swaps:
         assert text.count(old) == 1, old
         text = text.replace(old, new)
+    assert "[train.env.nav]" not in text
+    text += '\n[train.env.nav]\npreset = "mems-ahrs-dvl"\n'
     (folder / "config.toml").write_text(text)
     return folder
 
@@ -67,6 +69,7 @@ def test_eval_runs_the_policys_training_env_unless_a_flag_overrides_it(
     assert f"[policy: {policy_dir / 'config.toml'}]" in line
     for said in (
         "usbl cerulean-rovl (policy config)",
+        "nav mems-ahrs-dvl (policy config)",
         "water coastal (policy config)",
         "width_px 320 (policy config)",
         "terminate_on paper (policy config)",
@@ -75,7 +78,8 @@ def test_eval_runs_the_policys_training_env_unless_a_flag_overrides_it(
     ):
         assert said in line, line
     cfg = summary["config"]
-    assert (summary["usbl_preset"], summary["nav_preset"]) == ("cerulean-rovl", None)
+    assert (summary["usbl_preset"], summary["nav_preset"]) == ("cerulean-rovl", "mems-ahrs-dvl")
+    assert summary["env_settings"]["nav"] == {"value": "mems-ahrs-dvl", "from": "policy config"}
     assert cfg["usbl"]["preset"] == "cerulean-rovl" and cfg["terminate_on"] == "paper"
     assert (cfg["world"]["water_preset"], cfg["world"]["camera_width_px"]) == ("coastal", 320)
     assert summary["env_settings"]["usbl"] == {"value": "cerulean-rovl", "from": "policy config"}
@@ -83,9 +87,10 @@ def test_eval_runs_the_policys_training_env_unless_a_flag_overrides_it(
     # explicit flags win, and the acoustic model reaches the simulation: another trajectory
     line2, summary2, row2 = _eval(
         run_cli, tmp_path / "e2", short, "--policy", policy_dir, "--usbl", "ideal",
-        "--terminate-on", "strict", "--width", "480",
+        "--nav", "ideal", "--terminate-on", "strict", "--width", "480",
     )  # fmt: skip
     assert "usbl ideal (flag)" in line2 and "terminate_on strict (flag)" in line2
+    assert "nav ideal (flag)" in line2 and summary2["nav_preset"] == "ideal"
     assert "width_px 480 (flag)" in line2 and "water coastal (policy config)" in line2
     assert summary2["usbl_preset"] == "ideal" and summary2["config"]["terminate_on"] == "strict"
     assert summary2["env_settings"]["usbl"]["from"] == "flag"

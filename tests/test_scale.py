@@ -105,6 +105,7 @@ def test_a_killed_ray_worker_is_replaced_and_nothing_is_lost_or_duplicated(local
     assert killed not in _host_pids()
 
 
+@pytest.mark.slow  # 23 s; the killed-worker test covers Ray's replacement of lost work
 @pytest.mark.render
 def test_a_killed_driver_resumes_without_redoing_finished_frames(local_dataset, tmp_path):
     out = tmp_path / "resumed"
@@ -182,6 +183,7 @@ def _rl(*args) -> list[str]:
     return [sys.executable, "-c", "from uwdock.cli import rl; rl()", *map(str, args)]
 
 
+@pytest.mark.slow  # 42 s; Ray evaluation and datasets equal local ones in the default suite
 @pytest.mark.render
 def test_training_on_ray_env_workers_resumes_and_equals_the_local_run(tmp_path):
     """Env workers as Ray actors behind SB3's VecEnv: killed after its first checkpoint and
@@ -232,6 +234,7 @@ n_epochs = 1
 """
 
 
+@pytest.mark.slow  # 30 s; the sweep's signal test runs a sweep in the default suite
 @pytest.mark.render
 def test_a_sweep_runs_each_trial_as_its_own_resumable_run(tmp_path, run_cli):
     """``rl sweep`` through Ray Tune: 2 seeds x 2 learning rates, each trial a run folder equal
