@@ -16,6 +16,7 @@ from uwdock.dockcore.pool import PoolConfig, worker_pool
 from uwdock.rl.config import EnvConfig
 from uwdock.rl.env import DockingEnv
 from uwdock.rl.episode_media import write_frames_sheet, write_video
+from uwdock.rl.failures import FailureTracker, failure_counts
 from uwdock.rl.observation import POS_SCALE_M, frame_dim
 from uwdock.rl.policy_io import load_controller
 
@@ -140,6 +141,7 @@ def _episode(
     obs, info = env.reset(seed=seed + k)
     ctrl.reset()
     tr = EpisodeTrace()
+    failures = FailureTracker()
     ret, collisions, steps = 0.0, 0, 0
     dock_time = None
     done = False
@@ -154,6 +156,7 @@ def _episode(
         ret += r
         steps += 1
         collisions += int(info["collided"])
+        failures.update(info["time_s"], info["T_world_body"][:3, 3], info["e_true"], a)
         if info["success_paper"] and dock_time is None:
             dock_time = info["time_s"]
         if record:
@@ -183,6 +186,9 @@ def _episode(
         "final_e_xy_m": float(np.hypot(e[0], e[1])),
         "final_e_z_m": float(abs(e[2])),
         "final_e_yaw_deg": float(abs(math.degrees(info["e_psi_true"]))),
+        "failure_mode": failures.failure_mode(bool(info["success_strict"])),
+        "wedged_s": round(failures.longest_s["wedged"], 3),
+        "landed_off_s": round(failures.longest_s["landed_off"], 3),
     }
     return row, tr
 
@@ -314,4 +320,5 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "final_e_xy_m_median": med("final_e_xy_m"),
         "final_e_z_m_median": med("final_e_z_m"),
         "final_e_yaw_deg_median": med("final_e_yaw_deg"),
+        "failure_modes": failure_counts(rows),
     }

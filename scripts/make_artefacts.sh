@@ -4,7 +4,8 @@
 # Run the stages in order and commit what each writes before the next:
 #
 #   bash scripts/make_artefacts.sh models    # rl/models/error_model_clear_tank_{480,640}.json
-#   bash scripts/make_artefacts.sh models_ar1  # rl/models/error_model_clear_tank_480_ar1.json (with memory)
+#   bash scripts/make_artefacts.sh models_ar1  # rl/models/error_model_clear_tank_480_ar1_refit.json (with memory,
+#                                              # the current detector; the realistic recipe trains on it)
 #   bash scripts/make_artefacts.sh policy    # rl/policies/error_model_ppo/ (DAgger + PPO, the option), docs/results/training_curve.png
 #   bash scripts/make_artefacts.sh scratch   # trains PPO from scratch into $WORK; with SHIP=1 (or --ship) it
 #                                            # replaces rl/policies/scratch_error_model_ppo/ (the shipped policy)
@@ -51,7 +52,9 @@ models() {
   cp "$WORK"/error_model_clear_tank_{480,640}.json rl/models/
 }
 
-models_ar1() {  # the error model the scratch policies train on: fitted with the current detector
+# The error model with memory, fitted with the current detector, as ..._ar1_refit.json: the
+# shipped policy's ..._ar1.json (fitted at 101f185 with the detector of then) stays as it was.
+models_ar1() {
   local w=480 seq=$WORK/seq480_clear
   say "error model with memory at $w px: 30 PID docking sequences (seed 0), rendered, clear tank"
   if [ ! -f "$WORK/traj/poses.csv" ]; then
@@ -62,7 +65,7 @@ models_ar1() {  # the error model the scratch policies train on: fitted with the
   "$BIN/datasets" render --poses "$WORK/traj/poses.csv" --water clear_tank --width "$w" \
     --workers 2 --out "$seq"
   "$BIN/rl" fit-error-model "$seq" --out "$WORK/error_model_clear_tank_${w}_ar1.json"
-  cp "$WORK/error_model_clear_tank_${w}_ar1.json" rl/models/
+  cp "$WORK/error_model_clear_tank_${w}_ar1.json" "rl/models/error_model_clear_tank_${w}_ar1_refit.json"
 }
 
 # train CONFIG RUN [rl train flags]: train CONFIG into RUN, or resume it (a finished run is kept)
