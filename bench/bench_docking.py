@@ -3,14 +3,15 @@
 Usage::
 
     python bench/bench_docking.py --policy RUN/best [--episodes 100] [--stress-episodes 30]
-        [--seed 50000] [--usbl evologics-s2cr] [--workers 2] [--rows all|headline|NAME,...]
-        [--name docking]
+        [--seed 50000] [--usbl evologics-s2cr] [--nav mems-ahrs-dvl] [--workers 2]
+        [--rows all|headline|NAME,...] [--name docking]
 
 Every row flies the policy and the PID baseline (``PIDController.for_env``) over the same
 seeded episodes (episode k: seed + k; seeds 50000... were never used in training, whose
 episodes draw from the run's own seed), ``terminate_on = "strict"`` so that the strict
 success (pegs seated and held) and the paper's one-instant condition are measured on the same
-episodes, the USBL preset ``--usbl`` in every row:
+episodes, the USBL preset ``--usbl`` and the vehicle's navigation ``--nav`` (dead reckoning
+that drifts, by default; ``ideal``: the true pose, as every run before issue 30) in every row:
 
 headline rows (``--episodes``):
     camera            the camera in the loop: render -> 3DBM detector -> PnP -> filter
@@ -30,7 +31,9 @@ Success rates carry Wilson 95 % intervals (scipy). Each row keeps its episodes' 
 (``per_episode``), and every other camera row is compared with the ``camera`` row of the same
 controller on the episodes both flew (the same seeds): the change in strict success with an
 exact McNemar test on the discordant episodes, and the paired change in time to dock over the
-episodes both docked, with a bootstrap 95 % interval (``paired_vs_camera`` in the JSON).
+episodes both docked, with a bootstrap 95 % interval (``paired_vs_camera`` in the JSON). Each
+row counts its failure modes (:mod:`uwdock.rl.failures`: wedged against the DS frame, landed
+off the seat, other; ``failure_modes``, and ``failure_mode`` per episode).
 Writes ``bench/results/<name>.json`` (rows, config, machine, commit; rewritten after every
 cell, ``complete`` false until the last) and ``<name>.png`` (strict success per condition,
 policy beside PID).
@@ -51,6 +54,7 @@ from uwdock.dockcore.bench import format_table, save_results
 from uwdock.dockcore.config import merge, replace, to_dict
 from uwdock.rl.config import EnvConfig
 from uwdock.rl.policy_io import policy_env_settings, policy_error_model
+from uwdock.sim.navigation import NAV_PRESETS
 from uwdock.sim.thrusters import ThrusterRandomisation
 from uwdock.sim.usbl import USBL_PRESETS
 from uwdock.sim.vehicle import CurrentConfig, VehicleRandomisation
@@ -119,13 +123,15 @@ def wilson_ci(successes: int, n: int) -> tuple[float, float]:
     return (float(ci.low), float(ci.high))
 
 
-def env_for(row: Row, policy: str, usbl: str) -> EnvConfig:
-    """The row's env: defaults, the policy's observation interface, strict termination."""
+def env_for(row: Row, policy: str, usbl: str, nav: str = "mems-ahrs-dvl") -> EnvConfig:
+    """The row's env: defaults, the policy's observation interface, strict termination, the
+    USBL and navigation presets."""
     cfg = replace(
         EnvConfig(),
         obs_source=row.obs,
         terminate_on="strict",
         usbl={"preset": usbl},
+        nav={"preset": nav},
         error_model_path=policy_error_model(policy) if row.obs == "error-model" else None,
         **row.overrides,
     )
@@ -161,10 +167,11 @@ def run_row(row: Row, controller: str, cfg: EnvConfig, episodes: int, seed: int,
         "collisions": s["mean_collisions"],
         "final_e_xy_m_median": s["final_e_xy_m_median"],
         "final_e_yaw_deg_median": s["final_e_yaw_deg_median"],
+        "failure_modes": s["failure_modes"],
         "wall_s": time.perf_counter() - t0,
         "per_episode": [
             {k: e[k] for k in ("episode", "success_strict", "success", "time_to_dock_s",
-                               "collisions")}
+                               "collisions", "failure_mode", "wedged_s", "landed_off_s")}
             for e in res.episodes
         ],
     }  # fmt: skip
@@ -274,6 +281,12 @@ def main() -> None:
     ap.add_argument("--stress-episodes", type=int, default=30, help="episodes per harder row")
     ap.add_argument("--seed", type=int, default=50000)
     ap.add_argument("--usbl", default="evologics-s2cr", choices=list(USBL_PRESETS))
+    ap.add_argument(
+        "--nav",
+        default="mems-ahrs-dvl",
+        choices=list(NAV_PRESETS),
+        help="the vehicle's navigation (uwdock.sim.navigation) [mems-ahrs-dvl]",
+    )
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--rows", default="all", help="all, headline, or condition names (comma)")
     ap.add_argument("--controllers", default="policy,pid")
@@ -294,13 +307,15 @@ def main() -> None:
     controllers = [c.strip() for c in a.controllers.split(",")]
     if not set(controllers) <= {"policy", "pid"}:
         sys.exit("error: --controllers: policy, pid or both")
-    envs = {r.name: env_for(r, a.policy, a.usbl) for r in chosen}  # reads the policy's config
+    # reads the policy's config
+    envs = {r.name: env_for(r, a.policy, a.usbl, a.nav) for r in chosen}
     config = {
         "policy": a.policy,
         "episodes": a.episodes,
         "stress_episodes": a.stress_episodes,
         "seed": a.seed,
         "usbl": a.usbl,
+        "nav": a.nav,
         "rows": [r.name for r in chosen],
         "controllers": controllers,
         "env": {name: to_dict(cfg) for name, cfg in envs.items()},

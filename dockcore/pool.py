@@ -11,7 +11,11 @@ not leave the others idle:
 * ``backend = "ray"``: Ray actors (``ray``, the ``uwdock[ray]`` extra), on a local Ray instance
   started for the job or on the cluster at ``ray_address``. A worker whose actor is lost (its
   process killed, its node gone) is replaced by a fresh actor and its unfinished tasks are
-  handed out again, so the job completes; each task's result is yielded exactly once.
+  handed out again, so the job completes; each task's result is yielded exactly once. A worker
+  that cannot start (its constructor raises on that node: a missing input file, a package
+  missing there) is not replaced forever: after :data:`MAX_START_TRIES` deaths in a row
+  without a result, the job stops with one line naming the node and the worker's own error.
+  How many workers were replaced is printed when the pool closes (``WorkerPool.replaced``).
 
 Tasks must be deterministic functions of their item (a frame index, an episode index) for the
 results not to depend on the backend or the number of workers. Results travel back to the
@@ -28,7 +32,9 @@ from __future__ import annotations
 import atexit
 import multiprocessing as mp
 import os
+import re
 import socket
+import sys
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -44,9 +50,11 @@ from uwdock.dockcore.procs import die_with_parent
 
 __all__ = [
     "BACKENDS",
+    "MAX_START_TRIES",
     "PoolConfig",
     "WorkerPool",
     "actor_cpus",
+    "actor_death",
     "import_ray",
     "kill_actors",
     "preflight",
@@ -59,6 +67,8 @@ BACKENDS = ("local", "ray")
 
 #: Tasks handed to one Ray actor ahead of its results (hides the round trip).
 _RAY_IN_FLIGHT = 2
+#: A worker slot whose actors die this many times in a row without a result stops the job.
+MAX_START_TRIES = 3
 
 
 @dataclass(frozen=True)
@@ -85,6 +95,21 @@ class PoolConfig:
             raise ValueError(f"workers: must be an integer in [1, 1024], got {self.workers!r}")
         if self.ray_address is not None and self.backend != "ray":
             raise ValueError("ray_address: only with backend = 'ray'")
+
+
+def actor_death(exc: BaseException) -> tuple[str, str]:
+    """(node address, the worker's own error) of a lost Ray actor, from Ray's message: the last
+    ``SomethingError: ...`` line of a constructor's traceback, else the message's first line."""
+    text = str(exc)
+    node = re.search(r"\bip=([0-9A-Za-z.:-]+)", text)
+    errors = [
+        line.strip()
+        for line in text.splitlines()
+        if re.match(r"\s*[A-Za-z_][\w.]*(Error|Exception|Exit)\b.*:", line)
+    ]
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    reason = errors[-1] if errors else (lines[0] if lines else type(exc).__name__)
+    return (node.group(1) if node else "unknown"), reason[:300]
 
 
 class WorkerPool:
@@ -238,6 +263,7 @@ class _RayPool(WorkerPool):
         self._factory, self._args = factory, args
         self.actors = [self._new_actor() for _ in range(workers)]
         self.replaced = 0
+        self._deaths_in_row = [0] * workers
 
     def _new_actor(self) -> Any:
         return self._actor_cls.remote(self._factory, self._args)
@@ -263,10 +289,17 @@ class _RayPool(WorkerPool):
             load[slot] -= 1
             try:
                 result = ray.get(ref)
-            except ray.exceptions.RayActorError:
-                # the actor is gone (killed, its node lost): a fresh one takes its slot, and
-                # every task it still had goes back to the queue (never yielded twice: a task
-                # is yielded only from its own result)
+            except ray.exceptions.RayActorError as exc:
+                # the actor is gone (killed, its node lost, or it could not start): a fresh one
+                # takes its slot, and every task it still had goes back to the queue (never
+                # yielded twice: a task is yielded only from its own result)
+                self._deaths_in_row[slot] += 1
+                if self._deaths_in_row[slot] >= MAX_START_TRIES:
+                    node, reason = actor_death(exc)
+                    raise DockError(
+                        f"a Ray worker on node {node} died {self._deaths_in_row[slot]} times in "
+                        f"a row without finishing a task: {reason}"
+                    ) from None
                 queue.appendleft(item)
                 lost = [r for r, (s, _) in running.items() if s == slot]
                 for r in lost:
@@ -279,11 +312,14 @@ class _RayPool(WorkerPool):
                 cause = getattr(exc, "cause", None)
                 raise (cause if isinstance(cause, Exception) else exc) from None
             else:
+                self._deaths_in_row[slot] = 0
                 yield item, result
             fill()
 
     def close(self) -> None:
         kill_actors(self._ray, self.actors)
+        if self.replaced:
+            print(f"note: {self.replaced} lost Ray worker(s) replaced", file=sys.stderr)
 
 
 @contextmanager

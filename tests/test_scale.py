@@ -17,7 +17,7 @@ import pytest
 
 from uwdock.dockcore.config import replace
 from uwdock.dockcore.errors import DockError
-from uwdock.dockcore.pool import PoolConfig, worker_pool
+from uwdock.dockcore.pool import MAX_START_TRIES, PoolConfig, actor_death, worker_pool
 
 ray = pytest.importorskip("ray")
 psutil = pytest.importorskip("psutil")
@@ -168,6 +168,51 @@ def test_without_ray_the_backend_is_a_one_line_error(monkeypatch):
     with pytest.raises(DockError, match=r"uwdock\[ray\]"):
         with worker_pool(PoolConfig("ray", 2), dict):
             pass
+
+
+def test_a_ray_worker_that_cannot_start_stops_the_job_in_one_line():
+    """A worker whose constructor fails on its node (here: an input file missing there) is
+    tried MAX_START_TRIES times, then the job stops naming the node and the worker's error,
+    instead of respawning workers forever (issue 32). In its own process: a Ray instance of its
+    own, whatever earlier tests did to theirs."""
+    script = (
+        "from uwdock.dockcore.pool import PoolConfig, worker_pool\n"
+        "from uwdock.dockcore.errors import DockError\n"
+        "try:\n"
+        "    with worker_pool(PoolConfig('ray', 1), open, ('/nonexistent/missing-policy.zip',))"
+        " as p:\n"
+        "        list(p.imap_unordered('read', range(3)))\n"
+        "except DockError as exc:\n"
+        "    print('ERROR', exc)\n"
+    )
+    t0 = time.monotonic()
+    res = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=180, check=False
+    )
+    assert res.returncode == 0, res.stderr[-2000:]
+    lines = [line for line in res.stdout.splitlines() if line.startswith("ERROR ")]
+    assert len(lines) == 1, res.stdout
+    text = lines[0]
+    assert f"died {MAX_START_TRIES} times in a row" in text
+    assert "FileNotFoundError" in text and "missing-policy.zip" in text
+    assert "on node " in text and "on node unknown" not in text
+    assert "lost Ray worker(s) replaced" in res.stderr
+    assert time.monotonic() - t0 < 120
+
+
+def test_actor_death_reads_node_and_cause_from_rays_message():
+    msg = (
+        "The actor died because of an error raised in its creation task, "
+        "ray::_Host.__init__() (pid=16122, ip=192.0.2.2, actor_id=803f, repr=<_Host>)\n"
+        '  File "/work/main/rl/env.py", line 109, in __init__\n'
+        "    self.nav = NavErrors(c.nav, 1)\n"
+        "AttributeError: 'EnvConfig' object has no attribute 'nav'"
+    )
+    assert actor_death(RuntimeError(msg)) == (
+        "192.0.2.2",
+        "AttributeError: 'EnvConfig' object has no attribute 'nav'",
+    )
+    assert actor_death(RuntimeError("node lost")) == ("unknown", "node lost")
 
 
 def test_pool_config_is_checked():
