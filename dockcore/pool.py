@@ -57,6 +57,7 @@ __all__ = [
     "actor_death",
     "import_ray",
     "kill_actors",
+    "loopback_local_ray",
     "preflight",
     "start_ray",
     "worker_pool",
@@ -165,8 +166,25 @@ class _LocalPool(WorkerPool):
 # ----------------------------------------------------------------------------- Ray actors
 
 
-def import_ray() -> Any:
-    """The ``ray`` module, or a one-line :class:`DockError` saying how to install it."""
+#: Ray's switch (read once, when ``ray`` is imported) that makes a node take the loopback
+#: address: a local instance then listens on 127.0.0.1 only, not on every interface.
+_RAY_LOOPBACK_ENV = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
+
+
+def loopback_local_ray(address: str | None) -> None:
+    """Before ``import ray``: a job that starts its own local Ray instance (``address`` None)
+    keeps it on the loopback interface (127.0.0.1), so nothing outside this machine can reach
+    it; a job that joins a cluster is left as Ray sets it up. No effect once ``ray`` is
+    imported, nor when the variable is already set."""
+    if address is None and "ray" not in sys.modules:
+        os.environ.setdefault(_RAY_LOOPBACK_ENV, "0")
+
+
+def import_ray(address: str | None = "") -> Any:
+    """The ``ray`` module, or a one-line :class:`DockError` saying how to install it.
+    ``address`` is the job's Ray address (None: a local instance of its own, kept on the
+    loopback interface, :func:`loopback_local_ray`)."""
+    loopback_local_ray(address)
     try:
         import ray  # the uwdock[ray] extra; only the Ray backend needs it
     except ModuleNotFoundError:
@@ -184,7 +202,7 @@ def preflight(cfg: PoolConfig) -> None:
     cfg.validate()
     if cfg.backend != "ray":
         return
-    import_ray()
+    import_ray(cfg.ray_address)
     address = cfg.ray_address
     if address is None or address in ("auto", "local") or "://" in address:
         return
@@ -257,7 +275,7 @@ class _RayPool(WorkerPool):
     def __init__(
         self, workers: int, factory: Callable[..., Any], args: tuple, address: str | None
     ) -> None:
-        ray = self._ray = import_ray()
+        ray = self._ray = import_ray(address)
         start_ray(ray, workers, address)
         self._actor_cls = ray.remote(num_cpus=actor_cpus(ray, workers))(_Host)
         self._factory, self._args = factory, args

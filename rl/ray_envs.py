@@ -98,7 +98,7 @@ class RayEnvWorkers:
         ray_address: str | None = None,
         envs_per_worker: int = 1,
     ) -> None:
-        start_ray(import_ray(), len(env_groups(n_envs, envs_per_worker)), ray_address)
+        start_ray(import_ray(ray_address), len(env_groups(n_envs, envs_per_worker)), ray_address)
         self.venv = RayVecEnv(env_cfg, n_envs, seed, envs_per_worker)
 
     def worker_errors(self) -> list[str]:

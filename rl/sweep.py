@@ -33,7 +33,7 @@ from uwdock.dockcore.config import from_dict, lift_moved_keys, merge, to_dict
 from uwdock.dockcore.domains import Interval
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_write_json
-from uwdock.dockcore.pool import start_ray
+from uwdock.dockcore.pool import loopback_local_ray, start_ray
 from uwdock.rl.train import TrainConfig, train
 
 if sys.version_info >= (3, 11):
@@ -203,6 +203,7 @@ def run_sweep(
             than ``cfg.max_failures`` times (its reason).
     """
     trials = plan_trials(base, cfg, grid)
+    loopback_local_ray(ray_address)  # before Ray's import: a local instance on 127.0.0.1 only
     try:
         import ray
         from ray import tune

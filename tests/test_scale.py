@@ -200,6 +200,34 @@ def test_a_ray_worker_that_cannot_start_stops_the_job_in_one_line():
     assert time.monotonic() - t0 < 120
 
 
+def test_a_local_ray_instance_listens_on_loopback_only():
+    """The Ray instance a job starts for itself takes 127.0.0.1 and listens on no other
+    interface (in its own process: the choice is made when ``ray`` is imported)."""
+    script = (
+        "import psutil\n"
+        "from uwdock.dockcore.pool import PoolConfig, worker_pool\n"
+        "with worker_pool(PoolConfig('ray', 1), dict) as p:\n"
+        "    import ray\n"
+        "    print('NODE', ray.util.get_node_ip_address())\n"
+        "    session = ray._private.worker._global_node.get_session_dir_path()\n"
+        "    pids = {q.pid for q in psutil.process_iter(['cmdline'])\n"
+        "            if session in ' '.join(q.info['cmdline'] or ())}\n"
+        "    for c in psutil.net_connections('inet'):\n"
+        "        if c.status == 'LISTEN' and c.pid in pids:\n"
+        "            print('LISTEN', c.laddr.ip)\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"}
+    res = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=180,
+        check=False, env=env,
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert "NODE 127.0.0.1" in res.stdout, res.stdout
+    listening = {line.split()[1] for line in res.stdout.splitlines() if line.startswith("LISTEN")}
+    assert listening, res.stdout  # the GCS, the raylet, the object manager at least
+    assert listening <= {"127.0.0.1", "::ffff:127.0.0.1", "::1"}, listening
+
+
 def test_actor_death_reads_node_and_cause_from_rays_message():
     msg = (
         "The actor died because of an error raised in its creation task, "
