@@ -168,6 +168,7 @@ def run_row(row: Row, controller: str, cfg: EnvConfig, episodes: int, seed: int,
         "final_e_xy_m_median": s["final_e_xy_m_median"],
         "final_e_yaw_deg_median": s["final_e_yaw_deg_median"],
         "failure_modes": s["failure_modes"],
+        "final_nav_error_m_median": s["final_nav_error_m_median"],
         "wall_s": time.perf_counter() - t0,
         "per_episode": [
             {k: e[k] for k in ("episode", "success_strict", "success", "time_to_dock_s",

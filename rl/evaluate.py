@@ -186,6 +186,7 @@ def _episode(
         "final_e_xy_m": float(np.hypot(e[0], e[1])),
         "final_e_z_m": float(abs(e[2])),
         "final_e_yaw_deg": float(abs(math.degrees(info["e_psi_true"]))),
+        "final_nav_error_m": float(info.get("nav_error_m", 0.0)),
         "failure_mode": failures.failure_mode(bool(info["success_strict"])),
         "wedged_s": round(failures.longest_s["wedged"], 3),
         "landed_off_s": round(failures.longest_s["landed_off"], 3),
@@ -320,5 +321,6 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "final_e_xy_m_median": med("final_e_xy_m"),
         "final_e_z_m_median": med("final_e_z_m"),
         "final_e_yaw_deg_median": med("final_e_yaw_deg"),
+        "final_nav_error_m_median": med("final_nav_error_m"),
         "failure_modes": failure_counts(rows),
     }

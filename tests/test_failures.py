@@ -90,5 +90,6 @@ def test_eval_rows_and_summary_carry_the_failure_modes():
     for row in res.episodes:
         assert row["failure_mode"] in ("docked", "wedged", "landed_off", "other")
         assert row["wedged_s"] >= 0 and row["landed_off_s"] >= 0
+        assert row["final_nav_error_m"] == 0.0  # the ideal navigation: the true pose
     modes = res.summary["failure_modes"]
     assert sum(modes[m] for m in ("docked", "wedged", "landed_off", "other")) == 2
