@@ -33,7 +33,7 @@ from uwdock.dockcore.config import from_dict, lift_moved_keys, merge, to_dict
 from uwdock.dockcore.domains import Interval
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_write_json
-from uwdock.dockcore.pool import loopback_local_ray, start_ray
+from uwdock.dockcore.pool import PoolConfig, loopback_local_ray, preflight, start_ray
 from uwdock.rl.train import TrainConfig, train
 
 if sys.version_info >= (3, 11):
@@ -211,6 +211,11 @@ def run_sweep(
         raise DockError(
             "rl sweep needs Ray Tune (pip install 'uwdock[ray]', which installs ray[tune])"
         ) from None
+    # the address answers and Ray starts or joins before anything is written: a bad address
+    # is one line and leaves no sweep folder behind
+    preflight(PoolConfig("ray", 1, ray_address))
+    os.environ["TUNE_DISABLE_SIGINT_HANDLER"] = "1"  # (see below)
+    start_ray(ray, max(t.config.n_envs + 1 for t in trials), ray_address)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     plan = {
@@ -229,9 +234,8 @@ def run_sweep(
             )
     atomic_write_json(old, {"trials": plan, "seeds": list(cfg.seeds), "grid": dict(grid)})
     # Ctrl-C ends the command as any other (one line, exit 130; rerunning resumes every trial
-    # from its own run folder), not through Tune's graceful stop and its Tuner.restore advice
-    os.environ["TUNE_DISABLE_SIGINT_HANDLER"] = "1"
-    start_ray(ray, max(t.config.n_envs + 1 for t in trials), ray_address)
+    # from its own run folder), not through Tune's graceful stop and its Tuner.restore advice:
+    # TUNE_DISABLE_SIGINT_HANDLER, set above
     n_envs = {t.name: t.config.n_envs for t in trials}  # a grid may change it per trial
 
     def resources(config: dict[str, Any]) -> Any:

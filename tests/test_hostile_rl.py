@@ -306,3 +306,26 @@ def test_a_signal_to_rl_sweep_is_one_line(tmp_path, sig):
     assert err.strip().splitlines()[-1].startswith("error: interrupted"), err[-800:]
     for crash in ("SIGTERM received", "Traceback", "Tuner.restore", "Aborted"):
         assert crash not in err, err[-1500:]
+
+
+def test_rl_sweep_at_a_refused_address_is_one_line_and_writes_nothing(tmp_path, run_cli):
+    """`rl sweep --ray-address` at a port nobody listens on: one line, exit 2, within seconds,
+    and no sweep folder (before: sweep.json written, then a hang of more than 9 minutes)."""
+    import socket
+    import time
+
+    with socket.socket() as s:  # a free port, closed again: connecting is refused
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    cfg = tmp_path / "sweep.toml"
+    cfg.write_text("total_steps = 2048\nn_envs = 1\n")
+    out = tmp_path / "sw"
+    t0 = time.monotonic()
+    res = run_cli(
+        cli.main, "sweep", "--config", cfg, "--seeds", "0", "--ray-address",
+        f"127.0.0.1:{port}", "--out", out,
+    )  # fmt: skip
+    assert res.code == 2 and res.err.count("\n") == 1, res.err
+    assert "cannot reach Ray at" in res.err
+    assert not out.exists()
+    assert time.monotonic() - t0 < 30
