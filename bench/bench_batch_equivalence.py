@@ -101,12 +101,17 @@ def main() -> None:
     ap.add_argument("--policy", default="rl/policies/scratch_error_model_ppo")
     ap.add_argument("--episodes", type=int, default=100)
     ap.add_argument("--seed", type=int, default=81000)
+    ap.add_argument(
+        "--nav", default=None, help="the vehicle's navigation preset [the policy's training one]"
+    )
     ap.add_argument("--name", default="batch_equivalence")
     ap.add_argument("--out-dir", type=Path, default=None)
     a = ap.parse_args()
     if a.episodes < 1:
         sys.exit("error: --episodes must be at least 1")
     env_cfg = replace(run_config(a.policy).env, obs_privileged=False)
+    if a.nav is not None:
+        env_cfg = replace(env_cfg, nav={"preset": a.nav})
     model, vecnorm, label = load_controller(a.policy, env_cfg)
     ctrl = model if hasattr(model, "act") else SB3Controller(model, vecnorm)
     t0 = time.perf_counter()
@@ -127,6 +132,7 @@ def main() -> None:
         "seed": a.seed,
         "obs_source": env_cfg.obs_source,
         "usbl": env_cfg.usbl.preset,
+        "nav": env_cfg.nav.preset,
         "discordant_strict": {"per_env_only": only_per, "batched_only": only_bat},
     }
     print("wrote", save_results(a.name, rows, cfg, a.out_dir))
