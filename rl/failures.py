@@ -28,8 +28,9 @@ _M = Annotated[float, Interval(ge=0, le=100)]
 
 
 @dataclass(frozen=True)
-class FailureConfig:
-    """Thresholds of the failure states (true state; m, m/s, s).
+class FailureThresholds:
+    """Thresholds of the failure states (true state; m, m/s, s): the definitions of the named
+    failures, fixed so that counts compare across runs and policies (not a setting of a run).
 
     Attributes:
         clearance_m: the guides' horizontal clearance: a horizontal docking error beyond it
@@ -54,8 +55,8 @@ class FailureConfig:
 class FailureTracker:
     """The longest wedged and landed-off stretches of one episode (module docstring)."""
 
-    def __init__(self, cfg: FailureConfig | None = None) -> None:
-        self.cfg = cfg or FailureConfig()
+    def __init__(self, cfg: FailureThresholds | None = None) -> None:
+        self.cfg = cfg or FailureThresholds()
         self.reset()
 
     def reset(self) -> None:
@@ -103,7 +104,7 @@ def failure_counts(rows: list[dict]) -> dict[str, int]:
     """Episodes per failure mode, and how many were wedged for a while and still docked."""
     modes = [r.get("failure_mode", "other") for r in rows]
     out = {m: modes.count(m) for m in ("docked", "wedged", "landed_off", "other")}
-    min_s = FailureConfig().min_duration_s
+    min_s = FailureThresholds().min_duration_s
     out["recovered_from_wedge"] = sum(
         1 for r in rows if r.get("failure_mode") == "docked" and r.get("wedged_s", 0) >= min_s
     )

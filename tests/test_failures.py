@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from uwdock.rl.failures import FailureConfig, FailureTracker, failure_counts
+from uwdock.rl.failures import FailureThresholds, FailureTracker, failure_counts
 
 DT = 0.2
 FULL = np.array([1.0, 0, 0, 0, 0, 0])
@@ -58,7 +58,7 @@ def test_the_longest_stretch_counts_not_the_sum():
     tr = _track(6.0, [0.6, 0.5, 0.9], FULL)
     tr = _track(1.0, [0.6, 0.5, 0.9], FULL, speed_mps=0.5, t0=6.2, tr=tr)  # it moved between
     tr = _track(6.0, [0.6, 0.5, 0.9], FULL, t0=7.4, tr=tr)
-    assert max(tr.longest_s.values()) < FailureConfig().min_duration_s
+    assert max(tr.longest_s.values()) < FailureThresholds().min_duration_s
     assert tr.failure_mode(False) == "other"
 
 
