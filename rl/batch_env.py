@@ -117,6 +117,7 @@ class BatchDockingEnv(VecEnv):
         self.steps = np.zeros(n, dtype=np.int64)
         self.prev_action = np.zeros((n, 6))
         self.prev_sf = np.zeros((n, 3))
+        self.prev_e_xy = np.full(n, np.nan)  # r_stall's memory (NaN: no step since the reset)
         self.gamma = np.zeros(n)
         self.seated = np.zeros(n, dtype=np.int64)
         self.success_paper = np.zeros(n, dtype=bool)
@@ -173,6 +174,7 @@ class BatchDockingEnv(VecEnv):
             self.model.reset(i)
         self.steps[i] = 0
         self.prev_action[i] = 0.0
+        self.prev_e_xy[i] = np.nan
         self.prev_sf[i] = env.prev_specific_force
         self.gamma[i] = env.reward_fn.gamma_mps2
         self.seated[i] = 0
@@ -236,7 +238,7 @@ class BatchDockingEnv(VecEnv):
         truncated = ~docked & (self.steps >= self.max_steps)
         terms = reward_terms_b(
             self._reward_cfg, self._weights, self._smooth, e_true, psi_true, a,
-            self.prev_action, collided, docked, truncated,
+            self.prev_action, collided, docked, truncated, self.prev_e_xy,
         )  # fmt: skip
         reward = sum(terms.values())
         self.prev_action = a.copy()

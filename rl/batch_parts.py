@@ -222,8 +222,11 @@ def reward_terms_b(
     collided: np.ndarray,
     docked: np.ndarray,
     truncated: np.ndarray,
+    prev_e_xy_m: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
-    """The weighted reward terms (N,) each, as :class:`rl.rewards.DockingReward` computes them."""
+    """The weighted reward terms (N,) each, as :class:`rl.rewards.DockingReward` computes them.
+    ``prev_e_xy_m`` (N,): each env's horizontal error at the step before (NaN after a reset),
+    for r_stall; it is updated in place (with ``cfg.stall_penalty`` > 0)."""
     da = np.abs(action - prev_action)[:, smooth_mask]
     abs_psi = np.abs(e_psi)
     precision = np.zeros(len(e_psi))
@@ -232,6 +235,14 @@ def reward_terms_b(
         if cfg.precision_yaw_scale_rad > 0:
             x = x + abs_psi / cfg.precision_yaw_scale_rad
         precision = cfg.precision_gain * np.exp(-x)
+    stall = np.zeros(len(e_psi))
+    if cfg.stall_penalty > 0 and prev_e_xy_m is not None:
+        e_xy = np.hypot(e_xyz[:, 0], e_xyz[:, 1])
+        pushing = np.abs(action).max(axis=1) >= cfg.stall_saturated
+        with np.errstate(invalid="ignore"):
+            stuck = ~(prev_e_xy_m - e_xy >= cfg.stall_progress_m) & ~np.isnan(prev_e_xy_m)
+        stall = np.where(pushing & (e_xy > cfg.stall_clearance_m) & stuck, -cfg.stall_penalty, 0.0)
+        prev_e_xy_m[:] = e_xy
     terms = {
         "dist": -(np.abs(e_xyz) @ np.asarray(cfg.w_xyz, dtype=np.float64)),
         "angle": np.exp(-cfg.angle_gain * abs_psi) - 1.0 - cfg.angle_linear * abs_psi / math.pi,
@@ -241,6 +252,7 @@ def reward_terms_b(
             docked, cfg.success_reward, np.where(truncated, -cfg.truncation_penalty, 0.0)
         ),
         "precision": precision,
+        "stall": stall,
     }
     return {k: weights[k] * v for k, v in terms.items()}
 

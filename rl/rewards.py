@@ -2,9 +2,12 @@
 
 R = r_dist + r_angle + r_smooth + r_collision + r_mission, each term multiplied by a weight from
 :class:`RewardConfig` (all 1 by default, i.e. the paper) and reported separately in
-``info["reward_terms"]``. One term is ours, off by default: r_precision, a bonus that rises
+``info["reward_terms"]``. Two terms are ours, off by default: r_precision, a bonus that rises
 steeply in the last decimetres (the paper's r_dist is linear, so a policy 6 cm off the seat
-pays 0.06 per step for it, lost in PPO's noise).
+pays 0.06 per step for it, lost in PPO's noise), and r_stall, a penalty for pushing at
+saturated thrust outside the guides without getting closer (the "wedged" failure of
+:mod:`rl.failures`: nothing else in the reward tells pushing against the DS frame from
+approaching it).
 """
 
 from __future__ import annotations
@@ -47,6 +50,13 @@ class RewardConfig:
             so it pays only when the heading is right too (rad); 0: position only. A policy
             that lands with its yaw 10-20 deg off rests on the guides' crests, where r_angle's
             slope (about 0.02 per degree) is too small to make it lift and turn.
+        stall_penalty: p_stall in r_stall, paid each step the vehicle pushes at saturated thrust
+            (an action component at least ``stall_saturated``) more than ``stall_clearance_m``
+            from the docking point horizontally and gets less than ``stall_progress_m`` closer
+            than at the step before (-); 0 (the default) is the paper's reward.
+        stall_clearance_m: the guides' horizontal clearance: closer than this r_stall is not paid.
+        stall_progress_m: the horizontal approach per control step below which pushing is a stall.
+        stall_saturated: an action component at least this large is saturated thrust.
         success_reward: p_s on docking (-).
         truncation_penalty: p_f when the episode is truncated (-).
         weights: multiplier per term name (:data:`TERMS`).
@@ -62,6 +72,10 @@ class RewardConfig:
     precision_gain: _Weight = 0.0
     precision_scale_m: Annotated[float, Interval(gt=0, le=100)] = 0.1
     precision_yaw_scale_rad: Annotated[float, Interval(ge=0, le=10)] = 0.0
+    stall_penalty: _Reward = 0.0
+    stall_clearance_m: Annotated[float, Interval(ge=0, le=100)] = 0.25
+    stall_progress_m: Annotated[float, Interval(ge=0, le=10)] = 0.01
+    stall_saturated: Annotated[float, Interval(gt=0, le=1)] = 0.95
     success_reward: _Reward = 500.0
     truncation_penalty: _Reward = 10.0
     weights: dict[str, _Weight] | None = None
@@ -72,7 +86,7 @@ class RewardConfig:
             raise ValueError(f"weights: unknown term {sorted(unknown)[0]!r} (terms: {TERMS})")
 
 
-TERMS = ("dist", "angle", "smooth", "collision", "mission", "precision")
+TERMS = ("dist", "angle", "smooth", "collision", "mission", "precision", "stall")
 
 
 class DockingReward:
@@ -90,9 +104,11 @@ class DockingReward:
         self._smooth_mask = mask if self.cfg.smooth_over == "actuated" else np.ones(6, bool)
         self._w = {t: 1.0 for t in TERMS} | dict(self.cfg.weights or {})
         self.gamma_mps2 = self.cfg.gamma_set_mps2
+        self._prev_e_xy_m = math.nan
 
     def reset(self) -> None:
         self.gamma_mps2 = self.cfg.gamma_set_mps2
+        self._prev_e_xy_m = math.nan
 
     @property
     def smooth_mask(self) -> np.ndarray:
@@ -133,6 +149,15 @@ class DockingReward:
             if c.precision_yaw_scale_rad > 0:
                 x += abs(e_psi_rad) / c.precision_yaw_scale_rad
             precision = c.precision_gain * math.exp(-x)
+        stall = 0.0
+        if c.stall_penalty > 0:
+            e_xy = math.hypot(float(e_xyz_m[0]), float(e_xyz_m[1]))
+            pushing = float(np.max(np.abs(a))) >= c.stall_saturated
+            before = self._prev_e_xy_m  # NaN right after a reset: nothing to compare with
+            stuck = not math.isnan(before) and before - e_xy < c.stall_progress_m
+            if pushing and stuck and e_xy > c.stall_clearance_m:
+                stall = -c.stall_penalty
+            self._prev_e_xy_m = e_xy
         terms = {
             "dist": -float(np.dot(c.w_xyz, np.abs(e_xyz_m))),
             "angle": math.exp(-c.angle_gain * abs(e_psi_rad))
@@ -142,5 +167,6 @@ class DockingReward:
             "collision": -c.collision_penalty if collided else 0.0,
             "mission": c.success_reward if docked else -c.truncation_penalty if truncated else 0.0,
             "precision": precision,
+            "stall": stall,
         }
         return {k: self._w[k] * v for k, v in terms.items()}

@@ -62,6 +62,7 @@ def test_reward_terms_sum_to_the_reward(env):
         "collision",
         "mission",
         "precision",
+        "stall",
     }
     assert r == pytest.approx(sum(info["reward_terms"].values()))
 

@@ -96,6 +96,7 @@ def test_reward_terms_hand_computed():
     assert gated(e, 0.05, a, a, False, False, False)["precision"] == pytest.approx(
         2.0 * math.exp(-0.5) * math.exp(-0.5)
     )
+    assert terms["stall"] == 0  # off by default: the paper's reward
     weighted = DockingReward(RewardConfig(weights={"dist": 0.5}))
     assert weighted(np.array([1.0, 0, 0]), 0, a, a, False, False, False)["dist"] == -0.5
 
@@ -173,3 +174,46 @@ def test_yaw_of_is_rpy_from_R_yaw_to_one_ulp():
         assert abs(math.remainder(yaw_of(T) - rpy[2], 2 * math.pi)) < 1e-12  # the yaw put in
     locked = make_T(R_from_rpy(0.3, np.pi / 2, 1.0), [0.0, 0.0, 0.0])  # gimbal lock
     assert yaw_of(locked) == rpy_from_R(locked[:3, :3])[2]
+
+
+def test_stall_is_paid_for_pushing_outside_the_guides_without_getting_closer():
+    """r_stall (ours, off by default): saturated thrust beyond the guides' clearance with less
+    than stall_progress_m of approach since the step before; not on the first step, not when
+    approaching, not inside the clearance, not below saturation; the batched twin agrees."""
+    from uwdock.rl.batch_parts import reward_terms_b
+
+    cfg = RewardConfig(stall_penalty=2.0)
+    r = DockingReward(cfg)
+    full = np.array([1.0, 0, 0, 0, 0, 0])
+    soft = np.array([0.5, 0, 0, 0, 0, 0])
+    e_far = np.array([0.6, 0.0, 1.0])
+    steps = [  # (horizontal error x, action, stall paid)
+        (0.60, full, 0.0),  # first step: nothing to compare with
+        (0.60, full, -2.0),  # pushing, not closer
+        (0.595, full, -2.0),  # 5 mm closer: still a stall
+        (0.50, full, 0.0),  # 9.5 cm closer: approaching
+        (0.50, soft, 0.0),  # not saturated
+        (0.20, full, 0.0),  # inside the guides' clearance
+        (0.20, full, 0.0),
+    ]
+    got = []
+    for x, a, _ in steps:
+        e = e_far.copy()
+        e[0] = x
+        got.append(r(e, 0.0, a, a, False, False, False)["stall"])
+    assert got == [s for *_, s in steps]
+    r.reset()
+    assert r(e_far, 0.0, full, full, False, False, False)["stall"] == 0.0  # a new episode
+    # the batched twin, the same sequence in one env
+    w = DockingReward(cfg)
+    prev = np.full(1, np.nan)
+    batched = []
+    for x, a, _ in steps:
+        e = e_far.copy()
+        e[0] = x
+        terms = reward_terms_b(
+            cfg, w.weights, w.smooth_mask, e[None], np.zeros(1), a[None], a[None],
+            np.zeros(1, bool), np.zeros(1, bool), np.zeros(1, bool), prev,
+        )  # fmt: skip
+        batched.append(float(terms["stall"][0]))
+    assert batched == got
