@@ -197,6 +197,17 @@ def inv_T(T: ArrayLike) -> np.ndarray:
     return out
 
 
+def inv_T_b(T: np.ndarray) -> np.ndarray:
+    """(N, 4, 4) inverses of N rigid transforms (no checks: the batched simulator's hot path;
+    :func:`inv_T` checks one)."""
+    out = np.zeros_like(T)
+    R_t = np.swapaxes(T[:, :3, :3], 1, 2)
+    out[:, :3, :3] = R_t
+    out[:, :3, 3] = -np.einsum("nij,nj->ni", R_t, T[:, :3, 3])
+    out[:, 3, 3] = 1.0
+    return out
+
+
 def transform_points(T_a_b: ArrayLike, p_b: ArrayLike) -> np.ndarray:
     """Map points from frame b to frame a.
 

@@ -26,7 +26,7 @@ import math
 
 import numpy as np
 
-from uwdock.calibration.frames import wrap_angle_rad
+from uwdock.calibration.frames import inv_T_b, wrap_angle_rad
 from uwdock.rl.config import EnvConfig
 from uwdock.rl.error_model import MIN_VIEW_DEPTH_M, N_ERR, N_VISIBLE_BINS, ErrorModel
 from uwdock.rl.observation import ACC_SCALE_MPS2, OBS_BOUND, POS_SCALE_M
@@ -55,16 +55,6 @@ BATCH_SOURCES = ("proxy", "error-model", "acoustic")
 
 
 # --------------------------------------------------------------------------- geometry
-
-
-def inv_T_b(T: np.ndarray) -> np.ndarray:
-    """(N, 4, 4) inverses of rigid transforms."""
-    out = np.zeros_like(T)
-    R_t = np.swapaxes(T[:, :3, :3], 1, 2)
-    out[:, :3, :3] = R_t
-    out[:, :3, 3] = -np.einsum("nij,nj->ni", R_t, T[:, :3, 3])
-    out[:, 3, 3] = 1.0
-    return out
 
 
 def yaw_b(T: np.ndarray) -> np.ndarray:

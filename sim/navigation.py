@@ -38,6 +38,7 @@ from typing import Annotated, Literal
 
 import numpy as np
 
+from uwdock.calibration.frames import inv_T_b
 from uwdock.dockcore.domains import Interval
 
 __all__ = ["NAV_PRESETS", "NavConfig", "NavErrors"]
@@ -161,7 +162,6 @@ class NavErrors:
         self.scale = np.ones((self.n, 3))
         self.depth_offset_m = np.zeros(self.n)
         self.dp_xy_m = np.zeros((self.n, 2))
-        self.time_s = np.zeros(self.n)
 
     @property
     def step_draws(self) -> int:
@@ -172,7 +172,6 @@ class NavErrors:
         """Start vehicle ``i`` at its true position with new per-episode errors drawn from
         :data:`RESET_DRAWS` standard normals (None, or an ideal model: no errors)."""
         self.dp_xy_m[i] = 0.0
-        self.time_s[i] = 0.0
         if self.ideal or normals is None:
             self.att_err_rad[i], self.scale[i], self.depth_offset_m[i] = 0.0, 1.0, 0.0
             return
@@ -187,7 +186,6 @@ class NavErrors:
         self.scale[i] = other.scale[j]
         self.depth_offset_m[i] = other.depth_offset_m[j]
         self.dp_xy_m[i] = other.dp_xy_m[j]
-        self.time_s[i] = other.time_s[j]
 
     def dvl_velocity(self, v_meas_frd_mps: np.ndarray) -> np.ndarray:
         """(n, 3) the DVL's body velocity: the measured one with each vehicle's scale error."""
@@ -217,7 +215,6 @@ class NavErrors:
         horizontal position error with the attitude and velocity at the step's start (``T_true``
         and the velocities of the previous step's end), then move the attitude errors on with
         :attr:`step_draws` standard normals per vehicle."""
-        self.time_s += dt_s
         if self.ideal:
             return
         T = np.asarray(T_true, dtype=np.float64).reshape(self.n, 4, 4)
@@ -251,10 +248,5 @@ def correction(T_nav: np.ndarray, T_true: np.ndarray) -> np.ndarray:
     """``T_nav @ inv(T_true)``: maps a pose the sources compute with the true vehicle pose
     (``T_true @ T_body_x``) to the one the vehicle computes with its navigation
     (``T_nav @ T_body_x``); (4, 4) or (n, 4, 4)."""
-    R = T_true[..., :3, :3]
-    Rt = np.swapaxes(R, -1, -2)
-    inv = np.zeros_like(T_true)
-    inv[..., :3, :3] = Rt
-    inv[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, T_true[..., :3, 3])
-    inv[..., 3, 3] = 1.0
-    return T_nav @ inv
+    T = np.asarray(T_true, dtype=np.float64)
+    return T_nav @ inv_T_b(T.reshape(-1, 4, 4)).reshape(T.shape)

@@ -334,3 +334,11 @@ def test_wrap_angle_scalar_path_is_the_array_path_bit_for_bit():
     scalar = np.array([F.wrap_angle_rad(float(x)) for x in xs])
     np.testing.assert_array_equal(scalar, F.wrap_angle_rad(xs))
     assert np.all((scalar >= -math.pi) & (scalar < math.pi))
+
+
+def test_batched_inverse_equals_the_checked_one():
+    rng = np.random.default_rng(4)
+    Ts = np.stack(
+        [F.make_T(F.R_from_rpy(*rng.uniform(-3, 3, 3)), rng.normal(0, 5, 3)) for _ in range(5)]
+    )
+    assert np.allclose(F.inv_T_b(Ts), [F.inv_T(T) for T in Ts], atol=1e-12)
