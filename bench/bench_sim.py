@@ -17,9 +17,11 @@ Usage::
     sampler (DS at 1-6 m); also ``render + water`` (coastal preset).
 (c) Camera in the loop: per control step the env camera source's path: capture (render + water,
     coastal; ``sim.camera.SimCamera``), the RGB -> BGR conversion at the seam, and the DS-pose
-    estimator (``perception.ds_pose``: detect with the default pipeline, one OpenCV thread, board
-    PnP, level-DS refinement), at widths 320, 480, 640 and 968; the physics step time from (a)
-    is added for the control-step rate. Also the share of frames with a pose.
+    estimator as the camera source builds it (``perception.ds_pose`` with
+    ``perception.detector.rendered_3dbm_config``: the default pipeline without the OpenCV pass,
+    which decodes no 3DBM; one OpenCV thread, board PnP, level-DS refinement), at widths 320,
+    480, 640 and 968; the physics step time from (a) is added for the control-step rate. Also the
+    share of frames with a pose.
 (d) Detection range: the reference camera at 968, 640 and 480 px wide straight above the DS
     origin (image x along DS y), altitude 1-10 m above the DS floor in 0.5 m steps, in a 12 m
     deep tank (so the camera stays under water); per water preset the greatest altitude at
@@ -183,6 +185,7 @@ def bench_render(n_poses: int, repeats: int, seed: int) -> list[dict]:
 
 
 def bench_loop(n_poses: int, repeats: int, seed: int, physics_ms: float) -> list[dict]:
+    from uwdock.perception.detector import rendered_3dbm_config
     from uwdock.perception.ds_pose import DSPoseEstimator
     from uwdock.sim.camera import SimCamera
     from uwdock.sim.render import CameraRig, make_render_scene
@@ -191,7 +194,7 @@ def bench_loop(n_poses: int, repeats: int, seed: int, physics_ms: float) -> list
     base = reference_camera()
     rs = make_render_scene()
     rs.rig.set_lamp(False)
-    estimator = DSPoseEstimator.from_marker_set(rs.ds.marker_set)
+    estimator = DSPoseEstimator.from_marker_set(rs.ds.marker_set, rendered_3dbm_config())
     rows = []
     for width in LOOP_WIDTHS:
         cam = scaled_to_width(base, width)
