@@ -54,7 +54,7 @@ from uwdock.sim.docking_station import (
     sapien_pose,
 )
 from uwdock.sim.domains import RGB, BodyCoord_m
-from uwdock.sim.shaders import hdr_shader_dir
+from uwdock.sim.shaders import DEPTH_IN_ALPHA, hdr_shader_dir
 
 __all__ = [
     "CameraRig",
@@ -234,7 +234,11 @@ class CameraRig:
         except RuntimeError as exc:
             raise _camera_error(self.cfg.shader, exc) from None
         self._maps = _distortion_maps(cam) if np.any(cam.dist_coeffs != 0.0) else None
-        self._minimal: bool | None = None  # known after the first picture (names segfault before)
+        # the fast minimal variant's depth is the Color's alpha (sim.shaders.DEPTH_IN_ALPHA);
+        # other shaders: a position picture, which one known after the first picture (asking
+        # the names before segfaults)
+        self._depth_in_alpha = self.cfg.shader in DEPTH_IN_ALPHA
+        self._minimal: bool | None = None
         v, u = np.mgrid[0 : cam.height_px, 0 : cam.width_px].astype(np.float64)
         self._ray_norm = np.sqrt(
             1.0 + ((u - cam.cx_px) / cam.fx_px) ** 2 + ((v - cam.cy_px) / cam.fy_px) ** 2
@@ -297,7 +301,11 @@ class CameraRig:
         self._component.take_picture()
         rgba = self._component.get_picture("Color")  # float32 (H, W, 4), linear, unclipped
         rgb = cv2.cvtColor(rgba, cv2.COLOR_RGBA2RGB)
-        depth_m, hit = self._depth()
+        if self._depth_in_alpha:
+            depth_m = np.ascontiguousarray(rgba[:, :, 3])
+            hit = depth_m > 0.0
+        else:
+            depth_m, hit = self._depth()
         depth_m[~hit] = np.inf
         range_m = depth_m * self._ray_norm  # pinhole: range = depth * |K^-1 (u, v, 1)|
         if self._maps is not None:

@@ -17,9 +17,11 @@ The ``minimal`` variant also skips two passes of work whose result is exactly no
 toolkit's scenes (:data:`FAST_EDITS`, measured equal picture for picture in
 ``tests/test_shaders.py``): the image-based lighting (the scenes set no environment map, so its
 samples are black: under water there is no sky to reflect) and, in the composite pass, the
-background lookup for pixels an opaque surface covers (its weight there is 0). Together they
-take ~45 % off a 480 px frame on the CPU (lavapipe), where the fragment shading is most of the
-frame's time.
+background lookup for pixels an opaque surface covers (its weight there is 0). And it writes
+no position picture: the composite pass puts each pixel's depth, from the depth buffer, into
+the colour's alpha channel (:data:`DEPTH_IN_ALPHA`), so a frame is one picture read back, its
+depth in float instead of whole millimetres. On the CPU (lavapipe), where the fragment shading
+is most of a frame's time, the three take about half off a 480 px render.
 """
 
 from __future__ import annotations
@@ -34,7 +36,7 @@ import sapien
 from uwdock.dockcore.errors import DockError
 from uwdock.sim.cache import build_once, cache_root
 
-__all__ = ["EDITS", "FAST_EDITS", "hdr_shader_dir", "sapien_shader_root"]
+__all__ = ["DEPTH_IN_ALPHA", "EDITS", "FAST_EDITS", "hdr_shader_dir", "sapien_shader_root"]
 
 #: (shader folder, file) -> (SAPIEN's line, its linear replacement). The background (the
 #: environment map) is linearised too, so a picture is linear everywhere.
@@ -65,7 +67,8 @@ EDITS: dict[tuple[str, str], tuple[tuple[str, str], ...]] = {
 }
 
 #: Edits of the ``minimal`` variant that skip work adding exactly nothing in the toolkit's
-#: scenes (module docstring), applied after :data:`EDITS`.
+#: scenes (module docstring), applied after :data:`EDITS`; its ``Color`` picture then carries
+#: the depth in its alpha channel (:data:`DEPTH_IN_ALPHA`).
 FAST_EDITS: dict[tuple[str, str], tuple[tuple[str, str], ...]] = {
     ("minimal", "gbuffer.frag"): (
         (
@@ -75,6 +78,8 @@ FAST_EDITS: dict[tuple[str, str], tuple[tuple[str, str], ...]] = {
             "                       mat3(cameraBuffer.viewMatrixInverse) * camDir);\n",
             "  // no image-based lighting: no environment map (uwdock.sim.shaders)\n",
         ),
+        ("layout(location = 1) out ivec4 outPositionSegmentation;\n", ""),
+        ("  outPositionSegmentation = ivec4(ivec3(inPosition * 1000), inSegmentation[1]);\n", ""),
     ),
     ("minimal", "composite0.frag"): (
         (
@@ -86,18 +91,24 @@ FAST_EDITS: dict[tuple[str, str], tuple[tuple[str, str], ...]] = {
             "\n"
             "  outColor.rgb = mix(bg, color.rgb, color.a);\n"
             "  outColor.a = color.a;\n",
-            "  outColor = color;\n"
+            "  float depth = texture(samplerGbufferDepth, inUV).x;\n"
+            "  vec4 csPosition = cameraBuffer.projectionMatrixInverse * (vec4(inUV * 2 - 1, depth,"
+            " 1));\n"
+            "  csPosition /= csPosition.w;\n"
+            "  outColor.rgb = color.rgb;\n"
             "  if (color.a < 1.0) {  // the background shows: look it up (uwdock.sim.shaders)\n"
-            "    float depth = texture(samplerGbufferDepth, inUV).x;\n"
-            "    vec4 csPosition = cameraBuffer.projectionMatrixInverse * (vec4(inUV * 2 - 1,"
-            " depth, 1));\n"
-            "    csPosition /= csPosition.w;\n"
             "    vec3 bg = getBackgroundColor((cameraBuffer.viewMatrixInverse * csPosition).xyz);\n"
             "    outColor.rgb = mix(bg, color.rgb, color.a);\n"
-            "  }\n",
+            "  }\n"
+            "  // alpha: the depth (m, > 0) where a surface was hit, 0 elsewhere\n"
+            "  outColor.a = depth < 1.0 ? -csPosition.z : 0.0;\n",
         ),
     ),
 }
+
+#: The shaders whose fast variant writes the depth (z in the camera, m; 0 where nothing was hit)
+#: into the ``Color`` picture's alpha channel instead of a second picture.
+DEPTH_IN_ALPHA = frozenset({"minimal"})
 
 #: Folders beside the shader folders that their ``#include "../common/..."`` lines read.
 _SHARED = ("common",)
