@@ -30,16 +30,19 @@ Example:
 from __future__ import annotations
 
 import atexit
+import hashlib
 import multiprocessing as mp
 import os
 import re
 import socket
+import stat
 import sys
 from collections import deque
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from contextlib import contextmanager
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Annotated, Any
 
 from uwdock.dockcore.cli import reclaim_signals
@@ -243,6 +246,73 @@ def start_ray(ray: Any, cpus: int, address: str | None) -> None:
         raise DockError(f"cannot start {where}: {' '.join(str(exc).split())}") from None
     reclaim_signals()  # ray.init's native SIGTERM handler dumps a crash report and aborts
     atexit.register(ray.shutdown)
+
+
+def file_digests(paths: Sequence[str]) -> list[str | None]:
+    """sha256 of each file, None where it is missing or not a regular file (what a node has)."""
+    out: list[str | None] = []
+    for p in paths:
+        try:
+            if not stat.S_ISREG(os.stat(p).st_mode):
+                raise OSError
+            h = hashlib.sha256()
+            with open(p, "rb") as f:
+                for chunk in iter(lambda f=f: f.read(1 << 20), b""):
+                    h.update(chunk)
+            out.append(h.hexdigest())
+        except OSError:
+            out.append(None)
+    return out
+
+
+#: Seconds :func:`check_inputs_on_nodes` waits for every node's answer.
+NODE_CHECK_TIMEOUT_S = 60.0
+
+
+def check_inputs_on_nodes(ray: Any, paths: Sequence[str | os.PathLike[str]]) -> int:
+    """Check that every node of the connected Ray cluster holds each input file at its absolute
+    path with the driver's content, before work starts there (a zero-CPU task pinned to each
+    alive node). Returns the number of nodes checked.
+
+    Raises:
+        DockError: one line naming the node and the path missing or different there (what to
+            do: a storage path every node mounts, or a copy), or a node that did not answer.
+    """
+    paths = sorted({str(Path(p).resolve()) for p in paths})
+    if not paths:
+        return 0
+    want = file_digests(paths)
+    from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
+    probe = ray.remote(num_cpus=0, max_retries=0)(file_digests)
+    nodes = [n for n in ray.nodes() if n.get("Alive")]
+    refs = [
+        probe.options(
+            scheduling_strategy=NodeAffinitySchedulingStrategy(n["NodeID"], soft=False)
+        ).remote(paths)
+        for n in nodes
+    ]
+    try:
+        answers = ray.get(refs, timeout=NODE_CHECK_TIMEOUT_S)
+    except ray.exceptions.GetTimeoutError:
+        raise DockError(
+            f"a Ray node did not answer the input check within {NODE_CHECK_TIMEOUT_S:g} s "
+            "(`ray status` shows the cluster)"
+        ) from None
+    for node, got in zip(nodes, answers, strict=True):
+        where = node.get("NodeManagerAddress", node["NodeID"][:12])
+        for path, w, g in zip(paths, want, got, strict=True):
+            if g is None:
+                raise DockError(
+                    f"input {path} is not on Ray node {where}: put it on storage every node "
+                    "mounts at the same path, or copy it there"
+                )
+            if g != w:
+                raise DockError(
+                    f"input {path} on Ray node {where} differs from this machine's (sha256 "
+                    f"{g[:12]} against {w[:12] if w else 'none'}): copy it there again"
+                )
+    return len(nodes)
 
 
 def actor_cpus(ray: Any, actors: int) -> float:

@@ -402,7 +402,8 @@ class BatchGroup:
 
     def step(self, actions: Sequence[np.ndarray]) -> list[tuple[Any, float, bool, dict, dict]]:
         obs, rew, done, infos = self._batch().step(np.stack(actions))
-        return [(obs[k], float(rew[k]), bool(done[k]), infos[k], {}) for k in range(len(obs))]
+        # rewards stay float32 scalars: stacked, the batch's float32 rewards, as in one process
+        return [(obs[k], rew[k], bool(done[k]), infos[k], {}) for k in range(len(obs))]
 
     def reset(self, seeds: Sequence[int | None], options: Sequence[dict | None]) -> list:
         v = self._batch()

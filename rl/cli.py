@@ -253,6 +253,21 @@ def train(
     help="Trials at once (0: as many as the CPUs allow).",
 )
 @click.option(
+    "--cpus-per-trial",
+    type=domain_type(Annotated[int, Interval(ge=0, le=1024)]),
+    default=0,
+    show_default=True,
+    help="CPUs each trial reserves (0: per-env, 1 learner + 1 per env; batched, 1). Per-env "
+    "envs share N-1 actors, a batched trial splits its batch over N processes.",
+)
+@click.option(
+    "--gpus-per-trial",
+    type=domain_type(Annotated[float, Interval(ge=0.0, le=64.0)]),
+    default=0.0,
+    show_default=True,
+    help="GPUs each trial's learner reserves (water_device = 'cuda', a CUDA learner).",
+)
+@click.option(
     "--ray-address",
     "ray_address",
     help="A running Ray cluster ('auto': the one this machine belongs to) [default: a local Ray "
@@ -260,7 +275,9 @@ def train(
 )
 @out_dir_option("Sweep folder: one run folder per trial, sweep.json, sweep_summary.json.",
                 required=True)  # fmt: skip
-def sweep(config_path, seeds, grid, concurrent, ray_address, out_dir) -> None:
+def sweep(
+    config_path, seeds, grid, concurrent, cpus_per_trial, gpus_per_trial, ray_address, out_dir
+) -> None:
     """Sweep whole training runs over seeds and config values with Ray Tune, each trial a run
     folder that resumes from its own checkpoints.
 
@@ -272,7 +289,12 @@ def sweep(config_path, seeds, grid, concurrent, ray_address, out_dir) -> None:
     except ValueError:
         raise DockError(f"--seeds must be comma-separated integers, got '{seeds}'") from None
     base = load_config(TrainConfig, config_path, section="train")
-    cfg = SweepConfig(seeds=seed_list, max_concurrent_trials=concurrent)
+    cfg = SweepConfig(
+        seeds=seed_list,
+        max_concurrent_trials=concurrent,
+        cpus_per_trial=cpus_per_trial,
+        gpus_per_trial=gpus_per_trial,
+    )
     try:
         cfg.validate()
     except ValueError as exc:

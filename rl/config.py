@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import dataclasses
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from types import MappingProxyType
 from typing import Annotated, ClassVar, Literal
 
@@ -19,6 +21,7 @@ from uwdock.rl.rewards import RewardConfig
 from uwdock.rl.task import DockingTaskConfig
 from uwdock.sim.navigation import NavConfig
 from uwdock.sim.usbl import UsblConfig
+from uwdock.sim.water import is_water_file
 from uwdock.sim.world_config import WorldConfig
 
 ObsSourceName = Literal["proxy", "error-model", "camera", "acoustic"]
@@ -214,6 +217,36 @@ class EnvConfig:
                 "error_model_path: required for obs_source 'error-model' (rl train/eval: "
                 "--error-model FILE, e.g. rl/models/error_model_clear_tank_480.json)"
             )
+
+
+def env_input_files(cfg: EnvConfig) -> dict[str, str]:
+    """The files an env of ``cfg`` reads, by config field (``"world.camera_file"``, ...): the
+    error model (for the error-model source), the camera, the marker set and a water file."""
+    out = {}
+    if cfg.obs_source == "error-model" and cfg.error_model_path:
+        out["error_model_path"] = cfg.error_model_path
+    for name in ("camera_file", "marker_set_path"):
+        if getattr(cfg.world, name):
+            out[f"world.{name}"] = getattr(cfg.world, name)
+    if is_water_file(cfg.world.water_preset):
+        out["world.water_preset"] = cfg.world.water_preset
+    return out
+
+
+def with_absolute_inputs(cfg: EnvConfig) -> EnvConfig:
+    """``cfg`` with its input files (:func:`env_input_files`) as absolute paths from this
+    process's working directory: what a worker elsewhere (another folder, another node that
+    mounts the same storage) opens is then what this process meant."""
+    world_changes, env_changes = {}, {}
+    for key, path in env_input_files(cfg).items():
+        absolute = str(Path(path).expanduser().resolve())
+        if key.startswith("world."):
+            world_changes[key.removeprefix("world.")] = absolute
+        else:
+            env_changes[key] = absolute
+    return dataclasses.replace(
+        cfg, world=dataclasses.replace(cfg.world, **world_changes), **env_changes
+    )
 
 
 def check_env_files(cfg: EnvConfig) -> None:

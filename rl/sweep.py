@@ -4,9 +4,14 @@
 A sweep is a grid: every training seed times every combination of the ``--set`` values, each
 a complete ``rl train`` run of the base config with those fields changed, in its own run folder
 ``OUT/<trial>`` (a normal run folder: ``rl eval``, ``rl export`` and ``rl train --resume`` take
-it). Ray Tune schedules the trials on the cluster's CPUs (a local Ray instance by default): each
-trial reserves one CPU for its learner and one per env worker (its envs are Ray actors in the
-trial's placement group when it has more than one).
+it). Ray Tune schedules the trials on the cluster's CPUs (a local Ray instance by default). What
+a trial reserves (:func:`trial_resources`): with the per-env simulator and more than one env,
+one CPU for its learner and one per env worker (Ray actors in the trial's placement group);
+with ``--cpus-per-trial N`` the envs share N - 1 actors (results do not depend on how envs are
+grouped). A batched-simulator trial runs its batch in the learner's process: one CPU, or N
+split over N local batch processes (the same rollouts). ``--gpus-per-trial`` adds GPUs to the
+learner's share. Before anything is written, every trial is checked against the cluster: one
+that can never be placed is one line saying what to change.
 
 Killed at any moment and run again with the same arguments, a sweep goes on where it stopped:
 every trial resumes from its own newest checkpoint (:func:`rl.train.train` with ``resume``)
@@ -18,9 +23,11 @@ atomically from the run folders themselves.
 
 from __future__ import annotations
 
+import dataclasses
 import datetime
 import itertools
 import json
+import math
 import os
 import re
 import sys
@@ -33,7 +40,14 @@ from uwdock.dockcore.config import from_dict, lift_moved_keys, merge, to_dict
 from uwdock.dockcore.domains import Interval
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_write_json
-from uwdock.dockcore.pool import PoolConfig, loopback_local_ray, preflight, start_ray
+from uwdock.dockcore.pool import (
+    PoolConfig,
+    check_inputs_on_nodes,
+    loopback_local_ray,
+    preflight,
+    start_ray,
+)
+from uwdock.rl.config import check_env_files, env_input_files, with_absolute_inputs
 from uwdock.rl.train import TrainConfig, train
 
 if sys.version_info >= (3, 11):
@@ -41,7 +55,16 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover
     import tomli as tomllib
 
-__all__ = ["SweepConfig", "Trial", "parse_grid", "plan_trials", "run_sweep"]
+__all__ = [
+    "SweepConfig",
+    "Trial",
+    "TrialResources",
+    "check_fits",
+    "parse_grid",
+    "plan_trials",
+    "run_sweep",
+    "trial_resources",
+]
 
 
 @dataclass(frozen=True)
@@ -52,11 +75,17 @@ class SweepConfig:
         seeds: the training seeds of every grid point.
         max_concurrent_trials: trials running at once (0: as many as the CPUs allow).
         max_failures: times Tune restarts a failed trial (from its newest checkpoint).
+        cpus_per_trial: CPUs each trial reserves (0: what its config needs,
+            :func:`trial_resources`).
+        gpus_per_trial: GPUs each trial's learner reserves (e.g. for ``water_device = "cuda"``
+            or a CUDA learner; fractions share a GPU).
     """
 
     seeds: tuple[Annotated[int, Interval(ge=0, le=2**31 - 1)], ...] = (0, 1, 2)
     max_concurrent_trials: Annotated[int, Interval(ge=0, le=10_000)] = 0
     max_failures: Annotated[int, Interval(ge=0, le=100)] = 1
+    cpus_per_trial: Annotated[int, Interval(ge=0, le=1024)] = 0
+    gpus_per_trial: Annotated[float, Interval(ge=0.0, le=64.0)] = 0.0
 
     def validate(self) -> None:
         """Raise ValueError for no seed or a repeated one."""
@@ -74,6 +103,89 @@ class Trial:
     seed: int
     changes: dict[str, Any]
     config: TrainConfig
+
+
+@dataclass(frozen=True)
+class TrialResources:
+    """What one trial reserves and how it runs in it.
+
+    Attributes:
+        bundles: the placement group's bundles, the learner's first (``{"CPU": c, "GPU": g}``).
+        backend: where ``rl train`` puts the env workers: "ray" (actors in the bundles after
+            the first) or "local" (in the learner's process or its local processes).
+        envs_per_worker: envs per env actor (``backend == "ray"``).
+        batch_workers: processes the batched simulator is split over (``rl train
+            --batch-workers``).
+        why: how the reservation follows from the config, for the error lines.
+    """
+
+    bundles: tuple[dict[str, float], ...]
+    backend: str
+    envs_per_worker: int = 1
+    batch_workers: int = 1
+    why: str = ""
+
+    @property
+    def cpus(self) -> float:
+        return sum(b.get("CPU", 0.0) for b in self.bundles)
+
+    @property
+    def gpus(self) -> float:
+        return sum(b.get("GPU", 0.0) for b in self.bundles)
+
+
+def trial_resources(train_cfg: TrainConfig, cpus_per_trial: int = 0,
+                    gpus_per_trial: float = 0.0) -> TrialResources:  # fmt: skip
+    """The reservation of a trial of ``train_cfg`` (module docstring).
+
+    Raises:
+        DockError: ``cpus_per_trial`` 1 for a per-env trial with several envs (they need a
+            learner and at least one env actor).
+    """
+    gpu = {"GPU": float(gpus_per_trial)} if gpus_per_trial > 0 else {}
+    n = train_cfg.n_envs
+    if train_cfg.simulator == "batched":
+        b = max(1, min(int(cpus_per_trial) or 1, n, 64))
+        why = f"the batched simulator in {b} process{'es' if b > 1 else ''}"
+        return TrialResources(({"CPU": float(b), **gpu},), "local", batch_workers=b, why=why)
+    if n == 1:
+        c = max(1, int(cpus_per_trial))
+        return TrialResources(({"CPU": float(c), **gpu},), "local", why="one env")
+    if cpus_per_trial == 1:
+        raise DockError(
+            f"--cpus-per-trial 1: a per-env trial with {n} envs needs 2 CPUs at least (its "
+            'learner and one env actor); give 2 or more, or use simulator = "batched"'
+        )
+    actors = n if cpus_per_trial == 0 else min(n, int(cpus_per_trial) - 1)
+    per = -(-n // actors)  # ceil: the envs over the actors
+    actors = -(-n // per)
+    why = f"1 learner + {actors} env actor{'s' if actors > 1 else ''} for {n} envs"
+    bundles = ({"CPU": 1.0, **gpu}, *({"CPU": 1.0} for _ in range(actors)))
+    return TrialResources(bundles, "ray", envs_per_worker=per, why=why)
+
+
+def check_fits(res: TrialResources, nodes: Sequence[Mapping[str, float]], name: str) -> None:
+    """Raise a one-line :class:`DockError` when a trial's reservation can never be placed on a
+    cluster whose alive nodes have ``nodes`` resources (``{"CPU": .., "GPU": ..}`` each): its
+    total beyond the cluster's, or its learner's share beyond every node's."""
+    total = {k: sum(float(nd.get(k, 0.0)) for nd in nodes) for k in ("CPU", "GPU")}
+    hint = "give --cpus-per-trial (fewer env actors) or fewer n_envs"
+    if res.cpus > total["CPU"]:
+        raise DockError(
+            f"trial {name} needs {res.cpus:g} CPUs ({res.why}) but the cluster has "
+            f"{total['CPU']:g}: it could never start; {hint}"
+        )
+    if res.gpus > total["GPU"]:
+        raise DockError(
+            f"trial {name} needs {res.gpus:g} GPUs but the cluster has {total['GPU']:g}: it could "
+            "never start; lower --gpus-per-trial or add a GPU node"
+        )
+    first = res.bundles[0]
+    if not any(all(float(nd.get(k, 0.0)) >= v for k, v in first.items()) for nd in nodes):
+        raise DockError(
+            f"trial {name}'s learner needs {first} on one node but no node has that much: "
+            "lower --cpus-per-trial / --gpus-per-trial"
+        )
 
 
 def parse_grid(items: Sequence[str]) -> dict[str, list[Any]]:
@@ -168,6 +280,16 @@ def _trial_summary(run: Path) -> dict[str, Any]:
     return out
 
 
+def _absolute(data: dict[str, Any]) -> dict[str, Any]:
+    """A recorded trial config with its input paths absolute (a sweep.json written before they
+    were); unreadable as a config: as it is (then it differs, as it should)."""
+    try:
+        cfg = from_dict(TrainConfig, data)
+    except (ValueError, TypeError):
+        return data
+    return to_dict(dataclasses.replace(cfg, env=with_absolute_inputs(cfg.env)))
+
+
 def _run_trial(config: dict[str, Any], plan: dict[str, Any]) -> None:
     """A Tune trial: train (or resume) its run folder, then report the run's summary."""
     from ray import tune
@@ -175,11 +297,12 @@ def _run_trial(config: dict[str, Any], plan: dict[str, Any]) -> None:
     name = config["trial"]
     entry = plan[name]
     cfg = from_dict(TrainConfig, entry["config"])
+    res = entry["resources"]
     run = Path(entry["run_dir"])
     resume = (run / "config.toml").is_file()
     train(
-        cfg, run, resume=resume, progress=False, note=lambda _m: None,
-        backend="ray" if cfg.n_envs > 1 else "local",
+        cfg, run, resume=resume, progress=False, note=lambda _m: None, backend=res["backend"],
+        envs_per_worker=res["envs_per_worker"], batch_workers=res["batch_workers"],
     )  # fmt: skip
     summary = _trial_summary(run)
     flat = {f"{k}.{kk}": vv for k, v in summary.items() if isinstance(v, dict)
@@ -203,6 +326,15 @@ def run_sweep(
             than ``cfg.max_failures`` times (its reason).
     """
     trials = plan_trials(base, cfg, grid)
+    # inputs: read here (a missing or broken one is one line before anything starts), then
+    # named by absolute path, so a trial finds them from its own folder, and checked on every
+    # node once Ray is up
+    inputs: set[str] = set()
+    for i, t in enumerate(trials):
+        check_env_files(t.config.env)
+        env = with_absolute_inputs(t.config.env)
+        inputs.update(env_input_files(env).values())
+        trials[i] = dataclasses.replace(t, config=dataclasses.replace(t.config, env=env))
     loopback_local_ray(ray_address)  # before Ray's import: a local instance on 127.0.0.1 only
     try:
         import ray
@@ -215,7 +347,16 @@ def run_sweep(
     # is one line and leaves no sweep folder behind
     preflight(PoolConfig("ray", 1, ray_address))
     os.environ["TUNE_DISABLE_SIGINT_HANDLER"] = "1"  # (see below)
-    start_ray(ray, max(t.config.n_envs + 1 for t in trials), ray_address)
+    reserve = {
+        t.name: trial_resources(t.config, cfg.cpus_per_trial, cfg.gpus_per_trial) for t in trials
+    }
+    # a local instance holds the largest trial whatever the machine (it then runs alone)
+    local_cpus = max(max(math.ceil(r.cpus) for r in reserve.values()), os.cpu_count() or 1)
+    start_ray(ray, local_cpus, ray_address)
+    nodes = [n.get("Resources", {}) for n in ray.nodes() if n.get("Alive")]
+    for name, r in reserve.items():
+        check_fits(r, nodes, name)
+    check_inputs_on_nodes(ray, sorted(inputs))
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     plan = {
@@ -223,25 +364,32 @@ def run_sweep(
                  "seed": t.seed, "changes": t.changes}
         for t in trials
     }  # fmt: skip
+    run_how = {
+        name: {"bundles": [dict(b) for b in r.bundles], "backend": r.backend,
+               "envs_per_worker": r.envs_per_worker, "batch_workers": r.batch_workers}
+        for name, r in reserve.items()
+    }  # fmt: skip
     old = out / "sweep.json"
     if old.is_file():
         before = json.loads(old.read_text(encoding="utf-8")).get("trials", {})
         # a sweep.json written before [env.world]: its configs in the current layout
         before = {k: lift_moved_keys(TrainConfig, v["config"]) for k, v in before.items()}
+        before = {k: _absolute(v) for k, v in before.items()}  # ... and relative input paths
         if before != {k: v["config"] for k, v in plan.items()}:
             raise DockError(
                 f"{out} holds another sweep (other trials or configs): use another --out"
             )
-    atomic_write_json(old, {"trials": plan, "seeds": list(cfg.seeds), "grid": dict(grid)})
+    atomic_write_json(old, {"trials": plan, "seeds": list(cfg.seeds), "grid": dict(grid),
+                            "resources": run_how})  # fmt: skip
+    for name, how in run_how.items():  # not compared on resume: a rerun may reserve otherwise
+        plan[name]["resources"] = how
     # Ctrl-C ends the command as any other (one line, exit 130; rerunning resumes every trial
     # from its own run folder), not through Tune's graceful stop and its Tuner.restore advice:
     # TUNE_DISABLE_SIGINT_HANDLER, set above
-    n_envs = {t.name: t.config.n_envs for t in trials}  # a grid may change it per trial
 
     def resources(config: dict[str, Any]) -> Any:
-        """One CPU for the learner, one per env worker when they are Ray actors."""
-        n = n_envs[config["trial"]]
-        return tune.PlacementGroupFactory([{"CPU": 1.0}] * (1 + (n if n > 1 else 0)))
+        """The trial's reservation (:func:`trial_resources`; a grid may change it per trial)."""
+        return tune.PlacementGroupFactory([dict(b) for b in reserve[config["trial"]].bundles])
 
     trainable = tune.with_resources(tune.with_parameters(_run_trial, plan=plan), resources)
     stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y%m%dT%H%M%S")

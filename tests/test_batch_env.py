@@ -286,6 +286,7 @@ def test_batch_split_over_worker_processes_gives_the_same_rollouts():
             r1, r2 = one.venv.step(a), two.venv.step(a)
             np.testing.assert_array_equal(r1[0], r2[0])
             np.testing.assert_array_equal(r1[1], r2[1])
+            assert r1[1].dtype == r2[1].dtype == np.float32  # VecNormalize keeps this dtype
             np.testing.assert_array_equal(r1[2], r2[2])
             resets += int(r1[2].sum())
         assert resets >= 4
