@@ -85,11 +85,15 @@ class PoolConfig:
         ray_address: ``backend = "ray"``: the address of a running Ray cluster
             (``ray start --head`` prints it; ``"auto"`` finds the one this machine belongs to);
             None starts a local Ray instance with ``workers`` CPUs for the job.
+        inputs: files every worker reads (absolute paths): with ``backend = "ray"`` each node
+            is checked to hold them with this machine's content before workers start there
+            (:func:`check_inputs_on_nodes`).
     """
 
     backend: str = "local"
     workers: Annotated[int, Interval(ge=1, le=1024)] = 2
     ray_address: str | None = None
+    inputs: tuple[str, ...] = ()
 
     def validate(self) -> None:
         """Raise ValueError naming the first bad field."""
@@ -343,10 +347,16 @@ class _Host:
 
 class _RayPool(WorkerPool):
     def __init__(
-        self, workers: int, factory: Callable[..., Any], args: tuple, address: str | None
+        self,
+        workers: int,
+        factory: Callable[..., Any],
+        args: tuple,
+        address: str | None,
+        inputs: Sequence[str] = (),
     ) -> None:
         ray = self._ray = import_ray(address)
         start_ray(ray, workers, address)
+        check_inputs_on_nodes(ray, inputs)
         self._actor_cls = ray.remote(num_cpus=actor_cpus(ray, workers))(_Host)
         self._factory, self._args = factory, args
         self.actors = [self._new_actor() for _ in range(workers)]
@@ -426,7 +436,7 @@ def worker_pool(
     """
     cfg.validate()
     if cfg.backend == "ray":
-        pool: WorkerPool = _RayPool(cfg.workers, factory, args, cfg.ray_address)
+        pool: WorkerPool = _RayPool(cfg.workers, factory, args, cfg.ray_address, cfg.inputs)
     else:
         pool = _LocalPool(cfg.workers, factory, args)
     try:

@@ -13,12 +13,12 @@ import numpy as np
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_write_bytes
 from uwdock.dockcore.pool import PoolConfig, worker_pool
-from uwdock.rl.config import EnvConfig
+from uwdock.rl.config import EnvConfig, env_input_files, with_absolute_inputs
 from uwdock.rl.env import DockingEnv
 from uwdock.rl.episode_media import write_frames_sheet, write_video
 from uwdock.rl.failures import FailureTracker, failure_counts
 from uwdock.rl.observation import POS_SCALE_M, frame_dim
-from uwdock.rl.policy_io import load_controller
+from uwdock.rl.policy_io import load_controller, policy_input_files
 
 
 class Controller(Protocol):
@@ -288,7 +288,15 @@ def run_episodes_parallel(
         )
     if backend == "local":
         workers = min(workers, n_episodes)
-    pool_cfg = PoolConfig(backend, workers, ray_address)
+        pool_cfg = PoolConfig(backend, workers, ray_address)
+    else:  # Ray workers may start in another folder or on another node: absolute paths,
+        # checked on every node before work starts there
+        if policy_spec != "pid":
+            policy_spec = str(Path(policy_spec).expanduser().resolve())
+        env_cfg = with_absolute_inputs(env_cfg)
+        inputs = [str(f) for f in policy_input_files(policy_spec)]
+        inputs += env_input_files(env_cfg).values()
+        pool_cfg = PoolConfig(backend, workers, ray_address, tuple(inputs))
     args = (policy_spec, env_cfg, seed, record, tuple(video_episodes), video_dir is not None)
     results: dict[int, tuple[dict[str, Any], EpisodeTrace]] = {}
     with worker_pool(pool_cfg, EpisodeWorker, args) as pool:

@@ -87,6 +87,25 @@ def policy_error_model(policy: str) -> str | None:
     return path if isinstance(path, str) and path else None
 
 
+def policy_input_files(policy: str) -> list[Path]:
+    """The files :func:`load_controller` reads for ``policy`` (absolute): the ``.onnx`` and its
+    ``.json`` sidecar, or the ``policy.zip``, its ``vecnormalize.pkl`` and run config where
+    they exist; none for 'pid'."""
+    if policy == "pid":
+        return []
+    p = Path(policy).expanduser().resolve()
+    if p.suffix == ".onnx":
+        return [f for f in (p, p.with_suffix(".json")) if f.is_file()] or [p]
+    zip_path = p / "policy.zip" if p.is_dir() else p
+    files = [zip_path]
+    if zip_path.with_name("vecnormalize.pkl").is_file():
+        files.append(zip_path.with_name("vecnormalize.pkl"))
+    _, run_config = policy_train_settings(zip_path)
+    if run_config is not None:
+        files.append(run_config.resolve())
+    return files
+
+
 def load_controller(policy: str, env_cfg: EnvConfig):
     """'pid', an .onnx file, or a policy.zip / run folder -> (controller, vecnorm, label)."""
     if policy == "pid":
