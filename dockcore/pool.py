@@ -15,6 +15,8 @@ not leave the others idle:
   that cannot start (its constructor raises on that node: a missing input file, a package
   missing there) is not replaced forever: after :data:`MAX_START_TRIES` deaths in a row
   without a result, the job stops with one line naming the node and the worker's own error.
+  A replacement that cannot even be placed (a node lost and no free CPU left for it) stops the
+  job after :data:`REPLACE_TIMEOUT_S` with one line saying so, instead of waiting forever.
   How many workers were replaced is printed when the pool closes (``WorkerPool.replaced``).
 
 Tasks must be deterministic functions of their item (a frame index, an episode index) for the
@@ -37,6 +39,7 @@ import re
 import socket
 import stat
 import sys
+import time
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -54,6 +57,7 @@ from uwdock.dockcore.procs import die_with_parent
 __all__ = [
     "BACKENDS",
     "MAX_START_TRIES",
+    "REPLACE_TIMEOUT_S",
     "PoolConfig",
     "WorkerPool",
     "actor_cpus",
@@ -73,6 +77,11 @@ BACKENDS = ("local", "ray")
 _RAY_IN_FLIGHT = 2
 #: A worker slot whose actors die this many times in a row without a result stops the job.
 MAX_START_TRIES = 3
+#: Seconds a replacement actor may take to be placed and built before the job stops (a lost
+#: node's work with no free CPU for it anywhere); ``UWDOCK_REPLACE_TIMEOUT_S`` overrides it.
+REPLACE_TIMEOUT_S = 90.0
+#: Longest blocking wait of the Ray pool's loop (s): Ctrl-C and SIGTERM are handled between.
+_RAY_WAIT_S = 1.0
 
 
 @dataclass(frozen=True)
@@ -344,6 +353,10 @@ class _Host:
     def call(self, method: str, item: Any) -> Any:
         return getattr(self.worker, method)(item)
 
+    def ready(self) -> bool:
+        """Answered once the actor is placed and its worker built."""
+        return True
+
 
 class _RayPool(WorkerPool):
     def __init__(
@@ -362,9 +375,23 @@ class _RayPool(WorkerPool):
         self.actors = [self._new_actor() for _ in range(workers)]
         self.replaced = 0
         self._deaths_in_row = [0] * workers
+        #: replacement actors not yet answering: their ready() reference -> start deadline
+        self._starting: dict[Any, float] = {}
+        timeout = os.environ.get("UWDOCK_REPLACE_TIMEOUT_S")
+        self._replace_timeout_s = float(timeout) if timeout else REPLACE_TIMEOUT_S
 
     def _new_actor(self) -> Any:
         return self._actor_cls.remote(self._factory, self._args)
+
+    def _check_starting(self, now: float) -> None:
+        """Stop the job when a replacement actor has not started by its deadline."""
+        if any(now > deadline for deadline in self._starting.values()):
+            raise DockError(
+                f"a lost Ray worker could not be started again within "
+                f"{self._replace_timeout_s:g} s: no free CPU for it on the cluster (a node "
+                "lost?); `ray status` shows what is left. Run the command again when there is "
+                "room (datasets synth and rl train --resume go on from what is written)"
+            )
 
     def imap_unordered(self, method: str, items: Iterable[Any]) -> Iterator[tuple[Any, Any]]:
         ray = self._ray
@@ -381,8 +408,14 @@ class _RayPool(WorkerPool):
 
         fill()
         while running:
-            ready, _ = ray.wait(list(running), num_returns=1)
+            ready, _ = ray.wait([*running, *self._starting], num_returns=1, timeout=_RAY_WAIT_S)
+            self._check_starting(time.monotonic())
+            if not ready:
+                continue
             ref = ready[0]
+            if ref in self._starting:  # a replacement is up (or died: its task says which)
+                del self._starting[ref]
+                continue
             slot, item = running.pop(ref)
             load[slot] -= 1
             try:
@@ -405,6 +438,8 @@ class _RayPool(WorkerPool):
                 load[slot] = 0
                 self._ray.kill(self.actors[slot], no_restart=True)
                 self.actors[slot] = self._new_actor()
+                deadline = time.monotonic() + self._replace_timeout_s
+                self._starting[self.actors[slot].ready.remote()] = deadline
                 self.replaced += 1
             except ray.exceptions.RayTaskError as exc:  # the task raised: raise its own error
                 cause = getattr(exc, "cause", None)
