@@ -57,3 +57,95 @@ def test_a_worker_that_cannot_be_replaced_stops_the_job_in_bounded_time(tmp_path
     assert 8.0 <= float(at) - killed < 30.0  # the replacement's deadline, then one line
     assert "could not be started again within 8 s" in message and "\n" not in message
     assert time.monotonic() - t0 < 200
+
+
+def test_the_cluster_yaml_is_what_rays_launcher_accepts() -> None:
+    """configs/ray-cluster.yaml against the cluster launcher's own schema (shipped with Ray),
+    an on-premise provider with addresses, and commands that name files of this checkout."""
+    import json
+    from pathlib import Path
+
+    import jsonschema
+    import ray
+    import yaml
+
+    root = Path(__file__).resolve().parents[1]
+    cfg = yaml.safe_load((root / "configs/ray-cluster.yaml").read_text())
+    schema = json.loads((Path(ray.__file__).parent / "autoscaler/ray-schema.json").read_text())
+    jsonschema.validate(cfg, schema)
+    assert cfg["provider"]["type"] == "local" and cfg["provider"]["head_ip"]
+    assert cfg["provider"]["worker_ips"]
+    commands = " ".join(cfg["setup_commands"] + cfg["head_start_ray_commands"])
+    assert "scripts/setup.sh" in commands and (root / "scripts/setup.sh").is_file()
+    assert "RAY_AUTH_MODE=token" in " ".join(cfg["worker_start_ray_commands"])
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.slow  # ~1 min: two Ray nodes started and stopped
+def test_a_two_node_cluster_on_loopback_with_token_auth_runs_an_evaluation(tmp_path) -> None:
+    """The documented set-up (docs/guides/scale-out.md), as a user runs it: a token, a head and a
+    second node joined with `ray start` (each with its own temp dir, on 127.0.0.1), both with
+    RAY_AUTH_MODE=token; `ray status` sees 2 nodes' CPUs; `rl eval --backend ray` on that
+    cluster with a relative input path (checked on both nodes) gives the local rows. The nodes
+    are stopped by their own processes (`ray stop` would stop every Ray instance of the user on
+    this machine)."""
+    import os
+    from pathlib import Path
+
+    import psutil
+
+    ray_bin = str(Path(sys.executable).with_name("ray"))
+    # a home of its own (the token goes to ~/.ray), the user's caches kept
+    cache = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    env = {**os.environ, "HOME": str(tmp_path), "XDG_CACHE_HOME": cache,
+           "RAY_AUTH_MODE": "token", "RAY_USAGE_STATS_ENABLED": "0"}  # fmt: skip
+    port = _free_port()
+    common = ["--num-cpus", "1", "--node-ip-address", "127.0.0.1", "--include-dashboard", "false"]
+
+    def run(*args, timeout=120):
+        return subprocess.run([*args], env=env, capture_output=True, text=True, timeout=timeout)
+
+    try:
+        assert run(ray_bin, "get-auth-token", "--generate").returncode == 0
+        assert (tmp_path / ".ray/auth_token").is_file()
+        head = run(ray_bin, "start", "--head", "--port", str(port), "--temp-dir",
+                   str(tmp_path / "a"), *common)  # fmt: skip
+        assert head.returncode == 0, head.stderr[-2000:]
+        node = run(ray_bin, "start", "--address", f"127.0.0.1:{port}", "--temp-dir",
+                   str(tmp_path / "b"), *common)  # fmt: skip
+        assert node.returncode == 0, node.stderr[-2000:]
+        status = run(ray_bin, "status", "--address", f"127.0.0.1:{port}")
+        assert status.returncode == 0, status.stderr[-2000:]
+        assert "0.0/2.0 CPU" in status.stdout or "/2.0 CPU" in status.stdout, status.stdout
+        cfg = tmp_path / "env.toml"
+        cfg.write_text("episode_s = 10.0\n")
+        # a relative input path (from the repository root, where the suite runs)
+        model = "rl/models/error_model_clear_tank_480_ar1_refit.json"
+        assert Path(model).is_file()
+        args = ["eval", "--policy", "pid", "--episodes", "4", "--obs", "error-model",
+                "--error-model", model, "--videos", "", "--workers", "2",
+                "--config", str(cfg)]  # fmt: skip
+        rl = [sys.executable, "-c", "from uwdock.rl.cli import main; main()"]
+        on_ray = run(*rl, *args, "--backend", "ray", "--ray-address", f"127.0.0.1:{port}",
+                     "--out", str(tmp_path / "ray"), timeout=400)  # fmt: skip
+        assert on_ray.returncode == 0, on_ray.stderr[-2000:]
+        local = run(*rl, *args, "--out", str(tmp_path / "local"), timeout=400)
+        assert local.returncode == 0, local.stderr[-2000:]
+        csv = [(tmp_path / f"{b}/episodes.csv").read_bytes() for b in ("local", "ray")]
+        assert csv[0] == csv[1]
+    finally:
+        mine = [p for p in psutil.process_iter(["cmdline"])
+                if any(str(tmp_path) in part for part in (p.info["cmdline"] or ()))]  # fmt: skip
+        for p in mine:
+            p.terminate()
+        psutil.wait_procs(mine, timeout=20)
+        for p in mine:
+            if p.is_running():
+                p.kill()
