@@ -97,6 +97,8 @@ def test_a_two_node_cluster_on_loopback_with_token_auth_runs_an_evaluation(tmp_p
     are stopped by their own processes (`ray stop` would stop every Ray instance of the user on
     this machine)."""
     import os
+    import shutil
+    import tempfile
     from pathlib import Path
 
     import psutil
@@ -107,7 +109,9 @@ def test_a_two_node_cluster_on_loopback_with_token_auth_runs_an_evaluation(tmp_p
     env = {**os.environ, "HOME": str(tmp_path), "XDG_CACHE_HOME": cache,
            "RAY_AUTH_MODE": "token", "RAY_USAGE_STATS_ENABLED": "0"}  # fmt: skip
     port = _free_port()
-    common = ["--num-cpus", "1", "--node-ip-address", "127.0.0.1", "--include-dashboard", "false"]
+    # Ray's sockets live in the temp dir, whose path must stay short (AF_UNIX: 107 bytes)
+    short = Path(tempfile.mkdtemp(prefix="uwray", dir="/tmp"))
+    common = ["--num-cpus", "1", "--node-ip-address", "127.0.0.1"]
 
     def run(*args, timeout=120):
         return subprocess.run([*args], env=env, capture_output=True, text=True, timeout=timeout)
@@ -116,14 +120,19 @@ def test_a_two_node_cluster_on_loopback_with_token_auth_runs_an_evaluation(tmp_p
         assert run(ray_bin, "get-auth-token", "--generate").returncode == 0
         assert (tmp_path / ".ray/auth_token").is_file()
         head = run(ray_bin, "start", "--head", "--port", str(port), "--temp-dir",
-                   str(tmp_path / "a"), *common)  # fmt: skip
+                   str(short / "a"), "--include-dashboard", "false", *common)  # fmt: skip
         assert head.returncode == 0, head.stderr[-2000:]
         node = run(ray_bin, "start", "--address", f"127.0.0.1:{port}", "--temp-dir",
-                   str(tmp_path / "b"), *common)  # fmt: skip
+                   str(short / "b"), *common)  # fmt: skip
         assert node.returncode == 0, node.stderr[-2000:]
-        status = run(ray_bin, "status", "--address", f"127.0.0.1:{port}")
-        assert status.returncode == 0, status.stderr[-2000:]
-        assert "0.0/2.0 CPU" in status.stdout or "/2.0 CPU" in status.stdout, status.stdout
+        deadline = time.monotonic() + 60  # the autoscaler's view catches up within seconds
+        while True:
+            status = run(ray_bin, "status", "--address", f"127.0.0.1:{port}")
+            assert status.returncode == 0, status.stderr[-2000:]
+            if "/2.0 CPU" in status.stdout or time.monotonic() > deadline:
+                break
+            time.sleep(2.0)
+        assert "/2.0 CPU" in status.stdout, status.stdout
         cfg = tmp_path / "env.toml"
         cfg.write_text("episode_s = 10.0\n")
         # a relative input path (from the repository root, where the suite runs)
@@ -142,10 +151,11 @@ def test_a_two_node_cluster_on_loopback_with_token_auth_runs_an_evaluation(tmp_p
         assert csv[0] == csv[1]
     finally:
         mine = [p for p in psutil.process_iter(["cmdline"])
-                if any(str(tmp_path) in part for part in (p.info["cmdline"] or ()))]  # fmt: skip
+                if any(str(short) in part for part in (p.info["cmdline"] or ()))]  # fmt: skip
         for p in mine:
             p.terminate()
         psutil.wait_procs(mine, timeout=20)
         for p in mine:
             if p.is_running():
                 p.kill()
+        shutil.rmtree(short, ignore_errors=True)
