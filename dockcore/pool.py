@@ -130,7 +130,16 @@ def actor_death(exc: BaseException) -> tuple[str, str]:
 
 
 class WorkerPool:
-    """Started workers; :meth:`imap_unordered` runs tasks on them (see the module docstring)."""
+    """Started workers; :meth:`imap_unordered` runs tasks on them (see the module docstring).
+
+    Attributes:
+        tasks_by_node: Ray: tasks completed per node (``"IP node-id-prefix"`` -> count), so a
+            job can show that its work ran where it should; local: empty.
+        replaced: Ray: workers replaced after they were lost; local: 0.
+    """
+
+    tasks_by_node: dict[str, int]
+    replaced: int = 0
 
     def imap_unordered(self, method: str, items: Iterable[Any]) -> Iterator[tuple[Any, Any]]:
         """Call ``worker.<method>(item)`` for every item on a free worker; yield ``(item,
@@ -160,6 +169,7 @@ def _call_local(method: str, item: Any) -> Any:
 
 class _LocalPool(WorkerPool):
     def __init__(self, workers: int, factory: Callable[..., Any], args: tuple) -> None:
+        self.tasks_by_node = {}
         self._ex = ProcessPoolExecutor(
             max_workers=workers,
             mp_context=mp.get_context("spawn"),
@@ -357,6 +367,12 @@ class _Host:
         """Answered once the actor is placed and its worker built."""
         return True
 
+    def node(self) -> str:
+        """Where the actor runs: ``"IP node-id-prefix"``."""
+        import ray
+
+        return f"{ray.util.get_node_ip_address()} {ray.get_runtime_context().get_node_id()[:8]}"
+
 
 class _RayPool(WorkerPool):
     def __init__(
@@ -374,6 +390,8 @@ class _RayPool(WorkerPool):
         self._factory, self._args = factory, args
         self.actors = [self._new_actor() for _ in range(workers)]
         self.replaced = 0
+        self.tasks_by_node = {}
+        self._node_of: list[str | None] = [None] * workers  # each slot's actor's node, once asked
         self._deaths_in_row = [0] * workers
         #: replacement actors not yet answering: their ready() reference -> start deadline
         self._starting: dict[Any, float] = {}
@@ -382,6 +400,16 @@ class _RayPool(WorkerPool):
 
     def _new_actor(self) -> Any:
         return self._actor_cls.remote(self._factory, self._args)
+
+    def _count(self, slot: int) -> None:
+        """One more task done on the node of ``slot``'s actor (asked once per actor)."""
+        if self._node_of[slot] is None:
+            try:
+                self._node_of[slot] = self._ray.get(self.actors[slot].node.remote(), timeout=30)
+            except Exception:  # lost meanwhile: counted as unknown, asked again next time
+                pass
+        where = self._node_of[slot] or "unknown"
+        self.tasks_by_node[where] = self.tasks_by_node.get(where, 0) + 1
 
     def _check_starting(self, now: float) -> None:
         """Stop the job when a replacement actor has not started by its deadline."""
@@ -438,6 +466,7 @@ class _RayPool(WorkerPool):
                 load[slot] = 0
                 self._ray.kill(self.actors[slot], no_restart=True)
                 self.actors[slot] = self._new_actor()
+                self._node_of[slot] = None
                 deadline = time.monotonic() + self._replace_timeout_s
                 self._starting[self.actors[slot].ready.remote()] = deadline
                 self.replaced += 1
@@ -446,6 +475,7 @@ class _RayPool(WorkerPool):
                 raise (cause if isinstance(cause, Exception) else exc) from None
             else:
                 self._deaths_in_row[slot] = 0
+                self._count(slot)
                 yield item, result
             fill()
 

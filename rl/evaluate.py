@@ -84,6 +84,8 @@ class EvalResult:
     summary: dict[str, Any]
     episodes: list[dict[str, Any]]
     traces: list[EpisodeTrace]
+    #: Ray: episodes run per node and workers replaced (where the work ran); local: empty
+    ray_nodes: dict[str, Any] = field(default_factory=dict)
 
 
 def _as_controller(policy, vecnorm) -> Controller:
@@ -306,8 +308,14 @@ def run_episodes_parallel(
             results[k] = (row, trace)
             if progress is not None:
                 progress(len(results), n_episodes)
+        ray_nodes = (
+            {"tasks_by_node": dict(pool.tasks_by_node), "workers_replaced": pool.replaced}
+            if backend == "ray"
+            else {}
+        )
     rows = [results[k][0] for k in range(n_episodes)]
-    return EvalResult(summarise(rows), rows, [results[k][1] for k in range(n_episodes)])
+    traces = [results[k][1] for k in range(n_episodes)]
+    return EvalResult(summarise(rows), rows, traces, ray_nodes)
 
 
 def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:

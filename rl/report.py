@@ -302,6 +302,7 @@ def _evaluate_into(
         "control_steps_per_s": steps / wall,
         "workers": workers,
         "backend": pool.backend,
+        **({"ray": res.ray_nodes} if res.ray_nodes else {}),
     }
     atomic_write_text(out / "episodes.csv", _csv(res.episodes))
     plot_trajectories(res.traces, res.episodes, out / "trajectories_top.png")

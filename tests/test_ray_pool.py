@@ -96,6 +96,7 @@ def test_a_two_node_cluster_on_loopback_with_token_auth_runs_an_evaluation(tmp_p
     cluster with a relative input path (checked on both nodes) gives the local rows. The nodes
     are stopped by their own processes (`ray stop` would stop every Ray instance of the user on
     this machine)."""
+    import json
     import os
     import shutil
     import tempfile
@@ -149,6 +150,8 @@ def test_a_two_node_cluster_on_loopback_with_token_auth_runs_an_evaluation(tmp_p
         assert local.returncode == 0, local.stderr[-2000:]
         csv = [(tmp_path / f"{b}/episodes.csv").read_bytes() for b in ("local", "ray")]
         assert csv[0] == csv[1]
+        nodes = json.loads((tmp_path / "ray/summary.json").read_text())["ray"]["tasks_by_node"]
+        assert len(nodes) == 2 and sum(nodes.values()) == 4, nodes  # work ran on both nodes
     finally:
         mine = [p for p in psutil.process_iter(["cmdline"])
                 if any(str(short) in part for part in (p.info["cmdline"] or ()))]  # fmt: skip

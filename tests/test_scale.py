@@ -146,11 +146,12 @@ def test_ray_evaluation_gives_the_local_rows_and_summary(tmp_path, run_cli):
     assert a.code == 0 and b.code == 0, (a.err, b.err)
     sa = json.loads((tmp_path / "local/summary.json").read_text())
     sb = json.loads((tmp_path / "ray/summary.json").read_text())
-    timing = {"wall_clock_s", "control_steps_per_s", "backend", "provenance"}  # the run's own
+    timing = {"wall_clock_s", "control_steps_per_s", "backend", "provenance", "ray"}  # its own
     assert {k: v for k, v in sa.items() if k not in timing} == {
         k: v for k, v in sb.items() if k not in timing
     }
     assert sb["backend"] == "ray" and sa["backend"] == "local"
+    assert sum(sb["ray"]["tasks_by_node"].values()) == 4 and "ray" not in sa
     csv = [(tmp_path / f"{b}/episodes.csv").read_bytes() for b in ("local", "ray")]
     assert csv[0] == csv[1]
 
