@@ -90,6 +90,7 @@ from uwdock.sim.render import RenderConfig, make_render_scene, project_markers
 from uwdock.sim.water import (
     WaterConfig,
     WaterRandomisation,
+    is_water_file,
     resolve_water,
     water_spec_error,
 )
@@ -497,6 +498,18 @@ class FrameWorker:
 # ----------------------------------------------------------------------------- the run
 
 
+def _absolute_inputs(cfg: SynthConfig) -> tuple[SynthConfig, list[str]]:
+    """``cfg`` with its input files (camera, marker set, water file) as absolute paths from this
+    process's working directory, and those files."""
+    changes = {}
+    for name in ("camera_file", "marker_set_path"):
+        if getattr(cfg, name):
+            changes[name] = str(Path(getattr(cfg, name)).expanduser().resolve())
+    if is_water_file(cfg.water):
+        changes["water"] = str(Path(cfg.water).expanduser().resolve())
+    return dataclasses.replace(cfg, **changes), list(changes.values())
+
+
 def _render_all(
     out_dir: Path,
     cfg: SynthConfig,
@@ -518,6 +531,9 @@ def _render_all(
     if pool_cfg.backend == "local":
         pool_cfg = dataclasses.replace(pool_cfg, workers=min(pool_cfg.workers, len(todo)))
     pose_list = None if poses is None else np.asarray(poses).tolist()
+    if pool_cfg.backend == "ray":  # the actors' input files by absolute path, checked on nodes
+        cfg, inputs = _absolute_inputs(cfg)
+        pool_cfg = dataclasses.replace(pool_cfg, inputs=tuple(inputs))
     with worker_pool(pool_cfg, FrameWorker, (to_dict(cfg), pose_list)) as pool:
         for k, (png, label) in pool.imap_unordered("render", todo):
             on_frame(_write_frame(out_dir, k, png, label))

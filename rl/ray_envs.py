@@ -19,8 +19,14 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
-from uwdock.dockcore.pool import actor_cpus, import_ray, kill_actors, start_ray
-from uwdock.rl.config import EnvConfig
+from uwdock.dockcore.pool import (
+    actor_cpus,
+    check_inputs_on_nodes,
+    import_ray,
+    kill_actors,
+    start_ray,
+)
+from uwdock.rl.config import EnvConfig, env_input_files, with_absolute_inputs
 from uwdock.rl.vec_envs import EnvGroup, env_groups
 from uwdock.rl.workers import WorkerError, failure_reason
 
@@ -98,7 +104,12 @@ class RayEnvWorkers:
         ray_address: str | None = None,
         envs_per_worker: int = 1,
     ) -> None:
-        start_ray(import_ray(ray_address), len(env_groups(n_envs, envs_per_worker)), ray_address)
+        ray = import_ray(ray_address)
+        start_ray(ray, len(env_groups(n_envs, envs_per_worker)), ray_address)
+        # the actors may start in another folder or on another node: the env's input files by
+        # absolute path, checked on every node before any actor starts
+        env_cfg = with_absolute_inputs(env_cfg)
+        check_inputs_on_nodes(ray, list(env_input_files(env_cfg).values()))
         self.venv = RayVecEnv(env_cfg, n_envs, seed, envs_per_worker)
 
     def worker_errors(self) -> list[str]:

@@ -39,7 +39,7 @@ from typing import Annotated, Any
 from uwdock.dockcore.config import from_dict, lift_moved_keys, merge, to_dict
 from uwdock.dockcore.domains import Interval
 from uwdock.dockcore.errors import DockError
-from uwdock.dockcore.io import atomic_write_json
+from uwdock.dockcore.io import atomic_write_json, atomic_write_text
 from uwdock.dockcore.pool import (
     PoolConfig,
     check_inputs_on_nodes,
@@ -280,6 +280,25 @@ def _trial_summary(run: Path) -> dict[str, Any]:
     return out
 
 
+def _check_shared(ray: Any, out: Path, created: bool) -> None:
+    """Trials write their run folders on the node that runs them, at ``out``'s absolute path:
+    check that every node sees ``out`` (a probe file written here, looked for there); if not,
+    one line, and ``out`` removed again when this call's sweep created it."""
+    probe = out / ".uwdock-storage-probe"
+    atomic_write_text(probe, f"{os.getpid()} {datetime.datetime.now().isoformat()}\n")
+    try:
+        check_inputs_on_nodes(ray, [probe])
+    except DockError as exc:
+        probe.unlink(missing_ok=True)
+        if created and not any(out.iterdir()):
+            out.rmdir()
+        raise DockError(
+            f"--out {out} is not on storage every Ray node mounts (trials write their run "
+            f"folders where they run): use a shared path ({exc})"
+        ) from None
+    probe.unlink(missing_ok=True)
+
+
 def _absolute(data: dict[str, Any]) -> dict[str, Any]:
     """A recorded trial config with its input paths absolute (a sweep.json written before they
     were); unreadable as a config: as it is (then it differs, as it should)."""
@@ -358,7 +377,9 @@ def run_sweep(
         check_fits(r, nodes, name)
     check_inputs_on_nodes(ray, sorted(inputs))
     out = Path(out_dir)
+    created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
+    _check_shared(ray, out, created)
     plan = {
         t.name: {"config": to_dict(t.config), "run_dir": str((out / t.name).resolve()),
                  "seed": t.seed, "changes": t.changes}

@@ -223,3 +223,18 @@ def test_policy_input_files_are_what_loading_the_policy_reads(tmp_path) -> None:
     onnx.write_bytes(b"x")
     (tmp_path / "p.json").write_text("{}")
     assert policy_input_files(str(onnx)) == [onnx.resolve(), (tmp_path / "p.json").resolve()]
+
+
+def test_a_sweep_folder_every_node_cannot_see_is_refused_and_removed(tmp_path) -> None:
+    """Trials write their run folders on the node that runs them: ``--out`` must be storage
+    every node mounts; a folder one node cannot see is one line, and removed again."""
+    from uwdock.rl.sweep import _check_shared
+
+    out = tmp_path / "sw"
+    out.mkdir()
+    _check_shared(_FakeRay({"10.0.0.1": str, "10.0.0.2": str}), out, created=True)
+    assert out.is_dir() and list(out.iterdir()) == []  # the probe is gone, the folder kept
+    elsewhere = {"10.0.0.1": str, "10.0.0.2": lambda p: p + ".not-mounted"}
+    with pytest.raises(DockError, match=r"not on storage every Ray node mounts.*10\.0\.0\.2"):
+        _check_shared(_FakeRay(elsewhere), out, created=True)
+    assert not out.exists()
