@@ -32,7 +32,7 @@ from uwdock.dockcore.bench import format_table, save_results
 HERE = Path(__file__).resolve().parent
 
 
-def _bench_docking():
+def bench_docking_module():
     """``bench/bench_docking.py`` as a module (registered first: its dataclasses need it)."""
     mod = sys.modules.get("bench_docking")
     if mod is None:
@@ -79,7 +79,7 @@ def compare(
 ) -> list[dict[str, Any]]:
     """Rows of ``other`` against the same (condition, controller) rows of ``base``; with
     ``base_controller``, against ``base``'s rows of that controller (e.g. the PID's)."""
-    paired_change = _bench_docking().paired_change
+    paired_change = bench_docking_module().paired_change
     index = {(r.get("condition"), r.get("controller")): r for r in base["rows"]}
     out = []
     for r in other["rows"]:

@@ -19,7 +19,6 @@ intervals) in ``--out-dir``.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import sys
 from pathlib import Path
@@ -29,18 +28,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from uwdock.dockcore.bench import format_table, save_results
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from compare_docking import bench_docking_module  # bench/, beside this file
+
 HERE = Path(__file__).resolve().parent
-
-
-def _bench_docking():
-    """``bench/bench_docking.py`` as a module (registered first: its dataclasses need it)."""
-    mod = sys.modules.get("bench_docking")
-    if mod is None:
-        spec = importlib.util.spec_from_file_location("bench_docking", HERE / "bench_docking.py")
-        mod = importlib.util.module_from_spec(spec)
-        sys.modules["bench_docking"] = mod
-        spec.loader.exec_module(mod)  # type: ignore[union-attr]
-    return mod
 
 
 def _rows(path: Path, controller: str) -> tuple[dict[str, dict[str, Any]], dict[str, Any]]:
@@ -61,7 +52,7 @@ def main() -> None:
     ap.add_argument("--name", required=True)
     ap.add_argument("--out-dir", type=Path, default=HERE / "results")
     args = ap.parse_args()
-    bd = _bench_docking()
+    bd = bench_docking_module()
     n = len(args.seeds)
     labels = args.labels.split(",") if args.labels else [f"seed {i}" for i in range(n)]
     if len(labels) != len(args.seeds):
