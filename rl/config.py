@@ -249,6 +249,13 @@ def with_absolute_inputs(cfg: EnvConfig) -> EnvConfig:
     )
 
 
+def absolute_inputs(cfg: EnvConfig) -> tuple[EnvConfig, list[str]]:
+    """:func:`with_absolute_inputs` and the absolute input files it names: what a job whose
+    workers may start elsewhere passes them and checks on every node."""
+    cfg = with_absolute_inputs(cfg)
+    return cfg, list(env_input_files(cfg).values())
+
+
 def check_env_files(cfg: EnvConfig) -> None:
     """Read the files an env of ``cfg`` will read (error model, camera, marker set), so a
     missing or broken one is a one-line DockError in the calling process, before worker

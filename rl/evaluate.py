@@ -13,7 +13,7 @@ import numpy as np
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_write_bytes
 from uwdock.dockcore.pool import PoolConfig, worker_pool
-from uwdock.rl.config import EnvConfig, env_input_files, with_absolute_inputs
+from uwdock.rl.config import EnvConfig, absolute_inputs
 from uwdock.rl.env import DockingEnv
 from uwdock.rl.episode_media import write_frames_sheet, write_video
 from uwdock.rl.failures import FailureTracker, failure_counts
@@ -295,9 +295,8 @@ def run_episodes_parallel(
         # checked on every node before work starts there
         if policy_spec != "pid":
             policy_spec = str(Path(policy_spec).expanduser().resolve())
-        env_cfg = with_absolute_inputs(env_cfg)
-        inputs = [str(f) for f in policy_input_files(policy_spec)]
-        inputs += env_input_files(env_cfg).values()
+        env_cfg, inputs = absolute_inputs(env_cfg)
+        inputs += [str(f) for f in policy_input_files(policy_spec)]
         pool_cfg = PoolConfig(backend, workers, ray_address, tuple(inputs))
     args = (policy_spec, env_cfg, seed, record, tuple(video_episodes), video_dir is not None)
     results: dict[int, tuple[dict[str, Any], EpisodeTrace]] = {}

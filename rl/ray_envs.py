@@ -26,7 +26,7 @@ from uwdock.dockcore.pool import (
     kill_actors,
     start_ray,
 )
-from uwdock.rl.config import EnvConfig, env_input_files, with_absolute_inputs
+from uwdock.rl.config import EnvConfig, absolute_inputs
 from uwdock.rl.vec_envs import EnvGroup, env_groups
 from uwdock.rl.workers import WorkerError, failure_reason
 
@@ -108,8 +108,8 @@ class RayEnvWorkers:
         start_ray(ray, len(env_groups(n_envs, envs_per_worker)), ray_address)
         # the actors may start in another folder or on another node: the env's input files by
         # absolute path, checked on every node before any actor starts
-        env_cfg = with_absolute_inputs(env_cfg)
-        check_inputs_on_nodes(ray, list(env_input_files(env_cfg).values()))
+        env_cfg, inputs = absolute_inputs(env_cfg)
+        check_inputs_on_nodes(ray, inputs)
         self.venv = RayVecEnv(env_cfg, n_envs, seed, envs_per_worker)
 
     def worker_errors(self) -> list[str]:

@@ -47,7 +47,7 @@ from uwdock.dockcore.pool import (
     preflight,
     start_ray,
 )
-from uwdock.rl.config import check_env_files, env_input_files, with_absolute_inputs
+from uwdock.rl.config import absolute_inputs, check_env_files, with_absolute_inputs
 from uwdock.rl.train import TrainConfig, train
 
 if sys.version_info >= (3, 11):
@@ -351,8 +351,8 @@ def run_sweep(
     inputs: set[str] = set()
     for i, t in enumerate(trials):
         check_env_files(t.config.env)
-        env = with_absolute_inputs(t.config.env)
-        inputs.update(env_input_files(env).values())
+        env, files = absolute_inputs(t.config.env)
+        inputs.update(files)
         trials[i] = dataclasses.replace(t, config=dataclasses.replace(t.config, env=env))
     loopback_local_ray(ray_address)  # before Ray's import: a local instance on 127.0.0.1 only
     try:
