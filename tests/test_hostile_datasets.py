@@ -259,7 +259,9 @@ def test_second_run_and_sigkill_leave_nothing_behind(run_cli, small, tmp_path):
         assert not [p for p in out.rglob("*") if f".{second.pid}." in p.name]
         assert _owner_pid(out) == first.pid
 
-        _wait_for(lambda: any((out / "images").glob("*.png")), 120, "the first frame")
+        # a whole frame (its image, then its partial label): waiting for the image alone let
+        # the kill land between the two, and the rerun then had no frame to keep
+        _wait_for(lambda: any((out / ".partial").glob("*.json")), 120, "the first whole frame")
         workers = psutil.Process(first.pid).children(recursive=True)
         first.send_signal(signal.SIGKILL)
         first.wait(timeout=10)
