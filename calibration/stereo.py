@@ -484,6 +484,35 @@ def calibrate_stereo(
             fit OpenCV rejects.
     """
     cfg = validated(cfg or StereoConfig())
+    files, T_body = _camera_files(left_camera, right_camera)
+    notes: list[str] = []
+    detector = cfg.intrinsics.detector()
+    total, pairs = stereo_pairs(
+        Path(left), None if right is None else Path(right), (left_topic, right_topic), cfg, notes
+    )
+    records, size = _inspect(pairs, total, cfg, detector, (files[0], files[1]), progress)
+    used = [r for r in records if r.status == "used"]
+    _require_pairs(used, records, detector)
+    rig, per_camera = _fit_rig(records, used, size, cfg, files, (left_topic, right_topic))
+    epipolar_rms_px, rectified_dy_rms_px = _rig_errors(records, rig)
+    notes += _notes(rig, records, detector)
+    sources = {
+        "left": str(left),
+        "right": None if right is None else str(right),
+        "left_topic": left_topic,
+        "right_topic": right_topic,
+        "left_camera": None if left_camera is None else str(left_camera),
+        "right_camera": None if right_camera is None else str(right_camera),
+    }
+    roi = ([int(v) for v in rig.roi[0]], [int(v) for v in rig.roi[1]]) if rig.roi else ([], [])
+    return StereoResult(rig, records, cfg, sources, files[0] is None, per_camera,
+                        epipolar_rms_px, rectified_dy_rms_px, roi, notes, T_body)  # fmt: skip
+
+
+def _camera_files(
+    left_camera: str | os.PathLike[str] | None, right_camera: str | os.PathLike[str] | None
+) -> tuple[list[CameraModel | None], dict[str, np.ndarray | None]]:
+    """The two fixed-intrinsics camera files (both or neither) and their ``T_body_cam``."""
     if (left_camera is None) != (right_camera is None):
         raise DockError(
             "give both --left-camera and --right-camera (intrinsics fixed), or neither "
@@ -494,44 +523,86 @@ def calibrate_stereo(
     if left_camera is not None and right_camera is not None:
         for i, (side, path) in enumerate((("left", left_camera), ("right", right_camera))):
             files[i], T_body[side] = load_camera(path)
-    notes: list[str] = []
-    detector = cfg.intrinsics.detector()
-    total, pairs = stereo_pairs(
-        Path(left), None if right is None else Path(right), (left_topic, right_topic), cfg, notes
+    return files, T_body
+
+
+def _require_pairs(
+    used: list[PairRecord], records: list[PairRecord], detector: PatternDetector
+) -> None:
+    """Refuse fewer than ``MIN_VIEWS`` usable pairs, with the rejections counted by reason."""
+    if len(used) >= MIN_VIEWS:
+        return
+    reasons = Counter(
+        f"{r.reason} ({r.detail})" if r.detail and r.reason != "too_few_common" else r.reason
+        for r in records
+        if r.status == "rejected"
     )
-    records, size = _inspect(pairs, total, cfg, detector, (files[0], files[1]), progress)
-    used = [r for r in records if r.status == "used"]
-    if len(used) < MIN_VIEWS:
-        reasons = Counter(
-            f"{r.reason} ({r.detail})" if r.detail and r.reason != "too_few_common" else r.reason
-            for r in records
-            if r.status == "rejected"
-        )
-        detail = ", ".join(f"{k} {v}" for k, v in sorted(reasons.items())) or "none"
-        raise DockError(
-            f"only {len(used)} usable pairs of {len(records)}, need at least {MIN_VIEWS} "
-            f"(rejected: {detail})" + "".join(f"; {n}" for n in detector.notes)
-        )
+    detail = ", ".join(f"{k} {v}" for k, v in sorted(reasons.items())) or "none"
+    raise DockError(
+        f"only {len(used)} usable pairs of {len(records)}, need at least {MIN_VIEWS} "
+        f"(rejected: {detail})" + "".join(f"; {n}" for n in detector.notes)
+    )
+
+
+def _fit_rig(
+    records: list[PairRecord],
+    used: list[PairRecord],
+    size: tuple[int, int],
+    cfg: StereoConfig,
+    files: list[CameraModel | None],
+    topics: tuple[str | None, str | None],
+) -> tuple[StereoRig, dict[str, dict[str, Any]]]:
+    """The stereo fit (outlier pairs rejected from ``used``) as a rectified rig, and per camera
+    its views with the pattern and single-camera RMS (fitted intrinsics)."""
     per_camera: dict[str, dict[str, Any]] = {
         "left": {"views_with_pattern": sum(r.left is not None for r in records)},
         "right": {"views_with_pattern": sum(r.right is not None for r in records)},
     }
-    fitted = files[0] is None
-    if fitted:
-        cams = []
-        for side in ("left", "right"):
-            dets = [getattr(r, side) for r in records if getattr(r, side) is not None]
-            rms, K, D = _fit_camera(dets, size, cfg.intrinsics, side)
-            per_camera[side]["single_camera_rms_px"] = rms
-            cams.append((K, D))
-        flags = cv2.CALIB_USE_INTRINSIC_GUESS | _DIST_FLAGS[cfg.intrinsics.distortion_model]
-    else:
-        cams = [(c.K, c.dist_coeffs) for c in files if c is not None]
-        flags = cv2.CALIB_FIX_INTRINSIC
+    cams, flags = _start_intrinsics(records, size, cfg, files, per_camera)
     rms, K1, D1, K2, D2, R, T, _ = _fit_rejecting_outliers(used, size, cams, flags, cfg)
+    models = _camera_models(((K1, D1), (K2, D2)), files, size, cfg)
+    Tm = np.eye(4)
+    Tm[:3, :3], Tm[:3, 3] = R, T
+    try:
+        rig = StereoRig.from_cameras(
+            models[0], models[1], Tm, cfg.rectify_alpha, rms_px=rms,
+            left_topic=topics[0], right_topic=topics[1],
+        )  # fmt: skip
+    except ValueError as exc:
+        raise DockError(f"stereo calibration: {exc}") from None
+    return rig, per_camera
+
+
+def _start_intrinsics(
+    records: list[PairRecord],
+    size: tuple[int, int],
+    cfg: StereoConfig,
+    files: list[CameraModel | None],
+    per_camera: dict[str, dict[str, Any]],
+) -> tuple[list[tuple[np.ndarray, np.ndarray]], int]:
+    """The stereo fit's starting (K, D) per camera and its flags: fixed from the camera files,
+    or fitted per camera (its RMS noted in ``per_camera``) and refined jointly."""
+    if files[0] is not None:
+        return [(c.K, c.dist_coeffs) for c in files if c is not None], cv2.CALIB_FIX_INTRINSIC
+    cams = []
+    for side in ("left", "right"):
+        dets = [getattr(r, side) for r in records if getattr(r, side) is not None]
+        rms, K, D = _fit_camera(dets, size, cfg.intrinsics, side)
+        per_camera[side]["single_camera_rms_px"] = rms
+        cams.append((K, D))
+    return cams, cv2.CALIB_USE_INTRINSIC_GUESS | _DIST_FLAGS[cfg.intrinsics.distortion_model]
+
+
+def _camera_models(
+    fits: tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]],
+    files: list[CameraModel | None],
+    size: tuple[int, int],
+    cfg: StereoConfig,
+) -> list[CameraModel]:
+    """The left and right cameras: the given files, else models of the fitted (K, D)."""
     n_dist = 8 if cfg.intrinsics.distortion_model == "rational" else 5
     models = []
-    for side, K, D, given in (("left", K1, D1, files[0]), ("right", K2, D2, files[1])):
+    for side, (K, D), given in zip(("left", "right"), fits, files, strict=True):
         if given is not None:
             models.append(given)
             continue
@@ -541,15 +612,12 @@ def calibrate_stereo(
                 tuple(float(d) for d in D[:n_dist]), name=side,
             )
         )  # fmt: skip
-    Tm = np.eye(4)
-    Tm[:3, :3], Tm[:3, 3] = R, T
-    try:
-        rig = StereoRig.from_cameras(
-            models[0], models[1], Tm, cfg.rectify_alpha, rms_px=rms,
-            left_topic=left_topic, right_topic=right_topic,
-        )  # fmt: skip
-    except ValueError as exc:
-        raise DockError(f"stereo calibration: {exc}") from None
+    return models
+
+
+def _rig_errors(records: list[PairRecord], rig: StereoRig) -> tuple[float, float]:
+    """Each pair's errors against the rig; (epipolar, rectified dy) RMS over the used pairs'
+    corners (px)."""
     sq_epi, sq_dy, n_pts = 0.0, 0.0, 0
     for rec in records:
         if rec.object_m is not None:
@@ -558,28 +626,7 @@ def calibrate_stereo(
             sq_epi += rec.epipolar_px**2 * rec.n_corners  # type: ignore[operator]
             sq_dy += rec.rectified_dy_px**2 * rec.n_corners  # type: ignore[operator]
             n_pts += rec.n_corners
-    notes += _notes(rig, records, detector)
-    sources = {
-        "left": str(left),
-        "right": None if right is None else str(right),
-        "left_topic": left_topic,
-        "right_topic": right_topic,
-        "left_camera": None if left_camera is None else str(left_camera),
-        "right_camera": None if right_camera is None else str(right_camera),
-    }
-    return StereoResult(
-        rig,
-        records,
-        cfg,
-        sources,
-        fitted,
-        per_camera,
-        math.sqrt(sq_epi / n_pts),
-        math.sqrt(sq_dy / n_pts),
-        ([int(v) for v in rig.roi[0]], [int(v) for v in rig.roi[1]]) if rig.roi else ([], []),
-        notes,
-        T_body,
-    )
+    return math.sqrt(sq_epi / n_pts), math.sqrt(sq_dy / n_pts)
 
 
 def _notes(rig: StereoRig, records: list[PairRecord], detector: PatternDetector) -> list[str]:
