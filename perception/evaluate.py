@@ -374,8 +374,53 @@ def _evaluate(
     written = [] if written is None else written
     names = list(procs)
     input_path = source.path
-    lookup = _truth_lookup(truth, source.kind)
     resolver = CameraResolver(camera, note)
+    records, sampler, thumbs = _eval_frames(
+        source, setup, cfg, procs, _truth_lookup(truth, source.kind), resolver, progress, T_body_cam
+    )
+    main = records[names[0]]
+    _check_eval_frames(source, setup, records, main, sampler, truth, truth_source, note)
+    with_truth = truth is not None
+    summaries = {p: summarise(records[p], cfg.report, with_truth) for p in names}
+    rows = compare_rows(summaries) if len(names) > 1 else None
+    extra = {"input": str(input_path), "markers": setup.description, "pipelines": names}
+    report: dict[str, Any] = {
+        "pipeline": names[0],
+        "input": {"path": str(input_path), "kind": source.kind, "frames_total": len(main)},
+        **summaries[names[0]],
+        "ground_truth": _truth_summary(truth, truth_source, main),
+        "compare": rows,
+        "camera": {
+            "model": to_dict(camera),
+            "frame_sizes": [list(k) for k in resolver.sizes],
+        },
+        "markers": setup.description,
+        "config": to_dict(cfg),
+        "provenance": provenance({"perception": cfg}, extra),
+        "plots": [],
+    }
+    _write_eval_tables(out, report, main, summaries, rows, source.timestamps_ns, written)
+    plots = _write_eval_plots(out, main, summaries, with_truth, thumbs, written)
+    report["plots"] = [p.name for p in plots]
+    atomic_write_json(out / "report.json", report)
+    write_provenance(out, {"perception": cfg}, extra)
+    written.extend([out / "config.toml", out / "provenance.json"])
+    return report
+
+
+def _eval_frames(
+    source: FrameSource,
+    setup: MarkerSetup,
+    cfg: PerceptionConfig,
+    procs: dict[str, FrameProcessor],
+    lookup: Callable[[int, str], FrameTruth | None],
+    resolver: CameraResolver,
+    progress: bool | None,
+    T_body_cam: np.ndarray | None,
+) -> tuple[dict[str, list[EvalRecord]], FrameSampler, ThumbnailBuffer]:
+    """The one pass over the frames: each pipeline's records, the frames sampled for the
+    wrong-dictionary hint and the first pipeline's contact-sheet thumbnails."""
+    names = list(procs)
     records: dict[str, list[EvalRecord]] = {p: [] for p in names}
     sampler = FrameSampler()  # for the wrong-dictionary hint
     thumbs = ThumbnailBuffer(cfg.report.contact_sheet_frames, cfg.report.thumbnail_width_px)
@@ -407,44 +452,58 @@ def _evaluate(
                     else None
                 )
                 thumbs.offer(index, name, drawn)
+    return records, sampler, thumbs
+
+
+def _check_eval_frames(
+    source: FrameSource,
+    setup: MarkerSetup,
+    records: dict[str, list[EvalRecord]],
+    main: list[EvalRecord],
+    sampler: FrameSampler,
+    truth: dict[int, FrameTruth] | None,
+    truth_source: str | None,
+    note: Note,
+) -> None:
+    """After the pass: the source's warnings and the wrong-dictionary hint noted; no decodable
+    frame, or ground truth that matches none, refused."""
     for warning in source.warnings:
         note(warning)
-    main = records[names[0]]
     if not any(not r.corrupt for r in main):
-        raise DockError(f"no decodable frame in {input_path} ({source.corrupt} corrupt)")
+        raise DockError(f"no decodable frame in {source.path} ({source.corrupt} corrupt)")
     if not any(r.ids for rs in records.values() for r in rs):
         note(dictionary_warning(setup.dictionary, sampler.frames, sampler.offered))
-    with_truth = truth is not None
-    if with_truth and not any(r.truth is not None for r in main):
+    if truth is not None and not any(r.truth is not None for r in main):
         raise DockError(
-            f"ground truth {truth_source or ''} matches none of the frames of {input_path} "
+            f"ground truth {truth_source or ''} matches none of the frames of {source.path} "
             f"(by image name for labelled folders, else by frame index)"
         )
-    summaries = {p: summarise(records[p], cfg.report, with_truth) for p in names}
-    rows = compare_rows(summaries) if len(names) > 1 else None
-    extra = {"input": str(input_path), "markers": setup.description, "pipelines": names}
-    report: dict[str, Any] = {
-        "pipeline": names[0],
-        "input": {"path": str(input_path), "kind": source.kind, "frames_total": len(main)},
-        **summaries[names[0]],
-        "ground_truth": None
-        if not with_truth
-        else {
-            "source": truth_source,
-            "frames": len(truth),
-            "matched": sum(r.truth is not None for r in main),
-        },
-        "compare": rows,
-        "camera": {
-            "model": to_dict(camera),
-            "frame_sizes": [list(k) for k in resolver.sizes],
-        },
-        "markers": setup.description,
-        "config": to_dict(cfg),
-        "provenance": provenance({"perception": cfg}, extra),
-        "plots": [],
+
+
+def _truth_summary(
+    truth: dict[int, FrameTruth] | None, truth_source: str | None, main: list[EvalRecord]
+) -> dict[str, Any] | None:
+    """The report's ``ground_truth``: where it came from, its frames and those matched."""
+    if truth is None:
+        return None
+    return {
+        "source": truth_source,
+        "frames": len(truth),
+        "matched": sum(r.truth is not None for r in main),
     }
-    stamps = source.timestamps_ns  # a bag's frame times
+
+
+def _write_eval_tables(
+    out: Path,
+    report: dict[str, Any],
+    main: list[EvalRecord],
+    summaries: dict[str, dict[str, Any]],
+    rows: list[dict[str, Any]] | None,
+    stamps: Sequence[int],
+    written: list[Path],
+) -> None:
+    """``frames.jsonl`` (with a bag's ``stamp_ns``), ``report.json`` and, with several
+    pipelines, ``compare.json`` and ``compare.md``."""
     written.append(
         _write_jsonl(
             out / "frames.jsonl",
@@ -463,6 +522,18 @@ def _evaluate(
             )
         )
         written.append(atomic_write_text(out / "compare.md", markdown_table(rows, COMPARE_COLUMNS)))
+
+
+def _write_eval_plots(
+    out: Path,
+    main: list[EvalRecord],
+    summaries: dict[str, dict[str, Any]],
+    with_truth: bool,
+    thumbs: ThumbnailBuffer,
+    written: list[Path],
+) -> list[Path]:
+    """The plots: the timeline, with ground truth the rate and the error by range, and the
+    contact sheet (when there is one); returns their paths."""
     plots = [plot_timeline(out / "timeline.png", [r.to_json() for r in main])]
     written.extend(plots)
     if with_truth:
@@ -475,8 +546,4 @@ def _evaluate(
     if sheet is not None:
         plots.append(sheet)
         written.append(sheet)
-    report["plots"] = [p.name for p in plots]
-    atomic_write_json(out / "report.json", report)
-    write_provenance(out, {"perception": cfg}, extra)
-    written.extend([out / "config.toml", out / "provenance.json"])
-    return report
+    return plots
