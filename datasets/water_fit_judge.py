@@ -215,104 +215,166 @@ def judge(
     more than ``disagree_sigmas`` combined uncertainties away; and the attenuation of a channel
     whose modelled contrast misses the measured one by more than ``max_contrast_error`` (the
     model does not explain the frames)."""
-    p, u = chosen.params, chosen.rel_std()
-    lo_r, hi_r = range_m
+    judging = _Judging(chosen, others, range_m, separable, max_rel_std, disagree_sigmas,
+                       contrast_error, max_contrast_error)  # fmt: skip
     reasons: dict[tuple[str, str], list[str]] = {}
-    film: list[str] = []
-    far_back: dict[str, float] = {}  # channel -> where its backscatter levels off (m)
-    near_back: list[str] = []  # channels whose backscatter is saturated at the nearest range
-    misfit: list[str] = []  # channels whose contrast the model misses
-    cover_to = 0.0  # how far the board should be filmed for an uncertain beta_D (m)
-    disagree_models: set[str] = set()
     for c, ch in enumerate(CHANNELS):
         for b in JUDGED:
-            why: list[str] = []
-            v = float(p[b][c])
-            lv = math.log(max(v, 1e-300))
-            lo_b, hi_b = wm.LOG_BOUNDS[b]
-            no_back = float(p["B_inf"][c]) < NO_BACKSCATTER
-            if lv >= hi_b - AT_BOUND or (lv <= lo_b + AT_BOUND and b != "B_inf"):
-                why.append(f"sits at its bound {v:.3g}")
-                if b == "B_inf":
-                    far_back[ch] = max(far_back.get(ch, 0.0), 1.5 * hi_r)
-            if b == "beta_B" and no_back:
-                why.append("no backscatter seen (B_inf < 0.01): it does not matter in renders")
-            if b in ("B_inf", "beta_B") and not no_back and not separable[c]:
-                beta_b = float(p["beta_B"][c])
-                if beta_b * lo_r > 2.0:
-                    why.append("not separable: the backscatter is saturated at the nearest range")
-                    near_back.append(ch)
-                else:
-                    why.append("not separable: the backscatter hardly bends over the ranges seen")
-                    far = min(max(2.0 / max(beta_b, 1e-3), hi_r * 1.5), max(4 * hi_r, hi_r + 2))
-                    far_back[ch] = max(far_back.get(ch, 0.0), far)
-            # no veiling light to speak of: B_inf is ~0 (its logarithm is free) unless the
-            # resamples put it higher
-            near_zero = b == "B_inf" and no_back and _q84(chosen, "B_inf", c) < 2 * NO_BACKSCATTER
-            if not (b == "beta_B" and no_back) and not near_zero and u[b][c] > max_rel_std:
-                why.append(f"uncertain: +-{100 * u[b][c]:.0f} %")
-                if b == "beta_D":
-                    # two attenuation lengths of the direct signal, at most four times the
-                    # farthest range seen (a value near 0 asks for "much farther", not 1/0)
-                    want = max(2.0 * (hi_r - lo_r), 2.0 / (wm.PATH[chosen.lighting] * max(v, 1e-3)))
-                    cover_to = max(cover_to, min(lo_r + want, max(4.0 * hi_r, hi_r + 2.0)))
-            for o in others:
-                if not o.plausible or ((b == "beta_B" or near_zero) and no_back):
-                    continue
-                vo, uo = float(o.params[b][c]), float(o.rel_std()[b][c])
-                gap = abs(lv - math.log(max(vo, 1e-300)))
-                if gap > disagree_sigmas * math.hypot(u[b][c], uo) and gap > 0.05:
-                    why.append(
-                        f"the {o.lighting} lighting model fits the held-out frames about as well "
-                        f"and gives {vo:.3g} (+-{100 * uo:.0f} %)"
-                    )
-                    disagree_models.add(o.lighting)
-            if b == "beta_D" and contrast_error[c] > max_contrast_error:
-                why.append(
-                    f"the model misses the measured contrast by {100 * contrast_error[c]:.0f} %"
-                )
-                misfit.append(ch)
+            why = judging.reasons(b, c)
             if why:
                 reasons[(b, ch)] = why
-    if disagree_models:
-        names = sorted({chosen.lighting, *disagree_models})
+    determined = {b: [(b, ch) not in reasons for ch in CHANNELS] for b in JUDGED}
+    return Verdict(determined, reasons, judging.to_film())
+
+
+@dataclass
+class _Judging:
+    """One :func:`judge` call: its inputs, the reasons of each parameter and channel, and what
+    those reasons ask to be filmed (gathered over all of them)."""
+
+    chosen: ModelResult
+    others: list[ModelResult]
+    range_m: tuple[float, float]
+    separable: list[bool]
+    max_rel_std: float
+    disagree_sigmas: float
+    contrast_error: tuple[float, ...]
+    max_contrast_error: float
+    #: channel -> where its backscatter levels off (m)
+    far_back: dict[str, float] = field(default_factory=dict)
+    #: channels whose backscatter is saturated at the nearest range
+    near_back: list[str] = field(default_factory=list)
+    #: channels whose contrast the model misses
+    misfit: list[str] = field(default_factory=list)
+    #: how far the board should be filmed for an uncertain beta_D (m)
+    cover_to: float = 0.0
+    #: the lighting models that disagree with the chosen one
+    disagree_models: set[str] = field(default_factory=set)
+    #: the chosen model's values and relative uncertainties (block -> (3,))
+    params: dict[str, np.ndarray] = field(init=False)
+    rel_std: dict[str, np.ndarray] = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.params, self.rel_std = self.chosen.params, self.chosen.rel_std()
+
+    def reasons(self, b: str, c: int) -> list[str]:
+        """Why block ``b`` of channel ``c`` is not determined (empty: it is)."""
+        v = float(self.params[b][c])
+        lv = math.log(max(v, 1e-300))
+        no_back = float(self.params["B_inf"][c]) < NO_BACKSCATTER
+        why = self._at_bound(b, c, v, lv) + self._backscatter(b, c, no_back)
+        # no veiling light to speak of: B_inf is ~0 (its logarithm is free) unless the
+        # resamples put it higher
+        near_zero = b == "B_inf" and no_back and _q84(self.chosen, "B_inf", c) < 2 * NO_BACKSCATTER
+        if not (b == "beta_B" and no_back) and not near_zero:
+            why += self._uncertain(b, c, v)
+        if not ((b == "beta_B" or near_zero) and no_back):
+            why += self._disagreeing(b, c, lv)
+        if b == "beta_D" and self.contrast_error[c] > self.max_contrast_error:
+            why.append(
+                f"the model misses the measured contrast by {100 * self.contrast_error[c]:.0f} %"
+            )
+            self.misfit.append(CHANNELS[c])
+        return why
+
+    def _at_bound(self, b: str, c: int, v: float, lv: float) -> list[str]:
+        """The value at its bound (a veiling light at its upper one: film farther)."""
+        lo_b, hi_b = wm.LOG_BOUNDS[b]
+        if not (lv >= hi_b - AT_BOUND or (lv <= lo_b + AT_BOUND and b != "B_inf")):
+            return []
+        if b == "B_inf":
+            ch = CHANNELS[c]
+            self.far_back[ch] = max(self.far_back.get(ch, 0.0), 1.5 * self.range_m[1])
+        return [f"sits at its bound {v:.3g}"]
+
+    def _backscatter(self, b: str, c: int, no_back: bool) -> list[str]:
+        """No backscatter seen (for beta_B), or B_inf and beta_B not separable: saturated at the
+        nearest range (film nearer) or hardly bending over the ranges seen (film farther)."""
+        lo_r, hi_r = self.range_m
+        ch = CHANNELS[c]
+        why = []
+        if b == "beta_B" and no_back:
+            why.append("no backscatter seen (B_inf < 0.01): it does not matter in renders")
+        if b in ("B_inf", "beta_B") and not no_back and not self.separable[c]:
+            beta_b = float(self.params["beta_B"][c])
+            if beta_b * lo_r > 2.0:
+                why.append("not separable: the backscatter is saturated at the nearest range")
+                self.near_back.append(ch)
+            else:
+                why.append("not separable: the backscatter hardly bends over the ranges seen")
+                far = min(max(2.0 / max(beta_b, 1e-3), hi_r * 1.5), max(4 * hi_r, hi_r + 2))
+                self.far_back[ch] = max(self.far_back.get(ch, 0.0), far)
+        return why
+
+    def _uncertain(self, b: str, c: int, v: float) -> list[str]:
+        """An uncertainty above ``max_rel_std`` (for beta_D: how far to film to pin it down)."""
+        if not self.rel_std[b][c] > self.max_rel_std:  # (a nan uncertainty is not judged)
+            return []
+        if b == "beta_D":
+            lo_r, hi_r = self.range_m
+            # two attenuation lengths of the direct signal, at most four times the
+            # farthest range seen (a value near 0 asks for "much farther", not 1/0)
+            want = max(2.0 * (hi_r - lo_r), 2.0 / (wm.PATH[self.chosen.lighting] * max(v, 1e-3)))
+            self.cover_to = max(self.cover_to, min(lo_r + want, max(4.0 * hi_r, hi_r + 2.0)))
+        return [f"uncertain: +-{100 * self.rel_std[b][c]:.0f} %"]
+
+    def _disagreeing(self, b: str, c: int, lv: float) -> list[str]:
+        """The plausible other lighting models whose value lies beyond the uncertainties."""
+        why = []
+        for o in self.others:
+            if not o.plausible:
+                continue
+            vo, uo = float(o.params[b][c]), float(o.rel_std()[b][c])
+            gap = abs(lv - math.log(max(vo, 1e-300)))
+            if gap > self.disagree_sigmas * math.hypot(self.rel_std[b][c], uo) and gap > 0.05:
+                why.append(
+                    f"the {o.lighting} lighting model fits the held-out frames about as well "
+                    f"and gives {vo:.3g} (+-{100 * uo:.0f} %)"
+                )
+                self.disagree_models.add(o.lighting)
+        return why
+
+    def to_film(self) -> list[str]:
+        """What to film (or state) to pin the undetermined values down, one line each."""
+        lo_r, hi_r = self.range_m
+        film = [] if not self.disagree_models else [self._lighting_line()]
+        if self.cover_to > 0.0:
+            film.append(
+                f"film the board over a wider range of distances: seen at {lo_r:.2f}-{hi_r:.2f} "
+                f"m, cover {max(lo_r * 0.7, 0.3):.1f}-{self.cover_to:.1f} m"
+            )
+        if self.misfit:
+            film.append(
+                f"no lighting model explains the contrast of {', '.join(self.misfit)}: film with "
+                "steady light (automatic exposure and gain off), a flat matte board without "
+                "glare, the lighting stated with --lighting"
+            )
+        if self.far_back:
+            film.append(
+                f"film farther (towards {max(self.far_back.values()):.1f} m, as far as the board "
+                f"is found; seen to {hi_r:.2f} m) so that the black level of "
+                f"{', '.join(sorted(self.far_back, key=CHANNELS.index))} levels off towards its "
+                "veiling light"
+            )
+        if self.near_back:
+            film.append(
+                f"film nearer than {lo_r:.2f} m to see the backscatter of "
+                f"{', '.join(dict.fromkeys(self.near_back))} grow"
+            )
+        return list(dict.fromkeys(film))
+
+    def _lighting_line(self) -> str:
+        """What to film when plausible lighting models disagree on a value."""
+        names = sorted({self.chosen.lighting, *self.disagree_models})
         if "ambient" in names:
-            film.insert(
-                0,
+            return (
                 "the frames do not tell the lighting apart ("
                 + ", ".join(names)
                 + "): film again with the tank and room lights off and only the lamp on "
                 "(or the lamp off), from as near as the board fits the image, or state the "
-                "lighting with --lighting lamp|ambient|both",
+                "lighting with --lighting lamp|ambient|both"
             )
-        else:
-            film.insert(
-                0,
-                "the frames do not tell a lamp alone from a lamp plus ambient light apart: film "
-                "once with the tank and room lights off, or state it with --lighting lamp|both",
-            )
-    determined = {b: [(b, ch) not in reasons for ch in CHANNELS] for b in JUDGED}
-    if cover_to > 0.0:
-        film.append(
-            f"film the board over a wider range of distances: seen at {lo_r:.2f}-{hi_r:.2f} m, "
-            f"cover {max(lo_r * 0.7, 0.3):.1f}-{cover_to:.1f} m"
+        return (
+            "the frames do not tell a lamp alone from a lamp plus ambient light apart: film "
+            "once with the tank and room lights off, or state it with --lighting lamp|both"
         )
-    if misfit:
-        film.append(
-            f"no lighting model explains the contrast of {', '.join(misfit)}: film with steady "
-            "light (automatic exposure and gain off), a flat matte board without glare, the "
-            "lighting stated with --lighting"
-        )
-    if far_back:
-        film.append(
-            f"film farther (towards {max(far_back.values()):.1f} m, as far as the board is "
-            f"found; seen to {hi_r:.2f} m) so that the black level of "
-            f"{', '.join(sorted(far_back, key=CHANNELS.index))} levels off towards its veiling "
-            "light"
-        )
-    if near_back:
-        film.append(
-            f"film nearer than {lo_r:.2f} m to see the backscatter of "
-            f"{', '.join(dict.fromkeys(near_back))} grow"
-        )
-    return Verdict(determined, reasons, list(dict.fromkeys(film)))
