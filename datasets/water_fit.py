@@ -448,43 +448,9 @@ def fit_water(samples: PatchSamples, cfg: FitWaterConfig | None = None) -> Water
     cfg = cfg or FitWaterConfig()
     cfg.validate()
     s = samples
-    if len(s) < 20 or s.white.all() or not s.white.any():
-        raise DockError(
-            f"the water fit needs black and white patches of the target: found {len(s)} "
-            f"({int(s.white.sum())} white) in {s.frames_used} of {s.frames_read} frames"
-        )
-    spread = float(s.range_m.max() - s.range_m.min())
-    if spread < cfg.min_range_spread_m:
-        raise DockError(
-            f"the target was seen from {s.range_m.min():.2f} to {s.range_m.max():.2f} m only: "
-            f"the fit needs ranges spanning {cfg.min_range_spread_m:g} m or more (film it from "
-            f"near and far)"
-        )
+    _check_samples(s, cfg)
     photons, read = estimate_noise(s, cfg.gamma)
-    lightings = cfg.lightings()
-    models = {L: _fit_model(s, cfg, L, photons, read) for L in lightings}
-    auto = len(lightings) > 1
-    if auto and len(np.unique(s.frame)) < 3:
-        raise DockError(
-            f"choosing the lighting needs the target in 3 or more frames (found it in "
-            f"{len(np.unique(s.frame))}): film more, or state it with --lighting"
-        )
-    if auto:
-        for m in models.values():
-            _cross_validate(s, cfg, m, photons, read)
-            m.degenerate = lamp_not_seen(m)
-        candidates = [m for m in models.values() if not m.degenerate] or list(models.values())
-        best = min(m.heldout_rms for m in candidates)
-        for m in models.values():
-            m.plausible = not m.degenerate and (
-                m.heldout_rms <= best * (1.0 + cfg.plausible_tolerance)
-            )
-        chosen = min(candidates, key=lambda m: m.heldout_rms)
-    else:
-        chosen = models[lightings[0]]
-    for m in models.values():
-        if m.plausible:
-            _bootstrap(s, cfg, m, photons, read)
+    models, chosen = _fit_lightings(s, cfg, photons, read)
     x = chosen.x
     lighting = chosen.lighting
     p, vig = wm.unpack(x)
@@ -496,47 +462,9 @@ def fit_water(samples: PatchSamples, cfg: FitWaterConfig | None = None) -> Water
     cerr = contrast_error(*_contrast(s, model))
     r_lo, r_hi = float(s.range_m.min()), float(s.range_m.max())
     separable = backscatter_separable(p["B_inf"], p["beta_B"], r_lo, r_hi)
-    verdict = judge(chosen, [m for m in models.values() if m is not chosen], (r_lo, r_hi),
-                    separable, cfg.max_rel_std, cfg.disagree_sigmas, cerr,
-                    cfg.max_contrast_error)  # fmt: skip
-    if cfg.target == "markers":  # rendered films: attenuation 18-173 % off, contrast within 3.4 %
-        for ch in CHANNELS:
-            verdict.reasons.setdefault(("beta_D", ch), []).append(
-                "the marker board is an approximate target (on rendered films its attenuation "
-                "came out 18-173 % off)"
-            )
-        verdict.determined["beta_D"] = [False, False, False]
-        verdict.to_film.append("film a flat chessboard (--target chessboard) for the water file")
-    warnings = []
-    for (b, ch), why in verdict.reasons.items():
-        warnings.append(f"{b} {ch} = {params[b][CHANNELS.index(ch)]:.3g} is not determined by "
-                        f"these frames: {'; '.join(why)}")  # fmt: skip
-    if chosen.fit_rms_8bit > MISFIT_8BIT:
-        warnings.append(
-            f"no lighting model explains these frames well (residual {chosen.fit_rms_8bit:.1f} "
-            f"grey levels; rendered films fit within 0.6): uneven or changing light (automatic "
-            "exposure, room lights), a board that is not flat or glare; treat every value as "
-            "approximate"
-        )
-    if cfg.target == "markers":
-        warnings.append(
-            "the marker board is an approximate target (small 3D markers, shaded): on rendered "
-            "films its attenuation came out 18-173 % off where a chessboard's was within 10 % "
-            "(bench/results/water_fit.json); film a flat chessboard for the water file"
-        )
-    base = PRESETS[cfg.base]
-    water = dataclasses.replace(
-        base,
-        beta_D_rgb=_rgb(np.clip(p["beta_D"], 0.0, 100.0)),
-        beta_B_rgb=_rgb(np.clip(p["beta_B"], 0.0, 100.0)),
-        B_inf_rgb=_rgb(np.clip(p["B_inf"], 0.0, 1.0)),
-        vignetting=float(min(vig, 0.95)),
-        artificial_light=lighting != "ambient",
-        gamma=cfg.gamma,
-        photons_at_white=photons if photons is not None else base.photons_at_white,
-        read_noise=read,
-    )
-    water.validate()
+    verdict = _verdict(chosen, models, (r_lo, r_hi), separable, cerr, cfg)
+    warnings = _fit_warnings(verdict, params, chosen, cfg)
+    water = _water_config(p, vig, lighting, photons, read, cfg)
     return WaterFit(
         water=water,
         params=params,
@@ -557,6 +485,139 @@ def fit_water(samples: PatchSamples, cfg: FitWaterConfig | None = None) -> Water
         verdict=verdict,
         _x=x,
     )
+
+
+def _check_samples(s: PatchSamples, cfg: FitWaterConfig) -> None:
+    """Refuse patches without both albedo classes, too few of them, or too narrow a range."""
+    if len(s) < 20 or s.white.all() or not s.white.any():
+        raise DockError(
+            f"the water fit needs black and white patches of the target: found {len(s)} "
+            f"({int(s.white.sum())} white) in {s.frames_used} of {s.frames_read} frames"
+        )
+    spread = float(s.range_m.max() - s.range_m.min())
+    if spread < cfg.min_range_spread_m:
+        raise DockError(
+            f"the target was seen from {s.range_m.min():.2f} to {s.range_m.max():.2f} m only: "
+            f"the fit needs ranges spanning {cfg.min_range_spread_m:g} m or more (film it from "
+            f"near and far)"
+        )
+
+
+def _fit_lightings(
+    s: PatchSamples, cfg: FitWaterConfig, photons: float | None, read: float
+) -> tuple[dict[str, ModelResult], ModelResult]:
+    """Every lighting model asked for, fitted; the chosen one (by held-out error when there
+    are several); the plausible ones bootstrapped."""
+    lightings = cfg.lightings()
+    models = {L: _fit_model(s, cfg, L, photons, read) for L in lightings}
+    auto = len(lightings) > 1
+    if auto and len(np.unique(s.frame)) < 3:
+        raise DockError(
+            f"choosing the lighting needs the target in 3 or more frames (found it in "
+            f"{len(np.unique(s.frame))}): film more, or state it with --lighting"
+        )
+    if auto:
+        chosen = _choose_lighting(s, cfg, models, photons, read)
+    else:
+        chosen = models[lightings[0]]
+    for m in models.values():
+        if m.plausible:
+            _bootstrap(s, cfg, m, photons, read)
+    return models, chosen
+
+
+def _choose_lighting(
+    s: PatchSamples,
+    cfg: FitWaterConfig,
+    models: dict[str, ModelResult],
+    photons: float | None,
+    read: float,
+) -> ModelResult:
+    """The models cross-validated and marked degenerate or plausible; the non-degenerate one
+    with the least held-out error (any one when all are degenerate)."""
+    for m in models.values():
+        _cross_validate(s, cfg, m, photons, read)
+        m.degenerate = lamp_not_seen(m)
+    candidates = [m for m in models.values() if not m.degenerate] or list(models.values())
+    best = min(m.heldout_rms for m in candidates)
+    for m in models.values():
+        m.plausible = not m.degenerate and (m.heldout_rms <= best * (1.0 + cfg.plausible_tolerance))
+    return min(candidates, key=lambda m: m.heldout_rms)
+
+
+def _verdict(
+    chosen: ModelResult,
+    models: dict[str, ModelResult],
+    range_m: tuple[float, float],
+    separable: list[bool],
+    cerr: tuple[float, float, float],
+    cfg: FitWaterConfig,
+) -> Verdict:
+    """What the frames determine (:func:`judge`); with the marker board, never beta_D."""
+    verdict = judge(chosen, [m for m in models.values() if m is not chosen], range_m,
+                    separable, cfg.max_rel_std, cfg.disagree_sigmas, cerr,
+                    cfg.max_contrast_error)  # fmt: skip
+    if cfg.target == "markers":  # rendered films: attenuation 18-173 % off, contrast within 3.4 %
+        for ch in CHANNELS:
+            verdict.reasons.setdefault(("beta_D", ch), []).append(
+                "the marker board is an approximate target (on rendered films its attenuation "
+                "came out 18-173 % off)"
+            )
+        verdict.determined["beta_D"] = [False, False, False]
+        verdict.to_film.append("film a flat chessboard (--target chessboard) for the water file")
+    return verdict
+
+
+def _fit_warnings(
+    verdict: Verdict,
+    params: dict[str, tuple[float, ...]],
+    chosen: ModelResult,
+    cfg: FitWaterConfig,
+) -> list[str]:
+    """One line per undetermined value, then a poor fit and the marker board's caveat."""
+    warnings = []
+    for (b, ch), why in verdict.reasons.items():
+        warnings.append(f"{b} {ch} = {params[b][CHANNELS.index(ch)]:.3g} is not determined by "
+                        f"these frames: {'; '.join(why)}")  # fmt: skip
+    if chosen.fit_rms_8bit > MISFIT_8BIT:
+        warnings.append(
+            f"no lighting model explains these frames well (residual {chosen.fit_rms_8bit:.1f} "
+            f"grey levels; rendered films fit within 0.6): uneven or changing light (automatic "
+            "exposure, room lights), a board that is not flat or glare; treat every value as "
+            "approximate"
+        )
+    if cfg.target == "markers":
+        warnings.append(
+            "the marker board is an approximate target (small 3D markers, shaded): on rendered "
+            "films its attenuation came out 18-173 % off where a chessboard's was within 10 % "
+            "(bench/results/water_fit.json); film a flat chessboard for the water file"
+        )
+    return warnings
+
+
+def _water_config(
+    p: dict[str, np.ndarray],
+    vig: float,
+    lighting: str,
+    photons: float | None,
+    read: float,
+    cfg: FitWaterConfig,
+) -> WaterConfig:
+    """The fitted values as a water file's config (the base preset's other fields), checked."""
+    base = PRESETS[cfg.base]
+    water = dataclasses.replace(
+        base,
+        beta_D_rgb=_rgb(np.clip(p["beta_D"], 0.0, 100.0)),
+        beta_B_rgb=_rgb(np.clip(p["beta_B"], 0.0, 100.0)),
+        B_inf_rgb=_rgb(np.clip(p["B_inf"], 0.0, 1.0)),
+        vignetting=float(min(vig, 0.95)),
+        artificial_light=lighting != "ambient",
+        gamma=cfg.gamma,
+        photons_at_white=photons if photons is not None else base.photons_at_white,
+        read_noise=read,
+    )
+    water.validate()
+    return water
 
 
 def _rgb(v: np.ndarray) -> tuple[float, float, float]:
