@@ -619,16 +619,24 @@ def refine_level_board(
     x0 = np.array([*T0[:3, 3], math.atan2(T0[1, 0], T0[0, 0])])
 
     zero = np.zeros(3)
+    last: dict[bytes, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
     def project(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The corners in the camera (p_cam = R_cw (Rz(yaw) obj + xyz) + t_cw), their pixels,
-        and OpenCV's Jacobian of the pixels with respect to a shift of all points."""
-        c, s = math.cos(x[3]), math.sin(x[3])
-        Rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-        p_cam = (obj @ Rz.T + x[:3]) @ R_cw.T + t_cw
-        proj, jac = cv2.projectPoints(p_cam, zero, zero, K, dist)
-        # columns 3-5 of OpenCV's Jacobian: d pixel / d tvec = d pixel / d p_cam of each point
-        return p_cam, proj.reshape(-1, 2), jac[:, 3:6]
+        and OpenCV's Jacobian of the pixels with respect to a shift of all points. The last
+        point's result is kept: MINPACK asks for the Jacobian where it has just evaluated
+        the residual."""
+        key = x.tobytes()
+        if key not in last:
+            c, s = math.cos(x[3]), math.sin(x[3])
+            Rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+            p_cam = (obj @ Rz.T + x[:3]) @ R_cw.T + t_cw
+            proj, jac = cv2.projectPoints(p_cam, zero, zero, K, dist)
+            # columns 3-5 of OpenCV's Jacobian: d pixel / d tvec = d pixel / d p_cam of each
+            # point
+            last.clear()
+            last[key] = (p_cam, proj.reshape(-1, 2), jac[:, 3:6])
+        return last[key]
 
     def residual(x: np.ndarray) -> np.ndarray:
         return (project(x)[1] - img).ravel()
