@@ -344,17 +344,52 @@ def run_sweep(
         DockError: a bad grid or config, Ray or Ray Tune missing, a trial that failed more
             than ``cfg.max_failures`` times (its reason).
     """
-    trials = plan_trials(base, cfg, grid)
-    # inputs: read here (a missing or broken one is one line before anything starts), then
-    # named by absolute path, so a trial finds them from its own folder, and checked on every
-    # node once Ray is up
+    trials, inputs = _with_absolute_inputs(plan_trials(base, cfg, grid))
+    loopback_local_ray(ray_address)  # before Ray's import: a local instance on 127.0.0.1 only
+    ray, tune = _import_ray_tune()
+    # the address answers and Ray starts or joins before anything is written: a bad address
+    # is one line and leaves no sweep folder behind
+    preflight(PoolConfig("ray", 1, ray_address))
+    # Ctrl-C ends the command as any other (one line, exit 130; rerunning resumes every trial
+    # from its own run folder), not through Tune's graceful stop and its Tuner.restore advice
+    os.environ["TUNE_DISABLE_SIGINT_HANDLER"] = "1"
+    reserve = {
+        t.name: trial_resources(t.config, cfg.cpus_per_trial, cfg.gpus_per_trial) for t in trials
+    }
+    _start_cluster(ray, reserve, inputs, ray_address)
+    out = Path(out_dir)
+    created = not out.exists()
+    out.mkdir(parents=True, exist_ok=True)
+    _check_shared(ray, out, created)
+    plan = _write_plan(out, trials, reserve, cfg, grid)
+    tuner = _tuner(tune, plan, reserve, cfg, out)
+    note(f"{len(trials)} trials into {out}")
+    results = tuner.fit()
+    summary = {name: {**_trial_summary(Path(p["run_dir"])), "seed": p["seed"],
+                      "changes": p["changes"]} for name, p in plan.items()}  # fmt: skip
+    atomic_write_json(out / "sweep_summary.json", summary)
+    failed = [r for r in results if r.error is not None]
+    if failed:
+        why = " ".join(str(failed[0].error).split())[:300]
+        raise DockError(f"{len(failed)} of {len(trials)} trials failed; the first: {why}")
+    return summary
+
+
+def _with_absolute_inputs(trials: list[Trial]) -> tuple[list[Trial], set[str]]:
+    """The trials with their env's input files checked and named by absolute path, and those
+    files (read here: a missing or broken one is one line before anything starts; by absolute
+    path a trial finds them from its own folder; checked on every node once Ray is up)."""
     inputs: set[str] = set()
     for i, t in enumerate(trials):
         check_env_files(t.config.env)
         env, files = absolute_inputs(t.config.env)
         inputs.update(files)
         trials[i] = dataclasses.replace(t, config=dataclasses.replace(t.config, env=env))
-    loopback_local_ray(ray_address)  # before Ray's import: a local instance on 127.0.0.1 only
+    return trials, inputs
+
+
+def _import_ray_tune() -> tuple[Any, Any]:
+    """The ``ray`` and ``ray.tune`` modules, or one line naming the extra that installs them."""
     try:
         import ray
         from ray import tune
@@ -362,13 +397,13 @@ def run_sweep(
         raise DockError(
             "rl sweep needs Ray Tune (pip install 'uwdock[ray]', which installs ray[tune])"
         ) from None
-    # the address answers and Ray starts or joins before anything is written: a bad address
-    # is one line and leaves no sweep folder behind
-    preflight(PoolConfig("ray", 1, ray_address))
-    os.environ["TUNE_DISABLE_SIGINT_HANDLER"] = "1"  # (see below)
-    reserve = {
-        t.name: trial_resources(t.config, cfg.cpus_per_trial, cfg.gpus_per_trial) for t in trials
-    }
+    return ray, tune
+
+
+def _start_cluster(
+    ray: Any, reserve: dict[str, TrialResources], inputs: set[str], ray_address: str | None
+) -> None:
+    """Start or join Ray; refuse a trial its nodes can never place, or inputs a node lacks."""
     # a local instance holds the largest trial whatever the machine (it then runs alone)
     local_cpus = max(max(math.ceil(r.cpus) for r in reserve.values()), os.cpu_count() or 1)
     start_ray(ray, local_cpus, ray_address)
@@ -376,10 +411,17 @@ def run_sweep(
     for name, r in reserve.items():
         check_fits(r, nodes, name)
     check_inputs_on_nodes(ray, sorted(inputs))
-    out = Path(out_dir)
-    created = not out.exists()
-    out.mkdir(parents=True, exist_ok=True)
-    _check_shared(ray, out, created)
+
+
+def _write_plan(
+    out: Path,
+    trials: list[Trial],
+    reserve: dict[str, TrialResources],
+    cfg: SweepConfig,
+    grid: Mapping[str, Sequence[Any]],
+) -> dict[str, dict[str, Any]]:
+    """``sweep.json`` (refused when ``out`` holds another sweep's); returns the plan: trial ->
+    its config, run folder, seed, changes and resources."""
     plan = {
         t.name: {"config": to_dict(t.config), "run_dir": str((out / t.name).resolve()),
                  "seed": t.seed, "changes": t.changes}
@@ -404,9 +446,18 @@ def run_sweep(
                             "resources": run_how})  # fmt: skip
     for name, how in run_how.items():  # not compared on resume: a rerun may reserve otherwise
         plan[name]["resources"] = how
-    # Ctrl-C ends the command as any other (one line, exit 130; rerunning resumes every trial
-    # from its own run folder), not through Tune's graceful stop and its Tuner.restore advice:
-    # TUNE_DISABLE_SIGINT_HANDLER, set above
+    return plan
+
+
+def _tuner(
+    tune: Any,
+    plan: dict[str, dict[str, Any]],
+    reserve: dict[str, TrialResources],
+    cfg: SweepConfig,
+    out: Path,
+) -> Any:
+    """The Tune run of the plan: one grid point per trial, each in its own placement group,
+    Tune's own files under ``out/.tune``."""
 
     def resources(config: dict[str, Any]) -> Any:
         """The trial's reservation (:func:`trial_resources`; a grid may change it per trial)."""
@@ -414,7 +465,7 @@ def run_sweep(
 
     trainable = tune.with_resources(tune.with_parameters(_run_trial, plan=plan), resources)
     stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y%m%dT%H%M%S")
-    tuner = tune.Tuner(
+    return tune.Tuner(
         trainable,
         param_space={"trial": tune.grid_search(list(plan))},
         tune_config=tune.TuneConfig(max_concurrent_trials=cfg.max_concurrent_trials or None),
@@ -425,13 +476,3 @@ def run_sweep(
             failure_config=tune.FailureConfig(max_failures=cfg.max_failures),
         ),
     )
-    note(f"{len(trials)} trials into {out}")
-    results = tuner.fit()
-    summary = {name: {**_trial_summary(Path(p["run_dir"])), "seed": p["seed"],
-                      "changes": p["changes"]} for name, p in plan.items()}  # fmt: skip
-    atomic_write_json(out / "sweep_summary.json", summary)
-    failed = [r for r in results if r.error is not None]
-    if failed:
-        why = " ".join(str(failed[0].error).split())[:300]
-        raise DockError(f"{len(failed)} of {len(trials)} trials failed; the first: {why}")
-    return summary
