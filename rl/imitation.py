@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import copy
 from dataclasses import dataclass
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 from tqdm import tqdm
@@ -86,47 +86,93 @@ def warm_start(
     success_key = f"success_{env_cfg.terminate_on}"  # the condition that ends an episode
     teacher = PIDController.for_env(env_cfg)
     policy = model.policy
-    obs_all, act_all, ret_all = [], [], []
-    history: dict[str, list[float]] = {"loss": [], "docked": [], "samples": []}
     total = (cfg.iterations + 1) * cfg.episodes_per_iteration
     bar = tqdm(total=total, desc="imitation", unit="ep", disable=not progress)
-    rms = vecnorm.obs_rms if vecnorm is not None else None
-    ep_seed = [seed + 500_000]
+    rollouts = _Rollouts(env, success_key, teacher, policy, vecnorm, cfg, gamma, bar,
+                         ep_seed=seed + 500_000)  # fmt: skip
+    history, states = _dagger(model, vecnorm, rollouts, cfg, bar)
+    final_frac, *_ = rollouts.collect(student=True)
+    history["docked"].append(final_frac)
+    best = _keep_best_student(policy, vecnorm, history["docked"][1:], states)
+    history["selected_iteration"] = [best]
+    history["env_steps"] = [rollouts.steps]
+    bar.close()
+    env.close()
+    with torch.no_grad():
+        policy.log_std.fill_(cfg.log_std)
+    return history
 
-    steps = [0]
 
-    def rollouts(student: bool) -> tuple[float, list, list, list]:
+@dataclass
+class _Rollouts:
+    """The episodes of a warm start: the teacher (or the student's mean action) acting, the
+    teacher labelling every observation; the episode seeds run on, the env steps counted."""
+
+    env: DockingEnv
+    success_key: str
+    teacher: PIDController
+    policy: Any
+    vecnorm: Any
+    cfg: ImitationConfig
+    gamma: float
+    bar: tqdm
+    ep_seed: int
+    steps: int = 0
+
+    def collect(self, student: bool) -> tuple[float, list, list, list]:
+        """One iteration's episodes: the docked fraction and, per episode, its observations,
+        the teacher's labels and the discounted returns."""
         docked, O, A, G = 0, [], [], []
-        for _ in range(cfg.episodes_per_iteration):
-            obs, _ = env.reset(seed=ep_seed[0])
-            ep_seed[0] += 1
-            teacher.reset()
-            ep_obs, ep_act, ep_rew = [], [], []
-            done = False
-            while not done:
-                label = teacher.act(obs)
-                action = label
-                if student:
-                    o = vecnorm.normalize_obs(obs[None]) if vecnorm is not None else obs[None]
-                    with torch.no_grad():
-                        dist = policy.get_distribution(torch.as_tensor(o, dtype=torch.float32))
-                        action = np.clip(dist.distribution.mean.numpy()[0], -1, 1)
-                ep_obs.append(obs)
-                ep_act.append(label)
-                obs, r, term, trunc, info = env.step(action)
-                steps[0] += 1
-                ep_rew.append(r)
-                done = term or trunc
-            docked += int(info[success_key])
+        for _ in range(self.cfg.episodes_per_iteration):
+            ep_obs, ep_act, ep_rew, info = self._episode(student)
+            docked += int(info[self.success_key])
             O.append(np.asarray(ep_obs))
             A.append(np.asarray(ep_act))
-            G.append(_discounted(np.asarray(ep_rew), gamma))
-            bar.update(1)
-        return docked / cfg.episodes_per_iteration, O, A, G
+            G.append(_discounted(np.asarray(ep_rew), self.gamma))
+            self.bar.update(1)
+        return docked / self.cfg.episodes_per_iteration, O, A, G
 
-    states: list[dict] = []
+    def _episode(self, student: bool) -> tuple[list, list, list, dict]:
+        """One episode: (observations, teacher labels, rewards, the last step's info)."""
+        obs, _ = self.env.reset(seed=self.ep_seed)
+        self.ep_seed += 1
+        self.teacher.reset()
+        ep_obs, ep_act, ep_rew = [], [], []
+        done = False
+        while not done:
+            label = self.teacher.act(obs)
+            action = self._student_action(obs) if student else label
+            ep_obs.append(obs)
+            ep_act.append(label)
+            obs, r, term, trunc, info = self.env.step(action)
+            self.steps += 1
+            ep_rew.append(r)
+            done = term or trunc
+        return ep_obs, ep_act, ep_rew, info
+
+    def _student_action(self, obs: np.ndarray) -> np.ndarray:
+        """The student's mean action for an observation, clipped to [-1, 1]."""
+        import torch
+
+        vecnorm = self.vecnorm
+        o = vecnorm.normalize_obs(obs[None]) if vecnorm is not None else obs[None]
+        with torch.no_grad():
+            dist = self.policy.get_distribution(torch.as_tensor(o, dtype=torch.float32))
+            return np.clip(dist.distribution.mean.numpy()[0], -1, 1)
+
+
+def _dagger(
+    model, vecnorm, rollouts: _Rollouts, cfg: ImitationConfig, bar: tqdm
+) -> tuple[dict[str, list[float]], list[tuple[dict, Any]]]:
+    """The DAgger iterations: roll out (the teacher first, then the student), aggregate, refit;
+    returns the history and each iteration's student with its normalisation."""
+    policy = model.policy
+    rms = vecnorm.obs_rms if vecnorm is not None else None
+    obs_all, act_all, ret_all = [], [], []
+    history: dict[str, list[float]] = {"loss": [], "docked": [], "samples": []}
+    states: list[tuple[dict, Any]] = []
     for it in range(cfg.iterations):
-        frac, O, A, G = rollouts(student=it > 0)
+        frac, O, A, G = rollouts.collect(student=it > 0)
         obs_all += O
         act_all += A
         ret_all += G
@@ -141,21 +187,18 @@ def warm_start(
         history["docked"].append(frac)
         history["samples"].append(sum(len(o) for o in O))
         bar.set_postfix(loss=f"{loss:.4f}", docked=f"{frac:.2f}")
-    final_frac, *_ = rollouts(student=True)
-    history["docked"].append(final_frac)
-    scores = history["docked"][1:]  # score of the student fitted at iteration k is scores[k]
+    return history, states
+
+
+def _keep_best_student(policy, vecnorm, scores: list[float], states: list[tuple[dict, Any]]) -> int:
+    """Load the best-scoring student (``scores[k]``: the student fitted at iteration k) and its
+    normalisation; returns its iteration."""
     best = len(scores) - 1 - int(np.argmax(scores[::-1]))  # ties: the later, better-fed student
     weights, norm = states[best]
     policy.load_state_dict(weights)
     if vecnorm is not None:
         vecnorm.obs_rms, vecnorm.ret_rms = norm
-    history["selected_iteration"] = [best]
-    history["env_steps"] = [steps[0]]
-    bar.close()
-    env.close()
-    with torch.no_grad():
-        policy.log_std.fill_(cfg.log_std)
-    return history
+    return best
 
 
 def _fit(
