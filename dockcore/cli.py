@@ -208,48 +208,7 @@ def run_group(group: click.Group, args: list[str] | None = None) -> None:
         _installed.clear()
     argv = list(sys.argv[1:] if args is None else args)
     try:
-        # click's main() without its standalone handling (which prints a blank line on an
-        # interrupt): make the context, invoke, and let every exception come here
-        with group.make_context(Path(sys.argv[0]).name or group.name, argv) as ctx:
-            group.invoke(ctx)
-    except _Interrupted:
-        click.echo("error: interrupted (SIGTERM)", err=True)
-        sys.exit(128 + signal.SIGTERM)
-    except (KeyboardInterrupt, click.exceptions.Abort):
-        if _received[-1:] == [signal.SIGTERM]:  # a library re-raised it as a plain interrupt
-            click.echo("error: interrupted (SIGTERM)", err=True)
-            sys.exit(128 + signal.SIGTERM)
-        click.echo("error: interrupted", err=True)
-        sys.exit(130)
-    except click.exceptions.NoArgsIsHelpError as exc:  # a bare group: its help, not an error
-        click.echo(exc.ctx.get_help() if exc.ctx else group.get_help(click.Context(group)))
-        sys.exit(2)
-    except click.ClickException as exc:  # usage errors: click's own one-line message
-        message = " ".join(exc.format_message().split())
-        click.echo(f"error: {message}", err=True)
-        sys.exit(exc.exit_code)
-    except click.exceptions.Exit as exc:
-        sys.exit(exc.exit_code)
-    except DockError as exc:
-        click.echo(f"error: {' '.join(str(exc).split())}", err=True)
-        sys.exit(2)
-    except OSError as exc:
-        click.echo(f"error: {_oserror_line(exc)}", err=True)
-        sys.exit(2)
-    except Exception as exc:  # a bug: one line, the traceback on request
-        if _received:  # what an interrupt left behind (e.g. a module that failed to load)
-            sigterm = signal.SIGTERM in _received
-            click.echo(f"error: interrupted{' (SIGTERM)' if sigterm else ''}", err=True)
-            sys.exit(128 + signal.SIGTERM if sigterm else 130)
-        if os.environ.get("UWDOCK_DEBUG"):
-            traceback.print_exc()
-        text = " ".join(str(exc).split()) or type(exc).__name__
-        click.echo(
-            f"error: internal error ({type(exc).__name__}: {text[:300]}); "
-            "rerun with UWDOCK_DEBUG=1 for the traceback and please report it",
-            err=True,
-        )
-        sys.exit(1)
+        code = _invoke(group, argv)
     finally:
         # A program whose command has finished only has the interpreter's shutdown left
         # (joining workers, atexit): a signal landing there would end it by an unhandled
@@ -262,4 +221,55 @@ def run_group(group: click.Group, args: list[str] | None = None) -> None:
             signal.signal(signal.SIGTERM, late if late is not None else previous)
         if previous_int is not None:
             signal.signal(signal.SIGINT, late if late is not None else previous_int)
-    sys.exit(0)
+    sys.exit(code)
+
+
+def _invoke(group: click.Group, argv: list[str]) -> int:
+    """Run the command; its exit status, with the one line for an error written (module
+    docstring). ``UWDOCK_DEBUG=1`` adds the traceback of a bug, or of where a SIGTERM landed."""
+    try:
+        # click's main() without its standalone handling (which prints a blank line on an
+        # interrupt): make the context, invoke, and let every exception come here
+        with group.make_context(Path(sys.argv[0]).name or group.name, argv) as ctx:
+            group.invoke(ctx)
+    except _Interrupted:
+        if os.environ.get("UWDOCK_DEBUG"):  # where the signal landed
+            traceback.print_exc()
+        click.echo("error: interrupted (SIGTERM)", err=True)
+        return 128 + signal.SIGTERM
+    except (KeyboardInterrupt, click.exceptions.Abort):
+        if _received[-1:] == [signal.SIGTERM]:  # a library re-raised it as a plain interrupt
+            click.echo("error: interrupted (SIGTERM)", err=True)
+            return 128 + signal.SIGTERM
+        click.echo("error: interrupted", err=True)
+        return 130
+    except click.exceptions.NoArgsIsHelpError as exc:  # a bare group: its help, not an error
+        click.echo(exc.ctx.get_help() if exc.ctx else group.get_help(click.Context(group)))
+        return 2
+    except click.ClickException as exc:  # usage errors: click's own one-line message
+        message = " ".join(exc.format_message().split())
+        click.echo(f"error: {message}", err=True)
+        return exc.exit_code
+    except click.exceptions.Exit as exc:
+        return exc.exit_code
+    except DockError as exc:
+        click.echo(f"error: {' '.join(str(exc).split())}", err=True)
+        return 2
+    except OSError as exc:
+        click.echo(f"error: {_oserror_line(exc)}", err=True)
+        return 2
+    except Exception as exc:  # a bug: one line, the traceback on request
+        if _received:  # what an interrupt left behind (e.g. a module that failed to load)
+            sigterm = signal.SIGTERM in _received
+            click.echo(f"error: interrupted{' (SIGTERM)' if sigterm else ''}", err=True)
+            return 128 + signal.SIGTERM if sigterm else 130
+        if os.environ.get("UWDOCK_DEBUG"):
+            traceback.print_exc()
+        text = " ".join(str(exc).split()) or type(exc).__name__
+        click.echo(
+            f"error: internal error ({type(exc).__name__}: {text[:300]}); "
+            "rerun with UWDOCK_DEBUG=1 for the traceback and please report it",
+            err=True,
+        )
+        return 1
+    return 0

@@ -68,6 +68,7 @@ from uwdock.sim.fastpath import (
     hydro_params,
     physx_wrench,
 )
+from uwdock.sim.scene import new_scene
 from uwdock.sim.thrusters import ThrusterArray
 from uwdock.sim.vehicle import Current, CurrentConfig, Hydrodynamics, Imu, ImuReading, VehicleConfig
 
@@ -154,7 +155,7 @@ def make_physics_scene(timestep_s: float = 1.0 / PHYSICS_RATE_HZ) -> sapien.Scen
     Args:
         timestep_s: physics substep (s).
     """
-    scene = sapien.Scene([sapien.physx.PhysxCpuSystem()])
+    scene = new_scene([sapien.physx.PhysxCpuSystem()])
     scene.set_timestep(timestep_s)
     return scene
 

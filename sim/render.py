@@ -54,6 +54,7 @@ from uwdock.sim.docking_station import (
     sapien_pose,
 )
 from uwdock.sim.domains import RGB, BodyCoord_m
+from uwdock.sim.scene import new_scene
 from uwdock.sim.shaders import DEPTH_IN_ALPHA, hdr_shader_dir
 
 __all__ = [
@@ -505,7 +506,7 @@ def make_render_scene(
         The :class:`RenderScene`.
     """
     render_cfg = validated(render_cfg or RenderConfig())
-    scene = scene if scene is not None else sapien.Scene()
+    scene = scene if scene is not None else new_scene()
     scene.ambient_light = list(render_cfg.ambient_rgb)
     tank = build_tank(scene, ds_cfg, surface_lid=surface_lid, collision=tank_collision)
     ds = build_docking_station(scene, ds_cfg, marker_set, T_worldned_ds, cache_dir)
@@ -539,7 +540,7 @@ def board_views(
     depth = max(8.0, float(alts.max(initial=0.0)) + 2.0)
     ds_cfg = DockingStationConfig(tank_depth_m=depth)
     render_cfg = validated(render_cfg or RenderConfig())
-    scene = sapien.Scene()
+    scene = new_scene()
     scene.ambient_light = list(render_cfg.ambient_rgb)
     build_tank(scene, ds_cfg)
     half = np.array([cols / 2.0, rows / 2.0]) * square_m

@@ -24,6 +24,7 @@ from uwdock.sim.camera import Frame, SimCamera
 from uwdock.sim.docking_station import DockingStationConfig, build_docking_station
 from uwdock.sim.physics import VehicleBody, make_physics_scene, tank_planes
 from uwdock.sim.render import make_render_scene
+from uwdock.sim.scene import new_scene
 from uwdock.sim.vehicle import Current
 from uwdock.sim.water import resolve_water
 from uwdock.sim.world_config import WorldConfig
@@ -52,7 +53,7 @@ class DockingWorld:
         # a vehicle without a free surface (surface_band_m = 0) needs a lid to stay in the water
         lid = cfg.vehicle.surface_band_m <= 0
         if with_camera:
-            scene = sapien.Scene()
+            scene = new_scene()
             scene.set_timestep(1.0 / cfg.physics_hz)
             cam, T_body_cam = resolve_camera(cfg.camera_file, cfg.camera_width_px)
             self.render_scene = make_render_scene(
@@ -128,7 +129,7 @@ class DockingWorld:
         systems: list = [sapien.physx.PhysxCpuSystem()]
         if self.render_scene is not None:
             systems.append(old.render_system)
-        scene = sapien.Scene(systems)
+        scene = new_scene(systems)
         scene.set_timestep(old.timestep)
         for e in entities:
             scene.add_entity(e)

@@ -118,3 +118,39 @@ def test_provenance_records_config_commit_versions(tmp_path):
     assert set(on_disk["git"]) == {"commit", "dirty"}
     assert on_disk["packages"]["numpy"]
     assert load_config(Outer, tmp_path / "config.toml", section="outer").steps == 7
+
+
+def test_interrupts_deferred_holds_a_signal_until_the_step_is_whole():
+    """A SIGTERM sent inside the block reaches the process's handler only after the block (a
+    scene whose constructor it cut in half segfaulted on its destruction); one sent after it
+    at once; a SIG_IGN handler stays ignored."""
+    import os
+    import signal
+
+    from uwdock.dockcore.signals import interrupts_deferred
+
+    class Landed(Exception):
+        pass
+
+    def handler(signum, _frame):
+        raise Landed(signum)
+
+    previous = signal.signal(signal.SIGTERM, handler)
+    steps = []
+    try:
+        with pytest.raises(Landed):
+            with interrupts_deferred():
+                os.kill(os.getpid(), signal.SIGTERM)
+                for k in range(3):  # bytecode runs on: a handler would have raised here
+                    steps.append(k)
+        assert steps == [0, 1, 2]
+        assert signal.getsignal(signal.SIGTERM) is handler
+        with pytest.raises(Landed):
+            os.kill(os.getpid(), signal.SIGTERM)
+            sum(range(10))
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        with interrupts_deferred():
+            os.kill(os.getpid(), signal.SIGTERM)
+        assert signal.getsignal(signal.SIGTERM) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGTERM, previous)
