@@ -155,6 +155,10 @@ class FitWaterConfig:
     def validate(self) -> None:
         """Raise ValueError naming the first bad field."""
         check_fields(self)
+        if self.target not in TARGETS:
+            raise ValueError(f"target: must be one of {', '.join(TARGETS)}, got {self.target!r}")
+        if self.base not in PRESETS:
+            raise ValueError(f"base: unknown water preset {self.base!r}")
         if self.lighting not in ("auto", *LIGHTINGS):
             raise ValueError(
                 f"lighting: must be auto, {', '.join(LIGHTINGS)}, got {self.lighting!r}"
@@ -169,10 +173,6 @@ class FitWaterConfig:
         if not self.artificial_light:
             return ("ambient",)
         return LIGHTINGS if self.lighting == "auto" else (self.lighting,)
-        if self.target not in TARGETS:
-            raise ValueError(f"target: must be one of {', '.join(TARGETS)}, got {self.target!r}")
-        if self.base not in PRESETS:
-            raise ValueError(f"base: unknown water preset {self.base!r}")
 
 
 # ----------------------------------------------------------------------------- the fit

@@ -308,7 +308,10 @@ class _Judging:
 
     def _uncertain(self, b: str, c: int, v: float) -> list[str]:
         """An uncertainty above ``max_rel_std`` (for beta_D: how far to film to pin it down)."""
-        if not self.rel_std[b][c] > self.max_rel_std:  # (a nan uncertainty is not judged)
+        u = self.rel_std[b][c]
+        if math.isnan(u):  # neither the Jacobian nor the bootstrap gave one: not determined
+            return ["uncertain: no finite uncertainty (the frames do not constrain it)"]
+        if not u > self.max_rel_std:
             return []
         if b == "beta_D":
             lo_r, hi_r = self.range_m

@@ -429,5 +429,32 @@ def test_a_water_file_keeps_loading_with_the_fit_notes(tmp_path):
         load_water_file(path)
     with pytest.raises(ValueError, match="lighting"):
         FitWaterConfig(lighting="sun").validate()
+    # refused before the fit (the checks once sat after a return: a bad base failed as a
+    # KeyError after the whole fit, an unknown target was fitted as a chessboard)
+    with pytest.raises(ValueError, match="target: must be one of chessboard, markers"):
+        FitWaterConfig(target="banana").validate()
+    with pytest.raises(ValueError, match="base: unknown water preset 'nope'"):
+        FitWaterConfig(base="nope").validate()
     assert FitWaterConfig(artificial_light=False).lightings() == ("ambient",)
     assert FitWaterConfig().lightings() == ("lamp", "ambient", "both")
+
+
+def test_a_value_without_a_finite_uncertainty_is_not_determined():
+    """A NaN uncertainty (no Jacobian or bootstrap spread to speak of) is a reason, not a pass:
+    before, ``not nan > max_rel_std`` held and the value was reported as determined."""
+    from uwdock.datasets import water_fit_model as wm
+    from uwdock.datasets.water_fit_judge import ModelResult, judge
+
+    x = np.zeros(wm.N_PARAMS)
+    for b in wm.BLOCKS:  # every value mid-way between its bounds: none at a bound
+        lo, hi = wm.LOG_BOUNDS[b]
+        x[wm.SLICES[b]] = 0.5 * (lo + hi)
+    rel = {b: np.array([0.01, 0.01, 0.01]) for b in wm.BLOCKS}
+    rel["beta_D"] = np.array([0.01, np.nan, 0.01])
+    chosen = ModelResult("ambient", x, 1.0, 10, rel)
+    verdict = judge(chosen, [], (0.5, 3.0), [True, True, True], 0.25, 2.0)
+    assert verdict.determined["beta_D"] == [True, False, True]
+    assert verdict.reasons[("beta_D", "G")] == [
+        "uncertain: no finite uncertainty (the frames do not constrain it)"
+    ]
+    assert verdict.determined["B_inf"] == [True, True, True]
