@@ -59,6 +59,18 @@ def cli() -> None:
     """Datasets: labelled synthetic frames and loaders for real footage."""
 
 
+def _on_nodes(ray: dict) -> str:
+    """What a Ray run adds to the summary line (", on 2 Ray nodes (30 + 30 frames)"), else ""."""
+    if not ray:
+        return ""
+    counts = sorted(ray["tasks_by_node"].values(), reverse=True)
+    text = f", on {len(counts)} Ray node{'s' if len(counts) != 1 else ''} "
+    text += f"({' + '.join(str(c) for c in counts)} frames)"
+    if ray["workers_replaced"]:
+        text += f", {ray['workers_replaced']} lost worker(s) replaced"
+    return text
+
+
 @cli.command()
 @click.option(
     "--n",
@@ -140,6 +152,8 @@ def synth(
         "seconds": round(result.seconds, 2),
         "frames_per_s": round(len(result.rendered) / max(result.seconds, 1e-9), 2),
     }
+    if result.ray:
+        summary["ray"] = result.ray
     if as_json:
         click.echo(json.dumps(summary, indent=2))
     elif quiet:
@@ -147,7 +161,7 @@ def synth(
     else:
         click.echo(
             f"wrote {result.frames} frames to {result.out_dir} (rendered {summary['rendered']}, "
-            f"kept {summary['kept']}) in {result.seconds:.1f} s"
+            f"kept {summary['kept']}) in {result.seconds:.1f} s{_on_nodes(result.ray)}"
         )
 
 
@@ -219,7 +233,7 @@ def render(
     else:
         click.echo(
             f"rendered {len(result.rendered)} of {result.frames} frames into {result.out_dir} "
-            f"in {result.seconds:.1f} s"
+            f"in {result.seconds:.1f} s{_on_nodes(result.ray)}"
         )
 
 

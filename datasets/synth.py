@@ -245,12 +245,16 @@ class SynthResult:
         frames: frames in the dataset.
         rendered: frame indices rendered by this run (ascending).
         seconds: wall time of the run (s).
+        ray: with the Ray backend, where the frames were rendered (``tasks_by_node``: node ID
+            -> frames) and how many lost workers were replaced (``workers_replaced``); empty
+            otherwise.
     """
 
     out_dir: Path
     frames: int
     rendered: tuple[int, ...]
     seconds: float
+    ray: dict[str, Any] = field(default_factory=dict)
 
 
 # ----------------------------------------------------------------------------- poses
@@ -517,14 +521,15 @@ def _render_all(
     pool_cfg: PoolConfig,
     poses: np.ndarray | None,
     on_frame: Callable[[int], None],
-) -> None:
+) -> dict[str, Any]:
+    """Render the frames ``todo`` into the folder; with Ray, where they ran (SynthResult.ray)."""
     if not todo:
-        return
+        return {}
     if pool_cfg.backend == "local" and (pool_cfg.workers <= 1 or len(todo) == 1):
         renderer = FrameRenderer(cfg, poses)
         for k in todo:
             on_frame(renderer.write(out_dir, k))
-        return
+        return {}
     # local: 'spawn' processes (SAPIEN/Vulkan must not be forked after initialisation), each
     # dying with this process even when it is killed with SIGKILL; ray: actors. Either way the
     # frames come back here and are written as they arrive, in any order.
@@ -537,6 +542,9 @@ def _render_all(
     with worker_pool(pool_cfg, FrameWorker, (to_dict(cfg), pose_list)) as pool:
         for k, (png, label) in pool.imap_unordered("render", todo):
             on_frame(_write_frame(out_dir, k, png, label))
+        if pool_cfg.backend != "ray":
+            return {}
+        return {"tasks_by_node": dict(pool.tasks_by_node), "workers_replaced": pool.replaced}
 
 
 def camera_outside_tank(
@@ -670,10 +678,10 @@ def generate(
                 rendered.append(k)
                 bar.update(1)
 
-            _render_all(out, cfg, todo, pool_cfg, pose_arr, on_frame)
+            ray = _render_all(out, cfg, todo, pool_cfg, pose_arr, on_frame)
         assemble_labels(out, n, old_lines)
         extra = {} if sequences is None else {"sequences": sequences.to_json()}
         write_dataset_json(
             out, n, config=to_dict(cfg), generator=tool, seed=cfg.seed, water=cfg.water, **extra
         )
-    return SynthResult(out, n, tuple(sorted(rendered)), time.perf_counter() - t0)
+    return SynthResult(out, n, tuple(sorted(rendered)), time.perf_counter() - t0, ray)

@@ -63,6 +63,9 @@ def test_ray_dataset_equals_the_local_one_file_by_file(local_dataset, tmp_path):
     out = tmp_path / "ray"
     res = generate(out, CFG, workers=2, progress=False, backend="ray")
     assert sorted(res.rendered) == list(range(CFG.n_frames))
+    # where the frames ran: every frame counted once (one node here), no worker replaced
+    assert sum(res.ray["tasks_by_node"].values()) == CFG.n_frames
+    assert res.ray["workers_replaced"] == 0
     got = _files(out)
     assert sorted(got) == sorted(local_dataset)
     assert [k for k in got if got[k] != local_dataset[k]] == []
