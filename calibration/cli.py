@@ -88,6 +88,11 @@ def _target_options(fn):
     return fn
 
 
+def _echo_note(note: str) -> None:
+    """A result's note on stderr: "note: ...", or the warning as it is ("warning: ...")."""
+    click.echo(note if note.startswith("warning: ") else f"note: {note}", err=True)
+
+
 @command_group()
 def cli() -> None:
     """Calibration: camera intrinsics and the camera-to-vehicle extrinsics."""
@@ -183,7 +188,7 @@ def intrinsics(
         source, cfg, name=name, progress=False if quiet else None, topic=topic
     )
     for note in result.notes:
-        click.echo(f"note: {note}", err=True)
+        _echo_note(note)
     paths, kept_T = write_outputs(result, out_path)
     if quiet:
         click.echo(str(paths[0]))
@@ -325,7 +330,7 @@ def stereo(
     )  # fmt: skip
     paths, skipped = write_stereo_outputs(result, out_path, write_maps=write_maps)
     for note in result.notes + skipped:
-        click.echo(f"note: {note}", err=True)
+        _echo_note(note)
     if quiet:
         click.echo(str(paths[0]))
         return
@@ -488,7 +493,7 @@ def import_(source, fmt, cam_key, out_path, right, stereo_out, no_stereo) -> Non
             raise DockError(f"{source} holds no stereo pair for {cam_key}: --stereo-out unused")
     imported, (yaml_path, json_path), kept_T = import_camera_file(source, out_path, fmt, cam_key)
     for note in imported.notes:
-        click.echo(f"note: {note}", err=True)
+        _echo_note(note)
     cam = imported.camera
     click.echo(
         f"read {source} ({_SOURCE_LABELS[imported.source_format]}): "

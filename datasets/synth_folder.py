@@ -12,6 +12,7 @@ import json
 import os
 import re
 import shutil
+import stat
 import zlib
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -53,6 +54,8 @@ def _read_jsonl_lenient(path: Path) -> dict[int, str]:
     """frame -> line of an existing labels.jsonl (lines that do not parse are dropped)."""
     out: dict[int, str] = {}
     try:
+        if not stat.S_ISREG(path.stat().st_mode):  # a FIFO would block the read forever
+            return out
         lines = path.read_text(encoding="utf-8").splitlines()
     except (OSError, UnicodeDecodeError):
         return out
@@ -165,10 +168,12 @@ def _png_ok(path: Path, size_px: tuple[int, int]) -> bool:
     """True when ``path`` is a whole PNG image of ``size_px`` (width, height).
 
     Reads the chunk structure and checks every chunk's CRC, the IHDR size and the final IEND,
-    without decoding pixels (about 1 ms per MB): an empty, truncated or corrupted file, or an
-    image of another size, is False.
+    without decoding pixels (about 1 ms per MB): an empty, truncated or corrupted file, an
+    image of another size, or something other than a regular file (a FIFO), is False.
     """
     try:
+        if not stat.S_ISREG(path.stat().st_mode):  # a FIFO would block the read forever
+            return False
         data = memoryview(path.read_bytes())
     except OSError:
         return False
@@ -199,6 +204,8 @@ def _png_ok(path: Path, size_px: tuple[int, int]) -> bool:
 def _partial_ok(path: Path, k: int) -> bool:
     """True when ``path`` holds frame k's label: one line of JSON naming the frame."""
     try:
+        if not stat.S_ISREG(path.stat().st_mode):  # a FIFO would block the read forever
+            return False
         text = path.read_text(encoding="utf-8")
         obj = json.loads(text)
     except (OSError, ValueError):

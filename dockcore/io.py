@@ -92,6 +92,10 @@ def temp_sibling(path: str | os.PathLike[str], suffix: str = "", folder: bool = 
     return Path(tmp)
 
 
+#: errors of a write that has run out of room or cannot go to the disk
+_WRITE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EIO, errno.EFBIG})
+
+
 def _name_target(exc: OSError, path: Path) -> OSError:
     """The same error, naming ``path`` instead of the hidden temporary file."""
     return type(exc)(exc.errno, exc.strerror or str(exc), str(path))
@@ -164,7 +168,9 @@ def _atomic_path(path: str | os.PathLike[str], sync: bool) -> Iterator[Path]:
         os.replace(tmp_path, path)
     except OSError as exc:
         tmp_path.unlink(missing_ok=True)
-        if exc.filename == str(tmp_path):
+        # a failed write through a file object (fh.write, close) names no file at all
+        unnamed_write = exc.filename is None and exc.errno in _WRITE_ERRNOS
+        if exc.filename == str(tmp_path) or unnamed_write:
             raise _name_target(exc, path) from None
         raise
     except BaseException:

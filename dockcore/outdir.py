@@ -78,7 +78,15 @@ def _holder(path: Path) -> str:
 
 def _refuse_foreign(folder: Path, tool: str) -> None:
     """Refuse ``folder`` when it, or a folder above it, holds the output of another tool
-    (``perception detect --out`` into a synth dataset's ``images/``)."""
+    (``perception detect --out`` into a synth dataset's ``images/``), as named and with its
+    symbolic links followed (a link to the dataset's ``images/`` is that folder)."""
+    real = folder.resolve()
+    if real != folder:
+        _refuse_foreign_at(real, tool)
+    _refuse_foreign_at(folder, tool)
+
+
+def _refuse_foreign_at(folder: Path, tool: str) -> None:
     owner = folder_owner(folder) if folder.is_dir() else None
     if owner is not None and owner != tool:
         raise DockError(

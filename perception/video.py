@@ -311,8 +311,10 @@ def open_frames(path: str | os.PathLike[str], topic: str | None = None) -> Frame
             fps = 1e9 / float(np.median(np.diff(stamps)))
         return FrameSource(path, "bag", t.count, fps, topic=topic)
     if path.is_dir():
+        # anything named as an image but a folder: a FIFO or a broken link among the frames is
+        # a corrupt frame (counted), not a frame silently left out
         files = sorted(
-            p for p in path.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
+            p for p in path.iterdir() if not p.is_dir() and p.suffix.lower() in IMAGE_SUFFIXES
         )
         if not files:
             raise DockError(f"no images in folder {path} (looked for {', '.join(IMAGE_SUFFIXES)})")

@@ -61,7 +61,7 @@ import numpy as np
 
 from uwdock.dockcore.config import check_fields, from_dict, read_toml
 from uwdock.dockcore.domains import Fraction, Interval
-from uwdock.dockcore.errors import DockError
+from uwdock.dockcore.errors import ConfigError, DockError
 from uwdock.sim.domains import RGB as ColourRGB
 
 __all__ = [
@@ -245,11 +245,16 @@ WATER_FILE_NOTES = ("fit",)
 def load_water_file(path: str | os.PathLike[str]) -> WaterConfig:
     """The ``[water]`` table of a TOML file (fields of :class:`WaterConfig`; those left out keep
     their defaults), validated; a ``[fit]`` table beside it is ignored. Raises a one-line
-    :class:`ConfigError` (a missing file, bad TOML, an unknown key or a value outside its
-    domain)."""
+    :class:`ConfigError` (a missing file, bad TOML, a file that sets no water value, an unknown
+    key or a value outside its domain)."""
     data = read_toml(path)
     if isinstance(data.get("water"), dict) and set(data) <= {"water", *WATER_FILE_NOTES}:
         data = data["water"]
+    if not data:  # an empty file (or a bare [water]) would be the default water, unsaid
+        raise ConfigError(
+            f"{path}: sets no water value (expected a [water] table such as `datasets "
+            "fit-water` writes, or WaterConfig fields); name a preset instead for its water"
+        )
     return from_dict(WaterConfig, data)
 
 

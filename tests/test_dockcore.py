@@ -154,3 +154,22 @@ def test_interrupts_deferred_holds_a_signal_until_the_step_is_whole():
         assert signal.getsignal(signal.SIGTERM) is signal.SIG_IGN
     finally:
         signal.signal(signal.SIGTERM, previous)
+
+
+def test_a_failed_write_through_a_file_object_names_the_target(tmp_path):
+    """``fh.write`` on a full disk raises an OSError with no file name: the error names the file
+    being replaced (it said only "no space left on the device"), and the old file stays."""
+    import errno
+
+    target = tmp_path / "labels.jsonl"
+    target.write_text("old\n")
+    with pytest.raises(OSError) as info:
+        with atomic_path(target) as tmp, tmp.open("w") as fh:
+            fh.write("new\n")
+            raise OSError(errno.ENOSPC, "No space left on device")
+    assert info.value.filename == str(target) and info.value.errno == errno.ENOSPC
+    assert target.read_text() == "old\n" and list(tmp_path.iterdir()) == [target]
+    with pytest.raises(OSError) as info:  # not a write error: left as it was
+        with atomic_path(target):
+            raise OSError(errno.EINVAL, "bad argument")
+    assert info.value.filename is None

@@ -117,6 +117,14 @@ def test_ownership_is_checked_up_the_tree(run_cli, tmp_path):
         errors = [line for line in res.err.splitlines() if line.startswith("error")]
         assert res.code == 2 and len(errors) == 1, res.err
         assert f"{out} is inside {ds}, the output of `datasets synth`" in errors[0]
+    # a symbolic link to the dataset's images/ is that folder (it was written into)
+    link = tmp_path / "imglink"
+    link.symlink_to(ds / "images")
+    res = run_cli(perception_cli.main, "detect", frames, "--dictionary", "DICT_4X4_50",
+                  "--out", link)  # fmt: skip
+    errors = [line for line in res.err.splitlines() if line.startswith("error")]
+    assert res.code == 2 and len(errors) == 1, res.err
+    assert f"{(ds / 'images').resolve()} is inside {ds.resolve()}" in errors[0]
     assert sorted(p.name for p in (ds / "images").iterdir()) == []
     # the same tool may nest its own folders
     with claim_output_dir(ds / "images" / "more", "datasets synth"):

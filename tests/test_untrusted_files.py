@@ -565,3 +565,51 @@ def test_special_files_are_refused_before_reading(run_cli, tmp_path):
     with pytest.raises(DockError, match=f"camera file is a folder, not a file: {folder}"):
         load_camera(folder)
     assert not out.exists()
+
+
+@pytest.mark.usefixtures("alarm")
+def test_a_fifo_among_the_frames_of_a_folder_is_a_corrupt_frame(tmp_path):
+    """A FIFO named as an image in a frame folder was left out without a word: it is a frame
+    that cannot be read (None, counted in ``corrupt``), and reading it does not block."""
+    from uwdock.perception.video import open_frames
+
+    frames = _tag_frames(tmp_path / "f", "DICT_4X4_50", 13, n=2)
+    _fifo(frames / "001b.png")
+    source = open_frames(frames)
+    got = [img is None for _index, _name, img in source]
+    assert source.total == 3 and got == [False, False, True] and source.corrupt == 1
+
+
+def test_an_empty_water_file_is_refused_not_rendered_as_the_default(tmp_path):
+    """An empty water file (or a bare [water], or comments only) was the default water,
+    rendered as coastal without a word."""
+    from uwdock.sim.water import load_water_file, water_spec_error
+
+    for text in ("", "# only a comment\n", "[water]\n"):
+        path = tmp_path / "empty_water.toml"
+        path.write_text(text)
+        with pytest.raises(DockError, match="sets no water value"):
+            load_water_file(path)
+        assert "sets no water value" in water_spec_error(str(path))
+    path.write_text("[water]\nbeta_D_rgb = [0.4, 0.2, 0.3]\n")  # one value: the rest default
+    assert load_water_file(path).beta_D_rgb == (0.4, 0.2, 0.3)
+
+
+@pytest.mark.render
+@pytest.mark.usefixtures("alarm")
+def test_synth_resume_over_a_fifo_in_images_renders_the_frame_again(tmp_path):
+    """A FIFO where a frame's image was hung the resume (it opened the FIFO to check the PNG):
+    it is a frame to render again, and the rerun completes the dataset."""
+    from tests.hostile_runs import dataset
+    from uwdock.datasets.synth import SynthConfig, generate
+
+    cfg = SynthConfig(n_frames=3, seed=4, width_px=64)
+    out, reference = tmp_path / "ds", tmp_path / "ref"
+    generate(out, cfg, progress=False)
+    (out / "images" / "000001.png").unlink()
+    _fifo(out / "images" / "000001.png")
+    (out / "labels.jsonl").unlink()
+    _fifo(out / "labels.jsonl")
+    assert generate(out, cfg, progress=False).rendered == (0, 1, 2)
+    generate(reference, cfg, progress=False)
+    assert dataset(out) == dataset(reference)
