@@ -38,6 +38,7 @@ from uwdock.dockcore.pool import PoolConfig, preflight
 from uwdock.dockcore.provenance import git_commit, write_provenance
 from uwdock.rl.batch_parts import BATCH_SOURCES
 from uwdock.rl.checkpoint import (
+    Unit,
     has_legacy_checkpoints,
     latest_unit,
     list_units,
@@ -334,6 +335,29 @@ def train(
             non-finite policy, a failed environment worker.
     """
     cfg = validated(cfg)
+    pool, init = _check_request(
+        cfg, resume, init_policy, backend, ray_address, envs_per_worker, batch_workers
+    )
+    with claim_output_dir(run_dir, "rl train") as run:
+        _check_run_folder(run, resume)
+        changed = _check_config(cfg, run, allow_config_change) if resume else []
+        if resume and _is_complete(run, cfg, note):
+            return run / "policy.zip"
+        unit = _prepare_run(cfg, run, resume, changed, note)
+        return _run(cfg, run, unit, init, progress, note, pool, envs_per_worker, batch_workers)
+
+
+def _check_request(
+    cfg: TrainConfig,
+    resume: bool,
+    init_policy: str | None,
+    backend: str,
+    ray_address: str | None,
+    envs_per_worker: int,
+    batch_workers: int,
+) -> tuple[PoolConfig, Any]:
+    """Refuse a bad request before the run folder is claimed; the env pool (answering) and the
+    ``init_policy`` loaded (None without one)."""
     why = check(envs_per_worker, *split_annotated(EnvsPerWorker), "envs_per_worker")
     if why is not None:
         raise DockError(why)
@@ -355,32 +379,48 @@ def train(
         init = load_policy(init_policy)  # refuses damaged or non-finite policies
         env_dim = observation_size(cfg.env)
         check_obs_dim(int(init[0].observation_space.shape[0]), env_dim, init_policy)
-    with claim_output_dir(run_dir, "rl train") as run:
-        ckpts = run / "checkpoints"
-        if not resume and ((run / "config.toml").exists() or list_units(ckpts)):
-            raise DockError(f"{run} already holds a run: use --resume or another --out")
-        if resume and has_legacy_checkpoints(ckpts) and not list_units(ckpts):
-            raise DockError(
-                f"{run} holds checkpoints of an older version (step_N.zip) that cannot be "
-                "resumed exactly: start a new run (--init-policy RUN/policy.zip keeps its weights)"
-            )
-        changed = _check_config(cfg, run, allow_config_change) if resume else []
-        done = run / "DONE"
-        if resume and done.is_file():
-            steps = int(json.loads(done.read_text(encoding="utf-8")).get("steps", 0))
-            if steps >= cfg.total_steps:
-                note(f"{run} is complete ({steps:,} steps): nothing to resume")
-                return run / "policy.zip"
-        unit = latest_unit(ckpts, note) if resume else None
-        if resume and unit is None:
-            note(f"no complete checkpoint in {run}: starting the run again from the beginning")
-        if resume:
-            _log_resume(run, unit, changed, cfg)
-        else:
-            write_provenance(run, {"train": cfg})
-        done.unlink(missing_ok=True)
-        _note_rollout_rounding(cfg, note)
-        return _run(cfg, run, unit, init, progress, note, pool, envs_per_worker, batch_workers)
+    return pool, init
+
+
+def _check_run_folder(run: Path, resume: bool) -> None:
+    """Refuse a new run over an existing one, and a resume of checkpoints it cannot read."""
+    ckpts = run / "checkpoints"
+    if not resume and ((run / "config.toml").exists() or list_units(ckpts)):
+        raise DockError(f"{run} already holds a run: use --resume or another --out")
+    if resume and has_legacy_checkpoints(ckpts) and not list_units(ckpts):
+        raise DockError(
+            f"{run} holds checkpoints of an older version (step_N.zip) that cannot be "
+            "resumed exactly: start a new run (--init-policy RUN/policy.zip keeps its weights)"
+        )
+
+
+def _is_complete(run: Path, cfg: TrainConfig, note: Callable[[str], None]) -> bool:
+    """Whether the run's ``DONE`` already counts ``cfg.total_steps`` (noted: nothing to do)."""
+    done = run / "DONE"
+    if done.is_file():
+        steps = int(json.loads(done.read_text(encoding="utf-8")).get("steps", 0))
+        if steps >= cfg.total_steps:
+            note(f"{run} is complete ({steps:,} steps): nothing to resume")
+            return True
+    return False
+
+
+def _prepare_run(
+    cfg: TrainConfig, run: Path, resume: bool, changed: list[str], note: Callable[[str], None]
+) -> Unit | None:
+    """The checkpoint unit to start from (None: the beginning), with the resume logged or the
+    provenance written, and ``DONE`` removed."""
+    ckpts = run / "checkpoints"
+    unit = latest_unit(ckpts, note) if resume else None
+    if resume and unit is None:
+        note(f"no complete checkpoint in {run}: starting the run again from the beginning")
+    if resume:
+        _log_resume(run, unit, changed, cfg)
+    else:
+        write_provenance(run, {"train": cfg})
+    (run / "DONE").unlink(missing_ok=True)
+    _note_rollout_rounding(cfg, note)
+    return unit
 
 
 def _log_resume(run: Path, unit, changed: list[str], cfg: TrainConfig) -> None:
@@ -409,79 +449,28 @@ def _run(
     per_worker: int,
     batch_workers: int = 1,
 ) -> Path:
+    """Train ``run`` from ``unit`` (None: the beginning) in env workers of ``pool``; returns
+    the final policy path (``DONE`` written after it)."""
     import torch
     from stable_baselines3 import PPO, SAC
-    from stable_baselines3.common.vec_env import VecNormalize
 
     torch.set_num_threads(1)
     algo_cls = PPO if cfg.algo == "ppo" else SAC
-    gamma = cfg.ppo.gamma if cfg.algo == "ppo" else cfg.sac.gamma
-    if cfg.simulator == "batched":
-        if pool.backend == "ray":
-            raise DockError("simulator 'batched' runs in this process: use --backend local")
-        from uwdock.rl.batch_env import BatchWorkers  # SB3 at module level
-
-        workers: Any = BatchWorkers(cfg.env, cfg.n_envs, cfg.seed, batch_workers)
-    elif pool.backend == "ray":
-        workers = RayEnvWorkers(cfg.env, cfg.n_envs, cfg.seed, pool.ray_address, per_worker)
-    else:
-        workers = EnvWorkers(cfg.env, cfg.n_envs, cfg.seed, per_worker)
+    workers = _env_workers(cfg, pool, per_worker, batch_workers)
     session = None
     try:
         venv = workers.venv
-        vecnorm = None
         if unit is not None:
-            if "vecnormalize.pkl" in unit.files:
-                venv = vecnorm = load_vecnormalize(unit.files["vecnormalize.pkl"], venv)
-            model = load_model(algo_cls, unit.files["model.zip"], venv)
-            model.tensorboard_log = str(run / "tb")
-            if "replay_buffer.pkl" in unit.files:
-                model.load_replay_buffer(io.BytesIO(unit.files["replay_buffer.pkl"]))
+            model, vecnorm = _restored_model(algo_cls, run, unit, venv)
             session = TrainingSession(cfg, run, model, vecnorm, note)
             session.restore(unit)
         else:
-            if cfg.normalize_obs or cfg.normalize_reward:
-                venv = vecnorm = VecNormalize(
-                    venv, norm_obs=cfg.normalize_obs, norm_reward=cfg.normalize_reward, gamma=gamma
-                )
-            model = build_model(cfg, venv, run / "tb")
-            warm = cfg.imitation.teacher != "none" and init is None
-            if warm:
-                hist = warm_start(
-                    model, vecnorm, cfg.env, cfg.imitation, cfg.seed, gamma, progress=progress
-                )
-                atomic_write_json(run / "imitation.json", hist)
-                if vecnorm is not None:
-                    # the imitated policy was fitted on these statistics: freeze them, or PPO's
-                    # rollouts would shift the network's inputs under it
-                    vecnorm.training = False
-            if init is not None:
-                src, vn_src = init
-                model.policy.load_state_dict(src.policy.state_dict())
-                if vecnorm is not None and vn_src is not None:
-                    vecnorm.obs_rms, vecnorm.ret_rms = vn_src.obs_rms, vn_src.ret_rms
+            model, vecnorm, warm = _new_model(cfg, run, init, venv, progress)
             session = TrainingSession(cfg, run, model, vecnorm, note)
             session.start(warm_started=warm)
         if model.num_timesteps < cfg.total_steps:
-            from uwdock.rl.callbacks import TrainingCallback  # SB3 at module level
-
-            cb = TrainingCallback(session, cfg.total_steps, progress=progress)
-            try:
-                model.learn(
-                    total_timesteps=cfg.total_steps - model.num_timesteps,
-                    callback=cb,
-                    reset_num_timesteps=unit is None,
-                    tb_log_name="tb",
-                )
-            finally:
-                cb.close()
-        session.boundary(final=True)
-        require_finite_policy(model, "the trained policy")
-        final = atomic_write_bytes(run / "policy.zip", model_bytes(model))
-        if vecnorm is not None:
-            atomic_write_bytes(run / "vecnormalize.pkl", pickle_bytes(vecnorm))
-        atomic_write_json(run / "DONE", {"steps": int(model.num_timesteps)})
-        return final
+            _learn(model, session, cfg.total_steps, unit is None, progress)
+        return _write_final(run, model, vecnorm, session)
     except (EOFError, ConnectionError) as exc:  # a worker died (BrokenPipe included)
         workers.raise_worker_error(exc)
         raise  # unreachable: raise_worker_error raises
@@ -493,3 +482,85 @@ def _run(
         raise
     finally:
         workers.close()
+
+
+def _env_workers(cfg: TrainConfig, pool: PoolConfig, per_worker: int, batch_workers: int) -> Any:
+    """The env workers ``cfg.simulator`` and ``pool`` ask for (their ``venv`` steps the envs)."""
+    if cfg.simulator == "batched":
+        if pool.backend == "ray":
+            raise DockError("simulator 'batched' runs in this process: use --backend local")
+        from uwdock.rl.batch_env import BatchWorkers  # SB3 at module level
+
+        return BatchWorkers(cfg.env, cfg.n_envs, cfg.seed, batch_workers)
+    if pool.backend == "ray":
+        return RayEnvWorkers(cfg.env, cfg.n_envs, cfg.seed, pool.ray_address, per_worker)
+    return EnvWorkers(cfg.env, cfg.n_envs, cfg.seed, per_worker)
+
+
+def _restored_model(algo_cls: Any, run: Path, unit: Unit, venv) -> tuple[Any, Any]:
+    """The model and normalisation (None without one) of checkpoint ``unit`` on ``venv``."""
+    vecnorm = None
+    if "vecnormalize.pkl" in unit.files:
+        venv = vecnorm = load_vecnormalize(unit.files["vecnormalize.pkl"], venv)
+    model = load_model(algo_cls, unit.files["model.zip"], venv)
+    model.tensorboard_log = str(run / "tb")
+    if "replay_buffer.pkl" in unit.files:
+        model.load_replay_buffer(io.BytesIO(unit.files["replay_buffer.pkl"]))
+    return model, vecnorm
+
+
+def _new_model(cfg: TrainConfig, run: Path, init, venv, progress: bool) -> tuple[Any, Any, bool]:
+    """A new run's model and normalisation (None without one), warm-started by imitation or
+    from ``init``'s weights; and whether it was warm-started."""
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    gamma = cfg.ppo.gamma if cfg.algo == "ppo" else cfg.sac.gamma
+    vecnorm = None
+    if cfg.normalize_obs or cfg.normalize_reward:
+        venv = vecnorm = VecNormalize(
+            venv, norm_obs=cfg.normalize_obs, norm_reward=cfg.normalize_reward, gamma=gamma
+        )
+    model = build_model(cfg, venv, run / "tb")
+    warm = cfg.imitation.teacher != "none" and init is None
+    if warm:
+        hist = warm_start(
+            model, vecnorm, cfg.env, cfg.imitation, cfg.seed, gamma, progress=progress
+        )
+        atomic_write_json(run / "imitation.json", hist)
+        if vecnorm is not None:
+            # the imitated policy was fitted on these statistics: freeze them, or PPO's
+            # rollouts would shift the network's inputs under it
+            vecnorm.training = False
+    if init is not None:
+        src, vn_src = init
+        model.policy.load_state_dict(src.policy.state_dict())
+        if vecnorm is not None and vn_src is not None:
+            vecnorm.obs_rms, vecnorm.ret_rms = vn_src.obs_rms, vn_src.ret_rms
+    return model, vecnorm, warm
+
+
+def _learn(model, session: TrainingSession, total_steps: int, fresh: bool, progress: bool) -> None:
+    """Train ``model`` up to ``total_steps`` (``fresh``: its step count starts at 0)."""
+    from uwdock.rl.callbacks import TrainingCallback  # SB3 at module level
+
+    cb = TrainingCallback(session, total_steps, progress=progress)
+    try:
+        model.learn(
+            total_timesteps=total_steps - model.num_timesteps,
+            callback=cb,
+            reset_num_timesteps=fresh,
+            tb_log_name="tb",
+        )
+    finally:
+        cb.close()
+
+
+def _write_final(run: Path, model, vecnorm, session: TrainingSession) -> Path:
+    """The last checkpoint, then ``policy.zip``, ``vecnormalize.pkl`` and ``DONE`` (last)."""
+    session.boundary(final=True)
+    require_finite_policy(model, "the trained policy")
+    final = atomic_write_bytes(run / "policy.zip", model_bytes(model))
+    if vecnorm is not None:
+        atomic_write_bytes(run / "vecnormalize.pkl", pickle_bytes(vecnorm))
+    atomic_write_json(run / "DONE", {"steps": int(model.num_timesteps)})
+    return final
