@@ -75,6 +75,7 @@ from uwdock.dockcore.errors import ConfigError, DockError
 from uwdock.dockcore.io import atomic_path, atomic_write_bytes, atomic_write_json
 from uwdock.dockcore.outdir import claim_output_dir
 from uwdock.dockcore.pool import PoolConfig, preflight, worker_pool
+from uwdock.markers.markerset import MarkerSet
 from uwdock.perception.groundtruth import (
     FrameTruth,
     MarkerTruth,
@@ -640,6 +641,23 @@ def generate(
     """
     t0 = time.perf_counter()
     cfg = validated(cfg)
+    pool_cfg = _checked_pool(workers, backend, ray_address)
+    pose_arr = _checked_poses(poses, cfg.n_frames)
+    if sequences is not None and (pose_arr is None or len(sequences) != cfg.n_frames):
+        raise DockError(f"sequences: need one label per given pose ({cfg.n_frames})")
+    camera, T_body_cam, marker_set = _checked_scene(cfg, pose_arr)
+    state = folder_state(cfg, pose_arr, sequences)
+    n = cfg.n_frames
+    check_folder(Path(out_dir), state, n)
+    with claim_output_dir(out_dir, tool) as out:
+        old_lines = _start_folder(out, cfg, state, camera, T_body_cam, marker_set)
+        rendered, ray = _render_missing(out, cfg, old_lines, camera, pool_cfg, pose_arr, progress)
+        _finish_folder(out, cfg, old_lines, tool, sequences)
+    return SynthResult(out, n, tuple(sorted(rendered)), time.perf_counter() - t0, ray)
+
+
+def _checked_pool(workers: int, backend: str, ray_address: str | None) -> PoolConfig:
+    """The run's worker pool: ``workers`` and the backend checked, and the pool answering."""
     reason = check(workers, int, split_annotated(Workers)[1], "workers")
     if reason:
         raise ConfigError(reason)
@@ -649,39 +667,79 @@ def generate(
     except ValueError as exc:
         raise ConfigError(str(exc)) from None
     preflight(pool_cfg)  # before anything is written
-    pose_arr = _checked_poses(poses, cfg.n_frames)
-    if sequences is not None and (pose_arr is None or len(sequences) != cfg.n_frames):
-        raise DockError(f"sequences: need one label per given pose ({cfg.n_frames})")
+    return pool_cfg
+
+
+def _checked_scene(
+    cfg: SynthConfig, pose_arr: np.ndarray | None
+) -> tuple[CameraModel, np.ndarray, MarkerSet]:
+    """The camera, its mount ``T_body_cam`` and the marker set, read from their files; the
+    given poses' cameras checked to be under water in the tank."""
     camera, T_body_cam = resolve_camera(cfg.camera_file, cfg.width_px)
     ds_cfg = _ds_config(cfg)
     if pose_arr is not None:
         _check_cameras_in_water(pose_arr, T_body_cam, ds_cfg)
     marker_set = resolve_marker_set(ds_cfg)
-    state = folder_state(cfg, pose_arr, sequences)
+    return camera, T_body_cam, marker_set
+
+
+def _start_folder(
+    out: Path,
+    cfg: SynthConfig,
+    state: dict[str, Any],
+    camera: CameraModel,
+    T_body_cam: np.ndarray,
+    marker_set: MarkerSet,
+) -> dict[int, str]:
+    """The claimed folder checked again, marked incomplete and given its state, subfolders and
+    input files; returns the lines of its old ``labels.jsonl`` by frame."""
+    old_lines = check_folder(out, state, cfg.n_frames)  # again: no other run can change it now
+    (out / "dataset.json").unlink(missing_ok=True)  # incomplete until written again
+    atomic_write_json(out / STATE_FILE, state)
+    (out / "images").mkdir(exist_ok=True)
+    (out / PARTIAL_DIR).mkdir(exist_ok=True)
+    prepare_folder(out, cfg, camera, T_body_cam, marker_set)
+    return old_lines
+
+
+def _render_missing(
+    out: Path,
+    cfg: SynthConfig,
+    old_lines: dict[int, str],
+    camera: CameraModel,
+    pool_cfg: PoolConfig,
+    pose_arr: np.ndarray | None,
+    progress: bool | None,
+) -> tuple[list[int], dict[str, Any]]:
+    """Render the frames the folder lacks, under a bar over all ``cfg.n_frames``; returns the
+    frames rendered (in the order they came) and, with Ray, where they ran."""
     n = cfg.n_frames
-    check_folder(Path(out_dir), state, n)
-    with claim_output_dir(out_dir, tool) as out:
-        old_lines = check_folder(out, state, n)  # again, now that no other run can change it
-        (out / "dataset.json").unlink(missing_ok=True)  # incomplete until written again
-        atomic_write_json(out / STATE_FILE, state)
-        (out / "images").mkdir(exist_ok=True)
-        (out / PARTIAL_DIR).mkdir(exist_ok=True)
-        prepare_folder(out, cfg, camera, T_body_cam, marker_set)
+    done = done_frames(out, n, old_lines, (camera.width_px, camera.height_px))
+    todo = [k for k in range(n) if k not in done]
+    rendered: list[int] = []
+    disable = None if progress is None else not progress  # None: tqdm shows it on a tty
+    with tqdm(total=n, initial=len(done), unit="frame", desc="synth", disable=disable) as bar:
 
-        done = done_frames(out, n, old_lines, (camera.width_px, camera.height_px))
-        todo = [k for k in range(n) if k not in done]
-        rendered: list[int] = []
-        disable = None if progress is None else not progress  # None: tqdm shows it on a tty
-        with tqdm(total=n, initial=len(done), unit="frame", desc="synth", disable=disable) as bar:
+        def on_frame(k: int) -> None:
+            rendered.append(k)
+            bar.update(1)
 
-            def on_frame(k: int) -> None:
-                rendered.append(k)
-                bar.update(1)
+        ray = _render_all(out, cfg, todo, pool_cfg, pose_arr, on_frame)
+    return rendered, ray
 
-            ray = _render_all(out, cfg, todo, pool_cfg, pose_arr, on_frame)
-        assemble_labels(out, n, old_lines)
-        extra = {} if sequences is None else {"sequences": sequences.to_json()}
-        write_dataset_json(
-            out, n, config=to_dict(cfg), generator=tool, seed=cfg.seed, water=cfg.water, **extra
-        )
-    return SynthResult(out, n, tuple(sorted(rendered)), time.perf_counter() - t0, ray)
+
+def _finish_folder(
+    out: Path,
+    cfg: SynthConfig,
+    old_lines: dict[int, str],
+    tool: str,
+    sequences: FrameSequences | None,
+) -> None:
+    """``labels.jsonl`` assembled in frame order, then ``dataset.json`` (last: it marks a
+    complete dataset)."""
+    n = cfg.n_frames
+    assemble_labels(out, n, old_lines)
+    extra = {} if sequences is None else {"sequences": sequences.to_json()}
+    write_dataset_json(
+        out, n, config=to_dict(cfg), generator=tool, seed=cfg.seed, water=cfg.water, **extra
+    )
