@@ -311,12 +311,7 @@ def sample_frames(
         progress: called with the number of frames read so far.
     """
     cfg.validate()
-    if cfg.target == "markers":
-        if marker_set is None:
-            raise DockError("target 'markers' needs the DS marker set (--marker-set)")
-        target: _Target = _MarkerBoard(cfg, marker_set)
-    else:
-        target = _Chessboard(cfg)
+    target = _target(cfg, marker_set)
     lut = decode_lut(float(cfg.gamma))  # the water model's own uint8 -> linear table
     cols: dict[str, list] = {k: [] for k in ("frame", "white", "rgb", "var", "range_m",
                                              "lamp_m", "cos", "rho2")}  # fmt: skip
@@ -331,41 +326,16 @@ def sample_frames(
         if img is None:
             corrupt += 1
             continue
-        if img.ndim != 3 or img.shape[2] != 3:
-            raise DockError(f"{name}: the water fit needs colour frames, got shape {img.shape}")
-        if (img.shape[1], img.shape[0]) != (camera.width_px, camera.height_px):
-            raise DockError(
-                f"{name}: frame is {img.shape[1]}x{img.shape[0]} px, the camera file "
-                f"{camera.width_px}x{camera.height_px}"
-            )
+        _check_frame(name, img, camera)
         T = target.pose(img, camera)
         if T is None:
             continue
         rows, sat = _sample_frame(img, camera, target, T, cfg, lut)
         saturated += sat
-        if not rows:
+        if not rows or not _decide_white(rows):
             continue
-        if any(r["white"] is None for r in rows):  # chessboard: the brighter parity is white
-            if len({r["parity"] for r in rows}) == 1:
-                continue  # one parity only, none clipped: which is white is not known
-            lum = {p: np.mean([r["rgb"].sum() for r in rows if r["parity"] == p] or [0.0])
-                   for p in (0, 1)}  # fmt: skip
-            white_parity = 0 if lum[0] > lum[1] else 1
-            for r in rows:
-                r["white"] = r["parity"] == white_parity
         names[int(index)] = str(name)
-        base = len(cols["frame"])
-        row_of = {r["k"]: base + n for n, r in enumerate(rows)}
-        for r in rows:
-            cols["frame"].append(int(index))
-            cols["white"].append(bool(r["white"]))
-            for key in ("rgb", "var", "range_m", "lamp_m", "cos", "rho2"):
-                cols[key].append(r[key])
-        for k, nb in neighbours:
-            if k in row_of and cols["white"][row_of[k]]:
-                blacks = [row_of[q] for q in nb if q in row_of and not cols["white"][row_of[q]]]
-                if blacks:
-                    groups.append((row_of[k], blacks))
+        _add_rows(cols, groups, index, rows, neighbours)
     return PatchSamples(
         frame=np.asarray(cols["frame"], int),
         white=np.asarray(cols["white"], bool),
@@ -382,6 +352,64 @@ def sample_frames(
         frames_corrupt=corrupt,
         dropped_saturated=saturated,
     )
+
+
+def _target(cfg: FitWaterConfig, marker_set: MarkerSet | None) -> _Target:
+    """The target ``cfg.target`` names: the DS marker board (``marker_set`` needed) or the
+    chessboard."""
+    if cfg.target == "markers":
+        if marker_set is None:
+            raise DockError("target 'markers' needs the DS marker set (--marker-set)")
+        return _MarkerBoard(cfg, marker_set)
+    return _Chessboard(cfg)
+
+
+def _check_frame(name: str, img: np.ndarray, camera: CameraModel) -> None:
+    """Refuse a frame that is not a colour image of the camera's size."""
+    if img.ndim != 3 or img.shape[2] != 3:
+        raise DockError(f"{name}: the water fit needs colour frames, got shape {img.shape}")
+    if (img.shape[1], img.shape[0]) != (camera.width_px, camera.height_px):
+        raise DockError(
+            f"{name}: frame is {img.shape[1]}x{img.shape[0]} px, the camera file "
+            f"{camera.width_px}x{camera.height_px}"
+        )
+
+
+def _decide_white(rows: list[dict[str, Any]]) -> bool:
+    """Whether the frame's patches are known white or black: a chessboard's brighter parity is
+    made white here; False when it shows one parity only, none clipped (which is not known)."""
+    if any(r["white"] is None for r in rows):  # chessboard: the brighter parity is white
+        if len({r["parity"] for r in rows}) == 1:
+            return False  # one parity only, none clipped: which is white is not known
+        lum = {p: np.mean([r["rgb"].sum() for r in rows if r["parity"] == p] or [0.0])
+               for p in (0, 1)}  # fmt: skip
+        white_parity = 0 if lum[0] > lum[1] else 1
+        for r in rows:
+            r["white"] = r["parity"] == white_parity
+    return True
+
+
+def _add_rows(
+    cols: dict[str, list],
+    groups: list[tuple[int, list[int]]],
+    index: int,
+    rows: list[dict[str, Any]],
+    neighbours: list[tuple[int, list[int]]],
+) -> None:
+    """Append frame ``index``'s patches to the columns, and its white patches with their black
+    neighbours to ``groups``."""
+    base = len(cols["frame"])
+    row_of = {r["k"]: base + n for n, r in enumerate(rows)}
+    for r in rows:
+        cols["frame"].append(int(index))
+        cols["white"].append(bool(r["white"]))
+        for key in ("rgb", "var", "range_m", "lamp_m", "cos", "rho2"):
+            cols[key].append(r[key])
+    for k, nb in neighbours:
+        if k in row_of and cols["white"][row_of[k]]:
+            blacks = [row_of[q] for q in nb if q in row_of and not cols["white"][row_of[q]]]
+            if blacks:
+                groups.append((row_of[k], blacks))
 
 
 # ----------------------------------------------------------------------------- the noise
