@@ -109,6 +109,34 @@ def detection_ranges(
     cfg = cfg or TankReportConfig()
     cfg.validate()
     altitudes = cfg.altitudes_m()
+    counts, visible = _decoded_counts(camera, waters, bounds, altitudes, cfg, marker_set, progress)
+    width = f"{camera.width_px}x{camera.height_px}"
+    rows = [_water_row(name, width, altitudes, counts, name in bounds) for name in waters]
+    rows.append(
+        {
+            "water": "(visible)",
+            "width": width,
+            "max_alt_3_markers_m": None,
+            "max_alt_1_marker_m": None,
+            "altitudes_m": altitudes.tolist(),
+            "decoded_median": [float(v) for v in visible],
+        }
+    )
+    return rows
+
+
+def _decoded_counts(
+    camera: CameraModel,
+    waters: Mapping[str, WaterConfig],
+    bounds: dict[str, tuple[WaterConfig, WaterConfig]],
+    altitudes: np.ndarray,
+    cfg: TankReportConfig,
+    marker_set: Any,
+    progress: Callable[[float], None] | None,
+) -> tuple[dict[Hashable, list[float]], list[int]]:
+    """Render each altitude once and count the markers decoded through each water (and each
+    bound, keyed ``(name, "high")`` and ``(name, "low")``); returns the median counts per
+    water and the markers in view, both per altitude."""
     tank_depth_m = max(12.0, float(altitudes.max()) + 2.0)
     rs = make_render_scene(
         DockingStationConfig(tank_depth_m=tank_depth_m), marker_set, camera_model=camera
@@ -133,38 +161,35 @@ def detection_ranges(
             counts[name].append(float(statistics.median(n)))
         if progress is not None:
             progress(float(alt))
-    width = f"{camera.width_px}x{camera.height_px}"
-    rows = []
-    for name in waters:
-        arr = np.asarray(counts[name])
-        row = {
-            "water": name,
-            "width": width,
-            "max_alt_3_markers_m": _greatest(altitudes, arr >= 3),
-            "max_alt_1_marker_m": _greatest(altitudes, arr >= 1),
-            "altitudes_m": altitudes.tolist(),
-            "decoded_median": counts[name],
-        }
-        if name in bounds:
-            hi, lo = np.asarray(counts[(name, "high")]), np.asarray(counts[(name, "low")])
-            for k, key in ((3, "max_alt_3_markers"), (1, "max_alt_1_marker")):
-                ends = [_greatest(altitudes, hi >= k), _greatest(altitudes, lo >= k)]
-                if None not in ends:  # noise may swap them by a step
-                    ends = sorted(ends)  # type: ignore[type-var]
-                row[f"{key}_interval_m"] = ends
-            row["decoded_median_interval"] = [counts[(name, "high")], counts[(name, "low")]]
-        rows.append(row)
-    rows.append(
-        {
-            "water": "(visible)",
-            "width": width,
-            "max_alt_3_markers_m": None,
-            "max_alt_1_marker_m": None,
-            "altitudes_m": altitudes.tolist(),
-            "decoded_median": [float(v) for v in visible],
-        }
-    )
-    return rows
+    return counts, visible
+
+
+def _water_row(
+    name: str,
+    width: str,
+    altitudes: np.ndarray,
+    counts: dict[Hashable, list[float]],
+    bounded: bool,
+) -> dict[str, Any]:
+    """Water ``name``'s row of the report; ``bounded``: with the intervals its two bounds give."""
+    arr = np.asarray(counts[name])
+    row = {
+        "water": name,
+        "width": width,
+        "max_alt_3_markers_m": _greatest(altitudes, arr >= 3),
+        "max_alt_1_marker_m": _greatest(altitudes, arr >= 1),
+        "altitudes_m": altitudes.tolist(),
+        "decoded_median": counts[name],
+    }
+    if bounded:
+        hi, lo = np.asarray(counts[(name, "high")]), np.asarray(counts[(name, "low")])
+        for k, key in ((3, "max_alt_3_markers"), (1, "max_alt_1_marker")):
+            ends = [_greatest(altitudes, hi >= k), _greatest(altitudes, lo >= k)]
+            if None not in ends:  # noise may swap them by a step
+                ends = sorted(ends)  # type: ignore[type-var]
+            row[f"{key}_interval_m"] = ends
+        row["decoded_median_interval"] = [counts[(name, "high")], counts[(name, "low")]]
+    return row
 
 
 def _greatest(altitudes: np.ndarray, ok: np.ndarray) -> float | None:
