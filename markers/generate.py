@@ -27,7 +27,7 @@ from uwdock.markers.geometry import (
     rasterise_top_view,
     render_mesh_glb,
 )
-from uwdock.markers.markerset import marker_set_from_config, save_marker_set
+from uwdock.markers.markerset import MarkerSet, marker_set_from_config, save_marker_set
 from uwdock.markers.meshcheck import CHECK_EXTRA_HINT, check_printable, open3d_available
 from uwdock.markers.sheet import SheetEntry, render_sheet
 
@@ -177,6 +177,39 @@ def generate(
     """
     say = progress or (lambda _msg: None)
     cfg = validated(cfg)
+    parts = _build_parts(cfg)
+    checked, check_line = check_parts(parts.stl, check_meshes)  # once every value is known to work
+
+    written: list[Path] = []  # tracked: a rerun removes the files of IDs no longer in the set
+    with claim_output_dir(out_dir, TOOL) as claimed, tracked_outputs(claimed, written):
+        out = claimed.resolve()
+        say(check_line)
+        for i in cfg.ids:
+            _write_marker(out, cfg, parts, i, written, say)
+        sheets = [atomic_write_bytes(out / path, data) for path, data in parts.sheet_files]
+        written.extend(sheets)
+        say(f"flat sheet: {', '.join(p.name for p in sheets)}")
+        written.append(save_marker_set(out / MARKER_SET_NAME, parts.marker_set))
+        write_provenance(out, {"marker": cfg})
+        written.extend([out / "config.toml", out / "provenance.json"])
+    say(f"marker set: {out / MARKER_SET_NAME}")
+    return GenerateResult(out, out / MARKER_SET_NAME, tuple(written), checked)
+
+
+@dataclass(frozen=True)
+class _Parts:
+    """What :func:`generate` writes, built in memory before the folder is claimed."""
+
+    dictionary: str  # the normalised dictionary name
+    solids: dict[int, MarkerSolids]  # marker ID -> its printable parts
+    mesh_names: dict[int, str]  # marker ID -> its render mesh's file name
+    marker_set: MarkerSet
+    stl: dict[str, bytes]  # file name -> STL part
+    sheet_files: list[tuple[Path, bytes]]  # the flat sheet's files
+
+
+def _build_parts(cfg: MarkerConfig) -> _Parts:
+    """Every solid, STL part and sheet page of ``cfg``'s markers, and their marker set."""
     dictionary = normalise_dictionary_name(cfg.dictionary)
     ids = cfg.ids
     solids = {i: build_solids(cfg, i) for i in ids}
@@ -195,32 +228,30 @@ def generate(
     sheet_files = render_sheet(
         entries, cfg.size_mm, Path("sheet.pdf"), Path("sheet.svg"), paper=cfg.paper, title=title
     )
-    checked, check_line = check_parts(stl, check_meshes)  # once every value is known to work
+    return _Parts(dictionary, solids, mesh_names, ms, stl, sheet_files)
 
-    written: list[Path] = []  # tracked: a rerun removes the files of IDs no longer in the set
-    with claim_output_dir(out_dir, TOOL) as claimed, tracked_outputs(claimed, written):
-        out = claimed.resolve()
-        say(check_line)
-        for i in ids:
-            stem = file_stem(dictionary, i)
-            s = solids[i]
-            for part in ("insert", "enclosure"):
-                name = f"{stem}_{part}.stl"
-                written.append(atomic_write_bytes(out / name, stl[name]))
-            written.append(atomic_write_bytes(out / mesh_names[i], render_mesh_glb(s)))
-            written.append(write_preview(out / f"{stem}_preview.png", s, cfg))
-            est = print_estimate(s)
-            say(
-                f"marker {i}: {stem}_insert.stl, {stem}_enclosure.stl, {stem}.glb, "
-                f"{stem}_preview.png; plastic: insert {est['insert_cm3']:.0f} cm3, enclosure "
-                f"{est['enclosure_cm3']:.0f} cm3, ~{est['print_hours_estimate']:.0f} h to print "
-                f"solid at {PRINT_RATE_MM3_PER_S:g} mm3/s"
-            )
-        sheets = [atomic_write_bytes(out / path, data) for path, data in sheet_files]
-        written.extend(sheets)
-        say(f"flat sheet: {', '.join(p.name for p in sheets)}")
-        written.append(save_marker_set(out / MARKER_SET_NAME, ms))
-        write_provenance(out, {"marker": cfg})
-        written.extend([out / "config.toml", out / "provenance.json"])
-    say(f"marker set: {out / MARKER_SET_NAME}")
-    return GenerateResult(out, out / MARKER_SET_NAME, tuple(written), checked)
+
+def _write_marker(
+    out: Path,
+    cfg: MarkerConfig,
+    parts: _Parts,
+    marker_id: int,
+    written: list[Path],
+    say: Callable[[str], None],
+) -> None:
+    """Marker ``marker_id``'s STL parts, render mesh and preview, each added to ``written`` as
+    it is written; then its line (files, plastic, print time) to ``say``."""
+    stem = file_stem(parts.dictionary, marker_id)
+    s = parts.solids[marker_id]
+    for part in ("insert", "enclosure"):
+        name = f"{stem}_{part}.stl"
+        written.append(atomic_write_bytes(out / name, parts.stl[name]))
+    written.append(atomic_write_bytes(out / parts.mesh_names[marker_id], render_mesh_glb(s)))
+    written.append(write_preview(out / f"{stem}_preview.png", s, cfg))
+    est = print_estimate(s)
+    say(
+        f"marker {marker_id}: {stem}_insert.stl, {stem}_enclosure.stl, {stem}.glb, "
+        f"{stem}_preview.png; plastic: insert {est['insert_cm3']:.0f} cm3, enclosure "
+        f"{est['enclosure_cm3']:.0f} cm3, ~{est['print_hours_estimate']:.0f} h to print "
+        f"solid at {PRINT_RATE_MM3_PER_S:g} mm3/s"
+    )
