@@ -43,6 +43,7 @@ from uwdock.sim.docking_station import DockingStationConfig, resolve_marker_set
 from uwdock.sim.water import (
     PRESET_ORDER,
     PRESETS,
+    WaterConfig,
     load_water_file,
     water_choice,
     water_file_notes,
@@ -279,6 +280,30 @@ def tank_report(
             "seed": seed,
         },
     )
+    waters, bounds, notes = _tank_waters(water_names, water_files)
+    camera, _ = resolve_camera(camera_file)
+    progress = None if quiet or as_json else (
+        lambda alt: click.echo(f"  rendered altitude {alt:.2f} m", err=True))  # fmt: skip
+    rows = detection_ranges(camera, waters, cfg, marker_set_path, progress, bounds)
+    _add_water_file_notes(rows, notes, bounds)
+    with claim_output_dir(out_dir, "datasets tank-report") as out:
+        path = atomic_write_json(out / "tank_report.json", {"rows": rows})
+        plot_ranges(rows, out / "tank_report.png")
+        write_provenance(out, {"tank_report": cfg}, {"camera": camera_file,
+                         "waters": {k: str(v) for k, v in waters.items()}})  # fmt: skip
+    if as_json:
+        click.echo(json.dumps(rows, indent=2))
+    elif quiet:
+        click.echo(str(path))
+    else:
+        _print_tank_report(rows, path)
+
+
+def _tank_waters(
+    water_names: str | None, water_files: tuple[Path, ...]
+) -> tuple[dict[str, WaterConfig], dict[str, tuple[WaterConfig, WaterConfig]], dict[str, dict]]:
+    """The tank report's waters (presets, then files keyed by the path as given), the bounds of
+    the fitted ones (beta_D at -+ its uncertainty: higher, lower) and the files' notes."""
     names = [n.strip() for n in (water_names or "").split(",") if n.strip()]
     if not names and not water_files:
         names = list(PRESET_ORDER)
@@ -305,10 +330,14 @@ def tank_report(
                     w.validate()
             except (TypeError, ValueError) as exc:
                 raise DockError(f"{f}: [fit] beta_D_low_rgb/beta_D_high_rgb: {exc}") from None
-    camera, _ = resolve_camera(camera_file)
-    progress = None if quiet or as_json else (
-        lambda alt: click.echo(f"  rendered altitude {alt:.2f} m", err=True))  # fmt: skip
-    rows = detection_ranges(camera, waters, cfg, marker_set_path, progress, bounds)
+    return waters, bounds, notes
+
+
+def _add_water_file_notes(
+    rows: list[dict], notes: dict[str, dict], bounds: dict[str, tuple[WaterConfig, WaterConfig]]
+) -> None:
+    """Add to a water file's row its file, lighting and undetermined values, and, where it has
+    bounds, what its intervals come from."""
     for r in rows:
         undetermined = notes.get(r["water"], {}).get("undetermined")
         if r["water"] in notes:
@@ -322,39 +351,34 @@ def tank_report(
                 "fit's bootstrap over frames and Jacobian; [fit] of the water file), all "
                 "channels together"
             )
-    with claim_output_dir(out_dir, "datasets tank-report") as out:
-        path = atomic_write_json(out / "tank_report.json", {"rows": rows})
-        plot_ranges(rows, out / "tank_report.png")
-        write_provenance(out, {"tank_report": cfg}, {"camera": camera_file,
-                         "waters": {k: str(v) for k, v in waters.items()}})  # fmt: skip
-    if as_json:
-        click.echo(json.dumps(rows, indent=2))
-    elif quiet:
-        click.echo(str(path))
-    else:
-        lo_m, hi_m = float(rows[0]["altitudes_m"][0]), float(rows[0]["altitudes_m"][-1])
-        for r in rows[:-1]:
-            parts = []
-            for n, key in ((3, "max_alt_3_markers"), (1, "max_alt_1_marker")):
-                text = f"{n} marker{'s' if n > 1 else ''} {_alt(r[f'{key}_m'], lo_m, hi_m)}"
-                if f"{key}_interval_m" in r:
-                    a, b = r[f"{key}_interval_m"]
-                    text += f" ({_span(a, b, lo_m, hi_m)} over beta_D -+ its uncertainty)"
-                parts.append(text)
-            click.echo(f"{r['water']} ({r['width']}): " + "; ".join(parts))
-            und = r.get("undetermined") or {}
-            if und.get("beta_D"):
-                click.echo(
-                    f"  beta_D of {', '.join(und['beta_D'])} is NOT determined by the footage: "
-                    "these ranges are not a prediction"
-                )
-            other = {k: v for k, v in und.items() if k != "beta_D" and v}
-            if other:
-                click.echo(
-                    "  not determined by the footage (the fit's values used): "
-                    + "; ".join(f"{k} of {', '.join(v)}" for k, v in other.items())
-                )
-        click.echo(f"wrote {path} and tank_report.png")
+
+
+def _print_tank_report(rows: list[dict], path: Path) -> None:
+    """The tank report in words: per water, its ranges (and intervals), and what the footage
+    left undetermined; then the files written."""
+    lo_m, hi_m = float(rows[0]["altitudes_m"][0]), float(rows[0]["altitudes_m"][-1])
+    for r in rows[:-1]:
+        parts = []
+        for n, key in ((3, "max_alt_3_markers"), (1, "max_alt_1_marker")):
+            text = f"{n} marker{'s' if n > 1 else ''} {_alt(r[f'{key}_m'], lo_m, hi_m)}"
+            if f"{key}_interval_m" in r:
+                a, b = r[f"{key}_interval_m"]
+                text += f" ({_span(a, b, lo_m, hi_m)} over beta_D -+ its uncertainty)"
+            parts.append(text)
+        click.echo(f"{r['water']} ({r['width']}): " + "; ".join(parts))
+        und = r.get("undetermined") or {}
+        if und.get("beta_D"):
+            click.echo(
+                f"  beta_D of {', '.join(und['beta_D'])} is NOT determined by the footage: "
+                "these ranges are not a prediction"
+            )
+        other = {k: v for k, v in und.items() if k != "beta_D" and v}
+        if other:
+            click.echo(
+                "  not determined by the footage (the fit's values used): "
+                + "; ".join(f"{k} of {', '.join(v)}" for k, v in other.items())
+            )
+    click.echo(f"wrote {path} and tank_report.png")
 
 
 @cli.command(name="fit-water")
