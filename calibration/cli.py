@@ -25,7 +25,12 @@ from uwdock.calibration.formats_export import (
     export_camera_file,
 )
 from uwdock.calibration.intrinsics import IntrinsicsConfig, calibrate_intrinsics, write_outputs
-from uwdock.calibration.stereo import StereoConfig, calibrate_stereo, write_stereo_outputs
+from uwdock.calibration.stereo import (
+    StereoConfig,
+    StereoResult,
+    calibrate_stereo,
+    write_stereo_outputs,
+)
 from uwdock.calibration.stereo_formats import export_stereo_file, import_stereo_file
 from uwdock.calibration.stereo_rig import is_stereo_file
 from uwdock.dockcore.bags import resolve_image_topic
@@ -310,18 +315,7 @@ def stereo(
         "dictionary": dictionary,
         "distortion_model": distortion_model,
     }
-    target = {k: v for k, v in target.items() if v is not None}
-    cfg = load_config(
-        StereoConfig,
-        config_path,
-        overrides={
-            "intrinsics": target or None,
-            "pair_tolerance_ms": pair_tolerance_ms,
-            "skip_unpaired": skip_unpaired,
-            "rectify_alpha": rectify_alpha,
-        },
-        section="stereo",
-    )
+    cfg = _stereo_config(config_path, target, pair_tolerance_ms, skip_unpaired, rectify_alpha)
     if out_path.suffix.lower() not in (".yaml", ".yml", ".json"):
         raise click.UsageError(f"--out must end in .yaml, .yml or .json: {out_path}")
     result = calibrate_stereo(
@@ -334,6 +328,34 @@ def stereo(
     if quiet:
         click.echo(str(paths[0]))
         return
+    _print_stereo(result, paths)
+
+
+def _stereo_config(
+    config_path: Path | None,
+    target: dict[str, object],
+    pair_tolerance_ms: float | None,
+    skip_unpaired: bool | None,
+    rectify_alpha: float | None,
+) -> StereoConfig:
+    """The stereo config: its defaults, the config file over them, the flags given over that
+    (the target's flags, None where not given, go in its ``intrinsics`` table)."""
+    target = {k: v for k, v in target.items() if v is not None}
+    return load_config(
+        StereoConfig,
+        config_path,
+        overrides={
+            "intrinsics": target or None,
+            "pair_tolerance_ms": pair_tolerance_ms,
+            "skip_unpaired": skip_unpaired,
+            "rectify_alpha": rectify_alpha,
+        },
+        section="stereo",
+    )
+
+
+def _print_stereo(result: StereoResult, paths: list[Path]) -> None:
+    """The stereo calibration in words: pairs used, intrinsics, T_right_left, errors, files."""
     rig, n = result.rig, result.counts()
     rejected = ", ".join(f"{k} {v}" for k, v in n["rejected_by_reason"].items()) or "none"
     click.echo(f"pairs: {n['pairs']} read, {n['used']} used; rejected: {rejected}")
