@@ -122,9 +122,11 @@ def test_killed_and_resumed_training_equals_uninterrupted(reference):
         # before the first checkpoint (during start-up or the DAgger warm start), once the run
         # folder holds its config (a kill before that leaves nothing a --resume could go on from)
         (first, lambda: (run / "config.toml").exists(), signal.SIGKILL, rng.uniform(0.0, 2.0)),
-        # mid-run, each signal once, a random moment after a given checkpoint
-        (resume, lambda: (ckpt / "step_0000000128").exists(), signal.SIGKILL, rng.uniform(0, 1)),
-        (resume, lambda: (ckpt / "step_0000000256").exists(), signal.SIGTERM, rng.uniform(0, 1)),
+        # mid-run, each signal once, a random moment after a given checkpoint (within 0.3 s: on
+        # an idle machine the rest of the run can take under a second, and a resume that ran
+        # to the end left the later ones nothing to resume)
+        (resume, lambda: (ckpt / "step_0000000128").exists(), signal.SIGKILL, rng.uniform(0, 0.3)),
+        (resume, lambda: (ckpt / "step_0000000256").exists(), signal.SIGTERM, rng.uniform(0, 0.3)),
         (resume, lambda: True, signal.SIGINT, rng.uniform(4.0, 6.0)),
         # while starting (loading the checkpoint, forking workers)
         (resume, lambda: True, signal.SIGKILL, rng.uniform(0.5, 2.0)),
