@@ -12,7 +12,6 @@ import json
 import os
 import re
 import shutil
-import stat
 import zlib
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -23,7 +22,7 @@ from uwdock.calibration.camera import CameraModel, save_camera
 from uwdock.datasets.sequences import FrameSequences
 from uwdock.dockcore.config import changed_keys, to_dict
 from uwdock.dockcore.errors import DockError
-from uwdock.dockcore.io import atomic_path
+from uwdock.dockcore.io import atomic_path, special_file_kind
 from uwdock.dockcore.provenance import write_provenance
 from uwdock.markers.markerset import MarkerSet, save_marker_set
 
@@ -54,7 +53,7 @@ def _read_jsonl_lenient(path: Path) -> dict[int, str]:
     """frame -> line of an existing labels.jsonl (lines that do not parse are dropped)."""
     out: dict[int, str] = {}
     try:
-        if not stat.S_ISREG(path.stat().st_mode):  # a FIFO would block the read forever
+        if special_file_kind(path) is not None:  # a FIFO would block the read forever
             return out
         lines = path.read_text(encoding="utf-8").splitlines()
     except (OSError, UnicodeDecodeError):
@@ -172,7 +171,7 @@ def _png_ok(path: Path, size_px: tuple[int, int]) -> bool:
     image of another size, or something other than a regular file (a FIFO), is False.
     """
     try:
-        if not stat.S_ISREG(path.stat().st_mode):  # a FIFO would block the read forever
+        if special_file_kind(path) is not None:  # a FIFO would block the read forever
             return False
         data = memoryview(path.read_bytes())
     except OSError:
@@ -204,7 +203,7 @@ def _png_ok(path: Path, size_px: tuple[int, int]) -> bool:
 def _partial_ok(path: Path, k: int) -> bool:
     """True when ``path`` holds frame k's label: one line of JSON naming the frame."""
     try:
-        if not stat.S_ISREG(path.stat().st_mode):  # a FIFO would block the read forever
+        if special_file_kind(path) is not None:  # a FIFO would block the read forever
             return False
         text = path.read_text(encoding="utf-8")
         obj = json.loads(text)

@@ -4,7 +4,8 @@ SIGINT and SIGTERM become Python exceptions (:mod:`dockcore.cli`), raised at wha
 when they arrive. Inside some library constructors that leaves an object no one can destroy:
 a SIGTERM landing while ``sapien.Scene()`` creates its systems (the render system takes a
 second or more on a loaded machine) left a scene whose ``__del__`` segfaulted (exit 139 after
-"error: interrupted", 9 of 36 SIGTERMs to ``rl episode`` 2.0-2.6 s in, with both cores busy).
+"error: interrupted", 3 of 51 SIGTERMs to ``rl episode`` 2.0-2.6 s in, with both cores busy;
+0 of 58 with the signal held).
 Such steps run inside :func:`interrupts_deferred`: a signal that arrives meanwhile is held and
 delivered again as soon as the step is done.
 """
