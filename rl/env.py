@@ -17,6 +17,7 @@ carries ``reward_terms``, ``success_paper``, ``success_strict``, ``collided``, `
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any, ClassVar
 
@@ -70,6 +71,13 @@ SOURCE_CLASSES: dict[str, type] = {
 
 class SimulationError(DockError):
     """The physics produced a non-finite or impossible state."""
+
+
+@functools.lru_cache(maxsize=256)
+def _relaxed_task(task: DockingTaskConfig, field: str, z_m: float) -> DockingTaskConfig:
+    """``task`` with the curriculum's z tolerance (a validated copy, made once per level: the
+    curriculum moves every rollout, and a batch's envs share the task)."""
+    return replace(task, **{field: z_m})
 
 
 class DockingEnv(gym.Env):
@@ -138,7 +146,7 @@ class DockingEnv(gym.Env):
             return  # pushed every rollout: the same level costs nothing
         self._curriculum_level = level
         field = curriculum_z_field(self.cfg)
-        self._task = replace(self.cfg.task, **{field: float(z_tolerance_m)})
+        self._task = _relaxed_task(self.cfg.task, field, float(z_tolerance_m))
         self._spawn_scale = float(spawn_scale)
 
     @property
