@@ -56,7 +56,13 @@ from uwdock.rl.batch_parts import (
 from uwdock.rl.config import EnvConfig
 from uwdock.rl.env import DockingEnv, SimulationError
 from uwdock.rl.error_model import ErrorModelSource
-from uwdock.rl.observation import OBS_BOUND, POS_SCALE_M, PRIVILEGED_DIM, frame_dim
+from uwdock.rl.observation import (
+    OBS_BOUND,
+    POS_SCALE_M,
+    PRIVILEGED_DIM,
+    ContactMemory,
+    frame_dim,
+)
 from uwdock.rl.vec_envs import EnvWorkers
 from uwdock.sim.batch import BatchVehicles
 from uwdock.sim.navigation import NavErrors, correction
@@ -112,6 +118,7 @@ class BatchDockingEnv(VecEnv):
         self.nav = NavErrors(config.nav, n)
         self.T_nav = np.tile(np.eye(4), (n, 1, 1))
         self.frame_dim = frame_dim(config)
+        self.contact = ContactMemory(n, self.dt_s)  # obs_contact's values
         self.frames = np.zeros((n, config.obs_frames, self.frame_dim), dtype=np.float32)
         self.T_world_ds = np.tile(np.eye(4), (n, 1, 1))
         self.steps = np.zeros(n, dtype=np.int64)
@@ -175,6 +182,7 @@ class BatchDockingEnv(VecEnv):
         self.steps[i] = 0
         self.prev_action[i] = 0.0
         self.prev_e_xy[i] = np.nan
+        self.contact.reset(i)
         self.prev_sf[i] = env.prev_specific_force
         self.gamma[i] = env.reward_fn.gamma_mps2
         self.seated[i] = 0
@@ -242,10 +250,13 @@ class BatchDockingEnv(VecEnv):
         )  # fmt: skip
         reward = sum(terms.values())
         self.prev_action = a.copy()
+        v_dvl = nav.dvl_velocity(imu.velocity_frd_mps)
+        if self.cfg.obs_contact:
+            self.contact.update(collided, v_dvl)
         frame = observation_frames_b(
             self.cfg, self.T_nav, self.filter.T_world_ds(), self.filter.sigma_xy_m(),
-            nav.dvl_velocity(imu.velocity_frd_mps), imu.angular_velocity_frd_radps[:, 2],
-            imu.acceleration_frd_mps2, self.prev_action, self.detected,
+            v_dvl, imu.angular_velocity_frd_radps[:, 2], imu.acceleration_frd_mps2,
+            self.prev_action, self.detected, self.contact.features(),
         )  # fmt: skip
         self.frames = np.concatenate([self.frames[:, 1:], frame[:, None]], axis=1)
         obs = self._obs(e_true, psi_true)

@@ -373,8 +373,10 @@ def observation_frames_b(
     acceleration_frd_mps2: np.ndarray,
     prev_action: np.ndarray,
     detected: np.ndarray,
+    contact: np.ndarray | None = None,
 ) -> np.ndarray:
-    """(N, frame_dim) float32 observation frames (:func:`rl.observation.observation_frame`)."""
+    """(N, frame_dim) float32 observation frames (:func:`rl.observation.observation_frame`;
+    ``contact``: (N, 2) :meth:`rl.observation.ContactMemory.features`, for ``obs_contact``)."""
     e_hat, psi_hat = docking_errors_b(T_world_body, T_world_ds_est, cfg.task)
     parts = [
         np.clip(e_hat, -POS_SCALE_M, POS_SCALE_M) / POS_SCALE_M,
@@ -387,4 +389,8 @@ def observation_frames_b(
         parts.append(prev_action)
     if cfg.obs_uncertainty:
         parts.append(np.stack([np.minimum(sigma_xy_m, 2.0), detected.astype(np.float64)], axis=1))
+    if cfg.obs_contact:
+        if contact is None:
+            raise ValueError("obs_contact: the frames need the contact values")
+        parts.append(np.asarray(contact, dtype=np.float64).reshape(-1, 2))
     return np.clip(np.concatenate(parts, axis=1), -OBS_BOUND, OBS_BOUND).astype(np.float32)

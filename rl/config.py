@@ -92,6 +92,10 @@ class EnvConfig:
         obs_uncertainty: append the filter's horizontal standard deviation (m, clipped to 2)
             and whether the DS was detected this step (0/1), so a policy can tell a fresh
             camera fix from a stale or acoustic estimate (not in the paper's observation).
+        obs_contact: append what the vehicle can tell of its contacts from its own sensors:
+            a trace of the IMU-detected collisions and how long it has been at rest
+            (:class:`rl.observation.ContactMemory`; ours, not in the paper's observation), so
+            a policy can tell it is wedged or has landed off the seat.
         obs_frames: stack this many observation frames (1 = no history).
         obs_privileged: asymmetric actor-critic: the observation ends with privileged state
             (true errors, the estimate's error, time left) that only the critic reads and only
@@ -144,6 +148,7 @@ class EnvConfig:
     terminate_on: Literal["paper", "strict"] = "paper"
     obs_last_action: bool = False
     obs_uncertainty: bool = True
+    obs_contact: bool = False
     obs_frames: Annotated[int, Interval(ge=1, le=64)] = 1
     obs_privileged: bool = False
     error_model_path: str | None = None

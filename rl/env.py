@@ -43,6 +43,7 @@ from uwdock.rl.obs_sources import (
 from uwdock.rl.observation import (
     OBS_BOUND,
     PRIVILEGED_DIM,
+    ContactMemory,
     observation_frame,
     observation_size,
     privileged_block,
@@ -121,6 +122,7 @@ class DockingEnv(gym.Env):
         self._usbl_prior_pending = False
         self._limits = c.action_limits
         self.reward_fn = DockingReward(c.reward, actuated=self._limits > 0)
+        self.contact = ContactMemory(1, self.dt_s)  # obs_contact's values
         self.observation_space = gym.spaces.Box(
             -OBS_BOUND, OBS_BOUND, shape=(observation_size(c),), dtype=np.float32
         )
@@ -227,6 +229,7 @@ class DockingEnv(gym.Env):
         # an ideal navigation draws nothing: the episode's stream is the one it always was
         self.nav.reset(0, None if self.nav.ideal else rng.standard_normal(RESET_NAV_DRAWS))
         self.reward_fn.reset()
+        self.contact.reset()
         self.steps = 0
         self.prev_action = np.zeros(6)
         self._seated_steps = 0
@@ -261,6 +264,8 @@ class DockingEnv(gym.Env):
         collided = self.reward_fn.collision(imu.specific_force_frd_mps2, self.prev_specific_force)
         self.prev_specific_force = imu.specific_force_frd_mps2
         self._navigate(T_world_body, imu)
+        if self.cfg.obs_contact:
+            self.contact.update([collided], self.nav.dvl_velocity(imu.velocity_frd_mps))
         self._measure_and_filter(T_world_body, predict=True)
 
         e_true, psi_true = docking_errors(T_world_body, world.T_world_ds, self.cfg.task)
@@ -389,6 +394,7 @@ class DockingEnv(gym.Env):
             imu.acceleration_frd_mps2,
             self.prev_action,
             self._detected(),
+            self.contact.features()[0],
         )
 
     def _obs(self, e_true: np.ndarray, psi_true: float) -> np.ndarray:

@@ -6,8 +6,15 @@ Layout of one frame (float32, every entry clipped to +-``OBS_BOUND``)::
     v_x, v_y, v_z (m/s), omega_psi (rad/s), acc_x, acc_y, acc_z / 5 (m/s^2, gravity removed),
     + the previous action (6)                         if ``obs_last_action``
     + [sigma_xy (m, <= 2), detected (0/1)]             if ``obs_uncertainty``
+    + [collision trace, rest share]                     if ``obs_contact``
 
 e is the docking point relative to the AUV in the body frame, from the *estimated* DS pose.
+The contact values (:class:`ContactMemory`) are what a vehicle can tell of its own contacts:
+the IMU's collision detector (the reward's: a jump of the specific force above an adaptive
+threshold) as a trace that is 1 at a detected collision and decays with
+:data:`CONTACT_TAU_S`, and how long the DVL's speed has stayed below :data:`REST_SPEED_MPS`, as
+a share of :data:`REST_FULL_S` (a vehicle resting on the station, seated or not, or pushing
+against its frame).
 
 With ``obs_privileged`` (asymmetric actor-critic), :data:`PRIVILEGED_DIM` values follow the
 stacked frames, for the critic only: the true error ``[e_x, e_y, e_z] / 5 m``, ``e_psi / pi``,
@@ -32,11 +39,23 @@ ACC_SCALE_MPS2 = 5.0
 OBS_BOUND = 5.0
 BASE_OBS_DIM = 11
 PRIVILEGED_DIM = 9
+#: ``obs_contact``: the collision trace's time constant (s), the speed below which the vehicle
+#: counts as at rest (m/s: the DVL's noise, 0.01 m/s per axis, crosses 0.03 in ~3 % of the
+#: steps of a vehicle at rest, 0.05 almost never), and the rest time at which the rest share
+#: reaches 1 (s).
+CONTACT_TAU_S = 1.0
+REST_SPEED_MPS = 0.05
+REST_FULL_S = 5.0
 
 
 def frame_dim(cfg: EnvConfig) -> int:
     """Length of one observation frame for ``cfg``."""
-    return BASE_OBS_DIM + (6 if cfg.obs_last_action else 0) + (2 if cfg.obs_uncertainty else 0)
+    return (
+        BASE_OBS_DIM
+        + (6 if cfg.obs_last_action else 0)
+        + (2 if cfg.obs_uncertainty else 0)
+        + (2 if cfg.obs_contact else 0)
+    )
 
 
 def actor_observation_size(cfg: EnvConfig) -> int:
@@ -75,8 +94,10 @@ def observation_frame(
     acceleration_frd_mps2: np.ndarray,
     prev_action: np.ndarray,
     detected: bool,
+    contact: np.ndarray | None = None,
 ) -> np.ndarray:
-    """One observation frame (module docstring) from navigation data and the DS filter."""
+    """One observation frame (module docstring) from navigation data and the DS filter;
+    ``contact``: :meth:`ContactMemory.features` of this vehicle (2,), for ``obs_contact``."""
     e_hat, psi_hat = docking_errors(T_world_body, ds_filter.T_world_ds, cfg.task)
     parts = [
         np.clip(e_hat, -POS_SCALE_M, POS_SCALE_M) / POS_SCALE_M,
@@ -91,4 +112,41 @@ def observation_frame(
         P = ds_filter.P
         sigma_xy = float(np.sqrt(0.5 * (P[0, 0] + P[1, 1])))
         parts.append([min(sigma_xy, 2.0), float(detected)])
+    if cfg.obs_contact:
+        if contact is None:
+            raise ValueError("obs_contact: the frame needs the contact values")
+        parts.append(np.asarray(contact, dtype=np.float64).reshape(2))
     return np.clip(np.concatenate(parts), -OBS_BOUND, OBS_BOUND).astype(np.float32)
+
+
+class ContactMemory:
+    """The ``obs_contact`` values of ``n`` vehicles (module docstring), stepped at ``dt_s``."""
+
+    def __init__(self, n: int, dt_s: float) -> None:
+        self.trace = np.zeros(n)
+        self.rest = np.zeros(n)
+        self.decay = math.exp(-float(dt_s) / CONTACT_TAU_S)
+        self.rest_step = float(dt_s) / REST_FULL_S
+
+    def reset(self, i: int | None = None) -> None:
+        """Forget vehicle ``i``'s contacts (all vehicles: None)."""
+        sl = slice(None) if i is None else i
+        self.trace[sl] = 0.0
+        self.rest[sl] = 0.0
+
+    def update(self, collided: np.ndarray, velocity_frd_mps: np.ndarray) -> np.ndarray:
+        """One control step: this step's detected collisions (n,) and DVL velocities (n, 3);
+        returns :meth:`features`."""
+        hit = np.asarray(collided, dtype=bool).reshape(-1)
+        self.trace = np.where(hit, 1.0, self.trace * self.decay)
+        speed = np.linalg.norm(
+            np.asarray(velocity_frd_mps, dtype=np.float64).reshape(-1, 3), axis=1
+        )
+        self.rest = np.where(
+            speed < REST_SPEED_MPS, np.minimum(self.rest + self.rest_step, 1.0), 0.0
+        )
+        return self.features()
+
+    def features(self) -> np.ndarray:
+        """(n, 2): the collision trace and the rest share of every vehicle."""
+        return np.stack([self.trace, self.rest], axis=1)

@@ -31,8 +31,14 @@ from uwdock.rl.camera_source import measurement
 from uwdock.rl.config import EnvConfig
 from uwdock.rl.env_settings import policy_training_env
 from uwdock.rl.estimator import DSPoseFilter
-from uwdock.rl.observation import PRIVILEGED_DIM, observation_frame, observation_size
+from uwdock.rl.observation import (
+    PRIVILEGED_DIM,
+    ContactMemory,
+    observation_frame,
+    observation_size,
+)
 from uwdock.rl.policy_io import OnnxPolicy
+from uwdock.rl.rewards import DockingReward
 
 
 @dataclass(frozen=True)
@@ -98,6 +104,11 @@ class DockingRunner:
         self.prev_action = np.zeros(6)
         self.detected = False
         self._frames: list[np.ndarray] = []
+        # obs_contact: the env's collision detector on the accelerometer, and the rest time
+        self._collisions = DockingReward(self.cfg.reward, actuated=np.ones(6, dtype=bool))
+        self._gravity_mps2 = self.cfg.world.vehicle.gravity_mps2
+        self._prev_sf: np.ndarray | None = None
+        self.contact = ContactMemory(1, self.dt_s)
 
     def reset(self, T_world_ds_prior: np.ndarray, sigma_xy_m: float | None = None) -> None:
         """Start a docking run from a prior DS pose (USBL / survey), no motion yet."""
@@ -105,6 +116,9 @@ class DockingRunner:
         self.prev_action = np.zeros(6)
         self.detected = False
         self._frames = []
+        self._collisions.reset()
+        self._prev_sf = None
+        self.contact.reset()
 
     def usbl_fix(self, p_world_ds_m: np.ndarray, sigma_m: float) -> None:
         """Fuse an acoustic position fix of the DS (world NED, m)."""
@@ -147,6 +161,8 @@ class DockingRunner:
             if m is not None:
                 self.filter.update(m.T_world_ds, m.cov_xyzyaw)
                 self.detected = True
+        if self.cfg.obs_contact:
+            self._sense_contact(odom, moved=predict)
         frame = observation_frame(
             self.cfg,
             odom.T_world_body,
@@ -156,6 +172,7 @@ class DockingRunner:
             odom.acceleration_frd_mps2,
             self.prev_action,
             self.detected,
+            self.contact.features()[0],
         )
         if not self._frames:
             self._frames = [frame] * self.cfg.obs_frames
@@ -164,6 +181,22 @@ class DockingRunner:
         if self.cfg.obs_privileged:  # the critic's block: never filled on a vehicle
             return np.concatenate([*self._frames, np.zeros(PRIVILEGED_DIM, np.float32)])
         return np.concatenate(self._frames)
+
+    def _sense_contact(self, odom: Odometry, moved: bool) -> None:
+        """``obs_contact``: the accelerometer's specific force (the odometry's gravity-free
+        acceleration minus gravity in the body frame), the env's collision test on its jump,
+        and the rest time from the DVL velocity; a first tick (or ``moved`` False) only
+        remembers the specific force."""
+        R = np.asarray(odom.T_world_body, dtype=np.float64)[:3, :3]
+        sf = np.asarray(odom.acceleration_frd_mps2, dtype=np.float64) - R.T @ [
+            0.0,
+            0.0,
+            self._gravity_mps2,
+        ]
+        if self._prev_sf is not None and moved:
+            hit = self._collisions.collision(sf, self._prev_sf)
+            self.contact.update([hit], odom.velocity_frd_mps)
+        self._prev_sf = sf
 
     def step(self, img_bgr: np.ndarray | None, odom: Odometry) -> np.ndarray:
         """One 5 Hz tick on a BGR frame: returns the body wrench (6,) [N, N m] to send to the

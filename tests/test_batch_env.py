@@ -208,9 +208,12 @@ def _quiet_cfg(**kw) -> EnvConfig:
     return EnvConfig(**(base | kw))
 
 
-@pytest.mark.parametrize("terminate_on", ["paper", "strict"])
-def test_batched_episodes_equal_scalar_episodes(terminate_on):
-    cfg = _quiet_cfg(terminate_on=terminate_on, episode_s=6.0, obs_frames=2, obs_privileged=True)
+@pytest.mark.parametrize("terminate_on, contact", [("paper", False), ("strict", True)])
+def test_batched_episodes_equal_scalar_episodes(terminate_on, contact):
+    cfg = _quiet_cfg(
+        terminate_on=terminate_on, episode_s=6.0, obs_frames=2, obs_privileged=True,
+        obs_contact=contact,
+    )  # fmt: skip
     n, seed = 3, 11
     batch = BatchDockingEnv(cfg, n, seed=seed, privileged=True)
     scalars = [DockingEnv(cfg, privileged=True) for _ in range(n)]
