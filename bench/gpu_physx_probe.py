@@ -81,14 +81,18 @@ def _gpu_name() -> str:
     return res.stdout.strip().replace("\n", "; ") or f"nvidia-smi exit {res.returncode}"
 
 
-def _find_library(physx_version: str | None) -> list[str]:
-    """Paths of libPhysXGpu_64.so: SAPIEN's own folder first, then a search of likely roots."""
+#: Where else the library is looked for (a hand-placed copy).
+SEARCH_ROOTS = (Path("/usr"), Path("/opt"))
+
+
+def _find_library(physx_version: str | None, roots: tuple[Path, ...] = SEARCH_ROOTS) -> list[str]:
+    """Paths of libPhysXGpu_64.so: SAPIEN's own folder first, then ``$HOME`` and ``roots``."""
     found = []
     if physx_version:
         own = Path.home() / ".sapien" / "physx" / physx_version / "libPhysXGpu_64.so"
         if own.is_file():
             found.append(str(own))
-    for root in (Path.home(), Path("/usr"), Path("/opt")):
+    for root in (Path.home(), *roots):
         if not root.is_dir():
             continue
         for dirpath, _dirs, files in os.walk(root, onerror=lambda _e: None):
@@ -99,21 +103,22 @@ def _find_library(physx_version: str | None) -> list[str]:
     return found
 
 
-def probe(timeout_s: float) -> dict:
-    """The probe's findings (module docstring) as one dict."""
+def probe(timeout_s: float, child: str = _CHILD, roots: tuple[Path, ...] = SEARCH_ROOTS) -> dict:
+    """The probe's findings (module docstring) as one dict (``child``: the Python code run in
+    the child process, printing one ``PROBE {json}`` line; ``roots``: see :func:`_find_library`)."""
     try:
         res = subprocess.run(
-            [sys.executable, "-c", _CHILD], capture_output=True, text=True, timeout=timeout_s
+            [sys.executable, "-c", child], capture_output=True, text=True, timeout=timeout_s
         )
         lines = [ln for ln in res.stdout.splitlines() if ln.startswith("PROBE ")]
-        child = json.loads(lines[-1][6:]) if lines else {"child": f"exit {res.returncode}"}
+        out = json.loads(lines[-1][6:]) if lines else {"child": f"exit {res.returncode}"}
         if not lines:
-            child["stderr"] = " ".join(res.stderr.split())[-300:]
+            out["stderr"] = " ".join(res.stderr.split())[-300:]
     except subprocess.TimeoutExpired:
-        child = {"enable_gpu": f"no answer within {timeout_s:g} s (the download hangs)"}
-    child["gpu"] = _gpu_name()
-    child["library_found"] = _find_library(child.get("physx"))
-    return child
+        out = {"enable_gpu": f"no answer within {timeout_s:g} s (the download hangs)"}
+    out["gpu"] = _gpu_name()
+    out["library_found"] = _find_library(out.get("physx"), roots)
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
