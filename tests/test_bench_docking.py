@@ -2,23 +2,14 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import pytest
 
-BENCH = Path(__file__).resolve().parent.parent / "bench" / "bench_docking.py"
+from tests.conftest import bench_module, load_bench
 
 
 @pytest.fixture(scope="module")
 def bench():
-    spec = importlib.util.spec_from_file_location("bench_docking", BENCH)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["bench_docking"] = mod
-    spec.loader.exec_module(mod)
-    yield mod
-    sys.modules.pop("bench_docking", None)
+    yield from bench_module("bench_docking")
 
 
 def _row(condition, outcomes, controller="policy", obs="camera", collisions=None):
@@ -65,11 +56,7 @@ def test_paired_change_only_on_common_episodes(bench):
 
 
 def test_two_policies_compared_on_their_common_rows():
-    spec = importlib.util.spec_from_file_location(
-        "compare_docking", BENCH.parent / "compare_docking.py"
-    )
-    cmp = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(cmp)
+    cmp = load_bench("compare_docking")
     a_cam = _row("camera", [(True, 10.0), (True, 10.0), (False, None), (True, 9.0)])
     b_cam = _row("camera", [(True, 12.0), (False, None), (False, None), (True, 10.0)])
     a_em = _row("error model", [(True, 8.0)] * 4, obs="error-model")
@@ -90,11 +77,7 @@ def test_two_policies_compared_on_their_common_rows():
 
 
 def test_summary_figure_collects_every_committed_source_once():
-    spec = importlib.util.spec_from_file_location(
-        "plot_docking_summary", BENCH.parent / "plot_docking_summary.py"
-    )
-    summary = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(summary)
+    summary = load_bench("plot_docking_summary")
     rows = summary.collect()
     keys = [(r["condition"], r["series"]) for r in rows]
     assert len(keys) == len(set(keys))  # one row per condition and series
@@ -108,11 +91,7 @@ def test_summary_figure_collects_every_committed_source_once():
 def test_comparison_pools_a_side_over_files_and_refuses_a_row_twice(tmp_path):
     import json
 
-    spec = importlib.util.spec_from_file_location(
-        "compare_docking", BENCH.parent / "compare_docking.py"
-    )
-    cmp = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(cmp)
+    cmp = load_bench("compare_docking")
     cam, em = _row("camera", [(True, 10.0)]), _row("error model", [(True, 9.0)], obs="error-model")
     files = []
     for name, rows in (("a", [cam]), ("b", [em]), ("c", [cam])):

@@ -3,23 +3,14 @@ download (a machine with network would fetch the library for minutes)."""
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import pytest
 
-PROBE = Path(__file__).resolve().parent.parent / "bench" / "gpu_physx_probe.py"
+from tests.conftest import bench_module
 
 
 @pytest.fixture(scope="module")
 def probe_mod():
-    spec = importlib.util.spec_from_file_location("gpu_physx_probe", PROBE)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["gpu_physx_probe"] = mod
-    spec.loader.exec_module(mod)
-    yield mod
-    sys.modules.pop("gpu_physx_probe", None)
+    yield from bench_module("gpu_physx_probe")
 
 
 def test_the_library_is_found_where_sapien_looks_and_where_it_was_put(
