@@ -256,7 +256,8 @@ class BatchDockingEnv(VecEnv):
         frame = observation_frames_b(
             self.cfg, self.T_nav, self.filter.T_world_ds(), self.filter.sigma_xy_m(),
             v_dvl, imu.angular_velocity_frd_radps[:, 2], imu.acceleration_frd_mps2,
-            self.prev_action, self.detected, self.contact.features(),
+            self.prev_action, self.detected,
+            self.contact.features() if self.cfg.obs_contact else None,
         )  # fmt: skip
         self.frames = np.concatenate([self.frames[:, 1:], frame[:, None]], axis=1)
         obs = self._obs(e_true, psi_true)

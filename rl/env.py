@@ -394,7 +394,7 @@ class DockingEnv(gym.Env):
             imu.acceleration_frd_mps2,
             self.prev_action,
             self._detected(),
-            self.contact.features()[0],
+            self.contact.features()[0] if self.cfg.obs_contact else None,
         )
 
     def _obs(self, e_true: np.ndarray, psi_true: float) -> np.ndarray:

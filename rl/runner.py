@@ -172,7 +172,7 @@ class DockingRunner:
             odom.acceleration_frd_mps2,
             self.prev_action,
             self.detected,
-            self.contact.features()[0],
+            self.contact.features()[0] if self.cfg.obs_contact else None,
         )
         if not self._frames:
             self._frames = [frame] * self.cfg.obs_frames
@@ -188,11 +188,8 @@ class DockingRunner:
         and the rest time from the DVL velocity; a first tick (or ``moved`` False) only
         remembers the specific force."""
         R = np.asarray(odom.T_world_body, dtype=np.float64)[:3, :3]
-        sf = np.asarray(odom.acceleration_frd_mps2, dtype=np.float64) - R.T @ [
-            0.0,
-            0.0,
-            self._gravity_mps2,
-        ]
+        g_body = R.T @ np.array([0.0, 0.0, self._gravity_mps2])
+        sf = np.asarray(odom.acceleration_frd_mps2, dtype=np.float64) - g_body
         if self._prev_sf is not None and moved:
             hit = self._collisions.collision(sf, self._prev_sf)
             self.contact.update([hit], odom.velocity_frd_mps)

@@ -40,20 +40,19 @@ def run_cli(capsys, monkeypatch) -> Callable[..., CliResult]:
 BENCH_DIR = Path(__file__).resolve().parent.parent / "bench"
 
 
-def load_bench(name: str) -> ModuleType:
-    """``bench/<name>.py`` imported as a module (the bench scripts are not a package)."""
+def load_bench(name: str, register: bool = False) -> ModuleType:
+    """``bench/<name>.py`` imported as a module (the bench scripts are not a package);
+    ``register``: also as ``sys.modules[name]`` (a bench script that imports its sibling by
+    name finds it)."""
     spec = importlib.util.spec_from_file_location(name, BENCH_DIR / f"{name}.py")
     mod = importlib.util.module_from_spec(spec)
+    if register:
+        sys.modules[name] = mod
     spec.loader.exec_module(mod)
     return mod
 
 
 def bench_module(name: str) -> Iterator[ModuleType]:
-    """:func:`load_bench`, registered in ``sys.modules`` as ``name`` for the length of a
-    fixture (a bench script that imports its sibling by name finds it)."""
-    spec = importlib.util.spec_from_file_location(name, BENCH_DIR / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[name] = mod
-    spec.loader.exec_module(mod)
-    yield mod
+    """:func:`load_bench` registered, for the length of a fixture."""
+    yield load_bench(name, register=True)
     sys.modules.pop(name, None)
