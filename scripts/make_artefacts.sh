@@ -7,9 +7,12 @@
 #   bash scripts/make_artefacts.sh models_ar1  # rl/models/error_model_clear_tank_480_ar1_refit.json (with memory,
 #                                              # the current detector; the realistic recipe trains on it)
 #   bash scripts/make_artefacts.sh policy    # rl/policies/error_model_ppo/ (DAgger + PPO, the option), docs/results/training_curve.png
-#   bash scripts/make_artefacts.sh scratch   # trains PPO from scratch into $WORK; with SHIP=1 (or --ship) it
-#                                            # replaces rl/policies/scratch_error_model_ppo/ (the shipped policy)
-#                                            # and docs/results/training_curve_scratch.png
+#   bash scripts/make_artefacts.sh realistic # trains the realistic recipe into $WORK; with SHIP=1 (or --ship) it
+#                                            # replaces rl/policies/realistic_ppo/ (the shipped policy)
+#                                            # and docs/results/training_curve_realistic.png
+#   bash scripts/make_artefacts.sh scratch   # trains PPO from scratch on the true pose into $WORK; with SHIP=1
+#                                            # it replaces rl/policies/scratch_error_model_ppo/ (the policy
+#                                            # shipped before realistic_ppo) and docs/results/training_curve_scratch.png
 #   bash scripts/make_artefacts.sh figures   # docs/results/ (evaluation summaries and figures of the shipped policy)
 #
 # Seeds and data: datasets `datasets synth --n 2500 --water clear_tank --seed 0` at 480 and 640 px
@@ -19,6 +22,9 @@
 # (seed 0); training `configs/scratch_error_model_precision_ppo.toml` then
 # `configs/scratch_error_model_precision_soft_ppo.toml` from its best/ (seed SEED, default 1: the
 # seed shipped, recorded in bench/results/scratch_runs/error_model_precision{,_soft}_s1);
+# training `configs/realistic_batched_yaw_contact_ppo.toml` then
+# `configs/realistic_batched_yaw_contact_gentle_ppo.toml` from its best/ (seed SEED, default 2: the
+# seed shipped, recorded in bench/results/scratch_runs/realistic_contact{,_gentle}_s2);
 # evaluations on episode seeds 1000-1099.
 # WORK (default /tmp/uwdock-artefacts) holds the datasets, the run folder and the evaluation
 # folders; an interrupted stage resumes there.
@@ -27,7 +33,8 @@ cd "$(dirname "$0")/.."
 BIN=${VENV:-.venv}/bin
 WORK=${WORK:-/tmp/uwdock-artefacts}
 DAGGER=rl/policies/error_model_ppo      # the DAgger + PPO option
-POLICY=rl/policies/scratch_error_model_ppo  # the shipped policy: PPO from scratch
+POLICY=rl/policies/realistic_ppo  # the shipped policy: PPO from scratch, realistic navigation
+SCRATCH=rl/policies/scratch_error_model_ppo  # the policy shipped before it (true pose)
 RESULTS=docs/results
 
 say() { printf '[artefacts] %s\n' "$*"; }
@@ -110,16 +117,36 @@ scratch() {  # stage 1: PPO from scratch; stage 2: its best/ fine-tuned (collisi
   train configs/scratch_error_model_precision_soft_ppo.toml "${w}_soft" --seed "$seed" \
     --init-policy "$w/best"
   if [ "$SHIP" != 1 ]; then
-    say "trained ${w}_soft; the shipped policy $POLICY is left as it is (SHIP=1 or --ship replaces it)"
+    say "trained ${w}_soft; the policy $SCRATCH is left as it is (SHIP=1 or --ship replaces it)"
     (cd "${w}_soft/best" && sha256sum policy.zip vecnormalize.pkl)
     return
   fi
-  ship "${w}_soft" "$POLICY" training_curve_scratch.png
-  cp "$w/provenance.json" "$POLICY/stage1_provenance.json"  # stage 1's records beside stage 2's
-  cp "$w/eval_history.jsonl" "$POLICY/stage1_eval_history.jsonl"
+  ship "${w}_soft" "$SCRATCH" training_curve_scratch.png
+  cp "$w/provenance.json" "$SCRATCH/stage1_provenance.json"  # stage 1's records beside stage 2's
+  cp "$w/eval_history.jsonl" "$SCRATCH/stage1_eval_history.jsonl"
 }
 
-EM=rl/models/error_model_clear_tank_480_ar1.json  # the error model the shipped policy trained on
+# The shipped recipe: the vehicle's own drifting navigation (mems-ahrs-dvl), the EvoLogics USBL,
+# its contact sensing in the observation (obs_contact), the error model with memory fitted with
+# the current detector. Stage 1 from scratch; stage 2 from its best/, collision penalty 100.
+realistic() {
+  local seed=${SEED:-2}
+  local w=$WORK/run_realistic_contact_s$seed
+  train configs/realistic_batched_yaw_contact_ppo.toml "$w" --seed "$seed"
+  train configs/realistic_batched_yaw_contact_gentle_ppo.toml "${w}_gentle" --seed "$seed" \
+    --init-policy "$w/best"
+  if [ "$SHIP" != 1 ]; then
+    say "trained ${w}_gentle; the shipped policy $POLICY is left as it is (SHIP=1 or --ship replaces it)"
+    (cd "${w}_gentle/best" && sha256sum policy.zip vecnormalize.pkl)
+    return
+  fi
+  ship "${w}_gentle" "$POLICY" training_curve_realistic.png
+  cp "$w/provenance.json" "$POLICY/stage1_provenance.json"  # stage 1's records beside stage 2's
+  cp "$w/eval_history.jsonl" "$POLICY/stage1_eval_history.jsonl"
+  (cd "$w/best" && sha256sum policy.zip vecnormalize.pkl) >"$POLICY/stage1_checksums.sha256"
+}
+
+EM=rl/models/error_model_clear_tank_480_ar1_refit.json  # the error model the shipped policy trained on
 
 evaluate() {  # evaluate NAME ARGS...: rl eval into $WORK/NAME, unless a finished one is there
   local name=$1
@@ -139,8 +166,8 @@ figures() {
   evaluate eval_error_model --policy "$POLICY" --obs error-model --error-model "$EM" \
     --episodes 100 --videos ""
   evaluate eval_proxy --policy "$POLICY" --obs proxy --episodes 100 --videos ""
-  evaluate eval_pid_error_model --policy pid --obs error-model --error-model "$EM" \
-    --episodes 100 --videos ""
+  evaluate eval_pid_error_model --policy pid --env-from "$POLICY" --obs error-model \
+    --error-model "$EM" --episodes 100 --videos ""
   local e=$WORK/eval_camera k
   k=$("$BIN/python" -c 'import csv, sys
 rows = list(csv.DictReader(open(sys.argv[1])))
@@ -174,8 +201,9 @@ case "${1:-}" in
   models) models ;;
   models_ar1) models_ar1 ;;
   policy) policy ;;
+  realistic) realistic ;;
   scratch) scratch ;;
   figures) figures ;;
-  *) die "usage: bash scripts/make_artefacts.sh models|models_ar1|policy|scratch [--ship]|figures" ;;
+  *) die "usage: bash scripts/make_artefacts.sh models|models_ar1|policy|realistic [--ship]|scratch [--ship]|figures" ;;
 esac
 say "done: review and commit what changed (git status)"
