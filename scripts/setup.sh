@@ -178,8 +178,8 @@ if [ "${SKIP_MAIN_JOB:-0}" = 1 ]; then say "SKIP_MAIN_JOB=1: done"; exit 0; fi
 OUT=${OUT_DIR:-$ROOT/out}
 say "main job 1/2: generating the docking-station marker set into $OUT/markers"
 "$VENV/bin/markers" generate --quiet --out "$OUT/markers"
-POLICY=$ROOT/rl/policies/scratch_error_model_ppo
-say "main job 2/2: one docking episode with the camera in the loop (shipped policy: PPO from scratch) into $OUT/demo"
+POLICY=$ROOT/rl/policies/realistic_ppo
+say "main job 2/2: one docking episode with the camera in the loop (shipped policy: PPO from scratch, the vehicle's own navigation) into $OUT/demo"
 say "  (render -> underwater model -> 3DBM detector -> board PnP -> policy, at 5 Hz; well under a minute on a CPU)"
 "$VENV/bin/rl" eval --policy "$POLICY" --obs camera --episodes 1 --seed 7 --videos 0 \
   --out "$OUT/demo" \
