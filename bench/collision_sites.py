@@ -69,14 +69,15 @@ def run(
 
     from uwdock.rl.env import DockingEnv
     from uwdock.rl.env_settings import policy_training_env
-    from uwdock.rl.evaluate import _as_controller
+    from uwdock.rl.evaluate import SB3Controller
     from uwdock.rl.policy_io import load_controller
 
     resolved = policy_training_env(policy)
     if resolved is None:
         raise SystemExit(f"error: {policy} has no run config to take the training env from")
     cfg = resolved.cfg
-    ctrl = _as_controller(*load_controller("pid" if controller == "pid" else policy, cfg)[:2])
+    model, vecnorm, _ = load_controller("pid" if controller == "pid" else policy, cfg)
+    ctrl = model if hasattr(model, "act") else SB3Controller(model, vecnorm)
     env = DockingEnv(cfg)
     events: list[dict[str, Any]] = []
     try:

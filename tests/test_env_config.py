@@ -30,6 +30,8 @@ from uwdock.sim.world_config import WorldConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 SHIPPED = sorted(p for p in (ROOT / "rl" / "policies").iterdir() if (p / "config.toml").is_file())
+#: The shipped run configs written before [env.world] existed (flat world keys in [env]).
+LEGACY = [p for p in SHIPPED if "world" not in read_toml(p / "config.toml")["train"]["env"]]
 
 #: A value other than the default for every WorldConfig field (a table: some of its keys).
 NON_DEFAULT: dict[str, Any] = {
@@ -104,7 +106,20 @@ def test_every_world_field_is_set_from_env_world(tmp_path, name):
         assert to_dict(cfg.world) == merge(to_dict(WorldConfig()), {name: want})
 
 
-@pytest.mark.parametrize("policy", SHIPPED, ids=lambda p: p.name)
+def test_shipped_policies_in_both_layouts():
+    assert len(LEGACY) >= 2 and len(SHIPPED) > len(LEGACY)
+
+
+@pytest.mark.parametrize("policy", sorted(set(SHIPPED) - set(LEGACY)), ids=lambda p: p.name)
+def test_shipped_policies_in_the_current_layout_load_unchanged(policy):
+    """A run config written with [env.world] loads with every world value as written."""
+    raw = read_toml(policy / "config.toml")["train"]
+    assert not set(LEGACY_WORLD_KEYS) & set(raw["env"])  # nothing flat left to lift
+    cfg = run_config(policy)
+    _assert_within(raw, to_dict(cfg))
+
+
+@pytest.mark.parametrize("policy", LEGACY, ids=lambda p: p.name)
 def test_shipped_policies_load_through_the_shim_unchanged(policy):
     """The shipped run configs keep the flat layout on disk; the loader lifts every flat world
     key into world with the same value, and every other value stays where it was."""
