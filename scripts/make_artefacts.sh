@@ -110,20 +110,28 @@ policy() {
   ship "$WORK/run_error_model_ppo" "$DAGGER" training_curve.png
 }
 
-scratch() {  # stage 1: PPO from scratch; stage 2: its best/ fine-tuned (collision penalty 30)
-  local seed=${SEED:-1}
-  local w=$WORK/run_scratch_error_model_precision_ppo_s$seed
-  train configs/scratch_error_model_precision_ppo.toml "$w" --seed "$seed"
-  train configs/scratch_error_model_precision_soft_ppo.toml "${w}_soft" --seed "$seed" \
-    --init-policy "$w/best"
+# two_stages SEED STAGE1 STAGE2 RUN SUFFIX DEST CURVE: train STAGE1 into RUN, then STAGE2 from its
+# best/ into RUN_SUFFIX; with SHIP=1 copy stage 2's best/ into DEST with both stages' records
+two_stages() {
+  local seed=$1 stage1=$2 stage2=$3 w=$4 suffix=$5 dest=$6 curve=$7
+  train "$stage1" "$w" --seed "$seed"
+  train "$stage2" "${w}_$suffix" --seed "$seed" --init-policy "$w/best"
   if [ "$SHIP" != 1 ]; then
-    say "trained ${w}_soft; the policy $SCRATCH is left as it is (SHIP=1 or --ship replaces it)"
-    (cd "${w}_soft/best" && sha256sum policy.zip vecnormalize.pkl)
+    say "trained ${w}_$suffix; $dest is left as it is (SHIP=1 or --ship replaces it)"
+    (cd "${w}_$suffix/best" && sha256sum policy.zip vecnormalize.pkl)
     return
   fi
-  ship "${w}_soft" "$SCRATCH" training_curve_scratch.png
-  cp "$w/provenance.json" "$SCRATCH/stage1_provenance.json"  # stage 1's records beside stage 2's
-  cp "$w/eval_history.jsonl" "$SCRATCH/stage1_eval_history.jsonl"
+  ship "${w}_$suffix" "$dest" "$curve"
+  cp "$w/provenance.json" "$dest/stage1_provenance.json"  # stage 1's records beside stage 2's
+  cp "$w/eval_history.jsonl" "$dest/stage1_eval_history.jsonl"
+  (cd "$w/best" && sha256sum policy.zip vecnormalize.pkl) >"$dest/stage1_checksums.sha256"
+}
+
+scratch() {  # the true-pose recipe: PPO from scratch, then its best/ at collision penalty 30
+  local seed=${SEED:-1}
+  two_stages "$seed" configs/scratch_error_model_precision_ppo.toml \
+    configs/scratch_error_model_precision_soft_ppo.toml \
+    "$WORK/run_scratch_error_model_precision_ppo_s$seed" soft "$SCRATCH" training_curve_scratch.png
 }
 
 # The shipped recipe: the vehicle's own drifting navigation (mems-ahrs-dvl), the EvoLogics USBL,
@@ -131,19 +139,9 @@ scratch() {  # stage 1: PPO from scratch; stage 2: its best/ fine-tuned (collisi
 # the current detector. Stage 1 from scratch; stage 2 from its best/, collision penalty 100.
 realistic() {
   local seed=${SEED:-2}
-  local w=$WORK/run_realistic_contact_s$seed
-  train configs/realistic_batched_yaw_contact_ppo.toml "$w" --seed "$seed"
-  train configs/realistic_batched_yaw_contact_gentle_ppo.toml "${w}_gentle" --seed "$seed" \
-    --init-policy "$w/best"
-  if [ "$SHIP" != 1 ]; then
-    say "trained ${w}_gentle; the shipped policy $POLICY is left as it is (SHIP=1 or --ship replaces it)"
-    (cd "${w}_gentle/best" && sha256sum policy.zip vecnormalize.pkl)
-    return
-  fi
-  ship "${w}_gentle" "$POLICY" training_curve_realistic.png
-  cp "$w/provenance.json" "$POLICY/stage1_provenance.json"  # stage 1's records beside stage 2's
-  cp "$w/eval_history.jsonl" "$POLICY/stage1_eval_history.jsonl"
-  (cd "$w/best" && sha256sum policy.zip vecnormalize.pkl) >"$POLICY/stage1_checksums.sha256"
+  two_stages "$seed" configs/realistic_batched_yaw_contact_ppo.toml \
+    configs/realistic_batched_yaw_contact_gentle_ppo.toml \
+    "$WORK/run_realistic_contact_s$seed" gentle "$POLICY" training_curve_realistic.png
 }
 
 EM=rl/models/error_model_clear_tank_480_ar1_refit.json  # the error model the shipped policy trained on
