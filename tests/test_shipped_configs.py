@@ -65,63 +65,57 @@ def test_proxy_precision_recipe_only_adds_r_precision():
     assert replace(precise, env=replace(precise.env, reward=reward)) == batch
 
 
-def test_shipped_policy_is_the_from_scratch_recipe():
-    """The shipped policy (the main job's) was trained by the committed stage-2 config, from a
-    clean tree, from stage 1's best/, with no imitation, and loads as a finite policy."""
+def _shipped_stage2(name: str, recipe: str):
+    """The shipped policy folder ``name``: its run config is the committed stage-2 ``recipe`` (its
+    seed aside), trained from a clean tree from a stage 1's best/, without imitation, and its kept
+    checkpoint docked >= 90 % strict on its 30 evaluation episodes. Returns (folder, config,
+    model)."""
     from uwdock.rl.policy_io import load_policy
 
-    shipped = ROOT / "rl" / "policies" / "scratch_error_model_ppo"
+    shipped = ROOT / "rl" / "policies" / name
     cfg = load_config(TrainConfig, shipped / "config.toml", section="train")
-    recipe = load_config(
-        TrainConfig,
-        ROOT / "configs" / "scratch_error_model_precision_soft_ppo.toml",
-        section="train",
-    )
-    assert cfg == replace(recipe, seed=cfg.seed)
-    assert cfg.imitation.teacher == "none"
+    recipe_cfg = load_config(TrainConfig, ROOT / "configs" / recipe, section="train")
+    assert cfg == replace(recipe_cfg, seed=cfg.seed)
+    assert cfg.imitation.teacher == "none" and not (shipped / "imitation.json").exists()
     prov = json.loads((shipped / "provenance.json").read_text(encoding="utf-8"))
     assert prov["git"]["dirty"] is False and len(prov["git"]["commit"]) == 40
-    assert "--init-policy" in prov["command"] and not (shipped / "imitation.json").exists()
+    assert "--init-policy" in prov["command"] and f"--seed {cfg.seed}" in prov["command"]
     history = [json.loads(line) for line in (shipped / "eval_history.jsonl").open()]
     best = [r for r in history if r.get("best")][-1]
-    assert best["success_rate_strict"] >= 0.9  # the kept checkpoint, on its 30 episodes
-    model, _vecnorm = load_policy(shipped)[:2]
+    assert best["success_rate_strict"] >= 0.9
+    model = load_policy(shipped)[0]
+    return shipped, cfg, model
+
+
+def test_the_true_pose_policy_is_the_from_scratch_recipe():
+    """The policy shipped before realistic_ppo: stage 2 of the true-pose recipe."""
+    _shipped, _cfg, model = _shipped_stage2(
+        "scratch_error_model_ppo", "scratch_error_model_precision_soft_ppo.toml"
+    )
     assert model.observation_space.shape[0] > 0
 
 
 def test_shipped_policy_is_the_realistic_recipe():
     """The main job's policy: stage 2 of the realistic recipe (its own drifting navigation, the
-    EvoLogics USBL, contact sensing, the refitted error model), from a clean tree, from a stage 1
-    of the committed stage-1 config whose best/ is recorded beside it; it matches its checksums
-    and reads the observation the recipe's env gives."""
+    EvoLogics USBL, contact sensing, the refitted error model), from a stage 1 of the committed
+    stage-1 config whose best/ is recorded beside it; it matches its checksums and reads the
+    observation the recipe's env gives."""
     import hashlib
 
     from uwdock.rl.observation import observation_size
-    from uwdock.rl.policy_io import load_policy
 
-    shipped = ROOT / "rl" / "policies" / "realistic_ppo"
-    cfg = load_config(TrainConfig, shipped / "config.toml", section="train")
-    recipe = load_config(
-        TrainConfig,
-        ROOT / "configs" / "realistic_batched_yaw_contact_gentle_ppo.toml",
-        section="train",
+    shipped, cfg, model = _shipped_stage2(
+        "realistic_ppo", "realistic_batched_yaw_contact_gentle_ppo.toml"
     )
-    assert cfg == replace(recipe, seed=cfg.seed)
     assert cfg.env.nav.preset == "mems-ahrs-dvl" and cfg.env.usbl.preset == "evologics-s2cr"
     assert cfg.env.obs_contact and cfg.env.error_model_path.endswith("_ar1_refit.json")
     stage1 = load_config(
         TrainConfig, ROOT / "configs" / "realistic_batched_yaw_contact_ppo.toml", section="train"
     )
     assert replace(stage1.env, reward=cfg.env.reward) == cfg.env  # only the reward differs
-    for name in ("provenance.json", "stage1_provenance.json"):
-        prov = json.loads((shipped / name).read_text(encoding="utf-8"))
-        assert prov["git"]["dirty"] is False and len(prov["git"]["commit"]) == 40, name
-    prov = json.loads((shipped / "provenance.json").read_text(encoding="utf-8"))
-    assert "--init-policy" in prov["command"] and f"--seed {cfg.seed}" in prov["command"]
-    assert (
-        "realistic_batched_yaw_contact_ppo.toml"
-        in json.loads((shipped / "stage1_provenance.json").read_text(encoding="utf-8"))["command"]
-    )
+    stage1_prov = json.loads((shipped / "stage1_provenance.json").read_text(encoding="utf-8"))
+    assert stage1_prov["git"]["dirty"] is False and len(stage1_prov["git"]["commit"]) == 40
+    assert "realistic_batched_yaw_contact_ppo.toml" in stage1_prov["command"]
     for sums in ("checksums.sha256", "stage1_checksums.sha256"):
         lines = (shipped / sums).read_text().splitlines()
         assert {line.split("  ", 1)[1] for line in lines} == {"policy.zip", "vecnormalize.pkl"}
@@ -135,8 +129,4 @@ def test_shipped_policy_is_the_realistic_recipe():
     assert (shipped / "checksums.sha256").read_text() == (
         kept / f"realistic_contact_gentle_s{cfg.seed}" / "best" / "checksums.sha256"
     ).read_text()
-    history = [json.loads(line) for line in (shipped / "eval_history.jsonl").open()]
-    best = [r for r in history if r.get("best")][-1]
-    assert best["success_rate_strict"] >= 0.9  # the kept checkpoint, on its 30 episodes
-    model, _vecnorm = load_policy(shipped)[:2]
     assert model.observation_space.shape[0] == observation_size(cfg.env)
