@@ -355,17 +355,52 @@ def test_a_signal_landing_in_importlib_is_delivered_again_not_lost():
     old = signal.signal(signal.SIGUSR1, lambda s, f: got.append(s))
     try:
         dcli._interrupt(signal.SIGUSR1, ns["frame"], KeyboardInterrupt)  # no raise here
-        assert dcli._received == []
+        assert dcli._received == [signal.SIGUSR1]  # but recorded: an error before it lands is it
         deadline = time.monotonic() + 5.0
         while not got and time.monotonic() < deadline:
             time.sleep(0.005)
         assert got == [signal.SIGUSR1]
         with pytest.raises(KeyboardInterrupt):
             dcli._interrupt(signal.SIGUSR1, sys._getframe(), KeyboardInterrupt)
-        assert dcli._received == [signal.SIGUSR1]
+        assert dcli._received == [signal.SIGUSR1, signal.SIGUSR1]
     finally:
         signal.signal(signal.SIGUSR1, old)
         dcli._received.clear()
+
+
+def test_an_error_before_a_put_off_interrupt_lands_is_reported_as_the_interrupt(capsys):
+    """The int-import case with the SIGINT landing in importlib: its handler puts the raise off,
+    the C extension's ImportError surfaces first; that is the interrupt (130), not a bug (1)."""
+    from uwdock.dockcore import cli as dcli
+
+    ns: dict = {}
+    code = compile("import sys\nframe = sys._getframe()", "<frozen importlib._bootstrap>", "exec")
+    exec(code, ns)
+
+    @click.group()
+    def grp():
+        pass
+
+    @grp.command()
+    def cmd():
+        dcli._interrupt(signal.SIGINT, ns["frame"], KeyboardInterrupt)  # put off
+        raise ImportError("initialization failed")
+
+    delivered: list[int] = []
+    orig_kill = os.kill
+    old = signal.signal(signal.SIGUSR1, lambda s, f: delivered.append(s))
+    try:  # the redelivery is sent as SIGUSR1 and only counted, so pytest sees no Ctrl-C
+        os.kill = lambda pid, sig: orig_kill(pid, signal.SIGUSR1)
+        with pytest.raises(SystemExit) as ex:
+            run_group(grp, ["cmd"])
+        deadline = time.monotonic() + 5.0
+        while not delivered and time.monotonic() < deadline:
+            time.sleep(0.005)
+    finally:
+        os.kill = orig_kill
+        signal.signal(signal.SIGUSR1, old)
+    assert delivered == [signal.SIGUSR1]  # it was put off, and delivered again
+    assert ex.value.code == 130 and capsys.readouterr().err == "error: interrupted\n"
 
 
 _LATE_SIGNAL_PROGRAM = """
