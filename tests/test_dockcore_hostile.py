@@ -192,7 +192,13 @@ def test_numeric_options_accept_their_domain(capsys):
     ],
 )
 def test_errors_are_one_line(capsys, fail, code, message):
-    assert _run(capsys, "cmd", "--fail", fail) == (code, "", message)
+    # Ctrl-C as at a terminal: a process started in the background by a non-interactive shell
+    # (`cmd &`) inherits SIGINT ignored, and run_group leaves an ignored SIGINT alone
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        assert _run(capsys, "cmd", "--fail", fail) == (code, "", message)
+    finally:
+        signal.signal(signal.SIGINT, old)
 
 
 def test_a_bug_is_one_line_exit_1_without_traceback(capsys):
