@@ -64,42 +64,31 @@ def run(
     policy: str, controller: str, episodes: int, seed: int, seat_xy_m: float, bounce_s: float
 ) -> list[dict[str, Any]]:
     """Every collision of ``episodes`` seeded episodes of ``controller`` ("policy" or "pid") in
-    ``policy``'s training env, classed (:func:`classify`)."""
+    ``policy``'s training env (``rl.evaluate.run_episodes``' traces), classed (:func:`classify`)."""
     from tqdm import tqdm
 
-    from uwdock.rl.env import DockingEnv
     from uwdock.rl.env_settings import policy_training_env
-    from uwdock.rl.evaluate import SB3Controller
+    from uwdock.rl.evaluate import run_episodes
     from uwdock.rl.policy_io import load_controller
 
     resolved = policy_training_env(policy)
     if resolved is None:
         raise SystemExit(f"error: {policy} has no run config to take the training env from")
-    cfg = resolved.cfg
-    model, vecnorm, _ = load_controller("pid" if controller == "pid" else policy, cfg)
-    ctrl = model if hasattr(model, "act") else SB3Controller(model, vecnorm)
-    env = DockingEnv(cfg)
+    model, vecnorm, _ = load_controller("pid" if controller == "pid" else policy, resolved.cfg)
+    with tqdm(total=episodes, desc=controller, unit="ep") as bar:
+        res = run_episodes(
+            model, resolved.cfg, episodes, seed, vecnorm=vecnorm,
+            progress=lambda done, _n: bar.update(done - bar.n),
+        )  # fmt: skip
     events: list[dict[str, Any]] = []
-    try:
-        for k in tqdm(range(episodes), desc=controller, unit="ep"):
-            obs, _ = env.reset(seed=seed + k)
-            ctrl.reset()
-            done, info = False, {}
-            while not done:
-                obs, _r, term, trunc, info = env.step(np.asarray(ctrl.act(obs), dtype=np.float64))
-                done = term or trunc
-                if info["collided"]:
-                    e = info["e_true"]
-                    events.append({
-                        "episode": k, "time_s": round(float(info["time_s"]), 3),
-                        "e_xy_m": float(np.hypot(e[0], e[1])), "e_z_m": float(e[2]),
-                    })  # fmt: skip
-            ep = [e for e in events if e["episode"] == k]
-            classify(ep, seat_xy_m, bounce_s)
-            for e in ep:
-                e["docked_strict"] = bool(info["success_strict"])
-    finally:
-        env.close()
+    for k, (row, tr) in enumerate(zip(res.episodes, res.traces, strict=True)):
+        ep = [
+            {"episode": k, "time_s": round(float(t), 3), "e_xy_m": float(np.hypot(e[0], e[1])),
+             "e_z_m": float(e[2]), "docked_strict": bool(row["success_strict"])}
+            for t, e, hit in zip(tr.time_s, tr.e_true, tr.collided, strict=True) if hit
+        ]  # fmt: skip
+        classify(ep, seat_xy_m, bounce_s)
+        events += ep
     return events
 
 

@@ -143,7 +143,7 @@ def _in_import_machinery(frame: Any) -> bool:
 def _interrupt(signum: int, frame: Any, exc: type[BaseException]) -> None:
     # recorded first, also when the raise is put off: an error that surfaces before the signal
     # is delivered again (the C extension whose import it broke) is then still reported as the
-    # interrupt, not as a bug (seen once in 4 full test runs, the int-import case)
+    # interrupt, not as a bug
     _received.append(signum)
     if _in_import_machinery(frame):
         threading.Timer(REDELIVER_DELAY_S, os.kill, (os.getpid(), signum)).start()

@@ -76,6 +76,7 @@ class EpisodeTrace:
     e_true: list[np.ndarray] = field(default_factory=list)
     e_obs: list[np.ndarray] = field(default_factory=list)
     detected: list[bool] = field(default_factory=list)
+    collided: list[bool] = field(default_factory=list)
     frames: list[np.ndarray] = field(default_factory=list)
 
 
@@ -170,6 +171,7 @@ def _episode(
             latest = obs[-frame_dim(env.cfg) :]  # the newest frame of a stacked observation
             tr.e_obs.append(np.append(latest[0:3] * POS_SCALE_M, latest[3] * math.pi))
             tr.detected.append(info["detected"])
+            tr.collided.append(bool(info["collided"]))
         if film:
             frame = env.camera_frame()
             if frame is not None:
