@@ -36,7 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from uwdock.calibration.frames import T_WORLDZUP_WORLDNED
-from uwdock.sim.fastpath import HYDRO_PARAMS, free_flight_all
+from uwdock.sim.fastpath import HYDRO_PARAMS, OBSTACLE_COLS, free_flight_all
 from uwdock.sim.physics import FREE_FLIGHT_MARGIN_M, VehicleBody
 
 __all__ = ["BatchImu", "BatchVehicles"]
@@ -110,7 +110,7 @@ class BatchVehicles:
         self.thrust_n = np.zeros((n, k))
         self.time_s = np.zeros(n)
         self.cg_m = np.zeros((n, 3))
-        self.obstacles = np.zeros((n, 0, 6))
+        self.obstacles = np.zeros((n, 0, OBSTACLE_COLS))
         self.n_obstacles = np.full(n, -1, dtype=np.int64)
         self.current_ned = np.zeros((n, 3))  # the constant currents; None rows: see _varying
         self._varying = np.zeros(n, dtype=bool)
@@ -158,7 +158,7 @@ class BatchVehicles:
         else:
             m = boxes.shape[0]
             if m > self.obstacles.shape[1]:
-                grown = np.zeros((self.n, m, 6))
+                grown = np.zeros((self.n, m, OBSTACLE_COLS))
                 grown[:, : self.obstacles.shape[1]] = self.obstacles
                 self.obstacles = grown
             self.obstacles[i, :m] = boxes

@@ -25,8 +25,10 @@ The fast path is only valid while PhysX would generate no contact. :func:`free_f
 the swept volume of every hull shape over the step (the box of the origin's positions at the
 substeps, the shape's box at the start attitude, grown by ``rho * theta`` for the rotation,
 ``theta`` = integral of ``|w|``, ``rho`` = the shape's farthest point from the origin) and
-reports whether any grown box (plus a margin above PhysX's contact offsets) overlaps a static
-obstacle's box; it then integrates again chunk by chunk (:data:`CHUNK_SUBSTEPS`) up to the
+reports whether any grown box (plus a margin above PhysX's contact offsets) may touch a static
+obstacle: their world boxes first, then, where those overlap, the separating-axis test against
+the obstacle's oriented box (so a tilted guide plate no longer hands PhysX every vehicle inside
+the box around it); it then integrates again chunk by chunk (:data:`CHUNK_SUBSTEPS`) up to the
 first chunk that may touch, and the caller steps PhysX from there. Planes given to
 :func:`plane_contacts` (a docking world's tank floor and walls) are not obstacles: their
 contact is computed in the kernel.
@@ -54,6 +56,7 @@ if TYPE_CHECKING:  # pragma: no cover
 
 __all__ = [
     "HYDRO_PARAMS",
+    "OBSTACLE_COLS",
     "StaticObstacles",
     "body_params",
     "free_flight",
@@ -69,6 +72,10 @@ __all__ = [
 #: linear (6) and quadratic (6) damping, I_O (9, row-major), (M_RB + M_A)^-1 (36, row-major),
 #: then the free surface: B, r_b (3), the surface band (m).
 HYDRO_PARAMS = 76
+#: Columns of an obstacle row (:meth:`StaticObstacles.boxes`): the world box [min xyz, max xyz],
+#: then 1.0 if an oriented box follows (0.0: a plane, only the world box counts), its centre (3),
+#: half size (3) and rotation (9, row-major: its axes are the columns), z-up world, m.
+OBSTACLE_COLS = 22
 #: Unbounded side of an obstacle box (a half-space, or a shape we cannot bound).
 _FAR = 1e30
 #: Substeps per chunk when a step that may touch is retried chunk by chunk (:func:`free_flight`).
@@ -396,15 +403,44 @@ def _rot(R, qw, qx, qy, qz):
 
 
 @njit(cache=True)
+def _separated(ax, ay, az, d, rh, R0, sweep_h, grow, obs):
+    """Whether axis (ax, ay, az) (any length) separates a swept hull box from an obstacle's
+    oriented box: ``d`` the centres' offset (obstacle minus hull, world), ``rh`` the hull
+    box's half size along the body axes ``R0``'s columns, ``sweep_h`` the origin path's
+    half extent per world axis, ``grow`` the radius of the ball added (m)."""
+    ln = math.sqrt(ax * ax + ay * ay + az * az)
+    if ln < 1e-9:
+        return False  # a degenerate cross product: no axis
+    dist = abs(ax * d[0] + ay * d[1] + az * d[2])
+    r = grow * ln + abs(ax) * sweep_h[0] + abs(ay) * sweep_h[1] + abs(az) * sweep_h[2]
+    for i in range(3):
+        r += rh[i] * abs(ax * R0[0, i] + ay * R0[1, i] + az * R0[2, i])
+        r += obs[10 + i] * abs(
+            ax * obs[13 + i] + ay * obs[16 + i] + az * obs[19 + i]
+        )  # obstacle half size along its own axis i (column i of its rotation)
+    return dist > r
+
+
+@njit(cache=True)
 def _overlaps(boxes, obstacles, lo, hi, R0, theta, margin):
     """Whether a hull box may touch an obstacle box during the step.
 
     Hull box i (``boxes[i]``: centre, half size in the body frame, ``rho``) at attitude ``R0``,
     swept over the origin positions [lo, hi] and grown by ``margin + rho * theta`` for the
-    rotation, against obstacle boxes [min xyz, max xyz] (all z-up world).
+    rotation, against the obstacles (z-up world; :data:`OBSTACLE_COLS` per row). First their
+    world boxes; where those overlap and the obstacle has an oriented box, the separating-axis
+    test of the swept set against it (the obstacle's and the hull box's axes and their cross
+    products: an axis that separates proves there is no contact, so the test stays on the safe
+    side, and a tilted guide plate no longer claims the whole box around it).
     """
     bmin = np.empty(3)
     bmax = np.empty(3)
+    cen = np.empty(3)
+    d = np.empty(3)
+    rh = np.empty(3)
+    sweep_h = np.empty(3)
+    for a in range(3):
+        sweep_h[a] = 0.5 * (hi[a] - lo[a])
     for i in range(boxes.shape[0]):
         grow = margin + boxes[i, 6] * theta
         for a in range(3):
@@ -417,12 +453,42 @@ def _overlaps(boxes, obstacles, lo, hi, R0, theta, margin):
             )
             bmin[a] = lo[a] + c - h
             bmax[a] = hi[a] + c + h
+            cen[a] = 0.5 * (lo[a] + hi[a]) + c
+        rh[0], rh[1], rh[2] = boxes[i, 3], boxes[i, 4], boxes[i, 5]
         for j in range(obstacles.shape[0]):
-            if (
-                bmin[0] <= obstacles[j, 3] and bmax[0] >= obstacles[j, 0]
-                and bmin[1] <= obstacles[j, 4] and bmax[1] >= obstacles[j, 1]
-                and bmin[2] <= obstacles[j, 5] and bmax[2] >= obstacles[j, 2]
+            o = obstacles[j]
+            if not (
+                bmin[0] <= o[3] and bmax[0] >= o[0]
+                and bmin[1] <= o[4] and bmax[1] >= o[1]
+                and bmin[2] <= o[5] and bmax[2] >= o[2]
             ):  # fmt: skip
+                continue
+            if o[6] == 0.0:
+                return True  # no oriented box (a plane): the world boxes decide
+            for a in range(3):
+                d[a] = o[7 + a] - cen[a]
+            apart = False
+            for k in range(3):  # the obstacle's axes, then the hull box's
+                if _separated(o[13 + k], o[16 + k], o[19 + k], d, rh, R0, sweep_h, grow, o):
+                    apart = True
+                    break
+                if _separated(R0[0, k], R0[1, k], R0[2, k], d, rh, R0, sweep_h, grow, o):
+                    apart = True
+                    break
+            if not apart:
+                for k in range(3):  # hull axis k x obstacle axis m
+                    hx, hy, hz = R0[0, k], R0[1, k], R0[2, k]
+                    for m in range(3):
+                        ox, oy, oz = o[13 + m], o[16 + m], o[19 + m]
+                        if _separated(
+                            hy * oz - hz * oy, hz * ox - hx * oz, hx * oy - hy * ox,
+                            d, rh, R0, sweep_h, grow, o,
+                        ):  # fmt: skip
+                            apart = True
+                            break
+                    if apart:
+                        break
+            if not apart:
                 return True
     return False
 
@@ -560,7 +626,8 @@ def free_flight(
         dt: substep (s).
         boxes: (s, 7) hull shapes in the body FLU frame: centre (3), half size (3), and
             ``rho``, the largest distance of the shape from the body origin (m).
-        obstacles: (k, 6) static boxes [min xyz, max xyz], z-up world (m).
+        obstacles: (k, :data:`OBSTACLE_COLS`) static boxes: world box [min xyz, max xyz] and
+            oriented box, z-up world (m).
         margin: clearance below which a contact counts as possible (m).
         acc: (6,) out: last integrated substep's CoM and angular acceleration, z-up world.
         spheres, planes, contact: the tank planes, whose contact is ours, not PhysX's
@@ -715,7 +782,7 @@ class StaticObstacles:
         self.system = scene.physx_system
 
     def boxes(self) -> np.ndarray | None:
-        """(k, 6) [min xyz, max xyz] per static shape, each grown by its contact offset; None
+        """(k, :data:`OBSTACLE_COLS`) per static shape, each grown by its contact offset; None
         when the fast path cannot stand in for ``scene.step()`` (another dynamic body or an
         articulation, or a GPU PhysX system)."""
         system = self.system
@@ -768,12 +835,23 @@ class StaticObstacles:
         for comp, (Ts, cs, hs, planes) in zip(self._statics, self._local, strict=True):
             T_we = _pose_T(comp.get_entity_pose())
             T_ws = T_we[None] @ Ts  # (m, 4, 4)
-            c = np.einsum("mij,mj->mi", T_ws[:, :3, :3], cs) + T_ws[:, :3, 3]
-            h = np.einsum("mij,mj->mi", np.abs(T_ws[:, :3, :3]), hs)
-            boxes = np.concatenate([c - h, c + h], axis=1)
+            R = T_ws[:, :3, :3]
+            c = np.einsum("mij,mj->mi", R, cs) + T_ws[:, :3, 3]
+            h = np.einsum("mij,mj->mi", np.abs(R), hs)
+            rows = np.zeros((len(Ts), OBSTACLE_COLS))
+            rows[:, :6] = np.concatenate([c - h, c + h], axis=1)
+            rows[:, 6] = 1.0
+            rows[:, 7:10] = c
+            rows[:, 10:13] = hs
+            rows[:, 13:22] = R.reshape(-1, 9)
+            for i in np.flatnonzero(planes | (hs >= _FAR).any(axis=1)):
+                rows[i, 6:] = 0.0  # unbounded: the world box alone
             for i in np.flatnonzero(planes):
-                boxes[i] = _plane_box(T_ws[i])
-                boxes[i, :3] -= hs[i]  # the contact offset
-                boxes[i, 3:] += hs[i]
-            out.append(np.clip(boxes, -_FAR, _FAR))
-        return np.ascontiguousarray(np.concatenate(out, axis=0) if out else np.zeros((0, 6)))
+                rows[i, :6] = _plane_box(T_ws[i])
+                rows[i, :3] -= hs[i]  # the contact offset
+                rows[i, 3:6] += hs[i]
+            rows[:, :6] = np.clip(rows[:, :6], -_FAR, _FAR)
+            out.append(rows)
+        if not out:
+            return np.zeros((0, OBSTACLE_COLS))
+        return np.ascontiguousarray(np.concatenate(out, axis=0))

@@ -7,6 +7,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import sapien
+from scipy.spatial.transform import Rotation
 
 from uwdock.calibration.frames import (
     R_from_rpy,
@@ -16,7 +17,14 @@ from uwdock.calibration.frames import (
     rotation_angle_deg,
 )
 from uwdock.sim.docking_station import DockingStationConfig, build_tank
-from uwdock.sim.fastpath import StaticObstacles, body_params, hydro_params, physx_wrench
+from uwdock.sim.fastpath import (
+    OBSTACLE_COLS,
+    StaticObstacles,
+    _overlaps,
+    body_params,
+    hydro_params,
+    physx_wrench,
+)
 from uwdock.sim.physics import FREE_FLIGHT_MARGIN_M, VehicleBody, make_physics_scene
 from uwdock.sim.vehicle import (
     Current,
@@ -184,7 +192,7 @@ def test_tank_boxes_and_obstacle_updates():
     build_tank(scene, ds_cfg, visual=False, surface_lid=True)
     body = VehicleBody(scene, NEUTRAL)
     boxes = StaticObstacles(scene, body.component).boxes()
-    assert boxes.shape == (6, 6)
+    assert boxes.shape == (6, OBSTACLE_COLS)
     L, W, D = ds_cfg.tank_length_m, ds_cfg.tank_width_m, ds_cfg.tank_depth_m
     co = CONTACT_OFFSET_M
     floor = boxes[np.argmin(boxes[:, 2])]
@@ -234,3 +242,91 @@ def test_fast_path_is_deterministic_and_can_be_disabled():
     off.reset(make_T(t=[0.0, 0.0, 4.0]))
     off.step(np.zeros(6), 0.2)
     assert not off.last_step_fast
+
+
+def _obstacle_row(R: np.ndarray, centre: np.ndarray, half: np.ndarray) -> np.ndarray:
+    """An oriented box as :class:`StaticObstacles` hands it to the kernel."""
+    h = np.abs(R) @ half
+    row = np.zeros(OBSTACLE_COLS)
+    row[:6] = np.concatenate([centre - h, centre + h])
+    row[6] = 1.0
+    row[7:10], row[10:13], row[13:22] = centre, half, R.reshape(9)
+    return row
+
+
+def _box_distance(points: np.ndarray, row: np.ndarray) -> np.ndarray:
+    """Distance of points (n, 3) to an obstacle row's oriented box (0 inside)."""
+    R = row[13:22].reshape(3, 3)
+    local = (points - row[7:10]) @ R
+    return np.linalg.norm(local - np.clip(local, -row[10:13], row[10:13]), axis=1)
+
+
+def test_oriented_obstacle_test_never_misses_a_touch():
+    """Random hull boxes swept between two origin positions against random oriented boxes:
+    wherever a point of the swept hull comes within the margin of the obstacle, the test says
+    a contact is possible; and it clears many pairs whose world boxes overlap."""
+    rng = np.random.default_rng(4)
+    margin = 0.05
+    cleared = 0
+    u = np.linspace(-1.0, 1.0, 7)
+    grid = np.stack(np.meshgrid(u, u, u, indexing="ij"), axis=-1).reshape(-1, 3)
+    for _ in range(400):
+        R0 = Rotation.random(random_state=rng).as_matrix()
+        hull = np.zeros((1, 7))
+        hull[0, :3] = rng.uniform(-0.3, 0.3, 3)
+        hull[0, 3:6] = rng.uniform(0.05, 0.6, 3)
+        hull[0, 6] = np.linalg.norm(hull[0, :3]) + np.linalg.norm(hull[0, 3:6])
+        a, b = rng.uniform(-0.5, 0.5, 3), rng.uniform(-0.5, 0.5, 3) * rng.uniform(0, 0.3)
+        lo, hi = np.minimum(a, a + b), np.maximum(a, a + b)
+        row = _obstacle_row(
+            Rotation.random(random_state=rng).as_matrix(),
+            rng.uniform(-1.2, 1.2, 3),
+            rng.uniform(0.02, 0.8, 3),
+        )
+        possible = _overlaps(hull, row[None], lo, hi, R0, 0.0, margin)
+        # the swept hull: its box at every corner of the origin's path box
+        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                            for z in (lo[2], hi[2])])  # fmt: skip
+        body = hull[0, :3] + grid * hull[0, 3:6]
+        pts = (corners[:, None, :] + (body @ R0.T)[None]).reshape(-1, 3)
+        if _box_distance(pts, row).min() <= margin:
+            assert possible
+        h = np.abs(R0) @ hull[0, 3:6] + margin
+        c = R0 @ hull[0, :3]
+        world_overlap = np.all(lo + c - h <= row[3:6]) and np.all(hi + c + h >= row[:3])
+        cleared += bool(world_overlap and not possible)
+    assert cleared >= 40
+
+
+def test_tilted_plate_only_claims_its_own_space():
+    """A plate tilted 45 deg: a vehicle inside the plate's world box but well clear of the
+    plate flies the fast path, with PhysX's trajectory; one at the plate is handed to PhysX."""
+    rng = np.random.default_rng(2)
+    wrenches = rng.uniform(-1, 1, (5, 6)) * [40, 20, 40, 4, 20, 10]
+    tilt = sapien.Pose(q=Rotation.from_euler("y", 45, degrees=True).as_quat()[[3, 0, 1, 2]])
+    bodies = []
+    for fast_path in (True, False):
+        scene = make_physics_scene()
+        builder = scene.create_actor_builder().add_box_collision(half_size=(3.0, 3.0, 0.05))
+        builder.set_initial_pose(sapien.Pose([0.0, 0.0, -8.0]) * tilt)
+        builder.build_static("plate")
+        body = VehicleBody(scene, NEUTRAL, fast_path=fast_path)
+        # 1.5 m above the plate's surface (along its normal), inside its 4.3 m world box
+        normal = Rotation.from_euler("y", 45, degrees=True).apply([0.0, 0.0, 1.0])
+        start = np.array([0.0, 0.0, -8.0]) + 1.5 * normal
+        body.reset(make_T(t=[start[0], -start[1], -start[2]]))  # z-up -> NED
+        bodies.append(body)
+    fast, ref = bodies
+    for w in wrenches:
+        for body in bodies:
+            body.step(w, 0.2)
+        assert fast.last_step_fast
+    np.testing.assert_allclose(
+        fast.T_world_ned_body_frd, ref.T_world_ned_body_frd, rtol=0, atol=1e-4
+    )
+    boxes = StaticObstacles(fast.scene, fast.component).boxes()
+    assert boxes.shape == (1, OBSTACLE_COLS) and boxes[0, 6] == 1.0
+    assert np.all(boxes[0, 3:6] - boxes[0, :3] > 4.0)  # the world box the old test used
+    fast.reset(make_T(t=[0.0, 0.0, 8.0 - 0.6]))  # the plate passes 0.6 m below the origin
+    fast.step(np.zeros(6), 0.2)
+    assert not fast.last_step_fast
