@@ -32,48 +32,10 @@ from bench_docking import wilson_ci
 
 from uwdock.dockcore.bench import format_table, save_results
 from uwdock.dockcore.config import replace
-from uwdock.rl.batch_env import BatchDockingEnv
+from uwdock.rl.batch_env import batched_episodes
 from uwdock.rl.evaluate import SB3Controller, run_episodes
 from uwdock.rl.policy_io import load_controller
 from uwdock.rl.train import run_config
-
-
-def batched_rows(ctrl, env_cfg, n: int, seed: int) -> list[dict]:
-    """The first episode of each of ``n`` batch envs (env ``k`` seeded ``seed + k``)."""
-    venv = BatchDockingEnv(env_cfg, n, seed=seed)
-    obs = venv.reset()
-    acts = np.zeros((n, 6), dtype=np.float32)
-    rows: list[dict | None] = [None] * n
-    steps = np.zeros(n, dtype=int)
-    ret = np.zeros(n)
-    coll = np.zeros(n, dtype=int)
-    dock = [None] * n
-    while any(r is None for r in rows):
-        for i in range(n):
-            acts[i] = ctrl.act(obs[i]) if rows[i] is None else 0.0
-        obs, rew, done, infos = venv.step(acts)
-        for i in range(n):
-            if rows[i] is not None:
-                continue
-            info = infos[i]
-            steps[i] += 1
-            ret[i] += rew[i]
-            coll[i] += int(info["collided"])
-            if info["success_paper"] and dock[i] is None:
-                dock[i] = info["time_s"]
-            if done[i]:
-                rows[i] = {
-                    "episode": i,
-                    "seed": seed + i,
-                    "success": info["success_paper"],
-                    "success_strict": info["success_strict"],
-                    "time_to_dock_s": dock[i],
-                    "steps": int(steps[i]),
-                    "return": float(ret[i]),
-                    "collisions": int(coll[i]),
-                }
-    venv.close()
-    return [r for r in rows if r is not None]
 
 
 def summary(name: str, rows: list[dict], wall_s: float) -> dict:
@@ -117,7 +79,7 @@ def main() -> None:
     t0 = time.perf_counter()
     per_env = run_episodes(ctrl, env_cfg, a.episodes, a.seed, record=False).episodes
     t1 = time.perf_counter()
-    batch = batched_rows(ctrl, env_cfg, a.episodes, a.seed)
+    batch = batched_episodes(ctrl, env_cfg, a.episodes, a.seed)
     t2 = time.perf_counter()
     rows = [summary("per-env", per_env, t1 - t0), summary("batched", batch, t2 - t1)]
     pairs = list(zip(per_env, batch, strict=True))

@@ -39,6 +39,7 @@ from typing import Any
 import numpy as np
 from stable_baselines3.common.vec_env import VecEnv
 
+from uwdock.dockcore.errors import DockError
 from uwdock.rl.batch_parts import (
     BATCH_SOURCES,
     BatchErrorModel,
@@ -56,6 +57,7 @@ from uwdock.rl.batch_parts import (
 from uwdock.rl.config import EnvConfig
 from uwdock.rl.env import DockingEnv, SimulationError
 from uwdock.rl.error_model import ErrorModelSource
+from uwdock.rl.failures import FailureTracker
 from uwdock.rl.observation import (
     OBS_BOUND,
     POS_SCALE_M,
@@ -67,7 +69,7 @@ from uwdock.rl.vec_envs import EnvWorkers
 from uwdock.sim.batch import BatchVehicles
 from uwdock.sim.navigation import NavErrors, correction
 
-__all__ = ["BatchDockingEnv", "BatchWorkers"]
+__all__ = ["BatchDockingEnv", "BatchWorkers", "batched_episodes"]
 
 
 class BatchDockingEnv(VecEnv):
@@ -483,3 +485,84 @@ class BatchWorkers:
             self._pool.close(force)
         else:
             self.venv.close()
+
+
+def batched_episodes(
+    model, env_cfg: EnvConfig, n_episodes: int, seed: int, vecnorm=None
+) -> list[dict[str, Any]]:
+    """Episodes ``0 .. n_episodes - 1`` of a policy (deterministic) on the batched
+    simulator, all at once: episode ``k`` is env ``k`` of one :class:`BatchDockingEnv`, first
+    reset with ``seed + k`` (the spawn, vehicle, current and prior of
+    :func:`rl.evaluate.run_episodes`'s episode ``k``; the per-step noise is the batch's own).
+
+    Rows as :func:`rl.evaluate.run_episodes` gives them (success, time to dock, collisions,
+    final errors, failure mode). An env whose episode ended flies on with zero thrust until the
+    last one ends, so it costs the numba kernel, not PhysX.
+
+    Args:
+        model: an SB3 model (one ``predict`` for all envs), or a stateless controller with
+            ``act(obs)`` (:class:`rl.evaluate.SB3Controller`, ONNX); vecnorm: the model's
+            observation normalisation, or None.
+        env_cfg: the evaluation env (its ``obs_source`` must be batchable).
+        n_episodes: how many episodes (envs); seed: seed of episode 0.
+    """
+    venv = BatchDockingEnv(env_cfg, n_episodes, seed=seed)
+    n = venv.num_envs
+    rows: list[dict[str, Any] | None] = [None] * n
+    trackers = [FailureTracker() for _ in range(n)]
+    steps = np.zeros(n, dtype=np.int64)
+    ret = np.zeros(n)
+    coll = np.zeros(n, dtype=np.int64)
+    dock: list[float | None] = [None] * n
+    try:
+        obs = venv.reset()
+        while any(r is None for r in rows):
+            o = vecnorm.normalize_obs(obs) if vecnorm is not None else obs
+            if not np.all(np.isfinite(o)):
+                raise DockError(
+                    "the policy's observation normalisation gives NaN or infinity "
+                    "(a broken vecnormalize.pkl)"
+                )
+            if hasattr(model, "predict"):
+                acts = np.asarray(model.predict(o, deterministic=True)[0], dtype=np.float64)
+            else:  # a stateless controller (one observation at a time)
+                acts = np.stack([np.asarray(model.act(x), dtype=np.float64) for x in o])
+            acts = acts.reshape(n, 6)
+            live = np.array([r is None for r in rows])
+            acts[~live] = 0.0
+            if not np.all(np.isfinite(acts[live])):
+                raise DockError("the policy gave a non-finite action: its weights are broken")
+            obs, rew, done, infos = venv.step(acts)
+            for i in np.flatnonzero(live):
+                info = infos[i]
+                steps[i] += 1
+                ret[i] += rew[i]
+                coll[i] += int(info["collided"])
+                trackers[i].update(
+                    info["time_s"], info["T_world_body"][:3, 3], info["e_true"], acts[i]
+                )
+                if info["success_paper"] and dock[i] is None:
+                    dock[i] = info["time_s"]
+                if done[i]:
+                    e = info["e_true"]
+                    strict = bool(info["success_strict"])
+                    rows[i] = {
+                        "episode": int(i),
+                        "seed": seed + int(i),
+                        "success": bool(info["success_paper"]),
+                        "success_strict": strict,
+                        "time_to_dock_s": dock[i],
+                        "steps": int(steps[i]),
+                        "return": float(ret[i]),
+                        "collisions": int(coll[i]),
+                        "final_e_xy_m": float(np.hypot(e[0], e[1])),
+                        "final_e_z_m": float(abs(e[2])),
+                        "final_e_yaw_deg": float(abs(math.degrees(info["e_psi_true"]))),
+                        "final_nav_error_m": float(info["nav_error_m"]),
+                        "failure_mode": trackers[i].failure_mode(strict),
+                        "wedged_s": round(trackers[i].longest_s["wedged"], 3),
+                        "landed_off_s": round(trackers[i].longest_s["landed_off"], 3),
+                    }
+    finally:
+        venv.close()
+    return [r for r in rows if r is not None]

@@ -11,7 +11,7 @@ import pytest
 
 from uwdock.calibration.frames import R_from_rpy, make_T
 from uwdock.dockcore.config import replace
-from uwdock.rl.batch_env import BatchDockingEnv
+from uwdock.rl.batch_env import BatchDockingEnv, batched_episodes
 from uwdock.rl.batch_parts import (
     BatchErrorModel,
     BatchFilter,
@@ -28,6 +28,7 @@ from uwdock.rl.config import EnvConfig
 from uwdock.rl.env import DockingEnv
 from uwdock.rl.error_model import apply_error, count_in_view, load_error_model, pose_error
 from uwdock.rl.estimator import DSPoseFilter, EstimatorConfig
+from uwdock.rl.evaluate import run_episodes
 from uwdock.rl.observation import observation_frame
 from uwdock.rl.rewards import DockingReward, RewardConfig
 from uwdock.rl.task import DockingTaskConfig, docking_errors, ds_visible, paper_success, pegs_seated
@@ -240,6 +241,40 @@ def test_batched_episodes_equal_scalar_episodes(terminate_on, contact):
             else:
                 np.testing.assert_allclose(ob[i], o, atol=1e-6, err_msg=f"step {k} env {i}")
     assert db.all()
+
+
+class _Steer:
+    """A fixed deterministic policy with SB3's ``predict`` (batch) and a controller's ``act``
+    (one observation): full thrust toward the observed docking station, clipped."""
+
+    def predict(self, obs, deterministic=True):
+        a = np.zeros((obs.shape[0], 6), dtype=np.float32)
+        a[:, :3] = np.clip(4.0 * obs[:, :3], -1.0, 1.0)
+        return a, None
+
+    def reset(self) -> None:
+        pass
+
+    def act(self, obs):
+        return self.predict(obs[None])[0][0].astype(np.float64)
+
+
+def test_batched_evaluation_rows_equal_the_per_env_rows():
+    """Without per-step draws, the batched evaluation's episode k is the per-env evaluation's
+    episode k: the same rows (success, steps, return, collisions, final errors, failure
+    mode)."""
+    cfg = _quiet_cfg(terminate_on="paper", episode_s=6.0, obs_frames=2)
+    pol = _Steer()
+    per_env = run_episodes(pol, cfg, 3, 21, record=False).episodes
+    batch = batched_episodes(pol, cfg, 3, 21)
+    assert [r["episode"] for r in batch] == [0, 1, 2]
+    for p, b in zip(per_env, batch, strict=True):
+        assert set(p) == set(b)
+        for k, v in p.items():
+            if isinstance(v, float):
+                assert b[k] == pytest.approx(v, rel=1e-6, abs=1e-6), k
+            else:
+                assert b[k] == v, k
 
 
 def test_error_model_batch_runs_and_reports_detections():
