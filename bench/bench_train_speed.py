@@ -2,7 +2,8 @@
 
 Usage::
 
-    python bench/bench_train_speed.py [--quick] [--json] [--config configs/...toml]
+    python bench/bench_train_speed.py [--quick] [--json]
+        [--config configs/realistic_batched_yaw_contact_ppo.toml]
         [--simulators per-env,batched] [--envs 2] [--batch-envs 64] [--batch-workers 2]
         [--rollouts 8]
         [--repeats 3] [--seed 1] [--init-policy POLICY] [--name train_speed]
@@ -22,7 +23,8 @@ Two simulators, side by side in one run on the same machine (``--simulators``):
 
 * ``per-env``: the recipe as written, one :class:`rl.env.DockingEnv` per worker process
   (``--envs`` env counts; more than the recipe's change its batches: those rows measure the
-  machine, not a validated recipe);
+  machine, not a validated recipe); a batched recipe (``simulator = "batched"``, the shipped
+  realistic one) runs on 2 per-env workers (``--envs``) with rollouts as long as its own;
 * ``batched``: :class:`rl.batch_env.BatchDockingEnv`, ``--batch-envs`` envs stepped as arrays,
   split over ``--batch-workers`` processes (1: the trainer's own), ``n_steps`` scaled so that a
   rollout holds as many steps as the recipe's (``n_steps x n_envs``); the update (batch size,
@@ -100,9 +102,19 @@ def batched(cfg: TrainConfig, batch_envs: int) -> TrainConfig:
     )
 
 
+def per_env(cfg: TrainConfig, envs: int | None) -> TrainConfig:
+    """The recipe on the per-env simulator: as written when it is a per-env recipe; a batched
+    recipe with ``envs`` (default 2) worker envs and a rollout as long as its own."""
+    if cfg.simulator != "batched":
+        return cfg if envs is None else replace(cfg, n_envs=envs)
+    e = 2 if envs is None else envs
+    n_steps = max(1, cfg.ppo.n_steps * cfg.n_envs // e)
+    return replace(cfg, simulator="per-env", n_envs=e, ppo=replace(cfg.ppo, n_steps=n_steps))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--config", default="configs/scratch_error_model_precision_ppo.toml")
+    ap.add_argument("--config", default="configs/realistic_batched_yaw_contact_ppo.toml")
     ap.add_argument("--simulators", default="per-env,batched")
     ap.add_argument("--envs", default=None, help="per-env: comma-separated env counts [recipe's]")
     ap.add_argument("--batch-envs", type=int, default=64, help="batched: envs in the batch")
@@ -128,8 +140,8 @@ def main() -> None:
     recipe = replace(load_config(TrainConfig, a.config, section="train"), seed=a.seed)
     runs = []
     if "per-env" in sims:
-        counts = [int(e) for e in a.envs.split(",")] if a.envs else [recipe.n_envs]
-        runs += [("per-env", replace(recipe, n_envs=e)) for e in counts]
+        counts = [int(e) for e in a.envs.split(",")] if a.envs else [None]
+        runs += [("per-env", per_env(recipe, e)) for e in counts]
     if "batched" in sims:
         runs.append(("batched", batched(recipe, a.batch_envs)))
     workers = {"per-env": 1, "batched": a.batch_workers}
@@ -158,7 +170,7 @@ def main() -> None:
                 "envs": envs,
                 "processes": envs if sim == "per-env" and envs > 1 else workers[sim],
                 "n_steps": cfg.ppo.n_steps,
-                "recipe": sim == "batched" or envs == recipe.n_envs,
+                "recipe": sim == "batched" or cfg == per_env(recipe, None),
                 "steps_per_run": a.rollouts * cfg.ppo.n_steps * envs,
                 "steps_per_s_median": med,
                 "steps_per_s_min": min(rates),

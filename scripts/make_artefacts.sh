@@ -112,10 +112,12 @@ policy() {
 
 # two_stages SEED STAGE1 STAGE2 RUN SUFFIX DEST CURVE: train STAGE1 into RUN, then STAGE2 from its
 # best/ into RUN_SUFFIX; with SHIP=1 copy stage 2's best/ into DEST with both stages' records
+# (further arguments go to both `rl train` calls)
 two_stages() {
   local seed=$1 stage1=$2 stage2=$3 w=$4 suffix=$5 dest=$6 curve=$7
-  train "$stage1" "$w" --seed "$seed"
-  train "$stage2" "${w}_$suffix" --seed "$seed" --init-policy "$w/best"
+  shift 7
+  train "$stage1" "$w" --seed "$seed" "$@"
+  train "$stage2" "${w}_$suffix" --seed "$seed" --init-policy "$w/best" "$@"
   if [ "$SHIP" != 1 ]; then
     say "trained ${w}_$suffix; $dest is left as it is (SHIP=1 or --ship replaces it)"
     (cd "${w}_$suffix/best" && sha256sum policy.zip vecnormalize.pkl)
@@ -137,11 +139,14 @@ scratch() {  # the true-pose recipe: PPO from scratch, then its best/ at collisi
 # The shipped recipe: the vehicle's own drifting navigation (mems-ahrs-dvl), the EvoLogics USBL,
 # its contact sensing in the observation (obs_contact), the error model with memory fitted with
 # the current detector. Stage 1 from scratch; stage 2 from its best/, collision penalty 100.
+# The batch over BATCH_WORKERS processes (default 2; the rollouts, and so the policy, are the same
+# for any count: only the wall time differs).
 realistic() {
   local seed=${SEED:-2}
   two_stages "$seed" configs/realistic_batched_yaw_contact_ppo.toml \
     configs/realistic_batched_yaw_contact_gentle_ppo.toml \
-    "$WORK/run_realistic_contact_s$seed" gentle "$POLICY" training_curve_realistic.png
+    "$WORK/run_realistic_contact_s$seed" gentle "$POLICY" training_curve_realistic.png \
+    --batch-workers "${BATCH_WORKERS:-2}"
 }
 
 EM=rl/models/error_model_clear_tank_480_ar1_refit.json  # the error model the shipped policy trained on
