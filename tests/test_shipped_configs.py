@@ -124,9 +124,9 @@ def test_shipped_policy_is_the_realistic_recipe():
         assert hashlib.sha256((shipped / name).read_bytes()).hexdigest() == digest, name
     kept = ROOT / "bench" / "results" / "scratch_runs"  # both stages' best/, kept with the runs
     assert (shipped / "stage1_checksums.sha256").read_text() == (
-        kept / f"realistic_contact_s{cfg.seed}" / "best" / "checksums.sha256"
+        kept / f"realistic_fast_s{cfg.seed}" / "best" / "checksums.sha256"
     ).read_text()
     assert (shipped / "checksums.sha256").read_text() == (
-        kept / f"realistic_contact_gentle_s{cfg.seed}" / "best" / "checksums.sha256"
+        kept / f"realistic_fast_gentle_s{cfg.seed}" / "best" / "checksums.sha256"
     ).read_text()
     assert model.observation_space.shape[0] == observation_size(cfg.env)
