@@ -93,13 +93,16 @@ def measure(
     return out.get()
 
 
+def _rescaled(cfg: TrainConfig, simulator: str, envs: int) -> TrainConfig:
+    """The recipe on ``simulator`` with ``envs`` envs and a rollout as long as its own
+    (``n_steps`` scaled, at least 1 per env); the update (batch size, epochs) is the recipe's."""
+    n_steps = max(1, cfg.ppo.n_steps * cfg.n_envs // envs)
+    return replace(cfg, simulator=simulator, n_envs=envs, ppo=replace(cfg.ppo, n_steps=n_steps))
+
+
 def batched(cfg: TrainConfig, batch_envs: int) -> TrainConfig:
-    """The recipe on the batched simulator: ``batch_envs`` envs, a rollout as long as the
-    recipe's (``n_steps`` scaled, at least 1 per env)."""
-    n_steps = max(1, cfg.ppo.n_steps * cfg.n_envs // batch_envs)
-    return replace(
-        cfg, simulator="batched", n_envs=batch_envs, ppo=replace(cfg.ppo, n_steps=n_steps)
-    )
+    """The recipe on the batched simulator with ``batch_envs`` envs."""
+    return _rescaled(cfg, "batched", batch_envs)
 
 
 def per_env(cfg: TrainConfig, envs: int | None) -> TrainConfig:
@@ -107,9 +110,7 @@ def per_env(cfg: TrainConfig, envs: int | None) -> TrainConfig:
     recipe with ``envs`` (default 2) worker envs and a rollout as long as its own."""
     if cfg.simulator != "batched":
         return cfg if envs is None else replace(cfg, n_envs=envs)
-    e = 2 if envs is None else envs
-    n_steps = max(1, cfg.ppo.n_steps * cfg.n_envs // e)
-    return replace(cfg, simulator="per-env", n_envs=e, ppo=replace(cfg.ppo, n_steps=n_steps))
+    return _rescaled(cfg, "per-env", 2 if envs is None else envs)
 
 
 def main() -> None:

@@ -57,6 +57,7 @@ from uwdock.rl.batch_parts import (
 from uwdock.rl.config import EnvConfig
 from uwdock.rl.env import DockingEnv, SimulationError
 from uwdock.rl.error_model import ErrorModelSource
+from uwdock.rl.evaluate import as_controller, episode_row
 from uwdock.rl.failures import FailureTracker
 from uwdock.rl.observation import (
     OBS_BOUND,
@@ -488,24 +489,24 @@ class BatchWorkers:
 
 
 def batched_episodes(
-    model, env_cfg: EnvConfig, n_episodes: int, seed: int, vecnorm=None
+    policy, env_cfg: EnvConfig, n_episodes: int, seed: int, vecnorm=None
 ) -> list[dict[str, Any]]:
     """Episodes ``0 .. n_episodes - 1`` of a policy (deterministic) on the batched
     simulator, all at once: episode ``k`` is env ``k`` of one :class:`BatchDockingEnv`, first
     reset with ``seed + k`` (the spawn, vehicle, current and prior of
     :func:`rl.evaluate.run_episodes`'s episode ``k``; the per-step noise is the batch's own).
 
-    Rows as :func:`rl.evaluate.run_episodes` gives them (success, time to dock, collisions,
-    final errors, failure mode). An env whose episode ended flies on with zero thrust until the
-    last one ends, so it costs the numba kernel, not PhysX.
+    Rows as :func:`rl.evaluate.run_episodes` gives them (:func:`rl.evaluate.episode_row`). An env
+    whose episode ended flies on with zero thrust until the last one ends, so it costs the numba
+    kernel, not PhysX.
 
     Args:
-        model: an SB3 model (one ``predict`` for all envs), or a stateless controller with
-            ``act(obs)`` (:class:`rl.evaluate.SB3Controller`, ONNX); vecnorm: the model's
-            observation normalisation, or None.
+        policy: an SB3 model (with ``vecnorm``, its observation normalisation, or None), or a
+            stateless controller (``act_batch`` for all envs at once, else ``act`` per env).
         env_cfg: the evaluation env (its ``obs_source`` must be batchable).
         n_episodes: how many episodes (envs); seed: seed of episode 0.
     """
+    ctrl = as_controller(policy, vecnorm)
     venv = BatchDockingEnv(env_cfg, n_episodes, seed=seed)
     n = venv.num_envs
     rows: list[dict[str, Any] | None] = [None] * n
@@ -514,23 +515,17 @@ def batched_episodes(
     ret = np.zeros(n)
     coll = np.zeros(n, dtype=np.int64)
     dock: list[float | None] = [None] * n
+    live = np.ones(n, dtype=bool)
     try:
         obs = venv.reset()
-        while any(r is None for r in rows):
-            o = vecnorm.normalize_obs(obs) if vecnorm is not None else obs
-            if not np.all(np.isfinite(o)):
-                raise DockError(
-                    "the policy's observation normalisation gives NaN or infinity "
-                    "(a broken vecnormalize.pkl)"
-                )
-            if hasattr(model, "predict"):
-                acts = np.asarray(model.predict(o, deterministic=True)[0], dtype=np.float64)
-            else:  # a stateless controller (one observation at a time)
-                acts = np.stack([np.asarray(model.act(x), dtype=np.float64) for x in o])
+        while live.any():
+            if hasattr(ctrl, "act_batch"):
+                acts = np.asarray(ctrl.act_batch(obs), dtype=np.float64)
+            else:
+                acts = np.stack([np.asarray(ctrl.act(x), dtype=np.float64) for x in obs])
             acts = acts.reshape(n, 6)
-            live = np.array([r is None for r in rows])
             acts[~live] = 0.0
-            if not np.all(np.isfinite(acts[live])):
+            if not np.all(np.isfinite(acts)):
                 raise DockError("the policy gave a non-finite action: its weights are broken")
             obs, rew, done, infos = venv.step(acts)
             for i in np.flatnonzero(live):
@@ -544,25 +539,10 @@ def batched_episodes(
                 if info["success_paper"] and dock[i] is None:
                     dock[i] = info["time_s"]
                 if done[i]:
-                    e = info["e_true"]
-                    strict = bool(info["success_strict"])
-                    rows[i] = {
-                        "episode": int(i),
-                        "seed": seed + int(i),
-                        "success": bool(info["success_paper"]),
-                        "success_strict": strict,
-                        "time_to_dock_s": dock[i],
-                        "steps": int(steps[i]),
-                        "return": float(ret[i]),
-                        "collisions": int(coll[i]),
-                        "final_e_xy_m": float(np.hypot(e[0], e[1])),
-                        "final_e_z_m": float(abs(e[2])),
-                        "final_e_yaw_deg": float(abs(math.degrees(info["e_psi_true"]))),
-                        "final_nav_error_m": float(info["nav_error_m"]),
-                        "failure_mode": trackers[i].failure_mode(strict),
-                        "wedged_s": round(trackers[i].longest_s["wedged"], 3),
-                        "landed_off_s": round(trackers[i].longest_s["landed_off"], 3),
-                    }
+                    rows[i] = episode_row(
+                        i, seed, info, dock[i], steps[i], ret[i], coll[i], trackers[i]
+                    )
+                    live[i] = False
     finally:
         venv.close()
     return [r for r in rows if r is not None]

@@ -46,7 +46,11 @@ class SB3Controller:
         pass
 
     def act(self, obs: np.ndarray) -> np.ndarray:
-        o = obs[None, :]
+        return self.act_batch(obs[None, :])[0]
+
+    def act_batch(self, obs: np.ndarray) -> np.ndarray:
+        """The actions (n, 6) of a batch of observations (n, d)."""
+        o = obs
         if self.vecnorm is not None:
             o = self.vecnorm.normalize_obs(o)
         if not np.all(np.isfinite(o)):
@@ -60,9 +64,9 @@ class SB3Controller:
             with torch.no_grad():
                 t = torch.as_tensor(o, dtype=torch.float32)
                 mean = self.model.policy.get_distribution(t).distribution.mean
-            return mean.numpy()[0].astype(np.float64)
+            return mean.numpy().astype(np.float64)
         action, _ = self.model.predict(o, deterministic=True)
-        return np.asarray(action[0], dtype=np.float64)
+        return np.asarray(action, dtype=np.float64)
 
 
 @dataclass
@@ -89,7 +93,8 @@ class EvalResult:
     ray_nodes: dict[str, Any] = field(default_factory=dict)
 
 
-def _as_controller(policy, vecnorm) -> Controller:
+def as_controller(policy, vecnorm) -> Controller:
+    """A controller as given, or an SB3 model wrapped with its normalisation."""
     return policy if hasattr(policy, "act") else SB3Controller(policy, vecnorm)
 
 
@@ -120,7 +125,7 @@ def run_episodes(
         video_dir: write ``camera_ep<k>.mp4`` there (frames are not kept in the traces);
             None keeps the frames in ``EpisodeTrace.frames``.
     """
-    ctrl = _as_controller(policy, vecnorm)
+    ctrl = as_controller(policy, vecnorm)
     todo = list(range(n_episodes)) if episodes is None else list(episodes)
     env = DockingEnv(env_cfg, render_mode="rgb_array" if video_episodes else None)
     rows, traces = [], []
@@ -177,25 +182,41 @@ def _episode(
             if frame is not None:
                 tr.frames.append(frame)
         done = term or trunc
+    row = episode_row(k, seed, info, dock_time, steps, ret, collisions, failures)
+    return row, tr
+
+
+def episode_row(
+    k: int,
+    seed: int,
+    info: dict[str, Any],
+    dock_time_s: float | None,
+    steps: int,
+    ret: float,
+    collisions: int,
+    failures: FailureTracker,
+) -> dict[str, Any]:
+    """The summary row of episode ``k`` (seed ``seed + k``) from its last step's ``info`` and
+    its running counts: what :func:`run_episodes` and ``rl.batch_env.batched_episodes`` give."""
     e = info["e_true"]
-    row = {
-        "episode": k,
-        "seed": seed + k,
+    strict = bool(info["success_strict"])
+    return {
+        "episode": int(k),
+        "seed": seed + int(k),
         "success": bool(info["success_paper"]),
-        "success_strict": bool(info["success_strict"]),
-        "time_to_dock_s": dock_time,
-        "steps": steps,
-        "return": ret,
-        "collisions": collisions,
+        "success_strict": strict,
+        "time_to_dock_s": dock_time_s,
+        "steps": int(steps),
+        "return": float(ret),
+        "collisions": int(collisions),
         "final_e_xy_m": float(np.hypot(e[0], e[1])),
         "final_e_z_m": float(abs(e[2])),
         "final_e_yaw_deg": float(abs(math.degrees(info["e_psi_true"]))),
         "final_nav_error_m": float(info.get("nav_error_m", 0.0)),
-        "failure_mode": failures.failure_mode(bool(info["success_strict"])),
+        "failure_mode": failures.failure_mode(strict),
         "wedged_s": round(failures.longest_s["wedged"], 3),
         "landed_off_s": round(failures.longest_s["landed_off"], 3),
     }
-    return row, tr
 
 
 class EpisodeWorker:
@@ -224,7 +245,7 @@ class EpisodeWorker:
     ) -> None:
         _one_thread()
         self.ctrl, vecnorm, _ = load_controller(policy_spec, env_cfg)
-        self.ctrl = _as_controller(self.ctrl, vecnorm)
+        self.ctrl = as_controller(self.ctrl, vecnorm)
         self.env_cfg, self.seed, self.record = env_cfg, int(seed), bool(record)
         self.video_episodes = tuple(int(v) for v in video_episodes)
         self.encode_films = bool(encode_films)

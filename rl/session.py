@@ -199,12 +199,12 @@ class TrainingSession:
         here."""
         from stable_baselines3.common.vec_env import SubprocVecEnv
 
-        raw_venv = self.vecnorm.venv if self.vecnorm is not None else self.model.get_env()
         n = self.cfg.eval_episodes
         if self.cfg.simulator == "batched":  # the simulator it trains on, all episodes at once
             from uwdock.rl.batch_env import batched_episodes  # SB3 at module level
 
             return batched_episodes(self.model, self.cfg.env, n, EVAL_SEED, self.vecnorm)
+        raw_venv = self.vecnorm.venv if self.vecnorm is not None else self.model.get_env()
         if not isinstance(raw_venv, SubprocVecEnv):
             return run_episodes(
                 self.model, self.cfg.env, n, EVAL_SEED, vecnorm=self.vecnorm, record=False

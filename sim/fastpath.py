@@ -422,6 +422,27 @@ def _separated(ax, ay, az, d, rh, R0, sweep_h, grow, obs):
 
 
 @njit(cache=True)
+def _apart(d, rh, R0, sweep_h, grow, obs):
+    """Whether one of the separating axes (the obstacle's three, the hull box's three, their
+    nine cross products) keeps the swept hull box off the obstacle (:func:`_separated`)."""
+    for k in range(3):
+        if _separated(obs[13 + k], obs[16 + k], obs[19 + k], d, rh, R0, sweep_h, grow, obs):
+            return True
+        if _separated(R0[0, k], R0[1, k], R0[2, k], d, rh, R0, sweep_h, grow, obs):
+            return True
+    for k in range(3):  # hull axis k x obstacle axis m
+        hx, hy, hz = R0[0, k], R0[1, k], R0[2, k]
+        for m in range(3):
+            ox, oy, oz = obs[13 + m], obs[16 + m], obs[19 + m]
+            if _separated(
+                hy * oz - hz * oy, hz * ox - hx * oz, hx * oy - hy * ox,
+                d, rh, R0, sweep_h, grow, obs,
+            ):  # fmt: skip
+                return True
+    return False
+
+
+@njit(cache=True)
 def _overlaps(boxes, obstacles, lo, hi, R0, theta, margin):
     """Whether a hull box may touch an obstacle box during the step.
 
@@ -467,28 +488,7 @@ def _overlaps(boxes, obstacles, lo, hi, R0, theta, margin):
                 return True  # no oriented box (a plane): the world boxes decide
             for a in range(3):
                 d[a] = o[7 + a] - cen[a]
-            apart = False
-            for k in range(3):  # the obstacle's axes, then the hull box's
-                if _separated(o[13 + k], o[16 + k], o[19 + k], d, rh, R0, sweep_h, grow, o):
-                    apart = True
-                    break
-                if _separated(R0[0, k], R0[1, k], R0[2, k], d, rh, R0, sweep_h, grow, o):
-                    apart = True
-                    break
-            if not apart:
-                for k in range(3):  # hull axis k x obstacle axis m
-                    hx, hy, hz = R0[0, k], R0[1, k], R0[2, k]
-                    for m in range(3):
-                        ox, oy, oz = o[13 + m], o[16 + m], o[19 + m]
-                        if _separated(
-                            hy * oz - hz * oy, hz * ox - hx * oz, hx * oy - hy * ox,
-                            d, rh, R0, sweep_h, grow, o,
-                        ):  # fmt: skip
-                            apart = True
-                            break
-                    if apart:
-                        break
-            if not apart:
+            if not _apart(d, rh, R0, sweep_h, grow, o):
                 return True
     return False
 
