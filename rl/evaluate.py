@@ -50,9 +50,7 @@ class SB3Controller:
 
     def act_batch(self, obs: np.ndarray) -> np.ndarray:
         """The actions (n, 6) of a batch of observations (n, d)."""
-        o = obs
-        if self.vecnorm is not None:
-            o = self.vecnorm.normalize_obs(o)
+        o = obs if self.vecnorm is None else self.vecnorm.normalize_obs(obs)
         if not np.all(np.isfinite(o)):
             raise DockError(
                 "the policy's observation normalisation gives NaN or infinity "
