@@ -73,7 +73,12 @@ def test_ray_dataset_equals_the_local_one_file_by_file(local_dataset, tmp_path):
 
 @pytest.mark.render
 def test_a_killed_ray_worker_is_replaced_and_nothing_is_lost_or_duplicated(local_dataset, tmp_path):
-    cfg = replace(CFG, n_frames=16)
+    # Frames of 160 px render at ~200 per second once the workers are up, so a run of a few
+    # dozen frames can finish between two polls (it did on CI): 400 frames leave a window of
+    # about two seconds, the worker pids are taken while SAPIEN starts, and the first image is
+    # watched for every 5 ms, so the kill lands while both workers hold tasks.
+    n_frames = 400
+    cfg = replace(CFG, n_frames=n_frames)
     out = tmp_path / "killed"
     result: dict[str, object] = {}
 
@@ -85,21 +90,26 @@ def test_a_killed_ray_worker_is_replaced_and_nothing_is_lost_or_duplicated(local
 
     thread = threading.Thread(target=run)
     thread.start()
-    killed = None
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline and thread.is_alive():
-        images = list((out / "images").glob("*.png")) if (out / "images").exists() else []
+    pids: list[int] = []
+    deadline = time.monotonic() + 240  # Ray and SAPIEN start slowly on a loaded machine
+    while time.monotonic() < deadline and thread.is_alive() and len(pids) < 2:
         pids = _host_pids()
-        if len(images) >= 2 and pids:
+        time.sleep(0.05)
+    killed = None
+    images = out / "images"
+    while pids and time.monotonic() < deadline and thread.is_alive():
+        if images.is_dir() and any(images.glob("*.png")):
             killed = pids[0]
             os.kill(killed, signal.SIGKILL)
             break
-        time.sleep(0.1)
+        time.sleep(0.005)
     thread.join(300)
     assert killed is not None, "the run ended before a worker could be killed"
     assert "error" not in result, result.get("error")
     labels = (out / "labels.jsonl").read_text().splitlines()
-    assert [json.loads(line)["frame"] for line in labels] == list(range(16))  # once each
+    assert [json.loads(line)["frame"] for line in labels] == list(range(n_frames))  # once each
+    assert result["res"].ray["workers_replaced"] >= 1
+    assert sum(result["res"].ray["tasks_by_node"].values()) == n_frames
     # the first 8 frames are the 8-frame dataset's: same seed, same bytes
     got = _files(out)
     for name, data in local_dataset.items():
