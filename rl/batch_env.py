@@ -384,9 +384,12 @@ class BatchDockingEnv(VecEnv):
     def env_is_wrapped(self, wrapper_class: type, indices=None) -> list[bool]:
         return [False for _ in self._slots(indices)]
 
-    def set_curriculum(self, z_tolerance_m: float, spawn_scale: float) -> None:
+    def set_curriculum(
+        self, z_tolerance_m: float, spawn_scale: float, near_share: float = 0.0, near_box=None
+    ) -> None:
         """The curriculum level for every env (:meth:`rl.env.DockingEnv.set_curriculum`)."""
-        self.env_method("set_curriculum", z_tolerance_m, spawn_scale)
+        extra = () if near_box is None else (near_box,)
+        self.env_method("set_curriculum", z_tolerance_m, spawn_scale, near_share, *extra)
 
 
 class BatchGroup:

@@ -131,25 +131,50 @@ class DockingEnv(gym.Env):
         self._hold_steps = max(1, round(c.task.strict_hold_s * c.control_hz))
         self._task = c.task  # the success tests' task (a curriculum may relax one z tolerance)
         self._spawn_scale = 1.0
-        self._curriculum_level: tuple[float, float] | None = None
+        self._near_share = 0.0  # near-seat starts (set_curriculum)
+        self._near_box = (0.03, 0.6, 0.02, 2.0)
+        self._curriculum_level: tuple | None = None
 
-    def set_curriculum(self, z_tolerance_m: float, spawn_scale: float) -> None:
+    def set_curriculum(
+        self,
+        z_tolerance_m: float,
+        spawn_scale: float,
+        near_share: float = 0.0,
+        near_box: tuple[float, float, float, float] = (0.03, 0.6, 0.02, 2.0),
+    ) -> None:
         """Training curriculum (:mod:`rl.curriculum`): from now on the z tolerance (m) of the
         test that ends the episode (``terminate_on``: the paper test's ``success_z_m``, or the
         strict test's ``strict_peg_z_m``, the pegs' height above their seats), and the scale
         (0, 1] of the AUV's horizontal offset from the DS at the next spawns. The task's own
-        tolerance and 1.0 restore the env's own test (:func:`rl.curriculum.curriculum_z_end`)."""
-        if not (0 < z_tolerance_m <= 10 and 0 < spawn_scale <= 1):
+        tolerance and 1.0 restore the env's own test (:func:`rl.curriculum.curriculum_z_end`).
+
+        ``near_share`` [0, 1] of the next spawns start near the seat: the docked pose raised
+        by a height uniform in ``near_box``'s (min, max) (m), offset horizontally within +-
+        its xy (m) along each DS axis and yawed within +- its yaw (deg)
+        (:attr:`rl.curriculum.CurriculumConfig.near_start_box`). With 0 the spawns draw
+        exactly what they drew without it."""
+        lo, hi, xy, yaw = (float(v) for v in near_box)
+        if not (
+            0 < z_tolerance_m <= 10
+            and 0 < spawn_scale <= 1
+            and 0 <= near_share <= 1
+            and 0 < lo <= hi <= 5
+            and 0 <= xy <= 0.5
+            and 0 <= yaw <= 45
+        ):
             raise ValueError(
-                f"curriculum level out of range: z {z_tolerance_m!r} m, spawn {spawn_scale!r}"
+                f"curriculum level out of range: z {z_tolerance_m!r} m, spawn {spawn_scale!r}, "
+                f"near-seat share {near_share!r}, box {near_box!r}"
             )
-        level = (float(z_tolerance_m), float(spawn_scale))
+        level = (float(z_tolerance_m), float(spawn_scale), float(near_share), (lo, hi, xy, yaw))
         if level == self._curriculum_level:
             return  # pushed every rollout: the same level costs nothing
         self._curriculum_level = level
         field = curriculum_z_field(self.cfg)
         self._task = _relaxed_task(self.cfg.task, field, float(z_tolerance_m))
         self._spawn_scale = float(spawn_scale)
+        self._near_share = float(near_share)
+        self._near_box = (lo, hi, xy, yaw)
 
     @property
     def task(self) -> DockingTaskConfig:
@@ -191,6 +216,8 @@ class DockingEnv(gym.Env):
         T_world_ds = make_T(
             R_from_rpy(0.0, 0.0, ds_yaw), [rng.uniform(-dx, dx), rng.uniform(-dy, dy), depth]
         )
+        if self._near_share > 0 and rng.uniform() < self._near_share:
+            return T_world_ds, self._near_seat(rng, T_world_ds)
         ax, ay, az = c.spawn_auv_range_m
         lo_m, hi_m = c.spawn_horizontal_range_m
         for _ in range(1000):
@@ -214,6 +241,16 @@ class DockingEnv(gym.Env):
             )
         yaw = math.radians(c.spawn_auv_yaw_deg) * rng.uniform(-1, 1)
         return T_world_ds, make_T(R_from_rpy(0.0, 0.0, yaw), p)
+
+    def _near_seat(self, rng: np.random.Generator, T_world_ds: np.ndarray) -> np.ndarray:
+        """T_world_body of a near-seat start (:meth:`set_curriculum`): the docked pose raised,
+        offset and yawed within the near-seat box."""
+        lo, hi, xy, yaw_deg = self._near_box
+        h = rng.uniform(lo, hi)
+        dx, dy = rng.uniform(-xy, xy, size=2)
+        dyaw = math.radians(yaw_deg) * rng.uniform(-1, 1)
+        T_ds_body = make_T(t=[dx, dy, -h]) @ self.cfg.task.T_ds_target  # ds z down: up is -z
+        return T_world_ds @ T_ds_body @ make_T(R_from_rpy(0.0, 0.0, dyaw))
 
     # ------------------------------------------------------------------ gym API
     def reset(self, *, seed: int | None = None, options: dict | None = None):

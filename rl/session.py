@@ -33,7 +33,7 @@ from uwdock.rl.checkpoint import (
     rng_state,
     write_unit,
 )
-from uwdock.rl.curriculum import curriculum_level, curriculum_z_end
+from uwdock.rl.curriculum import curriculum_level, curriculum_z_end, near_start_share
 from uwdock.rl.evaluate import run_episodes, summarise
 from uwdock.rl.report import plot_eval_history
 from uwdock.rl.workers import EvalJob
@@ -145,7 +145,8 @@ class TrainingSession:
         if cur.steps <= 0:
             return
         z_m, spawn = curriculum_level(cur, step, curriculum_z_end(self.cfg.env))
-        self.model.get_env().env_method("set_curriculum", z_m, spawn)
+        near = near_start_share(cur, step)
+        self.model.get_env().env_method("set_curriculum", z_m, spawn, near, cur.near_start_box)
 
     def checkpoint(self, step: int) -> Path:
         """Reset the envs, then write the unit of ``step``."""
