@@ -138,6 +138,10 @@ class TrainConfig:
         checkpoint_every: steps between checkpoints.
         eval_every: steps between evaluations (0: off).
         eval_episodes: episodes per evaluation.
+        select_best: which evaluation ``best/`` keeps: "success" (the success rate that ends
+            the episode, then the other, then the mean return) or "return" (the mean return
+            alone, as SB3's ``EvalCallback`` keeps its best model): for a stage whose reward
+            says what it is for, such as the gentle landing's collision penalty.
         normalize_obs: running observation normalisation (VecNormalize).
         normalize_reward: running reward scaling (VecNormalize).
         env: the environment.
@@ -157,6 +161,7 @@ class TrainConfig:
     checkpoint_every: Annotated[int, Interval(ge=1, le=10**9)] = 50_000
     eval_every: Annotated[int, Interval(ge=0, le=10**9)] = 100_000
     eval_episodes: Annotated[int, Interval(ge=1, le=100_000)] = 20
+    select_best: Literal["success", "return"] = "success"
     normalize_obs: bool = True
     normalize_reward: bool = True
     env: EnvConfig = field(default_factory=EnvConfig)

@@ -1,0 +1,91 @@
+"""Which evaluation a training run keeps in ``best/`` (``select_best``), and what a sweep reports
+as a run's best evaluation."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+import uwdock.rl.session as session_mod
+from uwdock.dockcore.config import ConfigError, from_dict, replace
+from uwdock.rl.checkpoint import model_bytes
+from uwdock.rl.session import TrainingSession, eval_score
+from uwdock.rl.sweep import _trial_summary
+from uwdock.rl.train import TrainConfig
+
+# The eight 30-episode evaluations of a gentle-landing stage 2 (near-seat recipe, seed 2:
+# bench/results/scratch_runs/realistic_near_gentle_s2): (step, strict, paper, mean return,
+# collisions per episode). One more episode docked at the first evaluation; the collisions fall
+# to 0.97 by the last.
+STAGE2 = [
+    (28672, 1.0, 1.0, 100.2, 2.47),
+    (53248, 0.9667, 0.9667, 56.1, 2.43),
+    (77824, 0.9667, 0.9667, 112.4, 1.93),
+    (102400, 0.9667, 0.9667, 91.9, 2.1),
+    (126976, 0.9667, 0.9667, 121.6, 1.8),
+    (151552, 0.9667, 0.9667, 181.2, 1.23),
+    (176128, 0.9667, 0.9667, 153.0, 1.53),
+    (200704, 0.9667, 0.9667, 214.9, 0.97),
+]
+
+
+def _summary(strict, paper, ret, coll):
+    return {
+        "episodes": 30,
+        "success_rate": paper,
+        "success_rate_strict": strict,
+        "mean_return": ret,
+        "mean_collisions": coll,
+        "mean_time_to_dock_s": 9.0,
+    }
+
+
+def test_eval_score_ranks_success_first_or_the_return_alone():
+    a, b = _summary(1.0, 1.0, 100.2, 2.47), _summary(0.9667, 0.9667, 214.9, 0.97)
+    assert eval_score(a, "strict", "success") > eval_score(b, "strict", "success")
+    assert eval_score(a, "strict", "return") < eval_score(b, "strict", "return")
+    # success: the rate that ends the episode ranks first
+    strict_first = _summary(0.9, 0.9, 0.0, 0.0)
+    paper_first = _summary(0.8, 1.0, 0.0, 0.0)
+    assert eval_score(strict_first, "strict", "success") > eval_score(
+        paper_first, "strict", "success"
+    )
+    assert eval_score(strict_first, "paper", "success") < eval_score(
+        paper_first, "paper", "success"
+    )
+
+
+def test_select_best_is_checked_when_a_config_is_read():
+    assert from_dict(TrainConfig, {"select_best": "return"}).select_best == "return"
+    with pytest.raises(ConfigError, match="select_best"):
+        from_dict(TrainConfig, {"select_best": "collisions"})
+
+
+@pytest.mark.parametrize(("select_best", "kept_step"), [("success", 28672), ("return", 200704)])
+def test_the_session_keeps_the_selected_evaluation_in_best(
+    tmp_path, monkeypatch, select_best, kept_step
+):
+    """A real PPO model whose weights change before every evaluation: best/policy.zip is the
+    model as it was at the kept evaluation, the history flags it last, and a sweep's summary
+    of the run reports that evaluation."""
+    from stable_baselines3 import PPO
+
+    summaries = iter(_summary(*row[1:]) for row in STAGE2)
+    monkeypatch.setattr(session_mod, "summarise", lambda rows: next(summaries))
+    cfg = replace(TrainConfig(), select_best=select_best, env=replace(TrainConfig().env,
+                  terminate_on="strict"))  # fmt: skip
+    model = PPO("MlpPolicy", "Pendulum-v1", n_steps=8, batch_size=8, seed=0, device="cpu")
+    session = TrainingSession(cfg, tmp_path, model, None, note=lambda m: None)
+    monkeypatch.setattr(session, "_eval_rows", lambda: [])
+    session.start(warm_started=False)
+    weights = {}
+    for step, *_ in STAGE2:
+        model.policy.action_net.bias.data += 1.0  # a different policy at every evaluation
+        weights[step] = model_bytes(model)
+        session.evaluate(step)
+    assert session.schedule["best_step"] == kept_step
+    assert (tmp_path / "best" / "policy.zip").read_bytes() == weights[kept_step]
+    history = [json.loads(line) for line in (tmp_path / "eval_history.jsonl").open()]
+    assert [r["step"] for r in history if r.get("best")][-1] == kept_step
+    assert _trial_summary(tmp_path)["best_eval"]["step"] == kept_step
