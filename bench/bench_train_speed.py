@@ -4,7 +4,7 @@ Usage::
 
     python bench/bench_train_speed.py [--quick] [--json]
         [--config configs/realistic_batched_yaw_contact_ppo.toml]
-        [--simulators per-env,batched] [--envs 2] [--batch-envs 64] [--batch-workers 2]
+        [--simulators per-env,batched,batched-own] [--envs 2] [--batch-envs 64] [--batch-workers 2]
         [--rollouts 8]
         [--repeats 3] [--seed 1] [--init-policy POLICY] [--name train_speed]
 
@@ -19,7 +19,8 @@ the first observations). The table gives the median, min and max
 of the steady rate over ``repeats`` pairs per row, the median start cost, and the minutes the
 recipe's ``total_steps`` would take at the median (the recipe's own evaluations come on top).
 
-Two simulators, side by side in one run on the same machine (``--simulators``):
+Simulators, side by side in one run on the same machine (``--simulators``, default the first
+two):
 
 * ``per-env``: the recipe as written, one :class:`rl.env.DockingEnv` per worker process
   (``--envs`` env counts; more than the recipe's change its batches: those rows measure the
@@ -28,13 +29,17 @@ Two simulators, side by side in one run on the same machine (``--simulators``):
 * ``batched``: :class:`rl.batch_env.BatchDockingEnv`, ``--batch-envs`` envs stepped as arrays,
   split over ``--batch-workers`` processes (1: the trainer's own), ``n_steps`` scaled so that a
   rollout holds as many steps as the recipe's (``n_steps x n_envs``); the update (batch size,
-  epochs) is the recipe's.
+  epochs) is the recipe's; its vehicles in contact with the DS share one PhysX scene
+  (``[env.world] batch_contact = "shared"``, :mod:`uwdock.sim.contact_scene`);
+* ``batched-own``: the same with each vehicle's PhysX in its own scene (``batch_contact =
+  "own"``, bit-equal to the per-env physics), to measure what the shared scene gives.
 
 ``--init-policy`` starts every run from a trained policy (``rl train --init-policy``): an early
 policy's episodes are mostly free flight far from the DS, a trained one's end in contact, which
 costs the physics more per step, so the two bracket a training run's mix. ``--quick``: 3
 rollouts, 1 repeat. ``--json`` prints one JSON line last: ``batched_steps_per_s``,
-``per_env_steps_per_s`` (the recipe's env count) and their ratio.
+``per_env_steps_per_s`` (the recipe's env count) and their ratio (and
+``batched_own_steps_per_s`` when measured).
 
 Writes ``bench/results/<name>.json`` (rows + machine, commit, packages).
 """
@@ -100,9 +105,11 @@ def _rescaled(cfg: TrainConfig, simulator: str, envs: int) -> TrainConfig:
     return replace(cfg, simulator=simulator, n_envs=envs, ppo=replace(cfg.ppo, n_steps=n_steps))
 
 
-def batched(cfg: TrainConfig, batch_envs: int) -> TrainConfig:
-    """The recipe on the batched simulator with ``batch_envs`` envs."""
-    return _rescaled(cfg, "batched", batch_envs)
+def batched(cfg: TrainConfig, batch_envs: int, contact: str = "shared") -> TrainConfig:
+    """The recipe on the batched simulator with ``batch_envs`` envs, its DS contact stepped as
+    ``contact`` says (:class:`uwdock.sim.world_config.WorldConfig`'s ``batch_contact``)."""
+    world = replace(cfg.env.world, batch_contact=contact)
+    return _rescaled(replace(cfg, env=replace(cfg.env, world=world)), "batched", batch_envs)
 
 
 def per_env(cfg: TrainConfig, envs: int | None) -> TrainConfig:
@@ -136,8 +143,8 @@ def main() -> None:
     sims = [x.strip() for x in a.simulators.split(",") if x.strip()]
     if a.rollouts < 2 or a.repeats < 1:
         sys.exit("error: --rollouts must be at least 2 and --repeats at least 1")
-    if not sims or any(x not in ("per-env", "batched") for x in sims):
-        sys.exit("error: --simulators takes per-env and/or batched")
+    if not sims or any(x not in ("per-env", "batched", "batched-own") for x in sims):
+        sys.exit("error: --simulators takes per-env, batched and/or batched-own")
     recipe = replace(load_config(TrainConfig, a.config, section="train"), seed=a.seed)
     runs = []
     if "per-env" in sims:
@@ -145,7 +152,9 @@ def main() -> None:
         runs += [("per-env", per_env(recipe, e)) for e in counts]
     if "batched" in sims:
         runs.append(("batched", batched(recipe, a.batch_envs)))
-    workers = {"per-env": 1, "batched": a.batch_workers}
+    if "batched-own" in sims:
+        runs.append(("batched-own", batched(recipe, a.batch_envs, "own")))
+    workers = {"per-env": 1, "batched": a.batch_workers, "batched-own": a.batch_workers}
     rows = []
     for sim, cfg in runs:
         rates, starts = [], []
@@ -171,7 +180,7 @@ def main() -> None:
                 "envs": envs,
                 "processes": envs if sim == "per-env" and envs > 1 else workers[sim],
                 "n_steps": cfg.ppo.n_steps,
-                "recipe": sim == "batched" or cfg == per_env(recipe, None),
+                "recipe": sim.startswith("batched") or cfg == per_env(recipe, None),
                 "steps_per_run": a.rollouts * cfg.ppo.n_steps * envs,
                 "steps_per_s_median": med,
                 "steps_per_s_min": min(rates),
@@ -185,8 +194,12 @@ def main() -> None:
     summary = {
         "batched_steps_per_s": rate.get("batched"),
         "per_env_steps_per_s": rate.get("per-env"),
-        "ratio": rate["batched"] / rate["per-env"] if len(rate) == 2 else None,
+        "ratio": (
+            rate["batched"] / rate["per-env"] if "batched" in rate and "per-env" in rate else None
+        ),
     }
+    if "batched-own" in rate:
+        summary = {"batched_own_steps_per_s": rate["batched-own"], **summary}
     bench_cfg = {
         "config": a.config,
         "seed": a.seed,

@@ -105,7 +105,9 @@ class BatchDockingEnv(VecEnv):
         self.dt_s = e0.dt_s
         self.max_steps = e0.max_steps
         self.limits = e0.action_limits
-        self.physics = BatchVehicles([e.world.vehicle for e in self.envs])
+        self.physics = BatchVehicles(
+            [e.world.vehicle for e in self.envs], contact=config.world.batch_contact
+        )
         est = e0.filter.cfg
         q = np.array(
             [est.drift_xyz_m_per_sqrt_s] * 3 + [math.radians(est.drift_yaw_deg_per_sqrt_s)]

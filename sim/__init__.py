@@ -11,6 +11,8 @@ Modules:
                      skips PhysX when no contact is possible.
     batch:           N vehicles stepped as arrays in one process (``BatchVehicles``, the batched
                      training simulator), PhysX only for DS contact.
+    contact_scene:   one PhysX scene for the DS contact of all of a batch's vehicles (a twin
+                     body each, copies of their statics side by side): one step for all.
     docking_station: DS (guides, notches, 3D markers) and tank geometry.
     render:          the headless SAPIEN camera rig and ground-truth marker projection.
     camera:          THE simulated camera: ``SimCamera.capture`` = render + water, returning a

@@ -9,15 +9,20 @@ of its own physics scene (tank, docking station, vehicle), by one control step i
   free_flight_all`, a loop over ``free_flight``: the same Fossen model and free surface, the
   tank planes' contact, the same integration as PhysX's), as far as its swept hull cannot touch
   the docking station;
-* PhysX only for the rest of the steps of the vehicles that may touch the docking station:
-  their body is given the batch's state, stepped by ``VehicleBody``'s own PhysX loop, and read
-  back.
+* PhysX only for the rest of the steps of the vehicles that may touch the docking station,
+  all of them in one shared scene (``contact="shared"``, the default:
+  :class:`uwdock.sim.contact_scene.SharedContactScene`, one PhysX step per substep for all),
+  or each in its own body's scene (``contact="own"``: the body is given the batch's state,
+  stepped by ``VehicleBody``'s own PhysX loop, and read back).
 
 The state is kept as PhysX keeps it (float32 pose and velocities, written back after every
-step), so a vehicle's trajectory here is the one ``VehicleBody.step`` gives for the same
-wrenches, in free flight and in contact (``tests/test_batch_physics.py``). What differs from
-``N`` ``VehicleBody.step`` calls is the cost: the per-vehicle Python work of a step (allocation,
-response, state reads and writes) is done once for all vehicles.
+step). With ``contact="own"`` a vehicle's trajectory here is the one ``VehicleBody.step`` gives
+for the same wrenches, in free flight and in contact, to the last bit; with ``"shared"`` it
+agrees within stated tolerances (``tests/test_batch_physics.py``: the shared scene offsets
+positions and keeps PhysX's contact cache across episodes). What differs from ``N``
+``VehicleBody.step`` calls is the cost: the per-vehicle Python work of a step (allocation,
+response, state reads and writes) is done once for all vehicles, and with ``"shared"`` PhysX's
+per-scene cost of a substep is paid once for all vehicles in contact.
 
 A slot is (re)loaded from its body with :meth:`BatchVehicles.load` after the body was reset by
 the scalar code (spawn, randomised vehicle, IMU biases, current): resets are rare and keep
@@ -32,12 +37,15 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
 from uwdock.calibration.frames import T_WORLDZUP_WORLDNED
 from uwdock.sim.fastpath import HYDRO_PARAMS, OBSTACLE_COLS, free_flight_all
 from uwdock.sim.physics import FREE_FLIGHT_MARGIN_M, VehicleBody
+
+Contact = Literal["shared", "own"]
 
 __all__ = ["BatchImu", "BatchVehicles"]
 
@@ -69,15 +77,21 @@ class BatchVehicles:
         bodies: one :class:`VehicleBody` per vehicle, each alone (the only dynamic body) in its
             own scene; all with the same substep, thruster count and collision shapes. Call
             :meth:`load` for a slot after resetting its body.
+        contact: where the vehicles that may touch the docking station are stepped: one
+            shared PhysX scene (``"shared"``) or each body's own scene (``"own"``; bit-equal
+            to ``VehicleBody.step``, slower).
 
     Attributes:
         last_physx: (N,) bool, the vehicles the last step sent through PhysX.
         physx_steps: how many vehicle-steps went through PhysX since construction.
     """
 
-    def __init__(self, bodies: Sequence[VehicleBody]) -> None:
+    def __init__(self, bodies: Sequence[VehicleBody], contact: Contact = "shared") -> None:
         if not bodies:
             raise ValueError("BatchVehicles: no vehicles")
+        if contact not in ("shared", "own"):
+            raise ValueError(f"contact: 'shared' or 'own', got {contact!r}")
+        self.contact_mode = contact
         self.bodies = list(bodies)
         b0 = self.bodies[0]
         n, k = len(self.bodies), b0.thrusters.n
@@ -127,8 +141,14 @@ class BatchVehicles:
         self.gravity_mps2 = np.zeros(n)
         self._powers_key: tuple[float, int] | None = None
         self._powers = np.zeros((n, 0, k))
+        self._shared = None
         for i in range(n):
             self.load(i)
+        if contact == "shared":
+            from uwdock.sim.contact_scene import SharedContactScene  # imports sim.physics
+
+            self._shared = SharedContactScene(self.bodies)
+            self._held[:] = False
 
     # ------------------------------------------------------------------ slots
 
@@ -150,7 +170,10 @@ class BatchVehicles:
         self._varying[i] = not b.current.is_constant
         self.current_ned[i] = b.current.mean_ned
         self.acc_mean_zup[i] = b.acc_mean_zup
-        self._held[i] = True
+        if self._shared is not None:
+            self._shared.load(i)
+        # the body holding the state PhysX steps: its own (own), or a twin placed at its start
+        self._held[i] = self._shared is None
         self._powers_key = None
         boxes = b.obstacle_boxes()
         if boxes is None:
@@ -179,7 +202,8 @@ class BatchVehicles:
         """Write vehicle ``i``'s batch state into its PhysX body (pose and velocities), e.g.
         before the scalar code reads or renders it."""
         self.bodies[i].set_state_zup(self.state[i], self.thrust_n[i], self.time_s[i])
-        self._held[i] = True
+        if self._shared is None:
+            self._held[i] = True
 
     # ------------------------------------------------------------------ stepping
 
@@ -222,9 +246,17 @@ class BatchVehicles:
         self.state[moved] = _f32(self.state[moved])  # what PhysX keeps of it
         self._held[moved] = False
         self.last_physx = done < n_sub
-        for i in np.flatnonzero(self.last_physx):
-            k = int(done[i])  # PhysX from the first substep that may touch
-            self._physx_step(i, wrenches[i, k:], currents[i, k:])
+        physx = np.flatnonzero(self.last_physx)
+        if self._shared is not None and len(physx):
+            self._shared.step(
+                physx, done[physx], self._held, self.state, self.P, self.B, self.contact,
+                wrenches, currents, self.spheres, self.planes,
+            )  # fmt: skip
+            self._held[physx] = True
+        elif self._shared is None:
+            for i in physx:
+                k = int(done[i])  # PhysX from the first substep that may touch
+                self._physx_step(i, wrenches[i, k:], currents[i, k:])
         self.physx_steps += int(self.last_physx.sum())
         self.thrust_n = response[:, -1, :].copy()
         self.time_s = self.time_s + n_sub * dt

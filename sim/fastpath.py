@@ -65,6 +65,7 @@ __all__ = [
     "hydro_accel",
     "hydro_params",
     "physx_wrench",
+    "physx_wrenches",
     "plane_contacts",
 ]
 
@@ -320,6 +321,35 @@ def physx_wrench(P, B, pos, quat, vel, omega, currents, wrenches, k, spheres, pl
         f[4] + out[4],
         f[5] + out[5],
     )
+
+
+@njit(cache=True)
+def physx_wrenches(
+    P, B, rows, slots, offsets, currents, wrenches, k, spheres, planes, contact, out
+):
+    """:func:`physx_wrench` for several vehicles of one shared PhysX scene at substep ``k``.
+
+    Args:
+        P: (N, 76) and B: (N, 9) every vehicle's parameters; contact: (N, 5).
+        rows: (K, 13) the stepped vehicles' PhysX states as ``PhysxSystem.pack()`` lays them:
+            attitude (w, x, y, z), entity position in the shared scene, CoM velocity, angular
+            velocity (float32 is fine).
+        slots: (K,) int64 vehicle index of each row; offsets: (N, 3) where each vehicle's world
+            sits in the shared scene (its positions there are world + offset).
+        currents: (N, n, 3), wrenches: (N, n, 6) per vehicle and substep.
+        out: (K, 6) world force and torque per row (N, N m, z-up world).
+    """
+    pos = np.empty(3)
+    for j in range(rows.shape[0]):
+        i = slots[j]
+        for a in range(3):
+            pos[a] = np.float64(rows[j, 4 + a]) - offsets[i, a]
+        f, t = physx_wrench(
+            P[i], B[i], pos, rows[j, 0:4], rows[j, 7:10], rows[j, 10:13], currents[i],
+            wrenches[i], k, spheres, planes, contact[i],
+        )  # fmt: skip
+        out[j, 0], out[j, 1], out[j, 2] = f
+        out[j, 3], out[j, 4], out[j, 5] = t
 
 
 # --------------------------------------------------------------------------- tank planes

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass, field
-from typing import Annotated
+from typing import Annotated, Literal
 
 from uwdock.dockcore.domains import Interval
 from uwdock.sim.domains import TANK_SIZE_M, TankSide_m
@@ -64,6 +64,11 @@ class WorldConfig:
         current: ocean current model.
         vehicle: nominal vehicle.
         vehicle_randomisation: ranges used when ``randomise_vehicle``.
+        batch_contact: in the batched simulator (:class:`uwdock.sim.batch.BatchVehicles`),
+            where the vehicles that may touch the docking station are stepped: ``"shared"``,
+            all in one PhysX scene (faster; trajectories within PhysX's own sensitivity of the
+            per-env ones), or ``"own"``, each in its own scene (bit-equal to the per-env env).
+            A per-env env ignores it.
     """
 
     physics_hz: Annotated[float, Interval(gt=0, le=5000)] = 300.0
@@ -79,6 +84,7 @@ class WorldConfig:
     current: CurrentConfig = field(default_factory=CurrentConfig)
     vehicle: VehicleConfig = field(default_factory=VehicleConfig)
     vehicle_randomisation: VehicleRandomisation = field(default_factory=VehicleRandomisation)
+    batch_contact: Literal["shared", "own"] = "shared"
 
     def validate(self) -> None:
         """Raise ValueError naming the first field that breaks a rule across fields or a name

@@ -1,5 +1,7 @@
 """The batched physics (sim.batch) against the scalar VehicleBody: same wrenches, same
-trajectory, in free flight and through PhysX contacts (the surface lid, the docking station)."""
+trajectory, in free flight and through PhysX contacts (the surface lid, the docking station):
+to the bit with each vehicle in its own PhysX scene (``contact="own"``), within PhysX's own
+sensitivity with all of them in one shared scene (``contact="shared"``, sim.contact_scene)."""
 
 from __future__ import annotations
 
@@ -8,6 +10,7 @@ import pytest
 
 from uwdock.calibration.frames import R_from_rpy, make_T
 from uwdock.dockcore.config import replace
+from uwdock.rl.task import DockingTaskConfig
 from uwdock.sim.batch import BatchVehicles
 from uwdock.sim.vehicle import CurrentConfig, ImuConfig, VehicleConfig
 from uwdock.sim.world import DockingWorld
@@ -23,14 +26,22 @@ def _world(cfg: WorldConfig, seed: int, T_world_body: np.ndarray, ds_xy=(0.5, 0.
     return w
 
 
-def _compare(cfg: WorldConfig, T_start: np.ndarray, wrench_of_step, n_steps: int):
-    """Step a scalar world and the first slot of a two-vehicle batch with the same wrenches;
-    return the largest difference of pose, body velocity and mean acceleration, and how many
-    steps went through PhysX."""
+def _compare(
+    cfg: WorldConfig,
+    T_start: np.ndarray,
+    wrench_of_step,
+    n_steps: int,
+    contact: str = "own",
+    nudge_m: float = 0.0,
+):
+    """Step a scalar world and the first slot of a two-vehicle batch with the same wrenches
+    (the batch's start moved ``nudge_m`` along x); return the largest difference of pose, body
+    velocity and mean acceleration, and how many steps went through PhysX."""
     scalar = _world(cfg, 1, T_start)
     twin = _world(cfg, 1, T_start)
     other = _world(cfg, 2, make_T(np.eye(3), [3.0, 1.0, 3.0]))
-    batch = BatchVehicles([twin.vehicle, other.vehicle])
+    batch = BatchVehicles([twin.vehicle, other.vehicle], contact=contact)
+    batch.state[0, 0] += nudge_m
     worst, physx = 0.0, 0
     for k in range(n_steps):
         w = wrench_of_step(k)
@@ -77,12 +88,98 @@ def test_docking_station_contact_equals_the_scalar_body():
     assert worst < 1e-9
 
 
+_SCENARIOS = {
+    "surface": (
+        replace(WorldConfig(), randomise_vehicle=True),
+        make_T(R_from_rpy(0, 0, 1.0), [0.8, 0.0, 1.9]),
+        lambda k: (
+            (1.0 if k < 100 else -0.5)
+            * np.array([60.0, 10.0, 120.0 if k < 60 else 200.0, 0.0, 3.0, 5.0])
+        ),
+        150,
+    ),
+    "docking station": (
+        replace(WorldConfig(), current=CurrentConfig(mode="varying")),
+        make_T(R_from_rpy(0, 0, 0.2), [0.5, 0.2, 2.2]),
+        lambda k: np.array([0.0, 40.0 if k > 30 else 0.0, 268.0, 0.0, 0.0, 20.0]),
+        60,
+    ),
+}
+
+
+@pytest.mark.parametrize("scenario", sorted(_SCENARIOS))
+def test_shared_contact_scene_stays_within_physx_own_sensitivity(scenario):
+    """All vehicles in one PhysX scene (offset positions, a twin body, copied statics): the
+    same paths as the scalar body, and a trajectory no farther from it than PhysX's own answer
+    to a 1 um nudge of the start. Largest difference of pose, body velocity and mean
+    acceleration over the run, measured shared / nudged: surface 0.025 / 0.019, docking
+    station 0.013 / 0.025 (poses alone: 1.8 / 1.2 mm and 1.2 / 1.4 mm)."""
+    cfg, T0, wrench, n = _SCENARIOS[scenario]
+    shared, physx, _, batch = _compare(cfg, T0, wrench, n, contact="shared")
+    nudged, physx_nudged, _, _ = _compare(cfg, T0, wrench, n, contact="own", nudge_m=1e-6)
+    assert physx == physx_nudged and physx > 20
+    assert batch.physx_steps >= physx
+    assert shared < 0.1
+    assert shared < 3.0 * max(nudged, 1e-3)
+
+
+def test_shared_contact_scene_keeps_slots_apart_and_idle_twins_asleep():
+    """Eight vehicles pressed onto eight differently placed stations, in one scene: each
+    touches only its own station's copy; a vehicle that leaves PhysX sleeps (costs nothing);
+    a new episode moves its slot's statics with the station."""
+    cfg = WorldConfig()
+    T_seat = DockingTaskConfig().T_ds_target  # the docked pose in the DS frame
+    rng = np.random.default_rng(3)
+    worlds = []
+    for i in range(8):
+        w = DockingWorld(cfg)
+        T_ds = make_T(R_from_rpy(0, 0, rng.uniform(-1, 1)), [*rng.uniform(-1, 1, 2), w.floor_z_m])
+        w.reset(T_ds, T_ds @ make_T(t=[0.0, 0.0, -0.3]) @ T_seat, np.random.default_rng(i))
+        worlds.append(w)
+    batch = BatchVehicles([w.vehicle for w in worlds])
+    sc = batch._shared
+    push = np.tile([0.0, 0.0, 268.0, 0.0, 0.0, 0.0], (8, 1))
+    for _ in range(15):
+        batch.step(push, 0.2)
+    assert batch.last_physx.all()
+    slot_of = {}
+    for i, twin in enumerate(sc._twins):
+        slot_of[twin.entity.per_scene_id] = i
+        for _, copy in sc._copies[i]:
+            slot_of[copy.per_scene_id] = i
+    contacts = sc.system.get_contacts()
+    assert len(contacts) >= 8
+    for c in contacts:
+        a, b = (slot_of[x.entity.per_scene_id] for x in c.bodies)
+        assert a == b
+    # each vehicle came down onto its own station: within 5 cm of the seat's height
+    for i, w in enumerate(worlds):
+        seat_z = (w.T_world_ds @ T_seat)[2, 3]
+        assert abs(batch.T_world_body()[i][2, 3] - seat_z) < 0.05
+    # vehicle 0 flies up and away: out of PhysX, its twin parked asleep
+    lift = push.copy()
+    lift[0] = [0.0, 0.0, -268.0, 0.0, 0.0, 0.0]
+    for _ in range(12):
+        batch.step(lift, 0.2)
+    assert not batch.last_physx[0] and batch.last_physx[1:].all()
+    assert sc._twins[0].is_sleeping and not sc._twins[1].is_sleeping
+    # a new episode for slot 3: its statics' copy follows the moved station
+    T_new = make_T(R_from_rpy(0, 0, 0.5), [1.5, -1.0, worlds[3].floor_z_m])
+    worlds[3].reset(T_new, T_new @ make_T(t=[0.0, 0.0, -0.3]) @ T_seat, np.random.default_rng(9))
+    batch.load(3)
+    ((src, copy),) = sc._copies[3]
+    np.testing.assert_allclose(
+        copy.get_pose().p, np.asarray(src.get_pose().p) + sc.offsets[3], atol=1e-5
+    )
+    np.testing.assert_allclose(copy.get_pose().q, src.get_pose().q, atol=1e-7)
+
+
 def test_batch_imu_equals_the_scalar_imu_without_noise():
     vehicle = replace(VehicleConfig(), imu=_QUIET_IMU)
     cfg = replace(WorldConfig(), vehicle=vehicle)
     T0 = make_T(R_from_rpy(0.1, -0.05, 0.4), [1.0, -1.0, 3.0])
     scalar, twin = _world(cfg, 3, T0), _world(cfg, 3, T0)
-    batch = BatchVehicles([twin.vehicle])
+    batch = BatchVehicles([twin.vehicle], contact="own")  # it bumps the DS: bit-equal PhysX
     rng = np.random.default_rng(0)
     for k in range(5):
         w = np.array([80.0, -20.0, 30.0, 0.0, 5.0, 10.0 * k])
