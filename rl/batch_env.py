@@ -82,10 +82,18 @@ class BatchDockingEnv(VecEnv):
         seed: env ``i`` first resets with ``seed + i`` (as the per-env workers); the per-step
             noise generator is seeded from ``seed`` too.
         privileged: fill the observation's privileged block (training envs).
+        slot_ids: each env's index in the whole training batch when this is a worker's share
+            of it (where its vehicle sits in the shared contact scene, :mod:`uwdock.sim.
+            contact_scene`, the same whichever worker holds it); default 0, 1, ...
     """
 
     def __init__(
-        self, config: EnvConfig, n_envs: int, seed: int = 0, privileged: bool = False
+        self,
+        config: EnvConfig,
+        n_envs: int,
+        seed: int = 0,
+        privileged: bool = False,
+        slot_ids: Sequence[int] | None = None,
     ) -> None:
         if config.obs_source not in BATCH_SOURCES:
             raise ValueError(
@@ -106,7 +114,9 @@ class BatchDockingEnv(VecEnv):
         self.max_steps = e0.max_steps
         self.limits = e0.action_limits
         self.physics = BatchVehicles(
-            [e.world.vehicle for e in self.envs], contact=config.world.batch_contact
+            [e.world.vehicle for e in self.envs],
+            contact=config.world.batch_contact,
+            slot_ids=slot_ids,
         )
         est = e0.filter.cfg
         q = np.array(
@@ -202,6 +212,9 @@ class BatchDockingEnv(VecEnv):
     def reset(self) -> np.ndarray:
         seeds = list(self._seeds) if self._seeds else [None] * self.num_envs
         obs = np.stack([self._reset_slot(i, seeds[i]) for i in range(self.num_envs)])
+        # every env starts afresh: so does the shared contact scene (a run resumed from a
+        # checkpoint, whose envs are all reset, then steps as the run never stopped)
+        self.physics.fresh_contact_scene()
         self._reset_seeds()
         self._reset_options()
         return obs
@@ -399,7 +412,9 @@ class BatchGroup:
     :class:`BatchDockingEnv`, behind :class:`rl.vec_envs.EnvGroup`'s interface (slots in, one
     result per env out) so that :class:`rl.vec_envs.PipeHosts` and
     :class:`rl.grouped_vec_env.GroupedVecEnv` carry it unchanged. Env ``i`` is seeded with
-    ``seed + i`` whatever group holds it, so the rollouts do not depend on the split."""
+    ``seed + i`` and sits at slot ``i`` of the shared contact scene whatever group holds it, so
+    the rollouts do not depend on the split, except for the shared scene's contact round-off
+    (:mod:`uwdock.sim.contact_scene`; ``batch_contact = "own"`` has none)."""
 
     def __init__(self, indices: Sequence[int]) -> None:
         self.indices = [int(i) for i in indices]
@@ -408,7 +423,11 @@ class BatchGroup:
 
     def build(self, env_cfg: EnvConfig, seed: int) -> None:
         self.venv = BatchDockingEnv(
-            env_cfg, len(self.indices), seed=seed + self.indices[0], privileged=True
+            env_cfg,
+            len(self.indices),
+            seed=seed + self.indices[0],
+            privileged=True,
+            slot_ids=self.indices,
         )
 
     def _batch(self) -> BatchDockingEnv:

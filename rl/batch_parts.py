@@ -234,7 +234,9 @@ def reward_terms_b(
         stall = np.where(pushing & (e_xy > cfg.stall_clearance_m) & stuck, -cfg.stall_penalty, 0.0)
         prev_e_xy_m[:] = e_xy
     terms = {
-        "dist": -(np.abs(e_xyz) @ np.asarray(cfg.w_xyz, dtype=np.float64)),
+        # a row-wise sum, not a BLAS matrix-vector product: that one's rounding depends on how
+        # many rows there are, so a batch split over processes would differ in the last bit
+        "dist": -(np.abs(e_xyz) * np.asarray(cfg.w_xyz, dtype=np.float64)).sum(axis=1),
         "angle": np.exp(-cfg.angle_gain * abs_psi) - 1.0 - cfg.angle_linear * abs_psi / math.pi,
         "smooth": -(cfg.smooth_scale / max(da.shape[1], 1)) * np.exp(da.sum(axis=1)),
         "collision": np.where(collided, -cfg.collision_penalty, 0.0),

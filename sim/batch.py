@@ -42,6 +42,7 @@ from typing import Literal
 import numpy as np
 
 from uwdock.calibration.frames import T_WORLDZUP_WORLDNED
+from uwdock.sim.contact_scene import SharedContactScene
 from uwdock.sim.fastpath import HYDRO_PARAMS, OBSTACLE_COLS, free_flight_all
 from uwdock.sim.physics import FREE_FLIGHT_MARGIN_M, VehicleBody
 
@@ -80,13 +81,20 @@ class BatchVehicles:
         contact: where the vehicles that may touch the docking station are stepped: one
             shared PhysX scene (``"shared"``) or each body's own scene (``"own"``; bit-equal
             to ``VehicleBody.step``, slower).
+        slot_ids: with ``"shared"``, each vehicle's id in the whole training batch (where it
+            sits in the shared scene, the same whichever process holds it); default 0, 1, ...
 
     Attributes:
         last_physx: (N,) bool, the vehicles the last step sent through PhysX.
         physx_steps: how many vehicle-steps went through PhysX since construction.
     """
 
-    def __init__(self, bodies: Sequence[VehicleBody], contact: Contact = "shared") -> None:
+    def __init__(
+        self,
+        bodies: Sequence[VehicleBody],
+        contact: Contact = "shared",
+        slot_ids: Sequence[int] | None = None,
+    ) -> None:
         if not bodies:
             raise ValueError("BatchVehicles: no vehicles")
         if contact not in ("shared", "own"):
@@ -142,12 +150,11 @@ class BatchVehicles:
         self._powers_key: tuple[float, int] | None = None
         self._powers = np.zeros((n, 0, k))
         self._shared = None
+        self._slot_ids = slot_ids
         for i in range(n):
             self.load(i)
         if contact == "shared":
-            from uwdock.sim.contact_scene import SharedContactScene  # imports sim.physics
-
-            self._shared = SharedContactScene(self.bodies)
+            self._shared = SharedContactScene(self.bodies, slot_ids)
             self._held[:] = False
 
     # ------------------------------------------------------------------ slots
@@ -197,6 +204,15 @@ class BatchVehicles:
             c.depth_noise_std_m,
         )
         self.gravity_mps2[i] = imu.gravity_mps2
+
+    def fresh_contact_scene(self) -> None:
+        """With ``contact="shared"``, replace the shared PhysX scene by a new one built from
+        the bodies as they are now (no contact state, no history), as a per-env world's reset
+        does for its own scene; e.g. after resetting every slot."""
+        if self._shared is None:
+            return
+        self._shared = SharedContactScene(self.bodies, self._slot_ids)
+        self._held[:] = False
 
     def store(self, i: int) -> None:
         """Write vehicle ``i``'s batch state into its PhysX body (pose and velocities), e.g.

@@ -12,8 +12,10 @@ vehicle in contact.
 Layout: slot ``i``'s statics are copied with a horizontal offset (x, y; never the depth, which
 the hydrodynamics reads) that puts their centre on grid point ``i``, ``spacing_m`` apart, more
 than the statics' extent plus twice the hull's reach plus a few metres, so nothing of one slot
-can touch another's. The offset follows the slot's statics when they move (a new episode's
-docking station pose, :meth:`SharedContactScene.load`).
+can touch another's. Grid points follow a square spiral out from the origin by the slot's id
+(its env index in the whole training batch), so an env sits at the same place whichever worker
+process holds it. The offset follows the slot's statics when they move (a new episode's docking
+station pose, :meth:`SharedContactScene.load`).
 
 Twins that are not stepped sleep far above their slot (PhysX skips them; one left asleep beside
 statics that move is woken and simulated for nothing). A twin that continues from its own last
@@ -26,7 +28,12 @@ one numba call for every stepped twin's hydrodynamic wrench
 What differs from stepping every vehicle in its own scene: positions live in the shared scene
 with the slot's offset (float32 round-off of ~1e-6 m at the grid's size), and PhysX's contact
 cache lives in one system for the whole run instead of a fresh one per episode; so trajectories
-agree within stated tolerances, not bit for bit (``tests/test_batch_physics.py``).
+agree within stated tolerances, not bit for bit (``tests/test_batch_physics.py``). A run is
+deterministic, but a vehicle's contacts also round off differently when other twins join or
+leave the scene in the same substep (a twin alone in its slot with a neighbour stepping beside
+it is bit-equal; with neighbours placed and parked, ~1e-5 m after a contact episode, with
+PhysX's enhanced determinism on or off), so splitting a batch over another number of processes
+changes the rollouts at round-off; ``batch_contact = "own"`` does not.
 """
 
 from __future__ import annotations
@@ -40,7 +47,7 @@ import sapien
 from uwdock.sim.fastpath import physx_wrenches
 from uwdock.sim.physics import VehicleBody, make_physics_scene
 
-__all__ = ["SharedContactScene"]
+__all__ = ["SharedContactScene", "spiral_point"]
 
 #: Room (m) between two slots' reach, on top of the statics' extent and twice the hull's reach:
 #: a vehicle in contact moves far less than this in one control step.
@@ -49,6 +56,24 @@ SLOT_CLEARANCE_M = 4.0
 #: beside statics that move (a new episode) is woken by PhysX and simulated for nothing.
 PARK_HEIGHT_M = 50.0
 _PACK_FLOATS = 13  # a rigid body in PhysxSystem.pack(): attitude (w x y z), position, v, w
+
+
+def spiral_point(k: int) -> tuple[int, int]:
+    """Integer grid point number ``k`` (>= 0) of a square spiral out from (0, 0): 0 -> (0, 0),
+    1 -> (1, 0), 2 -> (1, 1), 3 -> (0, 1), 4 -> (-1, 1), ...; ring ``r`` holds points
+    ``(2r - 1)^2 .. (2r + 1)^2 - 1``, so ``n`` points fit in a square of side ~sqrt(n)."""
+    if k == 0:
+        return 0, 0
+    r = math.ceil((math.sqrt(k + 1) - 1) / 2)  # the ring
+    j = k - (2 * r - 1) ** 2  # position along the ring, 0 .. 8r - 1
+    side, t = divmod(j, 2 * r)
+    if side == 0:
+        return r, -r + 1 + t
+    if side == 1:
+        return r - 1 - t, r
+    if side == 2:
+        return -r, r - 1 - t
+    return -r + 1 + t, -r
 
 
 def _copy_shape(shape: sapien.physx.PhysxCollisionShape) -> sapien.physx.PhysxCollisionShape:
@@ -88,11 +113,17 @@ class SharedContactScene:
     Args:
         bodies: the batch's vehicles, each in its own scene (as :class:`BatchVehicles` gets
             them); their scenes' statics may only be boxes, capsules, spheres or convex meshes.
+        slot_ids: each body's id in the whole batch (its grid point); default 0, 1, ...
     """
 
-    def __init__(self, bodies: Sequence[VehicleBody]) -> None:
+    def __init__(
+        self, bodies: Sequence[VehicleBody], slot_ids: Sequence[int] | None = None
+    ) -> None:
         self.bodies = list(bodies)
         n = len(self.bodies)
+        ids = list(range(n)) if slot_ids is None else [int(i) for i in slot_ids]
+        if len(ids) != n or len(set(ids)) != n or min(ids) < 0:
+            raise ValueError(f"slot_ids: {n} distinct ids >= 0 expected, got {slot_ids!r}")
         b0 = self.bodies[0]
         self.scene = make_physics_scene(b0.dt_s)
         self.system = self.scene.physx_system

@@ -295,6 +295,34 @@ def test_shared_contact_scene_evaluation_rows_match_the_per_env_rows():
         assert b["return"] == pytest.approx(p["return"], rel=5e-3)
 
 
+def test_shared_contact_scene_steps_after_a_reset_as_a_fresh_batch():
+    """A resumed run resets all its envs at the checkpoint and steps a new batch; the run that
+    never stopped resets its old batch there: the shared contact scene starts afresh at a full
+    reset, so both step alike through DS contact."""
+    cfg = EnvConfig(obs_source="error-model", error_model_path=MODEL, episode_s=3.0)
+    assert cfg.world.batch_contact == "shared"
+    old, new = (BatchDockingEnv(cfg, 6, seed=8, privileged=True) for _ in range(2))
+    for venv in (old, new):
+        venv.env_method("set_curriculum", 0.02, 0.5, 1.0, (0.03, 0.3, 0.05, 5.0))
+    rng = np.random.default_rng(2)
+    old.reset()
+    for _ in range(60):  # the history the resumed run never saw (without a fresh scene
+        # at the reset the two differ after it: checked)
+        old.step(rng.uniform(-1, 1, (6, 6)).astype(np.float32))
+    for venv in (old, new):
+        venv.seed(77)
+    o1, o2 = old.reset(), new.reset()
+    np.testing.assert_array_equal(o1, o2)
+    for _ in range(20):
+        a = rng.uniform(-1, 1, (6, 6)).astype(np.float32)
+        r1, r2 = old.step(a), new.step(a)
+        for x, y in zip(r1[:3], r2[:3], strict=True):
+            np.testing.assert_array_equal(x, y)
+    assert old.physics.physx_steps > 20 and new.physics.physx_steps > 20
+    old.close()
+    new.close()
+
+
 def test_error_model_batch_runs_and_reports_detections():
     cfg = EnvConfig(obs_source="error-model", error_model_path=MODEL, episode_s=4.0)
     env = BatchDockingEnv(cfg, 4, seed=0)
@@ -322,17 +350,25 @@ def test_curriculum_reaches_every_env():
     assert all(t.strict_peg_z_m == 0.5 for t in env.get_attr("task"))
 
 
-def test_batch_split_over_worker_processes_gives_the_same_rollouts():
-    """Two worker processes holding two envs each step exactly as one batch of four."""
+@pytest.mark.parametrize(
+    "near_share, contact, workers", [(0.0, "shared", 2), (1.0, "own", 2), (1.0, "shared", 1)]
+)
+def test_batch_split_over_worker_processes_gives_the_same_rollouts(near_share, contact, workers):
+    """Two worker processes holding two envs each step exactly as one batch of four (free
+    flight, and with every vehicle starting just above the seat, ``near_share`` 1, in PhysX
+    contact with each vehicle in its own scene). In the shared contact scene a split rounds
+    contacts differently (sim.contact_scene), so there the same batch run twice is compared:
+    runs are deterministic."""
     from uwdock.rl.batch_env import BatchWorkers
 
-    cfg = EnvConfig(obs_source="error-model", error_model_path=MODEL, episode_s=3.0)
+    world = replace(WorldConfig(), batch_contact=contact)
+    cfg = EnvConfig(obs_source="error-model", error_model_path=MODEL, episode_s=3.0, world=world)
     one = BatchWorkers(cfg, 4, seed=5, workers=1)
-    two = BatchWorkers(cfg, 4, seed=5, workers=2)
+    two = BatchWorkers(cfg, 4, seed=5, workers=workers)
     try:
         for venv in (one.venv, two.venv):
             venv.seed(40)
-            venv.env_method("set_curriculum", 1.0, 0.5)
+            venv.env_method("set_curriculum", 0.02, 0.5, near_share, (0.03, 0.3, 0.05, 5.0))
         o1, o2 = one.venv.reset(), two.venv.reset()
         np.testing.assert_array_equal(o1, o2)
         rng = np.random.default_rng(1)
@@ -346,6 +382,8 @@ def test_batch_split_over_worker_processes_gives_the_same_rollouts():
             np.testing.assert_array_equal(r1[2], r2[2])
             resets += int(r1[2].sum())
         assert resets >= 4
+        if near_share > 0:
+            assert one.venv.physics.physx_steps > 40  # the contact scene did the work
     finally:
         one.close()
         two.close()
