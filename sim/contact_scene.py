@@ -2,9 +2,10 @@
 
 :class:`uwdock.sim.batch.BatchVehicles` hands a vehicle to PhysX only while its hull may touch a
 static shape (the docking station). Stepping each such vehicle in its own scene pays PhysX's
-per-scene cost of a step once per vehicle, and that fixed cost is most of it: on the 2-core
-development machine a seated vehicle costs ~40 us per 300 Hz substep alone in its scene, ~10 us
-as one of 32 in one scene (``bench/bench_train_speed.py`` measures what it gives training).
+per-scene cost of a step once per vehicle, and that fixed cost is about half of it: on the
+2-core development machine PhysX steps a vehicle resting on its station in 18.9 us per 300 Hz
+substep alone in its scene (7.8 us with nothing to touch), in 8.3 us as one of 32 in one scene
+(``bench/bench_train_speed.py`` measures what it gives training: 1.55x from a trained policy).
 Here every vehicle has a *twin*: a dynamic body with copies of its collision shapes, in one
 shared scene, beside a copy of its own scene's static shapes; one ``step()`` advances every
 vehicle in contact.
@@ -17,11 +18,12 @@ can touch another's. Grid points follow a square spiral out from the origin by t
 process holds it. The offset follows the slot's statics when they move (a new episode's docking
 station pose, :meth:`SharedContactScene.load`).
 
-Twins that are not stepped sleep far above their slot (PhysX skips them; one left asleep beside
-statics that move is woken and simulated for nothing). A twin that continues from its own last
-PhysX substep keeps PhysX's contact state; any other is placed from the batch state just before
-its first substep. The per-substep work is one ``pack()`` (all twins' states in one buffer),
-one numba call for every stepped twin's hydrodynamic wrench
+Twins that are not stepped sleep far above their slot, put to sleep again after the next
+substep (PhysX skips sleeping bodies, but wakes one whose contacts were lost: a twin put to
+sleep beside its station would be woken and simulated for nothing). A twin that continues from
+its own last PhysX substep keeps PhysX's contact state; any other is placed from the batch state
+just before its first substep. The per-substep work is one ``pack()`` (all twins' states in one
+buffer), one numba call for every stepped twin's hydrodynamic wrench
 (:func:`uwdock.sim.fastpath.physx_wrenches`), one ``add_force_torque`` per stepped twin and one
 ``step()``.
 
@@ -52,8 +54,9 @@ __all__ = ["SharedContactScene", "spiral_point"]
 #: Room (m) between two slots' reach, on top of the statics' extent and twice the hull's reach:
 #: a vehicle in contact moves far less than this in one control step.
 SLOT_CLEARANCE_M = 4.0
-#: Height (m, z-up) above its slot's grid point where a sleeping twin waits: a twin left asleep
-#: beside statics that move (a new episode) is woken by PhysX and simulated for nothing.
+#: Height (m, z-up) above its slot's grid point where a sleeping twin waits, touching nothing
+#: (PhysX wakes a body whose contacts were lost, so one left asleep beside its station would be
+#: woken and simulated for nothing).
 PARK_HEIGHT_M = 50.0
 _PACK_FLOATS = 13  # a rigid body in PhysxSystem.pack(): attitude (w x y z), position, v, w
 

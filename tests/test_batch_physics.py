@@ -174,6 +174,18 @@ def test_shared_contact_scene_keeps_slots_apart_and_idle_twins_asleep():
     np.testing.assert_allclose(copy.get_pose().q, src.get_pose().q, atol=1e-7)
 
 
+def test_slot_grid_is_a_compact_spiral_of_distinct_points():
+    from uwdock.sim.contact_scene import spiral_point
+
+    pts = [spiral_point(k) for k in range(289)]
+    assert pts[:5] == [(0, 0), (1, 0), (1, 1), (0, 1), (-1, 1)]
+    assert len(set(pts)) == 289  # 17 x 17: rings 0 .. 8 filled exactly
+    assert max(max(abs(x), abs(y)) for x, y in pts) == 8
+    for k in range(1, 289):  # neighbours on the grid: the spiral never jumps
+        (x0, y0), (x1, y1) = pts[k - 1], pts[k]
+        assert abs(x1 - x0) + abs(y1 - y0) == 1
+
+
 def test_batch_imu_equals_the_scalar_imu_without_noise():
     vehicle = replace(VehicleConfig(), imu=_QUIET_IMU)
     cfg = replace(WorldConfig(), vehicle=vehicle)
