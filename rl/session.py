@@ -206,32 +206,38 @@ class TrainingSession:
         return record
 
     def _eval_rows(self) -> list[dict[str, Any]]:
-        """The evaluation episodes' rows: on the batched simulator when training on it (one
-        batch of all episodes, here), else in the env workers when there are several, else
-        here."""
+        """The evaluation episodes' rows: on the batched simulator when training on it (a
+        consecutive share in each batch worker, all at once, in batches the workers keep; with
+        one batch process one batch of all episodes, here), else in the env workers when there
+        are several, else here."""
         from stable_baselines3.common.vec_env import SubprocVecEnv
 
         n = self.cfg.eval_episodes
-        if self.cfg.simulator == "batched":  # the simulator it trains on, all episodes at once
-            from uwdock.rl.batch_env import batched_episodes  # SB3 at module level
-
-            return batched_episodes(self.model, self.cfg.env, n, EVAL_SEED, self.vecnorm)
         raw_venv = self.vecnorm.venv if self.vecnorm is not None else self.model.get_env()
+        if self.cfg.simulator == "batched":  # the simulator it trains on, all episodes at once
+            from uwdock.rl.batch_env import BatchGroupsVecEnv, batched_episodes  # SB3 inside
+
+            if isinstance(raw_venv, BatchGroupsVecEnv):  # a share in each batch worker
+                return raw_venv.evaluate(self._eval_job(n, len(raw_venv.groups)))
+            return batched_episodes(self.model, self.cfg.env, n, EVAL_SEED, self.vecnorm)
         if not isinstance(raw_venv, SubprocVecEnv):
             return run_episodes(
                 self.model, self.cfg.env, n, EVAL_SEED, vecnorm=self.vecnorm, record=False
             ).episodes
-        job = EvalJob(
+        parts = raw_venv.env_method("evaluate_share", self._eval_job(n, raw_venv.num_envs))
+        return sorted((r for p in parts for r in p), key=lambda r: r["episode"])
+
+    def _eval_job(self, n: int, n_workers: int) -> EvalJob:
+        """The evaluation of the current policy, for ``n_workers`` workers to share."""
+        return EvalJob(
             type(self.model),
             model_bytes(self.model),
             pickle_bytes(self.vecnorm) if self.vecnorm is not None else None,
             self.cfg.env,
             n,
             EVAL_SEED,
-            raw_venv.num_envs,
+            n_workers,
         )
-        parts = raw_venv.env_method("evaluate_share", job)
-        return sorted((r for p in parts for r in p), key=lambda r: r["episode"])
 
     # ------------------------------------------------------------------ files
 

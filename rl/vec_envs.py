@@ -263,6 +263,9 @@ class EnvWorkers:
         envs_per_worker: envs each worker process holds (module docstring).
         group_cls: what each worker holds (:class:`PipeHosts`); not :class:`EnvGroup` means
             worker processes even for one env per worker.
+        venv_cls: the VecEnv over the workers' groups (default
+            :class:`rl.grouped_vec_env.GroupedVecEnv`; :class:`rl.batch_env.BatchGroupsVecEnv`
+            for batched groups).
 
     Attributes:
         venv: the SB3 VecEnv (``DummyVecEnv`` for one env, ``SubprocVecEnv`` for one env per
@@ -276,6 +279,7 @@ class EnvWorkers:
         seed: int,
         envs_per_worker: int = 1,
         group_cls: type = EnvGroup,
+        venv_cls: type | None = None,
     ) -> None:
         from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
@@ -290,7 +294,7 @@ class EnvWorkers:
         if len(groups) < n_envs or group_cls is not EnvGroup:
             self._hosts = PipeHosts(env_cfg, seed, groups, self._dir.name, group_cls)
             try:
-                self.venv = GroupedVecEnv(self._hosts, groups)
+                self.venv = (venv_cls or GroupedVecEnv)(self._hosts, groups)
             except (EOFError, ConnectionError) as exc:
                 self.raise_worker_error(exc)
             return

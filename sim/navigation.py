@@ -196,12 +196,7 @@ class NavErrors:
         R = np.asarray(R_true, dtype=np.float64).reshape(self.n, 3, 3)
         if self.ideal:
             return R.copy()
-        from scipy.spatial.transform import Rotation  # half a second to import: only when used
-
-        # Fossen's ZYX angles (R = Rz(yaw) Ry(pitch) Rx(roll), calibration.frames.R_from_rpy)
-        # are SciPy's intrinsic "ZYX": [yaw, pitch, roll]
-        ypr = Rotation.from_matrix(R).as_euler("ZYX") + self.att_err_rad[:, ::-1]
-        return Rotation.from_euler("ZYX", ypr).as_matrix()
+        return _R_zyx_plus(R, self.att_err_rad)
 
     def step(
         self,
@@ -242,6 +237,35 @@ class NavErrors:
     def error_m(self) -> np.ndarray:
         """(n,) horizontal dead-reckoning error of each vehicle (m)."""
         return np.hypot(self.dp_xy_m[:, 0], self.dp_xy_m[:, 1])
+
+
+def _R_zyx_plus(R: np.ndarray, d_rpy_rad: np.ndarray) -> np.ndarray:
+    """(n, 3, 3) the attitudes of ``R`` (n, 3, 3) with roll, pitch and yaw (Fossen's ZYX angles,
+    ``R = Rz(yaw) Ry(pitch) Rx(roll)``, :func:`uwdock.calibration.frames.R_from_rpy`) each moved
+    by ``d_rpy_rad`` (n, 3). Closed form in NumPy (SciPy's ``Rotation`` round trip gives the same
+    to ~1e-16 at ~10x the cost, a tenth of a batch worker's step)."""
+    roll = np.arctan2(R[:, 2, 1], R[:, 2, 2]) + d_rpy_rad[:, 0]
+    pitch = np.arctan2(-R[:, 2, 0], np.hypot(R[:, 0, 0], R[:, 1, 0])) + d_rpy_rad[:, 1]
+    yaw = np.arctan2(R[:, 1, 0], R[:, 0, 0]) + d_rpy_rad[:, 2]
+    cr, sr, cp, sp, cy, sy = (
+        np.cos(roll),
+        np.sin(roll),
+        np.cos(pitch),
+        np.sin(pitch),
+        np.cos(yaw),
+        np.sin(yaw),
+    )
+    out = np.empty_like(R)
+    out[:, 0, 0] = cy * cp
+    out[:, 0, 1] = cy * sp * sr - sy * cr
+    out[:, 0, 2] = cy * sp * cr + sy * sr
+    out[:, 1, 0] = sy * cp
+    out[:, 1, 1] = sy * sp * sr + cy * cr
+    out[:, 1, 2] = sy * sp * cr - cy * sr
+    out[:, 2, 0] = -sp
+    out[:, 2, 1] = cp * sr
+    out[:, 2, 2] = cp * cr
+    return out
 
 
 def correction(T_nav: np.ndarray, T_true: np.ndarray) -> np.ndarray:

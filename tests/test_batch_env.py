@@ -4,6 +4,7 @@ per-step noise is drawn."""
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -295,6 +296,60 @@ def test_shared_contact_scene_evaluation_rows_match_the_per_env_rows():
         assert b["return"] == pytest.approx(p["return"], rel=5e-3)
 
 
+def test_a_kept_batch_evaluates_as_a_new_one_and_shares_are_their_episodes():
+    """An evaluation batch kept between evaluations (the training workers') is reseeded: after
+    another evaluation it gives a new batch's rows, bit for bit, in the shared contact scene
+    too; a share (``first``) is those episodes of the whole (a PhysX scene per vehicle)."""
+    pol = _Steer()
+    shared = _quiet_cfg(terminate_on="paper", episode_s=6.0, obs_frames=2, batch_contact="shared")
+    want = batched_episodes(pol, shared, 3, 21)
+    kept = BatchDockingEnv(shared, 3, seed=5)
+    try:
+        other = batched_episodes(pol, shared, 3, 40, venv=kept)
+        assert [r["seed"] for r in other] == [40, 41, 42]
+        assert batched_episodes(pol, shared, 3, 21, venv=kept) == want
+    finally:
+        kept.close()
+    own = _quiet_cfg(terminate_on="paper", episode_s=6.0, obs_frames=2)
+    whole = batched_episodes(pol, own, 3, 21)
+    share = batched_episodes(pol, own, 2, 21, first=1)
+    assert [r["episode"] for r in share] == [1, 2] and share == whole[1:]
+    with pytest.raises(ValueError, match="n_episodes envs"):
+        batched_episodes(pol, own, 2, 21, venv=BatchDockingEnv(own, 3))
+
+
+def test_training_evaluations_run_in_the_batch_workers():
+    """With the batch over worker processes, the training evaluation runs a share of the
+    episodes in each (in batches they keep): the rows of one batch of all of them, again at the
+    next evaluation. Outcomes equal; returns to round-off (a batch of other size rounds the
+    policy's matrix products differently)."""
+    from stable_baselines3 import PPO
+
+    from uwdock.rl.batch_env import BatchGroup, BatchGroupsVecEnv
+    from uwdock.rl.checkpoint import model_bytes
+    from uwdock.rl.vec_envs import EnvWorkers
+    from uwdock.rl.workers import EvalJob
+
+    cfg = _quiet_cfg(terminate_on="paper", episode_s=4.0, obs_frames=2)
+    workers = EnvWorkers(cfg, 4, 7, 2, group_cls=BatchGroup, venv_cls=BatchGroupsVecEnv)
+    try:
+        model = PPO("MlpPolicy", workers.venv, n_steps=8, batch_size=32, seed=3, device="cpu")
+        job = EvalJob(PPO, model_bytes(model), None, cfg, 5, 31, 2)
+        want = batched_episodes(model, cfg, 5, 31)
+        for _ in range(2):  # the second time in the kept batches
+            got = workers.venv.evaluate(job)
+            assert [r["episode"] for r in got] == [0, 1, 2, 3, 4]
+            for w, g in zip(want, got, strict=True):
+                assert set(w) == set(g)
+                for k, v in w.items():
+                    if isinstance(v, float) and k != "time_to_dock_s":
+                        assert g[k] == pytest.approx(v, rel=1e-4, abs=1e-6), k
+                    else:
+                        assert g[k] == v, k
+    finally:
+        workers.close()
+
+
 def test_shared_contact_scene_steps_after_a_reset_as_a_fresh_batch():
     """A resumed run resets all its envs at the checkpoint and steps a new batch; the run that
     never stopped resets its old batch there: the shared contact scene starts afresh at a full
@@ -350,6 +405,79 @@ def test_curriculum_reaches_every_env():
     assert all(t.strict_peg_z_m == 0.5 for t in env.get_attr("task"))
 
 
+def _assert_same_infos(a, b) -> None:
+    """Two steps' per-env infos hold the same keys, in order, with equal values and types."""
+    assert len(a) == len(b)
+    for x, y in zip(a, b, strict=True):
+        assert list(x) == list(y)
+        for k in x:
+            if k in ("episode",):  # its "t" is wall-clock seconds
+                assert x[k]["r"] == y[k]["r"] and x[k]["l"] == y[k]["l"]
+            elif isinstance(x[k], np.ndarray):
+                np.testing.assert_array_equal(x[k], y[k])
+            else:
+                assert type(x[k]) is type(y[k]) and x[k] == y[k], k
+
+
+def test_step_columns_make_the_per_env_infos_sb3_reads():
+    from uwdock.rl.batch_env import StepColumns, info_rows
+
+    def part(n, off, done):
+        return StepColumns(
+            terms={"r_dist": np.arange(n, dtype=np.float32) + off},
+            values={
+                "success_paper": np.arange(n) % 2 == 0,
+                "time_s": np.arange(n) * 0.2 + off,
+                "e_true": np.arange(3 * n, dtype=float).reshape(n, 3) + off,
+            },
+            ends={done: {"TimeLimit.truncated": True, "terminal_observation": np.ones(2)}},
+        )
+
+    rows = info_rows(StepColumns.concat([part(2, 0, 1), part(3, 10, 0)]))
+    assert len(rows) == 5
+    assert list(rows[0]) == ["reward_terms", "success_paper", "time_s", "e_true"]
+    assert (
+        rows[3]["reward_terms"] == {"r_dist": 11.0}
+        and type(rows[3]["reward_terms"]["r_dist"]) is float
+    )
+    assert rows[3]["success_paper"] is False and rows[2]["success_paper"] is True
+    assert rows[4]["time_s"] == pytest.approx(10.4) and type(rows[4]["time_s"]) is float
+    np.testing.assert_array_equal(rows[4]["e_true"], [16.0, 17.0, 18.0])
+    # the done envs (1 of the first group, 0 of the second: env 2) carry the episode's end
+    assert [i for i, r in enumerate(rows) if "terminal_observation" in r] == [1, 2]
+    assert rows[2]["TimeLimit.truncated"] is True and "TimeLimit.truncated" not in rows[0]
+
+
+def test_batched_workers_send_arrays_and_give_the_per_env_calls_results():
+    """The columnar step of :class:`BatchGroupsVecEnv` gives what the generic per-env pipe
+    protocol (:class:`rl.grouped_vec_env.GroupedVecEnv` over the same groups) gives: the same
+    observations, float32 rewards, dones and infos, through an auto-reset."""
+    from uwdock.rl.batch_env import BatchGroup, BatchGroupsVecEnv
+    from uwdock.rl.grouped_vec_env import GroupedVecEnv
+    from uwdock.rl.vec_envs import EnvWorkers
+
+    cfg = EnvConfig(obs_source="error-model", error_model_path=MODEL, episode_s=2.0)
+    fast = EnvWorkers(cfg, 3, 7, 2, group_cls=BatchGroup, venv_cls=BatchGroupsVecEnv)
+    slow = EnvWorkers(cfg, 3, 7, 2, group_cls=BatchGroup)
+    try:
+        assert type(fast.venv) is BatchGroupsVecEnv and type(slow.venv) is GroupedVecEnv
+        np.testing.assert_array_equal(fast.venv.reset(), slow.venv.reset())
+        rng = np.random.default_rng(3)
+        dones = 0
+        for _ in range(14):  # 10 steps per episode
+            a = rng.uniform(-1, 1, (3, 6)).astype(np.float32)
+            r1, r2 = fast.venv.step(a), slow.venv.step(a)
+            for x, y in zip(r1[:3], r2[:3], strict=True):
+                np.testing.assert_array_equal(x, y)
+                assert x.dtype == y.dtype
+            _assert_same_infos(r1[3], r2[3])
+            dones += int(r1[2].sum())
+        assert dones == 3
+    finally:
+        fast.close()
+        slow.close()
+
+
 @pytest.mark.parametrize(
     "near_share, contact, workers", [(0.0, "shared", 2), (1.0, "own", 2), (1.0, "shared", 1)]
 )
@@ -380,6 +508,7 @@ def test_batch_split_over_worker_processes_gives_the_same_rollouts(near_share, c
             np.testing.assert_array_equal(r1[1], r2[1])
             assert r1[1].dtype == r2[1].dtype == np.float32  # VecNormalize keeps this dtype
             np.testing.assert_array_equal(r1[2], r2[2])
+            _assert_same_infos(r1[3], r2[3])
             resets += int(r1[2].sum())
         assert resets >= 4
         if near_share > 0:
@@ -387,3 +516,47 @@ def test_batch_split_over_worker_processes_gives_the_same_rollouts(near_share, c
     finally:
         one.close()
         two.close()
+
+
+def test_a_batched_run_over_two_processes_keeps_the_evaluation_its_workers_ran(
+    tmp_path, monkeypatch
+):
+    """A real batched training run over two batch processes evaluates in them (each worker
+    process runs its share: they leave their pid and episodes here): its history holds each
+    evaluation, and best/ is a policy whose evaluation, run again as one batch here, gives the
+    recorded success rates and collisions (returns to round-off)."""
+    import os
+
+    from uwdock.rl.batch_env import BatchGroup
+    from uwdock.rl.evaluate import summarise
+    from uwdock.rl.policy_io import load_policy
+    from uwdock.rl.session import EVAL_SEED
+    from uwdock.rl.train import PPOConfig, TrainConfig, train
+
+    world = replace(WorldConfig(), batch_contact="own")
+    env = EnvConfig(obs_source="error-model", error_model_path=MODEL, episode_s=2.0, world=world)
+    cfg = TrainConfig(
+        total_steps=64, n_envs=4, seed=3, checkpoint_every=32, eval_every=32, eval_episodes=5,
+        env=env, simulator="batched", ppo=PPOConfig(n_steps=8, batch_size=16, n_epochs=1),
+    )  # fmt: skip
+    run, marks = tmp_path / "run", tmp_path / "marks"
+    marks.mkdir()
+    share = BatchGroup.evaluate_batch
+
+    def marked(self, job, lo, hi):  # the workers are forked after this: they run it
+        (marks / f"{os.getpid()}_{lo}_{hi}_{len(list(marks.iterdir()))}").touch()
+        return share(self, job, lo, hi)
+
+    monkeypatch.setattr(BatchGroup, "evaluate_batch", marked)
+    train(cfg, run, progress=False, note=lambda m: None, batch_workers=2)
+    ran = [m.name.split("_") for m in marks.iterdir()]
+    assert len(ran) == 4 and os.getpid() not in {int(r[0]) for r in ran}
+    assert sorted({(int(r[1]), int(r[2])) for r in ran}) == [(0, 2), (2, 5)]
+    history = [json.loads(line) for line in (run / "eval_history.jsonl").open()]
+    assert [h["step"] for h in history] == [32, 64] and all(h["episodes"] == 5 for h in history)
+    kept = [h for h in history if h.get("best")][-1]
+    model, vecnorm = load_policy(run / "best")
+    again = summarise(batched_episodes(model, env, 5, EVAL_SEED, vecnorm))
+    for k in ("success_rate", "success_rate_strict", "mean_collisions"):
+        assert again[k] == kept[k], k
+    assert again["mean_return"] == pytest.approx(kept["mean_return"], rel=1e-4)

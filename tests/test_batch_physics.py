@@ -268,3 +268,13 @@ def test_tank_walls_and_floor_hold_the_vehicle_without_physx():
     assert D - 0.01 < ext[5] < D + 0.003  # on the floor
     assert abs(scalar.vehicle.nu[2]) < 0.01
     np.testing.assert_allclose(batch.T_world_body()[0], scalar.T_world_body, atol=1e-9)
+
+
+def test_row_cross_products_are_numpys_bit_for_bit():
+    from uwdock.sim.batch import _cross_rows
+
+    rng = np.random.default_rng(4)
+    a, b, c = rng.normal(size=(32, 3)), rng.normal(size=(32, 3)), rng.normal(size=3)
+    assert np.array_equal(_cross_rows(a, b), np.cross(a, b))
+    assert np.array_equal(_cross_rows(a, c), np.cross(a, c))
+    assert np.array_equal(_cross_rows(a, _cross_rows(a, c)), np.cross(a, np.cross(a, c)))

@@ -146,6 +146,26 @@ def test_rows_step_alike_alone_or_in_a_batch():
     assert np.array_equal(batch.dp_xy_m[0], singles[2].dp_xy_m[0])
 
 
+def test_the_ahrs_attitude_adds_its_errors_to_fossens_zyx_angles():
+    rng = np.random.default_rng(5)
+    nav = NavErrors(MEMS, 50)
+    nav.att_err_rad = rng.normal(0.0, 0.05, (50, 3))
+    rpy = np.column_stack(
+        [rng.uniform(-0.6, 0.6, 50), rng.uniform(-1.4, 1.4, 50), rng.uniform(-3.1, 3.1, 50)]
+    )
+    R = np.stack([R_from_rpy(*a) for a in rpy])
+    R_nav = nav.R_nav(R)
+    for i in range(50):  # against the frames module's closed form, angle by angle
+        want = R_from_rpy(*(rpy[i] + nav.att_err_rad[i]))
+        np.testing.assert_allclose(R_nav[i], want, atol=1e-12)
+        np.testing.assert_allclose(rpy_from_R(R_nav[i]), rpy[i] + nav.att_err_rad[i], atol=1e-9)
+    np.testing.assert_allclose(
+        R_nav @ R_nav.transpose(0, 2, 1), np.broadcast_to(np.eye(3), R.shape), atol=1e-12
+    )
+    nav.att_err_rad[:] = 0.0  # no error: the true attitude back
+    np.testing.assert_allclose(nav.R_nav(R), R, atol=1e-12)
+
+
 def test_the_config_takes_a_preset_and_refuses_an_unknown_one():
     cfg = from_dict(EnvConfig, {"nav": {"preset": "mems-ahrs-dvl", "heading_sigma_deg": 2.0}})
     r = cfg.nav.resolved()
