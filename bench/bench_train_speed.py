@@ -3,12 +3,15 @@
 Usage::
 
     python bench/bench_train_speed.py [--quick] [--json]
-        [--config configs/realistic_batched_yaw_contact_ppo.toml]
+        [--config configs/realistic_batched_yaw_contact_near_ppo.toml]
         [--simulators per-env,batched,batched-own] [--envs 2] [--batch-envs 64] [--batch-workers 2]
         [--rollouts 8]
         [--repeats 3] [--seed 1] [--init-policy POLICY] [--name train_speed]
 
-Each measurement trains the recipe (``rl.train.train``, no progress bar) from scratch in a
+``--config`` is the shipped recipe's first stage by default
+(``configs/realistic_batched_yaw_contact_near_ppo.toml``, near-seat starts; until session 22
+the recipe without them, ``configs/realistic_batched_yaw_contact_ppo.toml``). Each
+measurement trains the recipe (``rl.train.train``, no progress bar) from scratch in a
 temporary run folder, in a fresh process (a process that has started SAPIEN cannot fork
 working env workers on a GPU's Vulkan driver), with the periodic evaluation and checkpoints
 switched off: once for one PPO rollout of ``n_steps x n_envs`` steps and once for ``rollouts``
@@ -122,7 +125,7 @@ def per_env(cfg: TrainConfig, envs: int | None) -> TrainConfig:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--config", default="configs/realistic_batched_yaw_contact_ppo.toml")
+    ap.add_argument("--config", default="configs/realistic_batched_yaw_contact_near_ppo.toml")
     ap.add_argument("--simulators", default="per-env,batched")
     ap.add_argument("--envs", default=None, help="per-env: comma-separated env counts [recipe's]")
     ap.add_argument("--batch-envs", type=int, default=64, help="batched: envs in the batch")
