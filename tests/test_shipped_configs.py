@@ -110,9 +110,8 @@ def test_shipped_policy_is_the_realistic_recipe():
     )
     assert cfg.env.nav.preset == "mems-ahrs-dvl" and cfg.env.usbl.preset == "evologics-s2cr"
     assert cfg.env.obs_contact and cfg.env.error_model_path.endswith("_ar1_refit.json")
-    stage1 = load_config(
-        TrainConfig, ROOT / "configs" / "realistic_batched_yaw_contact_near_ppo.toml", section="train"
-    )
+    stage1_path = ROOT / "configs" / "realistic_batched_yaw_contact_near_ppo.toml"
+    stage1 = load_config(TrainConfig, stage1_path, section="train")
     assert replace(stage1.env, reward=cfg.env.reward) == cfg.env  # only the reward differs
     stage1_prov = json.loads((shipped / "stage1_provenance.json").read_text(encoding="utf-8"))
     assert stage1_prov["git"]["dirty"] is False and len(stage1_prov["git"]["commit"]) == 40
