@@ -14,6 +14,7 @@ they override, ``type=field_type(MarkerConfig, "size_mm")``.
 
 from __future__ import annotations
 
+import atexit
 import errno
 import functools
 import importlib
@@ -236,8 +237,6 @@ def _end_interrupted(code: int) -> None:
     every module, where native libraries interrupted mid-work (SAPIEN's renderer, Vulkan) can
     still crash and turn the one-line exit 143 into a segfault (seen once in ~14 SIGTERMs of
     ``rl episode`` three seconds in: ``tests/test_hostile_rl.py``)."""
-    import atexit
-
     try:
         atexit._run_exitfuncs()
     finally:
