@@ -55,7 +55,6 @@ from uwdock.rl.batch_parts import (
     reward_terms_b,
     yaw_b,
 )
-from uwdock.rl.checkpoint import load_model
 from uwdock.rl.config import EnvConfig
 from uwdock.rl.env import DockingEnv, SimulationError
 from uwdock.rl.error_model import ErrorModelSource
@@ -539,11 +538,9 @@ class BatchGroup:
         if self._eval is None or self._eval[0] != key:
             if self._eval is not None:
                 self._eval[1].close()
-            self._eval = None
             venv = BatchDockingEnv(job.env_cfg, hi - lo, seed=job.seed + lo, slot_ids=range(lo, hi))
             self._eval = (key, venv)
-        model = load_model(job.algo_cls, job.policy_zip)
-        vecnorm = pickle.loads(job.vecnorm_pkl) if job.vecnorm_pkl is not None else None
+        model, vecnorm = job.policy()
         return batched_episodes(
             model, job.env_cfg, hi - lo, job.seed, vecnorm, first=lo, venv=self._eval[1]
         )

@@ -112,10 +112,14 @@ class EvalJob:
     seed: int
     n_workers: int
 
+    def policy(self) -> tuple:
+        """The snapshot's model and its observation normalisation (None without one)."""
+        model = load_model(self.algo_cls, self.policy_zip)
+        return model, pickle.loads(self.vecnorm_pkl) if self.vecnorm_pkl is not None else None
+
     def rows(self, index: int) -> list[dict]:
         """The rows of worker ``index``'s episodes."""
-        model = load_model(self.algo_cls, self.policy_zip)
-        vecnorm = pickle.loads(self.vecnorm_pkl) if self.vecnorm_pkl is not None else None
+        model, vecnorm = self.policy()
         share = list(range(index, self.n_episodes, self.n_workers))
         res = run_episodes(
             SB3Controller(model, vecnorm), self.env_cfg, self.n_episodes, self.seed,
