@@ -99,9 +99,17 @@ def test_a_killed_ray_worker_is_replaced_and_nothing_is_lost_or_duplicated(local
     images = out / "images"
     while pids and time.monotonic() < deadline and thread.is_alive():
         if images.is_dir() and any(images.glob("*.png")):
-            killed = pids[0]
-            os.kill(killed, signal.SIGKILL)
-            break
+            # a host taken while Ray started may be an earlier test's actor that has since
+            # exited (CI once killed a pid that was gone): the kill goes to a live one
+            for pid in _host_pids():
+                try:
+                    os.kill(pid, signal.SIGKILL)
+                except ProcessLookupError:
+                    continue
+                killed = pid
+                break
+            if killed is not None:
+                break
         time.sleep(0.005)
     thread.join(300)
     assert killed is not None, "the run ended before a worker could be killed"
