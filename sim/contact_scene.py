@@ -23,7 +23,7 @@ substep (PhysX skips sleeping bodies, but wakes one whose contacts were lost: a 
 sleep beside its station would be woken and simulated for nothing). A twin that continues from
 its own last PhysX substep keeps PhysX's contact state; any other is placed from the batch state
 just before its first substep. The per-substep work is one ``pack()`` (all twins' states in one
-buffer), one numba call for every stepped twin's hydrodynamic wrench
+buffer, read in place), one numba call for every stepped twin's hydrodynamic wrench
 (:func:`uwdock.sim.fastpath.physx_wrenches`), one ``add_force_torque`` per stepped twin and one
 ``step()``.
 
@@ -270,6 +270,17 @@ class SharedContactScene:
         twin.set_angular_velocity(np.asarray(state[10:13], dtype=np.float32))
         self._awake[i] = True
 
+    def _active(self, active: list[int]) -> tuple[np.ndarray, np.ndarray, list]:
+        """The stepped twins' slots, their rows in ``pack()`` and, per twin, its
+        ``add_force_torque`` with its views of the force and torque rows of ``self._out``
+        (made once per set of stepped twins, not per substep)."""
+        act = np.array(active, dtype=np.int64)
+        out = self._out
+        adds = [
+            (self._twins[i].add_force_torque, out[j, :3], out[j, 3:]) for j, i in enumerate(active)
+        ]
+        return act, self._rows[act], adds
+
     def step(
         self,
         slots: np.ndarray,
@@ -310,25 +321,22 @@ class SharedContactScene:
                 pending.setdefault(int(k), []).append(int(i))
         active = sorted(keep)
         system, out = self.system, self._out
-        act = np.array(active, dtype=np.int64)
-        rows = self._rows[act]
-        adds = [self._twins[i].add_force_torque for i in active]
+        act, rows, adds = self._active(active)
+        m = len(self._twins) * _PACK_FLOATS
         for k in range(k0, n_sub):
             joining = pending.get(k)
             if joining:
                 for i in joining:
                     self._place(i, state[i])
                 active += joining
-                act = np.array(active, dtype=np.int64)
-                rows = self._rows[act]
-                adds = [self._twins[i].add_force_torque for i in active]
-            packed = self._packed()[rows]
+                act, rows, adds = self._active(active)
+            packed = np.frombuffer(system.pack(), dtype=np.float32, count=m)
             physx_wrenches(
-                P, B, packed, act, self.offsets, currents, wrenches, k, spheres, planes,
+                P, B, packed, rows, act, self.offsets, currents, wrenches, k, spheres, planes,
                 contact, out,
             )  # fmt: skip
-            for j, add in enumerate(adds):
-                add(out[j, :3], out[j, 3:])
+            for add, force, torque in adds:
+                add(force, torque)
             system.step()
             if self._resleep:
                 for i in self._resleep:

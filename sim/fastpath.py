@@ -325,28 +325,30 @@ def physx_wrench(P, B, pos, quat, vel, omega, currents, wrenches, k, spheres, pl
 
 @njit(cache=True)
 def physx_wrenches(
-    P, B, rows, slots, offsets, currents, wrenches, k, spheres, planes, contact, out
+    P, B, packed, rows, slots, offsets, currents, wrenches, k, spheres, planes, contact, out
 ):
     """:func:`physx_wrench` for several vehicles of one shared PhysX scene at substep ``k``.
 
     Args:
         P: (N, 76) and B: (N, 9) every vehicle's parameters; contact: (N, 5).
-        rows: (K, 13) the stepped vehicles' PhysX states as ``PhysxSystem.pack()`` lays them:
-            attitude (w, x, y, z), entity position in the shared scene, CoM velocity, angular
-            velocity (float32 is fine).
-        slots: (K,) int64 vehicle index of each row; offsets: (N, 3) where each vehicle's world
-            sits in the shared scene (its positions there are world + offset).
+        packed: (13 M,) float32, the scene's ``PhysxSystem.pack()`` as it lays its M bodies
+            out, 13 floats each: attitude (w, x, y, z), entity position in the shared scene,
+            CoM velocity, angular velocity.
+        rows: (K,) int64 the stepped vehicles' bodies in ``packed``; slots: (K,) int64 their
+            vehicle indices; offsets: (N, 3) where each vehicle's world sits in the shared
+            scene (its positions there are world + offset).
         currents: (N, n, 3), wrenches: (N, n, 6) per vehicle and substep.
         out: (K, 6) world force and torque per row (N, N m, z-up world).
     """
     pos = np.empty(3)
     for j in range(rows.shape[0]):
         i = slots[j]
+        b = rows[j] * 13
         for a in range(3):
-            pos[a] = np.float64(rows[j, 4 + a]) - offsets[i, a]
+            pos[a] = np.float64(packed[b + 4 + a]) - offsets[i, a]
         f, t = physx_wrench(
-            P[i], B[i], pos, rows[j, 0:4], rows[j, 7:10], rows[j, 10:13], currents[i],
-            wrenches[i], k, spheres, planes, contact[i],
+            P[i], B[i], pos, packed[b : b + 4], packed[b + 7 : b + 10], packed[b + 10 : b + 13],
+            currents[i], wrenches[i], k, spheres, planes, contact[i],
         )  # fmt: skip
         out[j, 0], out[j, 1], out[j, 2] = f
         out[j, 3], out[j, 4], out[j, 5] = t

@@ -56,6 +56,7 @@ from uwdock.calibration.frames import (
     R_from_quat_wxyz,
     T_from_pos_quat,
     check_T,
+    cross3,
     ned_pose_to_zup,
     pos_quat_from_T,
 )
@@ -142,13 +143,6 @@ _R_ZUP_NED = np.array(T_WORLDZUP_WORLDNED[:3, :3])
 _S_BODY = np.array([1.0, -1.0, -1.0])  # FRD <-> FLU component signs
 
 
-def _cross(a: ArrayLike, b: ArrayLike) -> np.ndarray:
-    """3-vector cross product (``np.cross`` is slow for single small vectors)."""
-    a0, a1, a2 = a[0], a[1], a[2]
-    b0, b1, b2 = b[0], b[1], b[2]
-    return np.array([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])
-
-
 def make_physics_scene(timestep_s: float = 1.0 / PHYSICS_RATE_HZ) -> sapien.Scene:
     """A SAPIEN scene with a PhysX CPU system only (no render system, so no Vulkan needed).
 
@@ -219,6 +213,7 @@ class VehicleBody:
         self._plane_friction = 0.0
         self.current = current if current is not None else Current(CurrentConfig("constant"))
         self._rng = rng if rng is not None else np.random.default_rng(0)
+        self.allocator: ThrusterArray | None = None
         self.set_config(config, nominal_config)
         self.reset(np.eye(4))
 
@@ -269,7 +264,10 @@ class VehicleBody:
             )
         self._P = hydro_params(self.hydro)
         self.thrusters = ThrusterArray(config.thrusters)
-        self.allocator = ThrusterArray(self.nominal_config.thrusters)
+        nominal = self.nominal_config.thrusters
+        if self.allocator is None or self.allocator.config is not nominal:
+            # a new episode's draw keeps the nominal vehicle: its allocation is reused
+            self.allocator = ThrusterArray(nominal)
         if self.allocator.n != self.thrusters.n:
             raise ValueError("nominal and true vehicles must have the same number of thrusters")
         self._B_T = self.thrusters.B.T.copy()
@@ -332,7 +330,7 @@ class VehicleBody:
         if nu.shape != (6,) or not np.all(np.isfinite(nu)):
             raise ValueError(f"nu: expected 6 finite values, got shape {nu.shape}")
         c = np.asarray(self.config.cg_m, dtype=float)
-        v_cg_frd = nu[:3] + np.cross(nu[3:], c)
+        v_cg_frd = nu[:3] + cross3(nu[3:], c)
         R = T_zup_flu[:3, :3]
         self.component.set_linear_velocity((R @ (v_cg_frd * _S_BODY)).astype(np.float32))
         self.component.set_angular_velocity((R @ (nu[3:] * _S_BODY)).astype(np.float32))
@@ -368,7 +366,7 @@ class VehicleBody:
         R_t = self._R_t_zup_flu()
         w = R_t @ self.component.get_angular_velocity().astype(float) * _S_BODY
         v_cg = R_t @ self.component.get_linear_velocity().astype(float) * _S_BODY
-        return np.concatenate([v_cg - _cross(w, self.config.cg_m), w])
+        return np.concatenate([v_cg - cross3(w, self.config.cg_m), w])
 
     @property
     def nu_dot(self) -> np.ndarray:
@@ -388,7 +386,7 @@ class VehicleBody:
         alpha = R_t @ np.asarray(acc_zup[3:]) * _S_BODY
         w = R_t @ self.component.get_angular_velocity().astype(float) * _S_BODY
         c = self.config.cg_m
-        a_o = a_cg - _cross(alpha, c) - _cross(w, _cross(w, c))
+        a_o = a_cg - cross3(alpha, c) - cross3(w, cross3(w, c))
         return np.concatenate([a_o, alpha])
 
     def read_imu(self) -> ImuReading:

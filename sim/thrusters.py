@@ -35,6 +35,7 @@ from typing import Annotated
 import numpy as np
 from numpy.typing import ArrayLike
 
+from uwdock.calibration.frames import cross3
 from uwdock.dockcore.config import check_fields
 from uwdock.dockcore.domains import Interval
 from uwdock.sim.domains import BodyCoord_m, RelativeRange, validate_each
@@ -170,9 +171,9 @@ def _tilt(axis: np.ndarray, max_angle_rad: float, rng: np.random.Generator) -> n
     a = axis / np.linalg.norm(axis)
     angle = rng.uniform(0.0, max_angle_rad)
     helper = np.array([1.0, 0.0, 0.0]) if abs(a[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    e1 = np.cross(a, helper)
+    e1 = cross3(a, helper)
     e1 /= np.linalg.norm(e1)
-    e2 = np.cross(a, e1)
+    e2 = cross3(a, e1)
     phi = rng.uniform(0.0, 2.0 * math.pi)
     perp = math.cos(phi) * e1 + math.sin(phi) * e2
     return math.cos(angle) * a + math.sin(angle) * perp

@@ -342,3 +342,11 @@ def test_batched_inverse_equals_the_checked_one():
         [F.make_T(F.R_from_rpy(*rng.uniform(-3, 3, 3)), rng.normal(0, 5, 3)) for _ in range(5)]
     )
     assert np.allclose(F.inv_T_b(Ts), [F.inv_T(T) for T in Ts], atol=1e-12)
+
+
+def test_cross3_is_np_cross_bit_for_bit():
+    rng = np.random.default_rng(4)
+    for _ in range(200):
+        a, b = rng.normal(size=3) * 10.0 ** rng.integers(-6, 6), rng.normal(size=3)
+        assert F.cross3(a, b).tobytes() == np.cross(a, b).tobytes()
+    assert F.cross3([1.0, 0.0, 0.0], (0.0, 1.0, 0.0)).tolist() == [0.0, 0.0, 1.0]
