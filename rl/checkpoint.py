@@ -22,6 +22,7 @@ out and falls back past damaged ones (a truncated file, a missing manifest), say
 from __future__ import annotations
 
 import base64
+import contextlib
 import hashlib
 import io
 import json
@@ -32,7 +33,7 @@ import re
 import shutil
 import sys
 import zipfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -156,6 +157,22 @@ def rng_state(model) -> dict[str, Any]:
         "torch": base64.b64encode(torch.get_rng_state().numpy().tobytes()).decode("ascii"),
         "action_space": None if space is None else space.bit_generator.state,
     }
+
+
+@contextlib.contextmanager
+def global_rng_kept() -> Iterator[None]:
+    """Run the block, then put Python's, NumPy's legacy and torch's global generators back as
+    they were: SB3's ``load`` reseeds them with the saved model's seed, which in the trainer's
+    process (an evaluation share run there) would change the training's own draws."""
+    import torch
+
+    py, legacy, th = random.getstate(), np.random.get_state(), torch.get_rng_state()  # noqa: NPY002
+    try:
+        yield
+    finally:
+        random.setstate(py)
+        np.random.set_state(legacy)  # noqa: NPY002
+        torch.set_rng_state(th)
 
 
 def restore_rng(model, state: dict[str, Any]) -> None:

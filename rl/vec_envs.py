@@ -46,7 +46,15 @@ from uwdock.rl.workers import (
     setup_worker_process,
 )
 
-__all__ = ["EnvGroup", "EnvWorkers", "EnvsPerWorker", "Hosts", "PipeHosts", "env_groups"]
+__all__ = [
+    "EnvGroup",
+    "EnvWorkers",
+    "EnvsPerWorker",
+    "HereAndPipeHosts",
+    "Hosts",
+    "PipeHosts",
+    "env_groups",
+]
 
 #: The domain of ``envs_per_worker`` (``rl train --envs-per-worker``).
 EnvsPerWorker = Annotated[int, Interval(ge=1, le=256)]
@@ -250,6 +258,66 @@ class PipeHosts:
             c.close()
 
 
+class HereAndPipeHosts:
+    """The first group in this process, the others in local worker processes
+    (:class:`PipeHosts`): a batched simulator's groups on 2 cores run in 2 processes, not a
+    trainer waiting beside 2 workers.
+
+    A call to the first group waits until :meth:`gather`, so that the calls to the worker
+    processes, submitted before it, run while this process runs its own share: a step sends
+    the workers their actions, steps the first group here, then collects theirs. The groups
+    are built as :class:`PipeHosts` builds them, so the rollouts are the same as with every
+    group in a worker (tested). A failure of the first group raises here, as the batch of a
+    single process does.
+
+    Args:
+        env_cfg, seed, groups, error_dir, group_cls: as for :class:`PipeHosts`; ``groups[0]``
+            is built here.
+    """
+
+    def __init__(
+        self,
+        env_cfg: EnvConfig,
+        seed: int,
+        groups: list[list[int]],
+        error_dir: str,
+        group_cls: type = EnvGroup,
+    ) -> None:
+        if len(groups) < 2:
+            raise ValueError("HereAndPipeHosts: at least 2 groups (the first one runs here)")
+        self._pipes = PipeHosts(env_cfg, seed, groups[1:], error_dir, group_cls)
+        self.processes = self._pipes.processes
+        self._here = group_cls(groups[0])
+        self._calls: dict[int, tuple[str, tuple[Any, ...]]] = {}
+        self._next = 0
+        try:
+            self._here.build(env_cfg, seed)
+        except BaseException:
+            self.shutdown()
+            raise
+
+    def submit(self, worker: int, method: str, *args: Any) -> Any:
+        if worker > 0:
+            return ("pipe", self._pipes.submit(worker - 1, method, *args))
+        self._next += 1
+        self._calls[self._next] = (method, args)
+        return ("here", self._next)
+
+    def gather(self, handles: Sequence[Any]) -> list[Any]:
+        out = []
+        for where, h in handles:
+            if where == "pipe":
+                out.extend(self._pipes.gather([h]))
+                continue
+            method, args = self._calls.pop(h)
+            out.append(getattr(self._here, method)(*args))
+        return out
+
+    def shutdown(self) -> None:
+        self._calls.clear()
+        self._pipes.shutdown()
+
+
 # ----------------------------------------------------------------------------- the trainer's handle
 
 
@@ -266,6 +334,8 @@ class EnvWorkers:
         venv_cls: the VecEnv over the workers' groups (default
             :class:`rl.grouped_vec_env.GroupedVecEnv`; :class:`rl.batch_env.BatchGroupsVecEnv`
             for batched groups).
+        first_here: hold the first group in this process (:class:`HereAndPipeHosts`), the
+            others in worker processes.
 
     Attributes:
         venv: the SB3 VecEnv (``DummyVecEnv`` for one env, ``SubprocVecEnv`` for one env per
@@ -280,6 +350,7 @@ class EnvWorkers:
         envs_per_worker: int = 1,
         group_cls: type = EnvGroup,
         venv_cls: type | None = None,
+        first_here: bool = False,
     ) -> None:
         from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
@@ -292,7 +363,8 @@ class EnvWorkers:
         self._dir = tempfile.TemporaryDirectory(prefix="uwdock-workers-")
         groups = env_groups(n_envs, envs_per_worker)
         if len(groups) < n_envs or group_cls is not EnvGroup:
-            self._hosts = PipeHosts(env_cfg, seed, groups, self._dir.name, group_cls)
+            hosts_cls = HereAndPipeHosts if first_here and len(groups) > 1 else PipeHosts
+            self._hosts = hosts_cls(env_cfg, seed, groups, self._dir.name, group_cls)
             try:
                 self.venv = (venv_cls or GroupedVecEnv)(self._hosts, groups)
             except (EOFError, ConnectionError) as exc:

@@ -29,7 +29,7 @@ import gymnasium as gym
 
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.procs import die_with_parent
-from uwdock.rl.checkpoint import load_model
+from uwdock.rl.checkpoint import global_rng_kept, load_model
 from uwdock.rl.config import EnvConfig
 from uwdock.rl.env import DockingEnv
 from uwdock.rl.evaluate import SB3Controller, run_episodes
@@ -113,8 +113,11 @@ class EvalJob:
     n_workers: int
 
     def policy(self) -> tuple:
-        """The snapshot's model and its observation normalisation (None without one)."""
-        model = load_model(self.algo_cls, self.policy_zip)
+        """The snapshot's model and its observation normalisation (None without one); the
+        process's global generators are left as they were (:func:`rl.checkpoint.
+        global_rng_kept`)."""
+        with global_rng_kept():
+            model = load_model(self.algo_cls, self.policy_zip)
         return model, pickle.loads(self.vecnorm_pkl) if self.vecnorm_pkl is not None else None
 
     def rows(self, index: int) -> list[dict]:

@@ -479,20 +479,34 @@ def test_batched_workers_send_arrays_and_give_the_per_env_calls_results():
 
 
 @pytest.mark.parametrize(
-    "near_share, contact, workers", [(0.0, "shared", 2), (1.0, "own", 2), (1.0, "shared", 1)]
+    "near_share, contact, workers, here",
+    [
+        (0.0, "shared", 2, False),
+        (1.0, "own", 2, True),
+        (1.0, "shared", 1, True),
+        (1.0, "shared", (2, True), False),
+    ],
 )
-def test_batch_split_over_worker_processes_gives_the_same_rollouts(near_share, contact, workers):
-    """Two worker processes holding two envs each step exactly as one batch of four (free
-    flight, and with every vehicle starting just above the seat, ``near_share`` 1, in PhysX
-    contact with each vehicle in its own scene). In the shared contact scene a split rounds
-    contacts differently (sim.contact_scene), so there the same batch run twice is compared:
-    runs are deterministic."""
+def test_batch_split_over_worker_processes_gives_the_same_rollouts(
+    near_share, contact, workers, here
+):
+    """Two envs in each of two processes step exactly as one batch of four (free flight, and
+    with every vehicle starting just above the seat, ``near_share`` 1, in PhysX contact with
+    each vehicle in its own scene), whether the first half runs in this process (``here``) or
+    in a worker process too. In the shared contact scene a split rounds contacts differently
+    (sim.contact_scene), so there the same batch run twice is compared (runs are
+    deterministic), and the split of two worker processes against the same split with its
+    first half here (``(2, True)`` beside 2 worker processes)."""
     from uwdock.rl.batch_env import BatchWorkers
 
     world = replace(WorldConfig(), batch_contact=contact)
     cfg = EnvConfig(obs_source="error-model", error_model_path=MODEL, episode_s=3.0, world=world)
-    one = BatchWorkers(cfg, 4, seed=5, workers=1)
-    two = BatchWorkers(cfg, 4, seed=5, workers=workers)
+    if isinstance(workers, tuple):
+        one = BatchWorkers(cfg, 4, seed=5, workers=workers[0], first_here=workers[1])
+        workers = workers[0]
+    else:
+        one = BatchWorkers(cfg, 4, seed=5, workers=1)
+    two = BatchWorkers(cfg, 4, seed=5, workers=workers, first_here=here)
     try:
         for venv in (one.venv, two.venv):
             venv.seed(40)
@@ -511,7 +525,7 @@ def test_batch_split_over_worker_processes_gives_the_same_rollouts(near_share, c
             _assert_same_infos(r1[3], r2[3])
             resets += int(r1[2].sum())
         assert resets >= 4
-        if near_share > 0:
+        if near_share > 0 and hasattr(one.venv, "physics"):
             assert one.venv.physics.physx_steps > 40  # the contact scene did the work
     finally:
         one.close()
@@ -521,10 +535,11 @@ def test_batch_split_over_worker_processes_gives_the_same_rollouts(near_share, c
 def test_a_batched_run_over_two_processes_keeps_the_evaluation_its_workers_ran(
     tmp_path, monkeypatch
 ):
-    """A real batched training run over two batch processes evaluates in them (each worker
-    process runs its share: they leave their pid and episodes here): its history holds each
-    evaluation, and best/ is a policy whose evaluation, run again as one batch here, gives the
-    recorded success rates and collisions (returns to round-off)."""
+    """A real batched training run over two batch processes (the trainer's, holding the first
+    half, and a worker process) evaluates in both (each runs its share: they leave their pid
+    and episodes here): its history holds each evaluation, and best/ is a policy whose
+    evaluation, run again as one batch here, gives the recorded success rates and collisions
+    (returns to round-off)."""
     import os
 
     from uwdock.rl.batch_env import BatchGroup
@@ -550,8 +565,10 @@ def test_a_batched_run_over_two_processes_keeps_the_evaluation_its_workers_ran(
     monkeypatch.setattr(BatchGroup, "evaluate_batch", marked)
     train(cfg, run, progress=False, note=lambda m: None, batch_workers=2)
     ran = [m.name.split("_") for m in marks.iterdir()]
-    assert len(ran) == 4 and os.getpid() not in {int(r[0]) for r in ran}
-    assert sorted({(int(r[1]), int(r[2])) for r in ran}) == [(0, 2), (2, 5)]
+    assert len(ran) == 4
+    where = {(int(r[1]), int(r[2])): int(r[0]) for r in ran}
+    assert sorted(where) == [(0, 2), (2, 5)]
+    assert where[(0, 2)] == os.getpid() != where[(2, 5)]  # the first share here, one there
     history = [json.loads(line) for line in (run / "eval_history.jsonl").open()]
     assert [h["step"] for h in history] == [32, 64] and all(h["episodes"] == 5 for h in history)
     kept = [h for h in history if h.get("best")][-1]
@@ -560,3 +577,30 @@ def test_a_batched_run_over_two_processes_keeps_the_evaluation_its_workers_ran(
     for k in ("success_rate", "success_rate_strict", "mean_collisions"):
         assert again[k] == kept[k], k
     assert again["mean_return"] == pytest.approx(kept["mean_return"], rel=1e-4)
+
+
+def test_loading_an_evaluation_snapshot_leaves_the_global_generators_alone():
+    """SB3's load reseeds Python's, NumPy's and torch's global generators with the saved seed;
+    an evaluation share run in the trainer's process (the first batch group is there) would
+    then change the training's own draws (its minibatches, its action noise)."""
+    import random
+
+    import torch
+    from stable_baselines3 import PPO
+
+    from uwdock.rl.checkpoint import model_bytes
+    from uwdock.rl.workers import EvalJob
+
+    cfg = _quiet_cfg(episode_s=2.0)
+    model = PPO("MlpPolicy", BatchDockingEnv(cfg, 2), n_steps=8, batch_size=16, seed=3)
+    job = EvalJob(PPO, model_bytes(model), None, cfg, 2, 31, 1)
+    np.random.seed(123)  # noqa: NPY002
+    random.seed(123)
+    torch.manual_seed(123)
+    want = (np.random.random(), random.random(), torch.rand(1).item())  # noqa: NPY002
+    np.random.seed(123)  # noqa: NPY002
+    random.seed(123)
+    torch.manual_seed(123)
+    loaded, _ = job.policy()
+    assert loaded.seed == 3
+    assert (np.random.random(), random.random(), torch.rand(1).item()) == want  # noqa: NPY002
