@@ -271,30 +271,16 @@ class HereAndPipeHosts:
     single process does.
 
     Args:
-        env_cfg, seed, groups, error_dir, group_cls: as for :class:`PipeHosts`; ``groups[0]``
-            is built here.
+        here: the first group, built (``group_cls(groups[0])`` and its ``build``).
+        pipes: the other groups' workers; worker ``k`` of ``pipes`` is worker ``k + 1`` here.
     """
 
-    def __init__(
-        self,
-        env_cfg: EnvConfig,
-        seed: int,
-        groups: list[list[int]],
-        error_dir: str,
-        group_cls: type = EnvGroup,
-    ) -> None:
-        if len(groups) < 2:
-            raise ValueError("HereAndPipeHosts: at least 2 groups (the first one runs here)")
-        self._pipes = PipeHosts(env_cfg, seed, groups[1:], error_dir, group_cls)
-        self.processes = self._pipes.processes
-        self._here = group_cls(groups[0])
+    def __init__(self, here: Any, pipes: PipeHosts) -> None:
+        self._here = here
+        self._pipes = pipes
+        self.processes = pipes.processes
         self._calls: dict[int, tuple[str, tuple[Any, ...]]] = {}
         self._next = 0
-        try:
-            self._here.build(env_cfg, seed)
-        except BaseException:
-            self.shutdown()
-            raise
 
     def submit(self, worker: int, method: str, *args: Any) -> Any:
         if worker > 0:
@@ -363,8 +349,10 @@ class EnvWorkers:
         self._dir = tempfile.TemporaryDirectory(prefix="uwdock-workers-")
         groups = env_groups(n_envs, envs_per_worker)
         if len(groups) < n_envs or group_cls is not EnvGroup:
-            hosts_cls = HereAndPipeHosts if first_here and len(groups) > 1 else PipeHosts
-            self._hosts = hosts_cls(env_cfg, seed, groups, self._dir.name, group_cls)
+            if first_here and len(groups) > 1:
+                self._hosts = self._here_and_pipes(env_cfg, seed, groups, group_cls)
+            else:
+                self._hosts = PipeHosts(env_cfg, seed, groups, self._dir.name, group_cls)
             try:
                 self.venv = (venv_cls or GroupedVecEnv)(self._hosts, groups)
             except (EOFError, ConnectionError) as exc:
@@ -382,6 +370,19 @@ class EnvWorkers:
             # the half-built VecEnv is gone: find its workers among this process's children
             self._orphans = [p for p in multiprocessing.active_children() if p not in before]
             self.raise_worker_error(exc)
+
+    def _here_and_pipes(
+        self, env_cfg: EnvConfig, seed: int, groups: list[list[int]], group_cls: type
+    ) -> HereAndPipeHosts:
+        """Workers for ``groups[1:]``, then ``groups[0]`` built here (its failure stops them)."""
+        pipes = PipeHosts(env_cfg, seed, groups[1:], self._dir.name, group_cls)
+        here = group_cls(groups[0])
+        try:
+            here.build(env_cfg, seed)
+        except BaseException:
+            pipes.shutdown()
+            raise
+        return HereAndPipeHosts(here, pipes)
 
     def _processes(self) -> list:
         venv = getattr(self, "venv", None)
