@@ -147,9 +147,32 @@ def _interrupt(signum: int, frame: Any, exc: type[BaseException]) -> None:
     # interrupt, not as a bug
     _received.append(signum)
     if _in_import_machinery(frame):
-        threading.Timer(REDELIVER_DELAY_S, os.kill, (os.getpid(), signum)).start()
+        _redeliver(signum)
         return
     raise exc()
+
+
+def _redeliver(signum: int) -> None:
+    """Send ``signum`` to this process again in a moment, from a timer thread."""
+    threading.Timer(REDELIVER_DELAY_S, os.kill, (os.getpid(), signum)).start()
+
+
+def _interrupt_unraisable(unraisable: Any) -> None:
+    """``sys.unraisablehook`` while a command runs: an interrupt that :func:`_interrupt` raised
+    where Python cannot propagate it (an ``os.fork`` hook such as logging's ``_releaseLock``, a
+    weakref callback, a ``__del__``) is delivered again a moment later instead of being printed
+    as "Exception ignored ... Traceback" and lost (seen in the killed-training test: a SIGINT
+    that landed while a worker forked was dropped and the run trained on to its end).
+    Everything else goes to the hook that was there before."""
+    exc = unraisable.exc_value
+    if isinstance(exc, KeyboardInterrupt) and _received:
+        _redeliver(_received[-1])
+        return
+    _previous_unraisable(unraisable)
+
+
+#: the ``sys.unraisablehook`` that :func:`run_group` replaced (the interpreter's own outside)
+_previous_unraisable: Any = sys.__unraisablehook__
 
 
 def _on_sigterm(signum: int, frame: Any) -> None:
@@ -198,9 +221,14 @@ def _is_process_entry() -> bool:
 
 def run_group(group: click.Group, args: list[str] | None = None) -> None:
     """Run a click group with the toolkit's error convention (module docstring)."""
+    global _previous_unraisable
     previous = previous_int = None
     _received.clear()
     _installed.clear()
+    hook = sys.unraisablehook
+    if hook is not _interrupt_unraisable:
+        _previous_unraisable = hook
+        sys.unraisablehook = _interrupt_unraisable
     try:
         previous = signal.signal(signal.SIGTERM, _on_sigterm)
         _installed[signal.SIGTERM] = _on_sigterm
@@ -220,6 +248,8 @@ def run_group(group: click.Group, args: list[str] | None = None) -> None:
         # from here such a process ignores them. An in-process caller (given ``args``, or
         # with another ``__main__``) gets its handlers back.
         _installed.clear()
+        if hook is not _interrupt_unraisable:
+            sys.unraisablehook = hook
         late = signal.SIG_IGN if args is None and _is_process_entry() else None
         if previous is not None:
             signal.signal(signal.SIGTERM, late if late is not None else previous)

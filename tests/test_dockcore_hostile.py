@@ -451,3 +451,63 @@ def test_a_signal_during_shutdown_keeps_the_finished_commands_status(tmp_path, s
     _, err = proc.communicate(timeout=30)
     assert proc.returncode == 0, (proc.returncode, err)
     assert "Traceback" not in err and "KeyboardInterrupt" not in err
+
+
+_SWALLOWED_SIGNAL_PROGRAM = """
+import os, pathlib, signal, sys, time
+import click
+from uwdock.dockcore.cli import run_group
+
+SIG = getattr(signal, os.environ["SWALLOWED_SIGNAL"])
+
+class Dropped:
+    def __del__(self):
+        signal.raise_signal(SIG)  # the handler raises here, inside __del__
+
+@click.group()
+def grp():
+    pass
+
+@grp.command()
+@click.argument("where")
+@click.argument("marker")
+def work(where, marker):
+    if where == "fork":  # as when the signal lands in logging's after-fork hook
+        os.register_at_fork(after_in_parent=lambda: signal.raise_signal(SIG))
+        pid = os.fork()
+        if pid == 0:
+            os._exit(0)
+        os.waitpid(pid, 0)
+    else:
+        Dropped()
+    deadline = time.monotonic() + 5.0
+    while time.monotonic() < deadline:
+        time.sleep(0.01)
+    pathlib.Path(marker).write_text("trained on to the end")
+
+run_group(grp)
+"""
+
+
+@pytest.mark.parametrize("where", ["fork", "del"])
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
+def test_an_interrupt_python_would_swallow_is_delivered_again(tmp_path, where, sig):
+    """A signal whose handler raises where Python cannot propagate the exception (an os.fork
+    hook, as logging's ``_releaseLock`` in CI's killed-training run; a ``__del__``) was printed
+    as "Exception ignored ... Traceback" and lost, and the command ran on to its end: it is
+    delivered again and ends the command as an interrupt."""
+    prog = tmp_path / "prog.py"
+    prog.write_text(_SWALLOWED_SIGNAL_PROGRAM, encoding="utf-8")
+    marker = tmp_path / "finished"
+    proc = subprocess.run(
+        [sys.executable, str(prog), "work", where, str(marker)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env={**os.environ, "SWALLOWED_SIGNAL": sig},
+    )
+    code = 130 if sig == "SIGINT" else 128 + signal.SIGTERM
+    assert proc.returncode == code, (proc.returncode, proc.stderr)
+    assert "Traceback" not in proc.stderr and "Exception ignored" not in proc.stderr
+    assert proc.stderr.startswith("error: interrupted"), proc.stderr
+    assert not marker.exists()
