@@ -13,7 +13,10 @@ of its own physics scene (tank, docking station, vehicle), by one control step i
   all of them in one shared scene (``contact="shared"``, the default:
   :class:`uwdock.sim.contact_scene.SharedContactScene`, one PhysX step per substep for all),
   or each in its own body's scene (``contact="own"``: the body is given the batch's state,
-  stepped by ``VehicleBody``'s own PhysX loop, and read back).
+  stepped by ``VehicleBody``'s own PhysX loop, and read back);
+* or no PhysX at all (``contact="kernel"``): the docking station's contact is the tank
+  planes' model against its shapes as prisms, in the same kernel call
+  (:mod:`uwdock.sim.kernel_contact`; a different contact model from PhysX's).
 
 The state is kept as PhysX keeps it (float32 pose and velocities, written back after every
 step). With ``contact="own"`` a vehicle's trajectory here is the one ``VehicleBody.step`` gives
@@ -43,10 +46,17 @@ import numpy as np
 
 from uwdock.calibration.frames import T_WORLDZUP_WORLDNED
 from uwdock.sim.contact_scene import SharedContactScene
-from uwdock.sim.fastpath import HYDRO_PARAMS, OBSTACLE_COLS, free_flight_all
+from uwdock.sim.fastpath import (
+    HYDRO_PARAMS,
+    OBSTACLE_COLS,
+    PRISM_COLS,
+    free_flight_all,
+    kernel_flight_all,
+)
+from uwdock.sim.kernel_contact import StaticPrisms, hull_contact_spheres
 from uwdock.sim.physics import FREE_FLIGHT_MARGIN_M, VehicleBody
 
-Contact = Literal["shared", "own"]
+Contact = Literal["shared", "own", "kernel"]
 
 __all__ = ["BatchImu", "BatchVehicles"]
 
@@ -87,8 +97,9 @@ class BatchVehicles:
             own scene; all with the same substep, thruster count and collision shapes. Call
             :meth:`load` for a slot after resetting its body.
         contact: where the vehicles that may touch the docking station are stepped: one
-            shared PhysX scene (``"shared"``) or each body's own scene (``"own"``; bit-equal
-            to ``VehicleBody.step``, slower).
+            shared PhysX scene (``"shared"``), each body's own scene (``"own"``; bit-equal
+            to ``VehicleBody.step``, slower), or none: the kernel's own contact model
+            (``"kernel"``, :mod:`uwdock.sim.kernel_contact`).
         slot_ids: with ``"shared"``, each vehicle's id in the whole training batch (where it
             sits in the shared scene, the same whichever process holds it); default 0, 1, ...
 
@@ -105,8 +116,8 @@ class BatchVehicles:
     ) -> None:
         if not bodies:
             raise ValueError("BatchVehicles: no vehicles")
-        if contact not in ("shared", "own"):
-            raise ValueError(f"contact: 'shared' or 'own', got {contact!r}")
+        if contact not in ("shared", "own", "kernel"):
+            raise ValueError(f"contact: 'shared', 'own' or 'kernel', got {contact!r}")
         self.contact_mode = contact
         self.bodies = list(bodies)
         b0 = self.bodies[0]
@@ -160,6 +171,17 @@ class BatchVehicles:
         self._powers = np.zeros((n, 0, k))
         self._shared = None
         self._slot_ids = slot_ids
+        self._prisms: list[StaticPrisms] = []
+        self.prisms = np.zeros((n, 0, PRISM_COLS))
+        self.n_prisms = np.zeros(n, dtype=np.int64)
+        if contact == "kernel":
+            self.kernel_spheres, self.kernel_chunks, self.kernel_shapes = hull_contact_spheres(
+                b0.config.collision
+            )
+            for b in self.bodies:
+                if b.config.collision != b0.config.collision:
+                    raise ValueError("BatchVehicles: every body needs the same collision shapes")
+            self._prisms = [StaticPrisms(b, b.config.friction) for b in self.bodies]
         for i in range(n):
             self.load(i)
         if contact == "shared":
@@ -191,6 +213,16 @@ class BatchVehicles:
         # the body holding the state PhysX steps: its own (own), or a twin placed at its start
         self._held[i] = self._shared is None
         self._powers_key = None
+        if self._prisms:
+            self._prisms[i].hull_friction = float(b.config.friction)
+            rows = self._prisms[i].rows()
+            m = rows.shape[0]
+            if m > self.prisms.shape[1]:
+                grown = np.zeros((self.n, m, PRISM_COLS))
+                grown[:, : self.prisms.shape[1]] = self.prisms
+                self.prisms = grown
+            self.prisms[i, :m] = rows
+            self.n_prisms[i] = m
         boxes = b.obstacle_boxes()
         if boxes is None:
             self.n_obstacles[i] = -1
@@ -262,6 +294,19 @@ class BatchVehicles:
         currents = np.ascontiguousarray(self._currents_zup(n_sub))
         v0 = self.state[:, 7:13].copy()
         acc = np.zeros((self.n, 6))
+        if self.contact_mode == "kernel":
+            kernel_flight_all(
+                self.P, self.B, self.state, wrenches, currents, dt, acc, self.spheres,
+                self.planes, self.contact, self.kernel_spheres, self.kernel_chunks,
+                self.kernel_shapes, self.prisms, self.n_prisms,
+            )  # fmt: skip
+            self.state[:] = _f32(self.state)  # kept as PhysX keeps a state, as the others
+            self._held[:] = False
+            self.last_physx = np.zeros(self.n, dtype=bool)
+            self.thrust_n = response[:, -1, :].copy()
+            self.time_s = self.time_s + n_sub * dt
+            self.acc_mean_zup = (self.state[:, 7:13] - v0) / (n_sub * dt)
+            return
         done = free_flight_all(
             self.P, self.B, self.state, wrenches, currents, dt,
             self.hull, self.obstacles, self.n_obstacles, FREE_FLIGHT_MARGIN_M, acc,

@@ -57,6 +57,8 @@ if TYPE_CHECKING:  # pragma: no cover
 __all__ = [
     "HYDRO_PARAMS",
     "OBSTACLE_COLS",
+    "PRISM_COLS",
+    "PRISM_MAX_VERTICES",
     "StaticObstacles",
     "body_params",
     "free_flight",
@@ -64,9 +66,13 @@ __all__ = [
     "hull_boxes",
     "hydro_accel",
     "hydro_params",
+    "kernel_flight_all",
     "physx_wrench",
     "physx_wrenches",
     "plane_contacts",
+    "prism_contacts",
+    "prism_distance",
+    "prism_pairs",
 ]
 
 #: Length of :func:`hydro_params`'s vector: m, W-B, W r_g - B r_b (3), r_g (3), added mass (6),
@@ -77,6 +83,22 @@ HYDRO_PARAMS = 76
 #: then 1.0 if an oriented box follows (0.0: a plane, only the world box counts), its centre (3),
 #: half size (3) and rotation (9, row-major: its axes are the columns), z-up world, m.
 OBSTACLE_COLS = 22
+#: Most vertices of a prism's cross-section (:data:`PRISM_COLS`).
+PRISM_MAX_VERTICES = 8
+#: Columns of a prism row (:func:`prism_contacts`), a static collision shape as a convex polygon
+#: extruded along an axis (a box is a rectangle's), z-up world: its world box [min xyz, max
+#: xyz] (6), centre (3), rotation (9, row-major; column 0 the extrusion axis, columns 1 and 2
+#: the polygon's plane), half length along the extrusion (m), Coulomb friction with the hull,
+#: vertex count, the polygon's box (u min, u max, v min, v max; m), then its (u, v) vertices,
+#: counter-clockwise (m).
+PRISM_COLS = 25 + 2 * PRISM_MAX_VERTICES
+#: At most this share of a contact's sliding speed is taken by its friction in one substep
+#: (the cap of :func:`prism_contacts`' friction slope: regularised Coulomb friction near rest
+#: is a viscous force whose explicit integration needs it).
+PRISM_FRICTION_STEP = 0.2
+#: (m/s^2, rad/s^2 times the hull's reach) A bound on how much the hull's speed can change
+#: within a control step (full thrust gives about 1 m/s^2), for the pairs a step tests.
+PRISM_ACCEL_BOUND = 5.0
 #: Unbounded side of an obstacle box (a half-space, or a shape we cannot bound).
 _FAR = 1e30
 #: Substeps per chunk when a step that may touch is retried chunk by chunk (:func:`free_flight`).
@@ -417,6 +439,220 @@ def plane_contacts(
             out[5] += cx_ * fy - cy_ * fx
 
 
+# --------------------------------------------------------------------------- static prisms
+
+
+@njit(cache=True)
+def _penalty(
+    k, c, mu, v_eps, visc_max, delta, nx, ny, nz, cx_, cy_, cz_, vx, vy, vz, ox, oy, oz, out
+):  # fmt: skip
+    """The spring-damper and regularised Coulomb friction of :func:`plane_contacts` for one
+    contact, its friction's slope at rest capped at ``visc_max`` (N s/m, which keeps the
+    explicit substep stable): penetration ``delta`` (m) along the unit normal ``n`` (pushing
+    the hull out), at ``c_`` relative to the CoM; adds the force and torque about the CoM to
+    ``out``."""
+    ux = vx + oy * cz_ - oz * cy_
+    uy = vy + oz * cx_ - ox * cz_
+    uz = vz + ox * cy_ - oy * cx_
+    vn = ux * nx + uy * ny + uz * nz
+    fn = k * delta - c * vn
+    if fn <= 0.0:
+        return
+    tx_, ty_, tz_ = ux - vn * nx, uy - vn * ny, uz - vn * nz
+    vt = math.sqrt(tx_ * tx_ + ty_ * ty_ + tz_ * tz_)
+    ft = min(mu * fn / max(vt, v_eps), visc_max)
+    fx = fn * nx - ft * tx_
+    fy = fn * ny - ft * ty_
+    fz = fn * nz - ft * tz_
+    out[0] += fx
+    out[1] += fy
+    out[2] += fz
+    out[3] += cy_ * fz - cz_ * fy
+    out[4] += cz_ * fx - cx_ * fz
+    out[5] += cx_ * fy - cy_ * fx
+
+
+@njit(cache=True)
+def prism_distance(o, wx, wy, wz):
+    """Signed distance (m; negative inside) from the point ``w`` (z-up world) to prism row ``o``
+    (:data:`PRISM_COLS`), and the unit outward normal there (world): exact, from the
+    cross-section's closest edge point combined with the extrusion's end faces; inside, the
+    face of least penetration.
+
+    Returns:
+        ``(d, nx, ny, nz)``.
+    """
+    dx, dy, dz = wx - o[6], wy - o[7], wz - o[8]
+    a = o[9] * dx + o[12] * dy + o[15] * dz  # R^T d: along the extrusion axis, then (u, v)
+    u = o[10] * dx + o[13] * dy + o[16] * dz
+    v = o[11] * dx + o[14] * dy + o[17] * dz
+    m = int(o[20])
+    inside = True
+    best_e, bnu, bnv = -1e300, 0.0, 0.0
+    best_d2, qu_, qv_ = 1e300, 0.0, 0.0
+    for j in range(m):
+        u0, v0 = o[25 + 2 * j], o[26 + 2 * j]
+        j1 = j + 1 if j + 1 < m else 0
+        eu, ev = o[25 + 2 * j1] - u0, o[26 + 2 * j1] - v0
+        ll = eu * eu + ev * ev
+        inv = 1.0 / math.sqrt(ll)
+        nu, nv = ev * inv, -eu * inv  # outward for a counter-clockwise polygon
+        e = nu * (u - u0) + nv * (v - v0)
+        if e > 0.0:
+            inside = False
+        if e > best_e:
+            best_e, bnu, bnv = e, nu, nv
+        t = ((u - u0) * eu + (v - v0) * ev) / ll
+        t = min(1.0, max(0.0, t))
+        cu, cv = u0 + t * eu, v0 + t * ev
+        d2 = (u - cu) * (u - cu) + (v - cv) * (v - cv)
+        if d2 < best_d2:
+            best_d2, qu_, qv_ = d2, cu, cv
+    if inside:
+        dp, pu, pv = best_e, bnu, bnv
+    else:
+        dp = math.sqrt(best_d2)
+        pu, pv = (u - qu_) / dp, (v - qv_) / dp
+    da = abs(a) - o[18]
+    sa = 1.0 if a >= 0.0 else -1.0
+    if dp > 0.0 and da > 0.0:
+        d = math.sqrt(dp * dp + da * da)
+        la, lu, lv = sa * da / d, pu * dp / d, pv * dp / d
+    elif dp > 0.0 or (dp <= 0.0 and da <= 0.0 and dp >= da):
+        d, la, lu, lv = dp, 0.0, pu, pv
+    else:
+        d, la, lu, lv = da, sa, 0.0, 0.0
+    return (
+        d,
+        o[9] * la + o[10] * lu + o[11] * lv,
+        o[12] * la + o[13] * lu + o[14] * lv,
+        o[15] * la + o[16] * lu + o[17] * lv,
+    )
+
+
+@njit(cache=True)
+def _outside(o, wx, wy, wz, rad):
+    """Whether a ball (centre ``w``, z-up world; radius ``rad``) is clear of prism row ``o``'s
+    box in the prism's own frame (extrusion and polygon box)."""
+    dx, dy, dz = wx - o[6], wy - o[7], wz - o[8]
+    a = o[9] * dx + o[12] * dy + o[15] * dz
+    if abs(a) > o[18] + rad:
+        return True
+    u = o[10] * dx + o[13] * dy + o[16] * dz
+    if u < o[21] - rad or u > o[22] + rad:
+        return True
+    v = o[11] * dx + o[14] * dy + o[17] * dz
+    return v < o[23] - rad or v > o[24] + rad
+
+
+@njit(cache=True)
+def prism_pairs(chunks, shapes, prisms, px, py, pz, R, margin, pairs):
+    """The (chunk, prism, shape) triples that may touch while the hull stays within ``margin``
+    (m) of the pose (``p``, ``R``; z-up world): each shape's ball, then each of its chunks'
+    balls, grown by ``margin``, against the prisms' boxes in their own frames. Writes them to
+    ``pairs`` (at least chunks x prisms rows, 3) int64, shape by shape; returns how many."""
+    n = 0
+    for sh in range(shapes.shape[0]):
+        bx, by, bz, rs = shapes[sh, 2], shapes[sh, 3], shapes[sh, 4], shapes[sh, 5] + margin
+        csx = px + R[0, 0] * bx + R[0, 1] * by + R[0, 2] * bz
+        csy = py + R[1, 0] * bx + R[1, 1] * by + R[1, 2] * bz
+        csz = pz + R[2, 0] * bx + R[2, 1] * by + R[2, 2] * bz
+        for j in range(prisms.shape[0]):
+            o = prisms[j]
+            if _outside(o, csx, csy, csz, rs):
+                continue
+            for g in range(int(shapes[sh, 0]), int(shapes[sh, 1])):
+                bx, by, bz, rg = chunks[g, 2], chunks[g, 3], chunks[g, 4], chunks[g, 5]
+                cxg = px + R[0, 0] * bx + R[0, 1] * by + R[0, 2] * bz
+                cyg = py + R[1, 0] * bx + R[1, 1] * by + R[1, 2] * bz
+                czg = pz + R[2, 0] * bx + R[2, 1] * by + R[2, 2] * bz
+                if not _outside(o, cxg, cyg, czg, rg + margin):
+                    pairs[n, 0], pairs[n, 1], pairs[n, 2] = g, j, sh
+                    n += 1
+    return n
+
+
+@njit(cache=True)
+def prism_contacts(
+    spheres, chunks, shapes, prisms, pairs, n_pairs, contact, visc_max, px, py, pz, R,
+    gx, gy, gz, vx, vy, vz, ox, oy, oz, out,
+):  # fmt: skip
+    """Add the static prisms' contact force and torque on the hull to ``out`` (6,), the model
+    of :func:`plane_contacts` against convex prisms (the docking station's boxes and guide
+    plates) instead of planes: a sphere that reaches ``delta`` into a prism (exact distance,
+    :func:`prism_distance`) pushes back along the prism's normal at its deepest point. Each
+    hull shape's contacts are averaged (its spheres sample one shape, which touches as one
+    body: a capsule lying on a face is as stiff as one touching it with its end), so the
+    stiffness and damping added up over the hull stay within what the explicit substep holds.
+
+    Args:
+        spheres: (s, 4) centre in the body FLU frame (m) and radius (m): the hull's shapes as
+            overlapping spheres (:func:`uwdock.sim.kernel_contact.hull_contact_spheres`).
+        chunks: (c, 6) runs of neighbouring spheres: first and end row, the body-frame centre
+            (3) and radius (m) of a ball holding them.
+        shapes: (h, 6) the hull's shapes, the averaging unit: first and end row of their
+            chunks, and a ball around them (centre (3), radius; m).
+        prisms: (m, :data:`PRISM_COLS`) world prisms.
+        pairs, n_pairs: the (chunk, prism, shape) triples to test, shape by shape
+            (:func:`prism_pairs`).
+        contact: (5,) as for :func:`plane_contacts` (stiffness, damping, friction unused: each
+            prism has its own, ``v_eps``, reach); visc_max: cap of the friction's slope at rest
+            (N s/m).
+        Others as for :func:`plane_contacts`.
+    """
+    k, c, v_eps = contact[0], contact[1], contact[3]
+    part = np.zeros(6)
+    q = 0
+    while q < n_pairs:
+        sh = pairs[q, 2]
+        part[:] = 0.0
+        count = 0
+        while q < n_pairs and pairs[q, 2] == sh:
+            g, o = pairs[q, 0], prisms[pairs[q, 1]]
+            q += 1
+            bx, by, bz, rg = chunks[g, 2], chunks[g, 3], chunks[g, 4], chunks[g, 5]
+            cxg = px + R[0, 0] * bx + R[0, 1] * by + R[0, 2] * bz
+            cyg = py + R[1, 0] * bx + R[1, 1] * by + R[1, 2] * bz
+            czg = pz + R[2, 0] * bx + R[2, 1] * by + R[2, 2] * bz
+            if _outside(o, cxg, cyg, czg, rg):
+                continue
+            count += _chunk_contacts(
+                spheres, int(chunks[g, 0]), int(chunks[g, 1]), o, k, c, o[19], v_eps,
+                visc_max, px, py, pz, R, gx, gy, gz, vx, vy, vz, ox, oy, oz, part,
+            )  # fmt: skip
+        if count > 0:
+            for a in range(6):
+                out[a] += part[a] / count
+
+
+@njit(cache=True)
+def _chunk_contacts(
+    spheres, i0, i1, o, k, c, mu, v_eps, visc_max, px, py, pz, R, gx, gy, gz,
+    vx, vy, vz, ox, oy, oz, part,
+):  # fmt: skip
+    """:func:`prism_contacts` for spheres ``i0 .. i1 - 1`` against prism row ``o``: adds to
+    ``part``, returns how many touch."""
+    count = 0
+    for i in range(i0, i1):
+        sx, sy, sz, rad = spheres[i, 0], spheres[i, 1], spheres[i, 2], spheres[i, 3]
+        wx = px + R[0, 0] * sx + R[0, 1] * sy + R[0, 2] * sz
+        wy = py + R[1, 0] * sx + R[1, 1] * sy + R[1, 2] * sz
+        wz = pz + R[2, 0] * sx + R[2, 1] * sy + R[2, 2] * sz
+        if _outside(o, wx, wy, wz, rad):
+            continue
+        d, nx, ny, nz = prism_distance(o, wx, wy, wz)
+        delta = rad - d
+        if delta <= 0.0:
+            continue
+        _penalty(
+            k, c, mu, v_eps, visc_max, delta, nx, ny, nz,
+            wx - rad * nx - gx, wy - rad * ny - gy, wz - rad * nz - gz,
+            vx, vy, vz, ox, oy, oz, part,
+        )  # fmt: skip
+        count += 1
+    return count
+
+
 # --------------------------------------------------------------------------- free flight
 
 
@@ -526,11 +762,16 @@ def _overlaps(boxes, obstacles, lo, hi, R0, theta, margin):
 
 
 @njit(cache=True)
-def _advance(P, B, state, wrenches, currents, dt, k0, k1, acc, spheres, planes, contact, sweep):
+def _advance(
+    P, B, state, wrenches, currents, dt, k0, k1, acc, spheres, planes, contact, sweep,
+    ksph, kchunks, kshapes, prisms, pairs,
+):  # fmt: skip
     """Integrate substeps ``k0 .. k1 - 1`` in place on ``state`` (:func:`free_flight`'s
     arguments), PhysX's integration without contacts; ``acc`` gets the last substep's
     accelerations and ``sweep`` (7,) the swept origin box [min xyz, max xyz] and the rotation
-    angle ``theta`` (rad) of the substeps."""
+    angle ``theta`` (rad) of the substeps. ``ksph``, ``kchunks``, ``kshapes``, ``prisms``: the
+    static prisms' contact (:func:`prism_contacts`; no prisms: none); ``pairs``: a buffer of
+    at least chunks x prisms rows, 3 columns (int64) for :func:`prism_pairs`."""
     w_max, me, ie0, ie1, ie2 = B[4], B[5], B[6], B[7], B[8]  # PhysX's copies
     cx, cy, cz = P[5], -P[6], -P[7]  # CoM in body FLU
     px, py, pz = state[0], state[1], state[2]
@@ -550,6 +791,18 @@ def _advance(P, B, state, wrenches, currents, dt, k0, k1, acc, spheres, planes, 
     v0x = v0y = v0z = o0x = o0y = o0z = 0.0
     touch = np.zeros(6)
     with_planes = planes.shape[0] > 0
+    with_prisms = prisms.shape[0] > 0
+    visc_max = PRISM_FRICTION_STEP * me / dt  # a fifth of the sliding speed per substep at most
+    n_pairs = 0
+    if with_prisms:
+        # the pairs that may touch within the substeps: the hull moves at most this far (its
+        # speed now, a generous bound on what thrust and contact add over the call, m)
+        span = (k1 - k0) * dt
+        speed = math.sqrt(vx * vx + vy * vy + vz * vz)
+        spin = math.sqrt(ox * ox + oy * oy + oz * oz) * contact[4]
+        margin = (speed + spin) * span + 0.5 * PRISM_ACCEL_BOUND * span * span + 0.01
+        n_pairs = prism_pairs(kchunks, kshapes, prisms, px, py, pz, R, margin, pairs)
+        with_prisms = n_pairs > 0
     for k in range(k0, k1):
         v0x, v0y, v0z, o0x, o0y, o0z = vx, vy, vz, ox, oy, oz
         f = _bridge(
@@ -564,6 +817,14 @@ def _advance(P, B, state, wrenches, currents, dt, k0, k1, acc, spheres, planes, 
             plane_contacts(
                 spheres, planes, contact, px, py, pz, R, gx, gy, gz,
                 vx, vy, vz, ox, oy, oz, touch,
+            )  # fmt: skip
+            f0, f1, f2 = f0 + touch[0], f1 + touch[1], f2 + touch[2]
+            f3, f4, f5 = f3 + touch[3], f4 + touch[4], f5 + touch[5]
+        if with_prisms:
+            touch[:] = 0.0
+            prism_contacts(
+                ksph, kchunks, kshapes, prisms, pairs, n_pairs, contact, visc_max,
+                px, py, pz, R, gx, gy, gz, vx, vy, vz, ox, oy, oz, touch,
             )  # fmt: skip
             f0, f1, f2 = f0 + touch[0], f1 + touch[1], f2 + touch[2]
             f3, f4, f5 = f3 + touch[3], f4 + touch[4], f5 + touch[5]
@@ -677,7 +938,12 @@ def free_flight(
     sweep = np.empty(7)
     a = np.zeros(6)
     R0 = np.empty((3, 3))
-    _advance(P, B, trial, wrenches, currents, dt, 0, n, a, spheres, planes, contact, sweep)
+    no_sph, no_chunks, no_prisms = np.zeros((0, 4)), np.zeros((0, 6)), np.zeros((0, PRISM_COLS))
+    no_pairs = np.zeros((0, 3), dtype=np.int64)
+    _advance(
+        P, B, trial, wrenches, currents, dt, 0, n, a, spheres, planes, contact, sweep,
+        no_sph, no_chunks, no_chunks, no_prisms, no_pairs,
+    )  # fmt: skip
     _rot(R0, start[3], start[4], start[5], start[6])
     if not _overlaps(boxes, obstacles, sweep[:3], sweep[3:6], R0, sweep[6], margin):
         state[:] = trial
@@ -688,7 +954,10 @@ def free_flight(
     while done < n:
         end = min(n, done + CHUNK_SUBSTEPS)
         trial[:] = start
-        _advance(P, B, trial, wrenches, currents, dt, done, end, a, spheres, planes, contact, sweep)
+        _advance(
+            P, B, trial, wrenches, currents, dt, done, end, a, spheres, planes, contact, sweep,
+            no_sph, no_chunks, no_chunks, no_prisms, no_pairs,
+        )  # fmt: skip
         _rot(R0, start[3], start[4], start[5], start[6])
         if _overlaps(boxes, obstacles, sweep[:3], sweep[3:6], R0, sweep[6], margin):
             break
@@ -729,6 +998,30 @@ def free_flight_all(
             acc[i] = a
         out[i] = done
     return out
+
+
+@njit(cache=True)
+def kernel_flight_all(
+    P, B, state, wrenches, currents, dt, acc, spheres, planes, contact, ksph, kchunks,
+    kshapes, prisms, n_prisms,
+):  # fmt: skip
+    """Every vehicle's whole control step in the kernel, the docking station's contact
+    included (:func:`prism_contacts` against its ``n_prisms[i]`` rows of ``prisms``), PhysX
+    nowhere: ``state`` and ``acc`` (N, 6) rows are overwritten (:func:`free_flight`'s
+    arguments per vehicle). Beside :func:`free_flight_all` for numba's cache (its note)."""
+    row = np.empty(13)
+    a = np.zeros(6)
+    sweep = np.empty(7)
+    n_sub = wrenches.shape[1]
+    pairs = np.empty((kchunks.shape[0] * prisms.shape[1], 3), dtype=np.int64)
+    for i in range(state.shape[0]):
+        row[:] = state[i]
+        _advance(
+            P[i], B[i], row, wrenches[i], currents[i], dt, 0, n_sub, a, spheres, planes,
+            contact[i], sweep, ksph, kchunks, kshapes, prisms[i, : n_prisms[i]], pairs,
+        )  # fmt: skip
+        state[i] = row
+        acc[i] = a
 
 
 # --------------------------------------------------------------------------- geometry

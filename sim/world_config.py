@@ -67,8 +67,9 @@ class WorldConfig:
         batch_contact: in the batched simulator (:class:`uwdock.sim.batch.BatchVehicles`),
             where the vehicles that may touch the docking station are stepped: ``"shared"``,
             all in one PhysX scene (faster; trajectories within PhysX's own sensitivity of the
-            per-env ones), or ``"own"``, each in its own scene (bit-equal to the per-env env).
-            A per-env env ignores it.
+            per-env ones), ``"own"``, each in its own scene (bit-equal to the per-env env), or
+            ``"kernel"``, no PhysX: the kernel's own contact model against the station's shapes
+            (:mod:`uwdock.sim.kernel_contact`; a different model). A per-env env ignores it.
     """
 
     physics_hz: Annotated[float, Interval(gt=0, le=5000)] = 300.0
@@ -84,7 +85,7 @@ class WorldConfig:
     current: CurrentConfig = field(default_factory=CurrentConfig)
     vehicle: VehicleConfig = field(default_factory=VehicleConfig)
     vehicle_randomisation: VehicleRandomisation = field(default_factory=VehicleRandomisation)
-    batch_contact: Literal["shared", "own"] = "shared"
+    batch_contact: Literal["shared", "own", "kernel"] = "shared"
 
     def validate(self) -> None:
         """Raise ValueError naming the first field that breaks a rule across fields or a name

@@ -1,0 +1,279 @@
+"""The docking station's contact in the numba kernel: the hull as spheres, the DS as prisms.
+
+The batched simulator's third way of stepping a vehicle that touches the docking station
+(``[env.world] batch_contact = "kernel"``, :class:`uwdock.sim.batch.BatchVehicles`): no PhysX at
+all. The tank planes' contact model (:func:`uwdock.sim.fastpath.plane_contacts`: a spring and
+damper along the normal, regularised Coulomb friction along it) is applied against every static
+collision shape of the vehicle's scene, integrated with the rest of the control step
+(:func:`uwdock.sim.fastpath.kernel_flight_all`):
+
+* **the hull** (:func:`hull_contact_spheres`): a capsule is a row of spheres of its radius
+  along its axis, spaced at most half a radius apart (a flat face then sinks at most 3 % of the
+  radius between two of them: 4.5 mm for the 0.15 m hull, 0.6 mm for a 20 mm peg); a box is
+  its eight corners and points along its twelve edges, at most :data:`BOX_EDGE_SPACING_M`
+  apart (radius 0);
+* **the docking station** (:class:`StaticPrisms`): every box, and every convex mesh that is an
+  extruded convex polygon (the X-guides' trapezoidal prisms), as a convex polygon extruded along
+  an axis, whose signed distance to a point is exact
+  (:func:`uwdock.sim.fastpath.prism_distance`).
+
+What it does not model: a docking-station edge pressing into a hull box's face between the
+box's edges (the hull's boxes are the thin frame plates), PhysX's contact offsets (contact
+starts at zero distance) and restitution (the damping is critical, as for the planes). The
+penetration under full thrust is about a millimetre (:data:`uwdock.sim.physics.
+PLANE_STIFFNESS_N_PER_M`). It is a different contact model from PhysX's, not a copy of it:
+trajectories in contact differ, and a policy trained on one is checked on the other
+(``tests/test_kernel_contact.py``, ``bench/bench_train_speed.py --simulators
+batched,batched-kernel``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+import sapien
+
+from uwdock.calibration.frames import T_from_pos_quat
+from uwdock.sim.fastpath import PRISM_COLS, PRISM_MAX_VERTICES
+
+__all__ = [
+    "BOX_EDGE_SPACING_M",
+    "CHUNK_SPHERES",
+    "StaticPrisms",
+    "hull_contact_spheres",
+    "prism_rows",
+]
+
+#: Largest gap (m) between the points along a hull box's edge.
+BOX_EDGE_SPACING_M = 0.02
+#: Spheres per culling run (:func:`hull_contact_spheres`).
+CHUNK_SPHERES = 4
+_S_BODY = np.array([1.0, -1.0, -1.0])  # FRD <-> FLU component signs
+_AXES = {"x": 0, "y": 1, "z": 2}
+
+
+def _chunks(rows: list[list[float]], first: int, out: list[list[float]]) -> None:
+    """Split ``rows[first:]`` (one shape's spheres, in order along it) into runs of at most
+    :data:`CHUNK_SPHERES`, each with the ball around it (body frame)."""
+    for a in range(first, len(rows), CHUNK_SPHERES):
+        b = min(len(rows), a + CHUNK_SPHERES)
+        pts = np.array(rows[a:b], dtype=float)
+        lo, hi = pts[:, :3].min(axis=0), pts[:, :3].max(axis=0)
+        c = 0.5 * (lo + hi)
+        r = float(np.max(np.linalg.norm(pts[:, :3] - c, axis=1) + pts[:, 3]))
+        out.append([a, b, *c, r])
+
+
+def hull_contact_spheres(shapes) -> tuple[np.ndarray, np.ndarray, int]:
+    """The hull's collision shapes (body FRD :class:`uwdock.sim.vehicle.CollisionShape`) as
+    spheres in the body FLU frame (module docstring).
+
+    Returns:
+        ``(spheres, chunks, shapes)``: (s, 4) centre (m) and radius (m); (c, 6) runs of
+        neighbouring spheres (first and end row, the centre (3) and radius (m) of a ball
+        around them); (h, 6) per shape the first and end row of its chunks and a ball around
+        them: :func:`uwdock.sim.fastpath.prism_contacts` culls shapes, then chunks, and
+        averages per shape.
+    """
+    rows: list[list[float]] = []
+    chunks: list[list[float]] = []
+    table: list[list[float]] = []
+    for sh in shapes:
+        first_chunk = len(chunks)
+        _shape_spheres(sh, rows, chunks)
+        pts = np.array(rows[int(chunks[first_chunk][0]) :], dtype=float)
+        lo, hi = pts[:, :3].min(axis=0), pts[:, :3].max(axis=0)
+        c = 0.5 * (lo + hi)
+        r = float(np.max(np.linalg.norm(pts[:, :3] - c, axis=1) + pts[:, 3]))
+        table.append([first_chunk, len(chunks), *c, r])
+    return (
+        np.ascontiguousarray(np.array(rows, dtype=float).reshape(-1, 4)),
+        np.ascontiguousarray(np.array(chunks, dtype=float).reshape(-1, 6)),
+        np.ascontiguousarray(np.array(table, dtype=float).reshape(-1, 6)),
+    )
+
+
+def _shape_spheres(sh, rows: list[list[float]], chunks: list[list[float]]) -> None:
+    """Append one hull shape's spheres (body FLU) to ``rows`` and their runs to ``chunks``."""
+    c = np.asarray(sh.center_m, dtype=float)
+    if sh.kind == "capsule":
+        r, half = float(sh.size_m[0]), float(sh.size_m[1])
+        axis = np.zeros(3)
+        axis[_AXES[sh.axis]] = 1.0
+        n = max(2, math.ceil(2.0 * half / (0.5 * r)) + 1)
+        first = len(rows)
+        for t in np.linspace(-half, half, n):
+            rows.append([*((c + t * axis) * _S_BODY), r])
+        _chunks(rows, first, chunks)
+        return
+    h = np.asarray(sh.size_m, dtype=float)
+    seen: set[tuple[float, ...]] = set()
+    for a in range(3):  # the four edges along axis a, each its own runs
+        b, d = [k for k in range(3) if k != a]
+        n = max(2, math.ceil(2.0 * h[a] / BOX_EDGE_SPACING_M) + 1)
+        for sb in (-1.0, 1.0):
+            for sd in (-1.0, 1.0):
+                first = len(rows)
+                for t in np.linspace(-h[a], h[a], n):
+                    p = np.zeros(3)
+                    p[a], p[b], p[d] = t, sb * h[b], sd * h[d]
+                    key = tuple(np.round(p, 12))
+                    if key in seen:  # a corner, on an earlier edge already
+                        continue
+                    seen.add(key)
+                    rows.append([*((c + p) * _S_BODY), 0.0])
+                if len(rows) > first:
+                    _chunks(rows, first, chunks)
+
+
+def _ccw(pts2: np.ndarray) -> np.ndarray:
+    """The convex hull of 2-D points, counter-clockwise (no collinear points)."""
+    from scipy.spatial import ConvexHull  # only when a convex mesh is read, once per shape
+
+    return pts2[ConvexHull(pts2).vertices]
+
+
+def _extrusion(v: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, np.ndarray] | None:
+    """A convex mesh's vertices (n, 3) as an extruded convex polygon: ``(R, centre, half
+    length, polygon)`` in the mesh frame (R's columns: the extrusion axis and the polygon's
+    plane), or None when no axis makes it one."""
+    from scipy.spatial import ConvexHull
+
+    tol = 1e-6 * max(1.0, float(np.ptp(v, axis=0).max()))
+    for eq in ConvexHull(v).equations:
+        n = eq[:3] / np.linalg.norm(eq[:3])
+        s = v @ n
+        lo, hi = s.min(), s.max()
+        at_lo, at_hi = np.abs(s - lo) < tol, np.abs(s - hi) < tol
+        if not (at_lo | at_hi).all() or at_lo.sum() != at_hi.sum() or hi - lo < tol:
+            continue
+        u = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+        u /= np.linalg.norm(u)
+        w = np.cross(n, u)
+        a2, b2 = v[at_lo] @ np.stack([u, w], 1), v[at_hi] @ np.stack([u, w], 1)
+        if not np.allclose(np.sort(a2, axis=0), np.sort(b2, axis=0), atol=tol):
+            continue  # the two ends differ: not an extrusion along n
+        poly = _ccw(a2)
+        mid = 0.5 * (lo + hi)
+        return np.stack([n, u, w], axis=1), mid * n, 0.5 * (hi - lo), poly
+    return None
+
+
+def _local_prism(shape) -> tuple[np.ndarray, np.ndarray, float, np.ndarray] | None:
+    """``(R, centre, half length, polygon)`` of a static collision shape in its entity's frame;
+    None for a plane (the kernel's tank planes hold those)."""
+    px = sapien.physx
+    T = T_from_pos_quat(
+        np.asarray(shape.get_local_pose().p, float), np.asarray(shape.get_local_pose().q, float)
+    )
+    if isinstance(shape, px.PhysxCollisionShapePlane):
+        return None
+    if isinstance(shape, px.PhysxCollisionShapeBox):
+        h = np.asarray(shape.get_half_size(), dtype=float)
+        R, c, ht = np.eye(3), np.zeros(3), float(h[0])
+        poly = np.array([[-h[1], -h[2]], [h[1], -h[2]], [h[1], h[2]], [-h[1], h[2]]])
+    elif isinstance(shape, px.PhysxCollisionShapeConvexMesh):
+        v = np.asarray(shape.get_vertices(), dtype=float) * np.asarray(shape.get_scale(), float)
+        got = _extrusion(v)
+        if got is None:
+            raise ValueError(
+                "kernel contact: a static convex mesh that is not an extruded polygon "
+                f"({len(v)} vertices); use batch_contact = 'shared'"
+            )
+        R, c, ht, poly = got
+    else:
+        raise ValueError(
+            f"kernel contact: cannot model a static {type(shape).__name__}; use batch_contact = "
+            "'shared'"
+        )
+    if len(poly) > PRISM_MAX_VERTICES:
+        raise ValueError(f"kernel contact: a prism of {len(poly)} > {PRISM_MAX_VERTICES} sides")
+    return T[:3, :3] @ R, T[:3, :3] @ c + T[:3, 3], ht, poly
+
+
+def prism_rows(
+    T_world_entity: np.ndarray,
+    prisms: Sequence[tuple[np.ndarray, np.ndarray, float, np.ndarray]],
+    friction: Sequence[float],
+) -> np.ndarray:
+    """(m, :data:`PRISM_COLS`) world rows of an entity's prisms (``(R, centre, half length,
+    polygon)`` in its frame, :func:`uwdock.sim.fastpath.prism_contacts`), each with its
+    Coulomb friction."""
+    out = np.zeros((len(prisms), PRISM_COLS))
+    Rw, tw = T_world_entity[:3, :3], T_world_entity[:3, 3]
+    for j, ((R, c, ht, poly), mu) in enumerate(zip(prisms, friction, strict=True)):
+        Rj, cj = Rw @ R, Rw @ c + tw
+        corners = [cj + Rj @ np.array([s * ht, pu, pv]) for s in (-1.0, 1.0) for pu, pv in poly]
+        out[j, 0:3], out[j, 3:6] = np.min(corners, axis=0), np.max(corners, axis=0)
+        out[j, 6:9] = cj
+        out[j, 9:18] = Rj.reshape(-1)
+        out[j, 18], out[j, 19], out[j, 20] = ht, mu, len(poly)
+        pg = np.asarray(poly, dtype=float)
+        out[j, 21:25] = pg[:, 0].min(), pg[:, 0].max(), pg[:, 1].min(), pg[:, 1].max()
+        out[j, 25 : 25 + 2 * len(pg)] = pg.reshape(-1)
+    return out
+
+
+class StaticPrisms:
+    """The static collision shapes of a vehicle's scene as world prisms (z-up, m), for
+    :func:`uwdock.sim.fastpath.prism_contacts`.
+
+    Shapes are read once per set of static actors; their world rows are recomputed when an
+    actor's pose changes (the docking station, per episode).
+
+    Args:
+        body: the vehicle (:class:`uwdock.sim.physics.VehicleBody`): its scene's statics are
+            read, the scene it is in now (a world's reset may move its entities into a fresh
+            physics system).
+        hull_friction: the hull's Coulomb friction; a pair's friction is the average of the
+            hull's and the shape's dynamic friction (PhysX's "average" combine, as the tank
+            planes').
+    """
+
+    def __init__(self, body, hull_friction: float) -> None:
+        self.body = body
+        self.hull_friction = float(hull_friction)
+        self._statics: list = []
+        self._local: list[tuple[list, list[float]]] = []
+        self._poses: list[tuple[float, ...]] = []
+        self._rows = np.zeros((0, PRISM_COLS))
+
+    def rows(self) -> np.ndarray:
+        """(m, :data:`PRISM_COLS`) the world prisms now."""
+        system = self.body.scene.physx_system
+        statics = [c for c in system.get_rigid_static_components() if c.get_collision_shapes()]
+        if len(statics) != len(self._statics) or any(
+            a is not b for a, b in zip(statics, self._statics, strict=True)
+        ):
+            self._statics = statics
+            self._local = [self._read(c) for c in statics]
+            self._poses = [()] * len(statics)
+        changed = False
+        for i, comp in enumerate(statics):
+            pose = comp.get_entity_pose()
+            key = (*pose.p.tolist(), *pose.q.tolist())
+            if key != self._poses[i]:
+                self._poses[i] = key
+                changed = True
+        if changed:
+            parts = []
+            for comp, (prisms, mu) in zip(statics, self._local, strict=True):
+                pose = comp.get_entity_pose()
+                T = T_from_pos_quat(np.asarray(pose.p, float), np.asarray(pose.q, float))
+                parts.append(prism_rows(T, prisms, mu))
+            self._rows = (
+                np.ascontiguousarray(np.concatenate(parts)) if parts else np.zeros((0, PRISM_COLS))
+            )
+        return self._rows
+
+    def _read(self, comp) -> tuple[list, list[float]]:
+        prisms, mu = [], []
+        for shape in comp.get_collision_shapes():
+            p = _local_prism(shape)
+            if p is None:
+                continue
+            prisms.append(p)
+            mu.append(0.5 * (self.hull_friction + shape.get_physical_material().dynamic_friction))
+        return prisms, mu
