@@ -10,16 +10,17 @@ collision shape of the vehicle's scene, integrated with the rest of the control 
 * **the hull** (:func:`hull_contact_spheres`): a capsule is a row of spheres of its radius
   along its axis, spaced at most half a radius apart (a flat face then sinks at most 3 % of the
   radius between two of them: 4.5 mm for the 0.15 m hull, 0.6 mm for a 20 mm peg); a box is
-  its eight corners and points along its twelve edges, at most :data:`BOX_EDGE_SPACING_M`
-  apart (radius 0);
+  a layer of spheres on its mid-plane across its thin axis, of its half thickness, at most that
+  far apart (the hull's 40 mm frame plates: 20 mm spheres 20 mm apart, faces within 2.7 mm of
+  flat: a thin box with rounded edges);
 * **the docking station** (:class:`StaticPrisms`): every box, and every convex mesh that is an
   extruded convex polygon (the X-guides' trapezoidal prisms), as a convex polygon extruded along
   an axis, whose signed distance to a point is exact
   (:func:`uwdock.sim.fastpath.prism_distance`).
 
-What it does not model: a docking-station edge pressing into a hull box's face between the
-box's edges (the hull's boxes are the thin frame plates), PhysX's contact offsets (contact
-starts at zero distance) and restitution (the damping is critical, as for the planes). The
+What it does not model: a hull box's sharp edges (rounded by its half thickness: meant for
+thin plates; a thick box becomes coarse spheres), PhysX's contact offsets (contact starts at
+zero distance) and restitution (the damping is critical, as for the planes). The
 penetration under full thrust is about a millimetre (:data:`uwdock.sim.physics.
 PLANE_STIFFNESS_N_PER_M`). It is a different contact model from PhysX's, not a copy of it:
 trajectories in contact differ, and a policy trained on one is checked on the other
@@ -39,26 +40,27 @@ from uwdock.calibration.frames import T_from_pos_quat
 from uwdock.sim.fastpath import PRISM_COLS, PRISM_MAX_VERTICES
 
 __all__ = [
-    "BOX_EDGE_SPACING_M",
+    "BOX_TILE",
     "CHUNK_SPHERES",
     "StaticPrisms",
     "hull_contact_spheres",
     "prism_rows",
 ]
 
-#: Largest gap (m) between the points along a hull box's edge.
-BOX_EDGE_SPACING_M = 0.02
+#: A hull box's spheres are culled in square tiles of this many a side.
+BOX_TILE = 4
 #: Spheres per culling run (:func:`hull_contact_spheres`).
 CHUNK_SPHERES = 4
 _S_BODY = np.array([1.0, -1.0, -1.0])  # FRD <-> FLU component signs
 _AXES = {"x": 0, "y": 1, "z": 2}
 
 
-def _chunks(rows: list[list[float]], first: int, out: list[list[float]]) -> None:
-    """Split ``rows[first:]`` (one shape's spheres, in order along it) into runs of at most
-    :data:`CHUNK_SPHERES`, each with the ball around it (body frame)."""
-    for a in range(first, len(rows), CHUNK_SPHERES):
-        b = min(len(rows), a + CHUNK_SPHERES)
+def _chunks(rows: list[list[float]], first: int, out: list[list[float]], size: int = 0) -> None:
+    """Split ``rows[first:]`` (neighbouring spheres, in order) into runs of at most ``size``
+    (default :data:`CHUNK_SPHERES`), each with the ball around it (body frame)."""
+    size = size or CHUNK_SPHERES
+    for a in range(first, len(rows), size):
+        b = min(len(rows), a + size)
         pts = np.array(rows[a:b], dtype=float)
         lo, hi = pts[:, :3].min(axis=0), pts[:, :3].max(axis=0)
         c = 0.5 * (lo + hi)
@@ -109,23 +111,23 @@ def _shape_spheres(sh, rows: list[list[float]], chunks: list[list[float]]) -> No
         _chunks(rows, first, chunks)
         return
     h = np.asarray(sh.size_m, dtype=float)
-    seen: set[tuple[float, ...]] = set()
-    for a in range(3):  # the four edges along axis a, each its own runs
-        b, d = [k for k in range(3) if k != a]
-        n = max(2, math.ceil(2.0 * h[a] / BOX_EDGE_SPACING_M) + 1)
-        for sb in (-1.0, 1.0):
-            for sd in (-1.0, 1.0):
-                first = len(rows)
-                for t in np.linspace(-h[a], h[a], n):
+    k = int(np.argmin(h))  # the thin axis: one layer of spheres on the mid-plane
+    r = float(h[k])
+    a, b = [j for j in range(3) if j != k]
+    # the rectangle the spheres' centres span (the box less the radius), at most r apart
+    na = max(1, math.ceil(2.0 * max(h[a] - r, 0.0) / r) + 1)
+    nb = max(1, math.ceil(2.0 * max(h[b] - r, 0.0) / r) + 1)
+    ua = np.linspace(-(h[a] - r), h[a] - r, na) if na > 1 else np.zeros(1)
+    ub = np.linspace(-(h[b] - r), h[b] - r, nb) if nb > 1 else np.zeros(1)
+    for ta in range(0, na, BOX_TILE):  # tiles of BOX_TILE x BOX_TILE spheres, one chunk each
+        for tb in range(0, nb, BOX_TILE):
+            first = len(rows)
+            for ia in range(ta, min(na, ta + BOX_TILE)):
+                for ib in range(tb, min(nb, tb + BOX_TILE)):
                     p = np.zeros(3)
-                    p[a], p[b], p[d] = t, sb * h[b], sd * h[d]
-                    key = tuple(np.round(p, 12))
-                    if key in seen:  # a corner, on an earlier edge already
-                        continue
-                    seen.add(key)
-                    rows.append([*((c + p) * _S_BODY), 0.0])
-                if len(rows) > first:
-                    _chunks(rows, first, chunks)
+                    p[a], p[b] = ua[ia], ub[ib]
+                    rows.append([*((c + p) * _S_BODY), r])
+            _chunks(rows, first, chunks, len(rows) - first)
 
 
 def _ccw(pts2: np.ndarray) -> np.ndarray:
