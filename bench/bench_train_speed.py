@@ -4,7 +4,8 @@ Usage::
 
     python bench/bench_train_speed.py [--quick] [--json]
         [--config configs/realistic_batched_yaw_contact_near_ppo.toml]
-        [--simulators per-env,batched,batched-own] [--envs 2] [--batch-envs 64] [--batch-workers 2]
+        [--simulators per-env,batched,batched-shared,batched-own,batched-kernel] [--envs 2]
+        [--batch-envs 64] [--batch-workers 2]
         [--rollouts 8]
         [--repeats 3] [--seed 1] [--init-policy POLICY] [--name train_speed]
 
@@ -32,17 +33,20 @@ two):
 * ``batched``: :class:`rl.batch_env.BatchDockingEnv`, ``--batch-envs`` envs stepped as arrays,
   split over ``--batch-workers`` processes (1: the trainer's own), ``n_steps`` scaled so that a
   rollout holds as many steps as the recipe's (``n_steps x n_envs``); the update (batch size,
-  epochs) is the recipe's; its vehicles in contact with the DS share one PhysX scene
-  (``[env.world] batch_contact = "shared"``, :mod:`uwdock.sim.contact_scene`);
-* ``batched-own``: the same with each vehicle's PhysX in its own scene (``batch_contact =
-  "own"``, bit-equal to the per-env physics), to measure what the shared scene gives.
+  epochs) is the recipe's; its vehicles in contact with the DS stepped as the recipe says
+  (``[env.world] batch_contact``: one shared PhysX scene, ``"shared"``,
+  :mod:`uwdock.sim.contact_scene`, or the kernel's own contact model, ``"kernel"``,
+  :mod:`uwdock.sim.kernel_contact`);
+* ``batched-shared``, ``batched-own``, ``batched-kernel``: the same with ``batch_contact`` set
+  to ``"shared"``, ``"own"`` (each vehicle's PhysX in its own scene, bit-equal to the per-env
+  physics) or ``"kernel"``, whatever the recipe says, to compare them.
 
 ``--init-policy`` starts every run from a trained policy (``rl train --init-policy``): an early
 policy's episodes are mostly free flight far from the DS, a trained one's end in contact, which
 costs the physics more per step, so the two bracket a training run's mix. ``--quick``: 3
 rollouts, 1 repeat. ``--json`` prints one JSON line last: ``batched_steps_per_s``,
 ``per_env_steps_per_s`` (the recipe's env count) and their ratio (and
-``batched_own_steps_per_s`` when measured).
+``batched_<contact>_steps_per_s`` for each ``batched-<contact>`` row measured).
 
 Writes ``bench/results/<name>.json`` (rows + machine, commit, packages).
 """
@@ -65,6 +69,8 @@ from uwdock.dockcore.config import load_config, replace
 from uwdock.rl.train import TrainConfig, train
 
 OFF = 10**9  # an evaluation / checkpoint interval no run reaches
+#: --simulators' rows
+SIMULATORS = ("per-env", "batched", "batched-shared", "batched-own", "batched-kernel")
 
 
 def _measure(
@@ -108,10 +114,11 @@ def _rescaled(cfg: TrainConfig, simulator: str, envs: int) -> TrainConfig:
     return replace(cfg, simulator=simulator, n_envs=envs, ppo=replace(cfg.ppo, n_steps=n_steps))
 
 
-def batched(cfg: TrainConfig, batch_envs: int, contact: str = "shared") -> TrainConfig:
+def batched(cfg: TrainConfig, batch_envs: int, contact: str | None = None) -> TrainConfig:
     """The recipe on the batched simulator with ``batch_envs`` envs, its DS contact stepped as
-    ``contact`` says (:class:`uwdock.sim.world_config.WorldConfig`'s ``batch_contact``)."""
-    world = replace(cfg.env.world, batch_contact=contact)
+    ``contact`` says (:class:`uwdock.sim.world_config.WorldConfig`'s ``batch_contact``; None:
+    the recipe's)."""
+    world = replace(cfg.env.world, batch_contact=contact or cfg.env.world.batch_contact)
     return _rescaled(replace(cfg, env=replace(cfg.env, world=world)), "batched", batch_envs)
 
 
@@ -146,8 +153,8 @@ def main() -> None:
     sims = [x.strip() for x in a.simulators.split(",") if x.strip()]
     if a.rollouts < 2 or a.repeats < 1:
         sys.exit("error: --rollouts must be at least 2 and --repeats at least 1")
-    if not sims or any(x not in ("per-env", "batched", "batched-own") for x in sims):
-        sys.exit("error: --simulators takes per-env, batched and/or batched-own")
+    if not sims or any(x not in SIMULATORS for x in sims):
+        sys.exit(f"error: --simulators takes {', '.join(SIMULATORS)}")
     recipe = replace(load_config(TrainConfig, a.config, section="train"), seed=a.seed)
     runs = []
     if "per-env" in sims:
@@ -155,9 +162,10 @@ def main() -> None:
         runs += [("per-env", per_env(recipe, e)) for e in counts]
     if "batched" in sims:
         runs.append(("batched", batched(recipe, a.batch_envs)))
-    if "batched-own" in sims:
-        runs.append(("batched-own", batched(recipe, a.batch_envs, "own")))
-    workers = {"per-env": 1, "batched": a.batch_workers, "batched-own": a.batch_workers}
+    for sim in SIMULATORS[2:]:
+        if sim in sims:
+            runs.append((sim, batched(recipe, a.batch_envs, sim.removeprefix("batched-"))))
+    workers = {sim: a.batch_workers for sim in SIMULATORS[1:]} | {"per-env": 1}
     rows = []
     for sim, cfg in runs:
         rates, starts = [], []
@@ -183,7 +191,8 @@ def main() -> None:
                 "envs": envs,
                 "processes": envs if sim == "per-env" and envs > 1 else workers[sim],
                 "n_steps": cfg.ppo.n_steps,
-                "recipe": sim.startswith("batched") or cfg == per_env(recipe, None),
+                "contact": cfg.env.world.batch_contact if sim != "per-env" else "physx",
+                "recipe": sim == "batched" or (sim == "per-env" and cfg == per_env(recipe, None)),
                 "steps_per_run": a.rollouts * cfg.ppo.n_steps * envs,
                 "steps_per_s_median": med,
                 "steps_per_s_min": min(rates),
@@ -193,7 +202,11 @@ def main() -> None:
             }
         )
     print(format_table(rows, list(rows[0])))
-    rate = {r["simulator"]: r["steps_per_s_median"] for r in rows if r["recipe"]}
+    rate = {
+        r["simulator"]: r["steps_per_s_median"]
+        for r in rows
+        if r["recipe"] or r["simulator"].startswith("batched-")
+    }
     summary = {
         "batched_steps_per_s": rate.get("batched"),
         "per_env_steps_per_s": rate.get("per-env"),
@@ -201,8 +214,9 @@ def main() -> None:
             rate["batched"] / rate["per-env"] if "batched" in rate and "per-env" in rate else None
         ),
     }
-    if "batched-own" in rate:
-        summary = {"batched_own_steps_per_s": rate["batched-own"], **summary}
+    for sim in SIMULATORS[2:]:
+        if sim in rate:
+            summary = {f"{sim.replace('-', '_')}_steps_per_s": rate[sim], **summary}
     bench_cfg = {
         "config": a.config,
         "seed": a.seed,
