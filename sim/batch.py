@@ -303,12 +303,20 @@ class BatchVehicles:
             self.state[:] = _f32(self.state)  # kept as PhysX keeps a state, as the others
             self._held[:] = False
             self.last_physx = np.zeros(self.n, dtype=bool)
-            self.thrust_n = response[:, -1, :].copy()
-            self.time_s = self.time_s + n_sub * dt
-            self.acc_mean_zup = (self.state[:, 7:13] - v0) / (n_sub * dt)
-            return
+        else:
+            self._flight_then_physx(wrenches, currents, acc, n_sub)
+        self.physx_steps += int(self.last_physx.sum())
+        self.thrust_n = response[:, -1, :].copy()
+        self.time_s = self.time_s + n_sub * dt
+        self.acc_mean_zup = (self.state[:, 7:13] - v0) / (n_sub * dt)
+
+    def _flight_then_physx(
+        self, wrenches: np.ndarray, currents: np.ndarray, acc: np.ndarray, n_sub: int
+    ) -> None:
+        """The PhysX contact modes' step: the kernel's free flight as far as no contact is
+        possible, then PhysX for the rest of the vehicles that may touch the station."""
         done = free_flight_all(
-            self.P, self.B, self.state, wrenches, currents, dt,
+            self.P, self.B, self.state, wrenches, currents, self.dt_s,
             self.hull, self.obstacles, self.n_obstacles, FREE_FLIGHT_MARGIN_M, acc,
             self.spheres, self.planes, self.contact,
         )  # fmt: skip
@@ -327,10 +335,6 @@ class BatchVehicles:
             for i in physx:
                 k = int(done[i])  # PhysX from the first substep that may touch
                 self._physx_step(i, wrenches[i, k:], currents[i, k:])
-        self.physx_steps += int(self.last_physx.sum())
-        self.thrust_n = response[:, -1, :].copy()
-        self.time_s = self.time_s + n_sub * dt
-        self.acc_mean_zup = (self.state[:, 7:13] - v0) / (n_sub * dt)
 
     def _currents_zup(self, n_sub: int) -> np.ndarray:
         """(N, n_sub, 3) water velocity at the step's substeps, z-up world."""
