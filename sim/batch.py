@@ -84,6 +84,18 @@ class BatchImu:
     depth_m: np.ndarray  # (N,)
 
 
+def _put_rows(table: np.ndarray, i: int, rows: np.ndarray) -> np.ndarray:
+    """``table`` (N, m, cols) with vehicle ``i``'s first rows set to ``rows``, grown (zeros)
+    when it holds fewer rows per vehicle."""
+    m = rows.shape[0]
+    if m > table.shape[1]:
+        grown = np.zeros((table.shape[0], m, table.shape[2]))
+        grown[:, : table.shape[1]] = table
+        table = grown
+    table[i, :m] = rows
+    return table
+
+
 def _f32(a: np.ndarray) -> np.ndarray:
     """What PhysX stores of a float64 value (float32), back as float64."""
     return a.astype(np.float32).astype(np.float64)
@@ -216,24 +228,14 @@ class BatchVehicles:
         if self._prisms:
             self._prisms[i].hull_friction = float(b.config.friction)
             rows = self._prisms[i].rows()
-            m = rows.shape[0]
-            if m > self.prisms.shape[1]:
-                grown = np.zeros((self.n, m, PRISM_COLS))
-                grown[:, : self.prisms.shape[1]] = self.prisms
-                self.prisms = grown
-            self.prisms[i, :m] = rows
-            self.n_prisms[i] = m
+            self.prisms = _put_rows(self.prisms, i, rows)
+            self.n_prisms[i] = rows.shape[0]
         boxes = b.obstacle_boxes()
         if boxes is None:
             self.n_obstacles[i] = -1
         else:
-            m = boxes.shape[0]
-            if m > self.obstacles.shape[1]:
-                grown = np.zeros((self.n, m, OBSTACLE_COLS))
-                grown[:, : self.obstacles.shape[1]] = self.obstacles
-                self.obstacles = grown
-            self.obstacles[i, :m] = boxes
-            self.n_obstacles[i] = m
+            self.obstacles = _put_rows(self.obstacles, i, boxes)
+            self.n_obstacles[i] = boxes.shape[0]
         imu = b.imu
         self.accel_bias[i] = imu.accel_bias
         self.gyro_bias[i] = imu.gyro_bias

@@ -60,6 +60,7 @@ __all__ = [
     "PRISM_COLS",
     "PRISM_MAX_VERTICES",
     "StaticObstacles",
+    "StaticsWatch",
     "body_params",
     "free_flight",
     "free_flight_all",
@@ -99,6 +100,11 @@ PRISM_FRICTION_STEP = 0.2
 #: (m/s^2, rad/s^2 times the hull's reach) A bound on how much the hull's speed can change
 #: within a control step (full thrust gives about 1 m/s^2), for the pairs a step tests.
 PRISM_ACCEL_BOUND = 5.0
+#: No prisms (free flight's :func:`_advance`: the station is PhysX's there); numba freezes
+#: these as read-only constants (the pairs buffer, written to, is made per call).
+_NO_SPHERES = np.zeros((0, 4))
+_NO_CHUNKS = np.zeros((0, 6))
+_NO_PRISMS = np.zeros((0, PRISM_COLS))
 #: Unbounded side of an obstacle box (a half-space, or a shape we cannot bound).
 _FAR = 1e30
 #: Substeps per chunk when a step that may touch is retried chunk by chunk (:func:`free_flight`).
@@ -380,6 +386,37 @@ def physx_wrenches(
 
 
 @njit(cache=True)
+def _penalty(
+    k, c, mu, v_eps, visc_max, delta, nx, ny, nz, cx_, cy_, cz_, vx, vy, vz, ox, oy, oz, out
+):  # fmt: skip
+    """The contact law of :func:`plane_contacts` and :func:`prism_contacts` for one contact (a
+    spring-damper and regularised Coulomb friction), its friction's slope at rest capped at
+    ``visc_max`` (N s/m, which keeps the
+    explicit substep stable): penetration ``delta`` (m) along the unit normal ``n`` (pushing
+    the hull out), at ``c_`` relative to the CoM; adds the force and torque about the CoM to
+    ``out``."""
+    ux = vx + oy * cz_ - oz * cy_
+    uy = vy + oz * cx_ - ox * cz_
+    uz = vz + ox * cy_ - oy * cx_
+    vn = ux * nx + uy * ny + uz * nz
+    fn = k * delta - c * vn
+    if fn <= 0.0:
+        return
+    tx_, ty_, tz_ = ux - vn * nx, uy - vn * ny, uz - vn * nz
+    vt = math.sqrt(tx_ * tx_ + ty_ * ty_ + tz_ * tz_)
+    ft = min(mu * fn / max(vt, v_eps), visc_max)
+    fx = fn * nx - ft * tx_
+    fy = fn * ny - ft * ty_
+    fz = fn * nz - ft * tz_
+    out[0] += fx
+    out[1] += fy
+    out[2] += fz
+    out[3] += cy_ * fz - cz_ * fy
+    out[4] += cz_ * fx - cx_ * fz
+    out[5] += cx_ * fy - cy_ * fx
+
+
+@njit(cache=True)
 def plane_contacts(
     spheres, planes, contact, px, py, pz, R, gx, gy, gz, vx, vy, vz, ox, oy, oz, out
 ):
@@ -416,60 +453,15 @@ def plane_contacts(
             delta = d - (nx * wx + ny * wy + nz * wz) + rad
             if delta <= 0.0:
                 continue
-            # the deepest point of the sphere, relative to the CoM
-            cx_, cy_, cz_ = wx - rad * nx - gx, wy - rad * ny - gy, wz - rad * nz - gz
-            ux = vx + oy * cz_ - oz * cy_
-            uy = vy + oz * cx_ - ox * cz_
-            uz = vz + ox * cy_ - oy * cx_
-            vn = ux * nx + uy * ny + uz * nz
-            fn = k * delta - c * vn
-            if fn <= 0.0:
-                continue
-            tx_, ty_, tz_ = ux - vn * nx, uy - vn * ny, uz - vn * nz
-            vt = math.sqrt(tx_ * tx_ + ty_ * ty_ + tz_ * tz_)
-            ft = mu * fn / max(vt, v_eps)
-            fx = fn * nx - ft * tx_
-            fy = fn * ny - ft * ty_
-            fz = fn * nz - ft * tz_
-            out[0] += fx
-            out[1] += fy
-            out[2] += fz
-            out[3] += cy_ * fz - cz_ * fy
-            out[4] += cz_ * fx - cx_ * fz
-            out[5] += cx_ * fy - cy_ * fx
+            # at the deepest point of the sphere, relative to the CoM; no cap on friction
+            _penalty(
+                k, c, mu, v_eps, math.inf, delta, nx, ny, nz,
+                wx - rad * nx - gx, wy - rad * ny - gy, wz - rad * nz - gz,
+                vx, vy, vz, ox, oy, oz, out,
+            )  # fmt: skip
 
 
 # --------------------------------------------------------------------------- static prisms
-
-
-@njit(cache=True)
-def _penalty(
-    k, c, mu, v_eps, visc_max, delta, nx, ny, nz, cx_, cy_, cz_, vx, vy, vz, ox, oy, oz, out
-):  # fmt: skip
-    """The spring-damper and regularised Coulomb friction of :func:`plane_contacts` for one
-    contact, its friction's slope at rest capped at ``visc_max`` (N s/m, which keeps the
-    explicit substep stable): penetration ``delta`` (m) along the unit normal ``n`` (pushing
-    the hull out), at ``c_`` relative to the CoM; adds the force and torque about the CoM to
-    ``out``."""
-    ux = vx + oy * cz_ - oz * cy_
-    uy = vy + oz * cx_ - ox * cz_
-    uz = vz + ox * cy_ - oy * cx_
-    vn = ux * nx + uy * ny + uz * nz
-    fn = k * delta - c * vn
-    if fn <= 0.0:
-        return
-    tx_, ty_, tz_ = ux - vn * nx, uy - vn * ny, uz - vn * nz
-    vt = math.sqrt(tx_ * tx_ + ty_ * ty_ + tz_ * tz_)
-    ft = min(mu * fn / max(vt, v_eps), visc_max)
-    fx = fn * nx - ft * tx_
-    fy = fn * ny - ft * ty_
-    fz = fn * nz - ft * tz_
-    out[0] += fx
-    out[1] += fy
-    out[2] += fz
-    out[3] += cy_ * fz - cz_ * fy
-    out[4] += cz_ * fx - cx_ * fz
-    out[5] += cx_ * fy - cy_ * fx
 
 
 @njit(cache=True)
@@ -933,16 +925,15 @@ def free_flight(
         ``state``).
     """
     n = wrenches.shape[0]
+    no_pairs = np.empty((0, 3), dtype=np.int64)
     start = state.copy()
     trial = state.copy()
     sweep = np.empty(7)
     a = np.zeros(6)
     R0 = np.empty((3, 3))
-    no_sph, no_chunks, no_prisms = np.zeros((0, 4)), np.zeros((0, 6)), np.zeros((0, PRISM_COLS))
-    no_pairs = np.zeros((0, 3), dtype=np.int64)
     _advance(
         P, B, trial, wrenches, currents, dt, 0, n, a, spheres, planes, contact, sweep,
-        no_sph, no_chunks, no_chunks, no_prisms, no_pairs,
+        _NO_SPHERES, _NO_CHUNKS, _NO_CHUNKS, _NO_PRISMS, no_pairs,
     )  # fmt: skip
     _rot(R0, start[3], start[4], start[5], start[6])
     if not _overlaps(boxes, obstacles, sweep[:3], sweep[3:6], R0, sweep[6], margin):
@@ -956,7 +947,7 @@ def free_flight(
         trial[:] = start
         _advance(
             P, B, trial, wrenches, currents, dt, done, end, a, spheres, planes, contact, sweep,
-            no_sph, no_chunks, no_chunks, no_prisms, no_pairs,
+            _NO_SPHERES, _NO_CHUNKS, _NO_CHUNKS, _NO_PRISMS, no_pairs,
         )  # fmt: skip
         _rot(R0, start[3], start[4], start[5], start[6])
         if _overlaps(boxes, obstacles, sweep[:3], sweep[3:6], R0, sweep[6], margin):
@@ -1082,6 +1073,41 @@ def _plane_box(T_world_shape: np.ndarray) -> np.ndarray:
     return box
 
 
+class StaticsWatch:
+    """The static components of a PhysX system as last read, each one's shapes read once
+    (``read(component)``) per set of components, and whether any moved since the last look:
+    what :class:`StaticObstacles` and :class:`uwdock.sim.kernel_contact.StaticPrisms` rebuild
+    their world rows from.
+
+    Attributes:
+        statics: the components of the last :meth:`update`; local: ``read`` of each.
+    """
+
+    def __init__(self, read) -> None:
+        self._read = read
+        self.statics: list = []
+        self.local: list = []
+        self._poses: list[tuple[float, ...]] = []
+
+    def update(self, statics: Sequence) -> bool:
+        """Look at ``statics`` (the system's components now); whether the world rows must be
+        made again (another set of components, or one of them moved)."""
+        if len(statics) != len(self.statics) or any(
+            a is not b for a, b in zip(statics, self.statics, strict=True)
+        ):
+            self.statics = list(statics)
+            self.local = [self._read(c) for c in self.statics]
+            self._poses = [()] * len(self.statics)
+        changed = False
+        for i, comp in enumerate(self.statics):
+            pose = comp.get_entity_pose()
+            key = (*pose.p.tolist(), *pose.q.tolist())
+            if key != self._poses[i]:
+                self._poses[i] = key
+                changed = True
+        return changed
+
+
 class StaticObstacles:
     """World boxes of the collision shapes of a scene's static actors (z-up, m).
 
@@ -1096,9 +1122,7 @@ class StaticObstacles:
     def __init__(self, scene: sapien.Scene, own: sapien.physx.PhysxRigidDynamicComponent):
         self.system = scene.physx_system
         self.own = own
-        self._statics: list = []
-        self._local: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
-        self._poses: list[tuple[float, ...]] = []
+        self._watch = StaticsWatch(self._read_shapes)
         self._boxes = np.zeros((0, 6))
 
     def follow(self, scene: sapien.Scene) -> None:
@@ -1116,21 +1140,7 @@ class StaticObstacles:
         dyn = system.get_rigid_dynamic_components()
         if len(dyn) != 1 or dyn[0] is not self.own or system.get_articulation_link_components():
             return None
-        statics = system.get_rigid_static_components()
-        if len(statics) != len(self._statics) or any(
-            a is not b for a, b in zip(statics, self._statics, strict=True)
-        ):
-            self._statics = statics
-            self._local = [self._read_shapes(s) for s in statics]
-            self._poses = [()] * len(statics)
-        changed = False
-        for i, comp in enumerate(statics):
-            pose = comp.get_entity_pose()
-            key = (*pose.p.tolist(), *pose.q.tolist())
-            if key != self._poses[i]:
-                self._poses[i] = key
-                changed = True
-        if changed:
+        if self._watch.update(system.get_rigid_static_components()):
             self._boxes = self._world_boxes()
         return self._boxes
 
@@ -1157,7 +1167,7 @@ class StaticObstacles:
 
     def _world_boxes(self) -> np.ndarray:
         out = []
-        for comp, (Ts, cs, hs, planes) in zip(self._statics, self._local, strict=True):
+        for comp, (Ts, cs, hs, planes) in zip(self._watch.statics, self._watch.local, strict=True):
             T_we = _pose_T(comp.get_entity_pose())
             T_ws = T_we[None] @ Ts  # (m, 4, 4)
             R = T_ws[:, :3, :3]

@@ -37,7 +37,7 @@ import numpy as np
 import sapien
 
 from uwdock.calibration.frames import T_from_pos_quat
-from uwdock.sim.fastpath import PRISM_COLS, PRISM_MAX_VERTICES
+from uwdock.sim.fastpath import PRISM_COLS, PRISM_MAX_VERTICES, StaticsWatch
 
 __all__ = [
     "BOX_TILE",
@@ -237,45 +237,37 @@ class StaticPrisms:
     def __init__(self, body, hull_friction: float) -> None:
         self.body = body
         self.hull_friction = float(hull_friction)
-        self._statics: list = []
-        self._local: list[tuple[list, list[float]]] = []
-        self._poses: list[tuple[float, ...]] = []
+        self._watch = StaticsWatch(self._read)
+        self._made_with = math.nan  # the hull friction of the rows
         self._rows = np.zeros((0, PRISM_COLS))
 
     def rows(self) -> np.ndarray:
         """(m, :data:`PRISM_COLS`) the world prisms now."""
         system = self.body.scene.physx_system
         statics = [c for c in system.get_rigid_static_components() if c.get_collision_shapes()]
-        if len(statics) != len(self._statics) or any(
-            a is not b for a, b in zip(statics, self._statics, strict=True)
-        ):
-            self._statics = statics
-            self._local = [self._read(c) for c in statics]
-            self._poses = [()] * len(statics)
-        changed = False
-        for i, comp in enumerate(statics):
-            pose = comp.get_entity_pose()
-            key = (*pose.p.tolist(), *pose.q.tolist())
-            if key != self._poses[i]:
-                self._poses[i] = key
-                changed = True
-        if changed:
+        if self._watch.update(statics) or self._made_with != self.hull_friction:
             parts = []
-            for comp, (prisms, mu) in zip(statics, self._local, strict=True):
+            for comp, (prisms, shape_mu) in zip(
+                self._watch.statics, self._watch.local, strict=True
+            ):
                 pose = comp.get_entity_pose()
                 T = T_from_pos_quat(np.asarray(pose.p, float), np.asarray(pose.q, float))
+                mu = [0.5 * (self.hull_friction + m) for m in shape_mu]
                 parts.append(prism_rows(T, prisms, mu))
             self._rows = (
                 np.ascontiguousarray(np.concatenate(parts)) if parts else np.zeros((0, PRISM_COLS))
             )
+            self._made_with = self.hull_friction
         return self._rows
 
-    def _read(self, comp) -> tuple[list, list[float]]:
+    @staticmethod
+    def _read(comp) -> tuple[list, list[float]]:
+        """A component's prisms (its frame) and their shapes' dynamic friction."""
         prisms, mu = [], []
         for shape in comp.get_collision_shapes():
             p = _local_prism(shape)
             if p is None:
                 continue
             prisms.append(p)
-            mu.append(0.5 * (self.hull_friction + shape.get_physical_material().dynamic_friction))
+            mu.append(float(shape.get_physical_material().dynamic_friction))
         return prisms, mu
