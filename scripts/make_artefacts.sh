@@ -22,9 +22,9 @@
 # (seed 0); training `configs/scratch_error_model_precision_ppo.toml` then
 # `configs/scratch_error_model_precision_soft_ppo.toml` from its best/ (seed SEED, default 1: the
 # seed shipped, recorded in bench/results/scratch_runs/error_model_precision{,_soft}_s1);
-# training `configs/realistic_batched_yaw_contact_near_ppo.toml` then
-# `configs/realistic_batched_yaw_contact_gentle_return_ppo.toml` from its best/ (seed SEED, default
-# 2: the seed shipped, recorded in bench/results/scratch_runs/realistic_ship{,_return}_s2);
+# training `configs/realistic_batched_yaw_contact_near_kernel_ppo.toml` then
+# `configs/realistic_batched_yaw_contact_gentle_return_kernel_ppo.toml` from its best/ (seed SEED,
+# default 2; the seed shipped is recorded in rl/policies/realistic_ppo/ and in the docking page);
 # evaluations on episode seeds 1000-1099.
 # WORK (default /tmp/uwdock-artefacts) holds the datasets, the run folder and the evaluation
 # folders; an interrupted stage resumes there.
@@ -138,16 +138,15 @@ scratch() {  # the true-pose recipe: PPO from scratch, then its best/ at collisi
 
 # The shipped recipe: the vehicle's own drifting navigation (mems-ahrs-dvl), the EvoLogics USBL,
 # its contact sensing in the observation (obs_contact), the error model with memory fitted with
-# the current detector. Stage 1 from scratch with near-seat starts (30 % of the early episodes
-# start just above the seat); stage 2 from its best/, collision penalty 100, keeping the
-# evaluation of highest return. The batch over BATCH_WORKERS processes (default 2: the DS contact
-# of all vehicles is one PhysX scene per process, whose round-off depends on which vehicles share
-# it, so another count gives another policy of the same recipe; keep 2 to reproduce the shipped one).
+# the current detector, the docking station's contact in the numba kernel (batch_contact =
+# "kernel": no PhysX in training). Stage 1 from scratch with near-seat starts (30 % of the early
+# episodes start just above the seat); stage 2 from its best/, collision penalty 100, keeping the
+# evaluation of highest return. The batch over BATCH_WORKERS processes (default 2).
 realistic() {
   local seed=${SEED:-2}
-  two_stages "$seed" configs/realistic_batched_yaw_contact_near_ppo.toml \
-    configs/realistic_batched_yaw_contact_gentle_return_ppo.toml \
-    "$WORK/run_realistic_near_s$seed" return "$POLICY" training_curve_realistic.png \
+  two_stages "$seed" configs/realistic_batched_yaw_contact_near_kernel_ppo.toml \
+    configs/realistic_batched_yaw_contact_gentle_return_kernel_ppo.toml \
+    "$WORK/run_realistic_kernel_s$seed" return "$POLICY" training_curve_realistic.png \
     --batch-workers "${BATCH_WORKERS:-2}"
 }
 
