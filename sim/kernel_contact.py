@@ -76,8 +76,9 @@ def hull_contact_spheres(shapes) -> tuple[np.ndarray, np.ndarray, int]:
         ``(spheres, chunks, shapes)``: (s, 4) centre (m) and radius (m); (c, 6) runs of
         neighbouring spheres (first and end row, the centre (3) and radius (m) of a ball
         around them); (h, 6) per shape the first and end row of its chunks and a ball around
-        them: :func:`uwdock.sim.fastpath.prism_contacts` culls shapes, then chunks, and
-        averages per shape.
+        them: :func:`uwdock.sim.fastpath.prism_pairs` culls shapes, then chunks, then
+        spheres once per control step, :func:`uwdock.sim.fastpath.prism_contacts` averages
+        per shape.
     """
     rows: list[list[float]] = []
     chunks: list[list[float]] = []
@@ -207,12 +208,13 @@ def prism_rows(
     Rw, tw = T_world_entity[:3, :3], T_world_entity[:3, 3]
     for j, ((R, c, ht, poly), mu) in enumerate(zip(prisms, friction, strict=True)):
         Rj, cj = Rw @ R, Rw @ c + tw
-        corners = [cj + Rj @ np.array([s * ht, pu, pv]) for s in (-1.0, 1.0) for pu, pv in poly]
-        out[j, 0:3], out[j, 3:6] = np.min(corners, axis=0), np.max(corners, axis=0)
+        pg = np.asarray(poly, dtype=float)
+        ends = np.repeat([-ht, ht], len(pg))[:, None]
+        corners = np.concatenate([ends, np.tile(pg, (2, 1))], axis=1) @ Rj.T + cj
+        out[j, 0:3], out[j, 3:6] = corners.min(axis=0), corners.max(axis=0)
         out[j, 6:9] = cj
         out[j, 9:18] = Rj.reshape(-1)
         out[j, 18], out[j, 19], out[j, 20] = ht, mu, len(poly)
-        pg = np.asarray(poly, dtype=float)
         out[j, 21:25] = pg[:, 0].min(), pg[:, 0].max(), pg[:, 1].min(), pg[:, 1].max()
         out[j, 25 : 25 + 2 * len(pg)] = pg.reshape(-1)
     return out
