@@ -538,13 +538,11 @@ def _outside(o, wx, wy, wz, rad):
 
 
 @njit(cache=True)
-def prism_pairs(spheres, chunks, shapes, prisms, px, py, pz, R, margin, pairs):
-    """The (sphere, prism, shape) triples that may touch while the hull stays within ``margin``
+def prism_pairs(chunks, shapes, prisms, px, py, pz, R, margin, pairs):
+    """The (chunk, prism, shape) triples that may touch while the hull stays within ``margin``
     (m) of the pose (``p``, ``R``; z-up world): each shape's ball, then each of its chunks'
-    balls, grown by ``margin``, against the prisms' boxes in their own frames, then each of the
-    chunk's spheres by its exact distance (:func:`prism_distance`, which changes by no more
-    than the point moves). Writes them to ``pairs`` (at least spheres x prisms rows, 3) int64,
-    shape by shape, then prism by prism, then sphere by sphere; returns how many."""
+    balls, grown by ``margin``, against the prisms' boxes in their own frames. Writes them to
+    ``pairs`` (at least chunks x prisms rows, 3) int64, shape by shape; returns how many."""
     n = 0
     for sh in range(shapes.shape[0]):
         bx, by, bz, rs = shapes[sh, 2], shapes[sh, 3], shapes[sh, 4], shapes[sh, 5] + margin
@@ -560,25 +558,15 @@ def prism_pairs(spheres, chunks, shapes, prisms, px, py, pz, R, margin, pairs):
                 cxg = px + R[0, 0] * bx + R[0, 1] * by + R[0, 2] * bz
                 cyg = py + R[1, 0] * bx + R[1, 1] * by + R[1, 2] * bz
                 czg = pz + R[2, 0] * bx + R[2, 1] * by + R[2, 2] * bz
-                if _outside(o, cxg, cyg, czg, rg + margin):
-                    continue
-                for i in range(int(chunks[g, 0]), int(chunks[g, 1])):
-                    sx, sy, sz, rad = spheres[i, 0], spheres[i, 1], spheres[i, 2], spheres[i, 3]
-                    wx = px + R[0, 0] * sx + R[0, 1] * sy + R[0, 2] * sz
-                    wy = py + R[1, 0] * sx + R[1, 1] * sy + R[1, 2] * sz
-                    wz = pz + R[2, 0] * sx + R[2, 1] * sy + R[2, 2] * sz
-                    if _outside(o, wx, wy, wz, rad + margin):
-                        continue
-                    if prism_distance(o, wx, wy, wz)[0] - rad > margin:
-                        continue
-                    pairs[n, 0], pairs[n, 1], pairs[n, 2] = i, j, sh
+                if not _outside(o, cxg, cyg, czg, rg + margin):
+                    pairs[n, 0], pairs[n, 1], pairs[n, 2] = g, j, sh
                     n += 1
     return n
 
 
 @njit(cache=True)
 def prism_contacts(
-    spheres, prisms, pairs, n_pairs, contact, visc_max, px, py, pz, R,
+    spheres, chunks, shapes, prisms, pairs, n_pairs, contact, visc_max, px, py, pz, R,
     gx, gy, gz, vx, vy, vz, ox, oy, oz, out,
 ):  # fmt: skip
     """Add the static prisms' contact force and torque on the hull to ``out`` (6,), the model
@@ -592,8 +580,12 @@ def prism_contacts(
     Args:
         spheres: (s, 4) centre in the body FLU frame (m) and radius (m): the hull's shapes as
             overlapping spheres (:func:`uwdock.sim.kernel_contact.hull_contact_spheres`).
+        chunks: (c, 6) runs of neighbouring spheres: first and end row, the body-frame centre
+            (3) and radius (m) of a ball holding them.
+        shapes: (h, 6) the hull's shapes, the averaging unit: first and end row of their
+            chunks, and a ball around them (centre (3), radius; m).
         prisms: (m, :data:`PRISM_COLS`) world prisms.
-        pairs, n_pairs: the (sphere, prism, shape) triples to test, shape by shape
+        pairs, n_pairs: the (chunk, prism, shape) triples to test, shape by shape
             (:func:`prism_pairs`).
         contact: (5,) as for :func:`plane_contacts` (stiffness, damping, friction unused: each
             prism has its own, ``v_eps``, reach); visc_max: cap of the friction's slope at rest
@@ -608,27 +600,49 @@ def prism_contacts(
         part[:] = 0.0
         count = 0
         while q < n_pairs and pairs[q, 2] == sh:
-            i, o = pairs[q, 0], prisms[pairs[q, 1]]
+            g, o = pairs[q, 0], prisms[pairs[q, 1]]
             q += 1
-            sx, sy, sz, rad = spheres[i, 0], spheres[i, 1], spheres[i, 2], spheres[i, 3]
-            wx = px + R[0, 0] * sx + R[0, 1] * sy + R[0, 2] * sz
-            wy = py + R[1, 0] * sx + R[1, 1] * sy + R[1, 2] * sz
-            wz = pz + R[2, 0] * sx + R[2, 1] * sy + R[2, 2] * sz
-            if _outside(o, wx, wy, wz, rad):
+            bx, by, bz, rg = chunks[g, 2], chunks[g, 3], chunks[g, 4], chunks[g, 5]
+            cxg = px + R[0, 0] * bx + R[0, 1] * by + R[0, 2] * bz
+            cyg = py + R[1, 0] * bx + R[1, 1] * by + R[1, 2] * bz
+            czg = pz + R[2, 0] * bx + R[2, 1] * by + R[2, 2] * bz
+            if _outside(o, cxg, cyg, czg, rg):
                 continue
-            d, nx, ny, nz = prism_distance(o, wx, wy, wz)
-            delta = rad - d
-            if delta <= 0.0:
-                continue
-            _penalty(
-                k, c, o[19], v_eps, visc_max, delta, nx, ny, nz,
-                wx - rad * nx - gx, wy - rad * ny - gy, wz - rad * nz - gz,
-                vx, vy, vz, ox, oy, oz, part,
+            count += _chunk_contacts(
+                spheres, int(chunks[g, 0]), int(chunks[g, 1]), o, k, c, o[19], v_eps,
+                visc_max, px, py, pz, R, gx, gy, gz, vx, vy, vz, ox, oy, oz, part,
             )  # fmt: skip
-            count += 1
         if count > 0:
             for a in range(6):
                 out[a] += part[a] / count
+
+
+@njit(cache=True)
+def _chunk_contacts(
+    spheres, i0, i1, o, k, c, mu, v_eps, visc_max, px, py, pz, R, gx, gy, gz,
+    vx, vy, vz, ox, oy, oz, part,
+):  # fmt: skip
+    """:func:`prism_contacts` for spheres ``i0 .. i1 - 1`` against prism row ``o``: adds to
+    ``part``, returns how many touch."""
+    count = 0
+    for i in range(i0, i1):
+        sx, sy, sz, rad = spheres[i, 0], spheres[i, 1], spheres[i, 2], spheres[i, 3]
+        wx = px + R[0, 0] * sx + R[0, 1] * sy + R[0, 2] * sz
+        wy = py + R[1, 0] * sx + R[1, 1] * sy + R[1, 2] * sz
+        wz = pz + R[2, 0] * sx + R[2, 1] * sy + R[2, 2] * sz
+        if _outside(o, wx, wy, wz, rad):
+            continue
+        d, nx, ny, nz = prism_distance(o, wx, wy, wz)
+        delta = rad - d
+        if delta <= 0.0:
+            continue
+        _penalty(
+            k, c, mu, v_eps, visc_max, delta, nx, ny, nz,
+            wx - rad * nx - gx, wy - rad * ny - gy, wz - rad * nz - gz,
+            vx, vy, vz, ox, oy, oz, part,
+        )  # fmt: skip
+        count += 1
+    return count
 
 
 # --------------------------------------------------------------------------- free flight
@@ -749,7 +763,7 @@ def _advance(
     accelerations and ``sweep`` (7,) the swept origin box [min xyz, max xyz] and the rotation
     angle ``theta`` (rad) of the substeps. ``ksph``, ``kchunks``, ``kshapes``, ``prisms``: the
     static prisms' contact (:func:`prism_contacts`; no prisms: none); ``pairs``: a buffer of
-    at least spheres x prisms rows, 3 columns (int64) for :func:`prism_pairs`."""
+    at least chunks x prisms rows, 3 columns (int64) for :func:`prism_pairs`."""
     w_max, me, ie0, ie1, ie2 = B[4], B[5], B[6], B[7], B[8]  # PhysX's copies
     cx, cy, cz = P[5], -P[6], -P[7]  # CoM in body FLU
     px, py, pz = state[0], state[1], state[2]
@@ -779,7 +793,7 @@ def _advance(
         speed = math.sqrt(vx * vx + vy * vy + vz * vz)
         spin = math.sqrt(ox * ox + oy * oy + oz * oz) * contact[4]
         margin = (speed + spin) * span + 0.5 * PRISM_ACCEL_BOUND * span * span + 0.01
-        n_pairs = prism_pairs(ksph, kchunks, kshapes, prisms, px, py, pz, R, margin, pairs)
+        n_pairs = prism_pairs(kchunks, kshapes, prisms, px, py, pz, R, margin, pairs)
         with_prisms = n_pairs > 0
     for k in range(k0, k1):
         v0x, v0y, v0z, o0x, o0y, o0z = vx, vy, vz, ox, oy, oz
@@ -801,7 +815,7 @@ def _advance(
         if with_prisms:
             touch[:] = 0.0
             prism_contacts(
-                ksph, prisms, pairs, n_pairs, contact, visc_max,
+                ksph, kchunks, kshapes, prisms, pairs, n_pairs, contact, visc_max,
                 px, py, pz, R, gx, gy, gz, vx, vy, vz, ox, oy, oz, touch,
             )  # fmt: skip
             f0, f1, f2 = f0 + touch[0], f1 + touch[1], f2 + touch[2]
@@ -990,7 +1004,7 @@ def kernel_flight_all(
     a = np.zeros(6)
     sweep = np.empty(7)
     n_sub = wrenches.shape[1]
-    pairs = np.empty((ksph.shape[0] * prisms.shape[1], 3), dtype=np.int64)
+    pairs = np.empty((kchunks.shape[0] * prisms.shape[1], 3), dtype=np.int64)
     for i in range(state.shape[0]):
         row[:] = state[i]
         _advance(

@@ -76,9 +76,8 @@ def hull_contact_spheres(shapes) -> tuple[np.ndarray, np.ndarray, int]:
         ``(spheres, chunks, shapes)``: (s, 4) centre (m) and radius (m); (c, 6) runs of
         neighbouring spheres (first and end row, the centre (3) and radius (m) of a ball
         around them); (h, 6) per shape the first and end row of its chunks and a ball around
-        them: :func:`uwdock.sim.fastpath.prism_pairs` culls shapes, then chunks, then
-        spheres once per control step, :func:`uwdock.sim.fastpath.prism_contacts` averages
-        per shape.
+        them: :func:`uwdock.sim.fastpath.prism_contacts` culls shapes, then chunks, and
+        averages per shape.
     """
     rows: list[list[float]] = []
     chunks: list[list[float]] = []

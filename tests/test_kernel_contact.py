@@ -165,18 +165,20 @@ def _floor(mu=0.4, top=0.0):
 def _forces(spheres, chunks, shapes, prisms, contact, p, v, w, g=None, visc_max=1e9):
     R = np.eye(3)
     g = p if g is None else g
-    pairs = np.empty((len(spheres) * len(prisms), 3), dtype=np.int64)
-    n = prism_pairs(spheres, chunks, shapes, prisms, *p, R, 0.0, pairs)
+    pairs = np.empty((len(chunks) * len(prisms), 3), dtype=np.int64)
+    n = prism_pairs(chunks, shapes, prisms, *p, R, 0.0, pairs)
     out = np.zeros(6)
-    prism_contacts(spheres, prisms, pairs, n, contact, visc_max, *p, R, *g, *v, *w, out)
+    prism_contacts(
+        spheres, chunks, shapes, prisms, pairs, n, contact, visc_max, *p, R, *g, *v, *w, out
+    )
     return out
 
 
-def test_the_pairs_a_step_tests_are_every_sphere_within_the_margin_of_a_prism():
-    """prism_pairs keeps a (sphere, prism) pair exactly when the sphere's surface is within the
-    margin of the prism (brute force over every sphere and prism), at hull poses around the
-    docking station's shapes; so a sphere it drops cannot touch while the hull moves less than
-    the margin."""
+def test_the_pairs_a_step_tests_hold_every_sphere_within_the_margin_of_a_prism():
+    """prism_pairs keeps the (chunk, prism) pair of every sphere whose surface comes within the
+    margin of a prism (brute force over every sphere and prism) at hull poses around the docking
+    station's shapes, so a pair it drops cannot touch while the hull moves less than the
+    margin."""
     from uwdock.rl.batch_env import BatchDockingEnv
 
     spheres, chunks, shapes = hull_contact_spheres(DEFAULT_COLLISION)
@@ -187,28 +189,30 @@ def test_the_pairs_a_step_tests_are_every_sphere_within_the_margin_of_a_prism():
     finally:
         env.close()
     lo, hi = prisms[:, :3].min(axis=0), prisms[:, 3:6].max(axis=0)
+    chunk_of = np.empty(len(spheres), dtype=int)
+    for g, (i0, i1) in enumerate(chunks[:, :2].astype(int)):
+        chunk_of[i0:i1] = g
     rng = np.random.default_rng(5)
-    pairs = np.empty((len(spheres) * len(prisms), 3), dtype=np.int64)
-    kept_any = 0
+    pairs = np.empty((len(chunks) * len(prisms), 3), dtype=np.int64)
+    near = 0
     for _ in range(12):
         R = _rot(rng.normal(size=3), rng.uniform(0.0, 0.5))
         p = rng.uniform(lo - 0.3, hi + 0.3)
         margin = rng.uniform(0.01, 0.15)
-        n = prism_pairs(spheres, chunks, shapes, prisms, *p, R, margin, pairs)
-        got = {(int(i), int(j)) for i, j, _ in pairs[:n]}
+        n = prism_pairs(chunks, shapes, prisms, *p, R, margin, pairs)
+        got = {(int(g), int(j)) for g, j, _ in pairs[:n]}
         w = spheres[:, :3] @ R.T + p
-        want = {
-            (i, j)
+        need = {
+            (int(chunk_of[i]), j)
             for i in range(len(spheres))
             for j in range(len(prisms))
             if prism_distance(prisms[j], *w[i])[0] - spheres[i, 3] <= margin
         }
-        assert got == want
-        # shape by shape, the rows of one shape contiguous (prism_contacts averages per shape)
-        sh = pairs[:n, 2]
-        assert (np.diff(sh) >= 0).all()
-        kept_any += n
-    assert kept_any > 0
+        assert need <= got
+        assert len(got) < len(chunks) * len(prisms) / 20  # and it culls
+        assert (np.diff(pairs[:n, 2]) >= 0).all()  # shape by shape (averaged per shape)
+        near += len(need)
+    assert near > 0
 
 
 def test_one_sphere_pressed_into_a_face_gets_the_spring_and_damper_force():
