@@ -459,6 +459,9 @@ import click
 from uwdock.dockcore.cli import run_group
 
 SIG = getattr(signal, os.environ["SWALLOWED_SIGNAL"])
+# Ctrl-C as at a terminal: started from a suite run in the background by a non-interactive
+# shell (`cmd &`), this process would inherit SIGINT ignored, which run_group leaves alone
+signal.signal(signal.SIGINT, signal.default_int_handler)
 
 class Dropped:
     def __del__(self):
