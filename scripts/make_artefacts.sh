@@ -141,7 +141,9 @@ scratch() {  # the true-pose recipe: PPO from scratch, then its best/ at collisi
 # the current detector, the docking station's contact in the numba kernel (batch_contact =
 # "kernel": no PhysX in training). Stage 1 from scratch with near-seat starts (30 % of the early
 # episodes start just above the seat); stage 2 from its best/, collision penalty 100, keeping the
-# evaluation of highest return. The batch over BATCH_WORKERS processes (default 2).
+# evaluation of highest return. The batch over BATCH_WORKERS processes (default 2, the count the
+# shipped policy trained with). A run repeats bit for bit on the same kind of machine; numba and
+# torch compile for the CPU, so another CPU model can give another policy of the same recipe.
 realistic() {
   local seed=${SEED:-2}
   two_stages "$seed" configs/realistic_batched_yaw_contact_near_kernel_ppo.toml \
