@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import datetime as _dt
+import hashlib
 import importlib.metadata
 import os
 import platform
@@ -78,6 +79,39 @@ def package_versions(names: tuple[str, ...] = TRACKED_PACKAGES) -> dict[str, str
     return out
 
 
+def cpu_description(cpuinfo: str | os.PathLike[str] = "/proc/cpuinfo") -> dict[str, Any]:
+    """The first CPU of ``cpuinfo`` (Linux's format): vendor, model name, family, model and
+    stepping, and the SHA-256 (first 16 hex digits) of its sorted feature flags. Numba compiles
+    for the host CPU's features and torch picks its kernels by them, so two runs of one recipe
+    repeat bit for bit only where these agree. ``{}`` where the file cannot be read (not Linux)."""
+    try:
+        text = Path(cpuinfo).read_text(encoding="utf-8", errors="replace")
+    except OSError:
+        return {}
+    fields: dict[str, str] = {}
+    for line in text.splitlines():
+        if not line.strip():
+            if fields:
+                break  # the first processor's block only
+            continue
+        key, sep, value = line.partition(":")
+        if sep:
+            fields.setdefault(key.strip(), value.strip())
+    names = {
+        "vendor_id": "vendor",
+        "model name": "model_name",
+        "cpu family": "family",
+        "model": "model",
+        "stepping": "stepping",
+    }
+    out: dict[str, Any] = {new: fields[old] for old, new in names.items() if old in fields}
+    flags = fields.get("flags") or fields.get("Features")  # x86 / arm64
+    if flags:
+        joined = " ".join(sorted(flags.split()))
+        out["flags_sha256"] = hashlib.sha256(joined.encode()).hexdigest()[:16]
+    return out
+
+
 def provenance(
     configs: Mapping[str, Any] | None = None, extra: Mapping[str, Any] | None = None
 ) -> dict[str, Any]:
@@ -92,6 +126,7 @@ def provenance(
             "platform": platform.platform(),
             "processor": platform.machine(),
             "cpus": os.cpu_count(),
+            "cpu": cpu_description(),
         },
         "config": {k: to_dict(v) for k, v in (configs or {}).items()},
         **(dict(extra) if extra else {}),

@@ -120,6 +120,34 @@ def test_provenance_records_config_commit_versions(tmp_path):
     assert load_config(Outer, tmp_path / "config.toml", section="outer").steps == 7
 
 
+def test_provenance_records_the_cpu_a_run_compiled_for(tmp_path):
+    """The first processor's identity and a hash of its sorted flags: the same flags in another
+    order hash alike, one flag more does not; an unreadable file gives {}."""
+    from uwdock.dockcore.provenance import cpu_description
+
+    block = (
+        "processor\t: {i}\nvendor_id\t: AuthenticAMD\ncpu family\t: 25\nmodel\t\t: 1\n"
+        "model name\t: AMD EPYC 7B13\nstepping\t: 1\nflags\t\t: {flags}\n\n"
+    )
+    a, b, c = tmp_path / "a", tmp_path / "b", tmp_path / "c"
+    a.write_text(block.format(i=0, flags="fpu sse avx2") + block.format(i=1, flags="other"))
+    b.write_text(block.format(i=0, flags="avx2 fpu sse"))
+    c.write_text(block.format(i=0, flags="avx2 fpu sse avx512f"))
+    da = cpu_description(a)
+    assert {k: da[k] for k in ("vendor", "model_name", "family", "model", "stepping")} == {
+        "vendor": "AuthenticAMD",
+        "model_name": "AMD EPYC 7B13",
+        "family": "25",
+        "model": "1",
+        "stepping": "1",
+    }
+    assert da["flags_sha256"] == cpu_description(b)["flags_sha256"]
+    assert da["flags_sha256"] != cpu_description(c)["flags_sha256"]
+    assert len(da["flags_sha256"]) == 16
+    assert cpu_description(tmp_path / "missing") == {}
+    assert "cpu" in write_provenance(tmp_path / "run", {})["machine"]
+
+
 def test_interrupts_deferred_holds_a_signal_until_the_step_is_whole():
     """A SIGTERM sent inside the block reaches the process's handler only after the block (a
     scene whose constructor it cut in half segfaulted on its destruction); one sent after it
