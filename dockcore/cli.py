@@ -17,6 +17,7 @@ from __future__ import annotations
 import atexit
 import errno
 import functools
+import gc
 import importlib
 import os
 import signal
@@ -185,6 +186,11 @@ def _on_sigint(signum: int, frame: Any) -> None:
 
 #: the signals whose handlers :func:`run_group` installed, while its command runs
 _installed: dict[int, Any] = {}
+#: The exception that ended an interrupted command, kept until the process ends: its traceback
+#: holds the frames, and so the native objects (a SAPIEN scene, its renderer) that the command
+#: was using when the signal landed. Released at the end of the ``except`` block, they would be
+#: destroyed there, mid-work, which can segfault after the one line has been written.
+_interrupt_kept: list[BaseException] = []
 
 
 def reclaim_signals() -> None:
@@ -257,6 +263,7 @@ def run_group(group: click.Group, args: list[str] | None = None) -> None:
             signal.signal(signal.SIGINT, late if late is not None else previous_int)
     if _received and code in (130, 128 + signal.SIGTERM) and args is None and _is_process_entry():
         _end_interrupted(code)
+    _interrupt_kept.clear()  # an in-process caller goes on: its frames may go
     sys.exit(code)
 
 
@@ -266,7 +273,10 @@ def _end_interrupted(code: int) -> None:
     (multiprocessing's, temporary folders'); what is skipped is the interpreter's teardown of
     every module, where native libraries interrupted mid-work (SAPIEN's renderer, Vulkan) can
     still crash and turn the one-line exit 143 into a segfault (seen once in ~14 SIGTERMs of
-    ``rl episode`` three seconds in: ``tests/test_hostile_rl.py``)."""
+    ``rl episode`` three seconds in: ``tests/test_hostile_rl.py``). The interrupted command's
+    frames stay alive to the end (``_interrupt_kept``) and the cyclic garbage collector is off,
+    so no native object is destroyed on the way out."""
+    gc.disable()
     try:
         atexit._run_exitfuncs()
     finally:
@@ -286,12 +296,14 @@ def _invoke(group: click.Group, argv: list[str]) -> int:
         # interrupt): make the context, invoke, and let every exception come here
         with group.make_context(Path(sys.argv[0]).name or group.name, argv) as ctx:
             group.invoke(ctx)
-    except _Interrupted:
+    except _Interrupted as exc:
+        _interrupt_kept.append(exc)
         if os.environ.get("UWDOCK_DEBUG"):  # where the signal landed
             traceback.print_exc()
         click.echo("error: interrupted (SIGTERM)", err=True)
         return 128 + signal.SIGTERM
-    except (KeyboardInterrupt, click.exceptions.Abort):
+    except (KeyboardInterrupt, click.exceptions.Abort) as exc:
+        _interrupt_kept.append(exc)
         if _received[-1:] == [signal.SIGTERM]:  # a library re-raised it as a plain interrupt
             click.echo("error: interrupted (SIGTERM)", err=True)
             return 128 + signal.SIGTERM
@@ -314,6 +326,7 @@ def _invoke(group: click.Group, argv: list[str]) -> int:
         return 2
     except Exception as exc:  # a bug: one line, the traceback on request
         if _received:  # what an interrupt left behind (e.g. a module that failed to load)
+            _interrupt_kept.append(exc)
             sigterm = signal.SIGTERM in _received
             click.echo(f"error: interrupted{' (SIGTERM)' if sigterm else ''}", err=True)
             return 128 + signal.SIGTERM if sigterm else 130
