@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import datetime as _dt
+import functools
 import hashlib
 import importlib.metadata
 import os
@@ -83,11 +84,17 @@ def cpu_description(cpuinfo: str | os.PathLike[str] = "/proc/cpuinfo") -> dict[s
     """The first CPU of ``cpuinfo`` (Linux's format): vendor, model name, family, model and
     stepping, and the SHA-256 (first 16 hex digits) of its sorted feature flags. Numba compiles
     for the host CPU's features and torch picks its kernels by them, so two runs of one recipe
-    repeat bit for bit only where these agree. ``{}`` where the file cannot be read (not Linux)."""
+    repeat bit for bit only where these agree. ``{}`` where the file cannot be read (not Linux).
+    Read once per file and process (every record a process writes names the same CPU)."""
+    return dict(_cpu_fields(str(cpuinfo)))
+
+
+@functools.cache
+def _cpu_fields(cpuinfo: str) -> tuple[tuple[str, str], ...]:
     try:
         text = Path(cpuinfo).read_text(encoding="utf-8", errors="replace")
     except OSError:
-        return {}
+        return ()
     fields: dict[str, str] = {}
     for line in text.splitlines():
         if not line.strip():
@@ -104,12 +111,12 @@ def cpu_description(cpuinfo: str | os.PathLike[str] = "/proc/cpuinfo") -> dict[s
         "model": "model",
         "stepping": "stepping",
     }
-    out: dict[str, Any] = {new: fields[old] for old, new in names.items() if old in fields}
+    out = [(new, fields[old]) for old, new in names.items() if old in fields]
     flags = fields.get("flags") or fields.get("Features")  # x86 / arm64
     if flags:
         joined = " ".join(sorted(flags.split()))
-        out["flags_sha256"] = hashlib.sha256(joined.encode()).hexdigest()[:16]
-    return out
+        out.append(("flags_sha256", hashlib.sha256(joined.encode()).hexdigest()[:16]))
+    return tuple(out)
 
 
 def provenance(
