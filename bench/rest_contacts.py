@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_docking
 
 from uwdock.dockcore.bench import save_results
 
@@ -100,9 +101,19 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--name", default="rest_contacts")
     ap.add_argument("--out-dir", type=Path, default=HERE / "results")
     a = ap.parse_args(argv)
-    at_s = [float(x) for x in a.at_s.split(",")]
+    try:
+        episodes = [int(x) for x in a.episodes.split(",")]
+        at_s = [float(x) for x in a.at_s.split(",")]
+    except ValueError as exc:
+        ap.error(f"--episodes takes integers, --at-s numbers, each comma-separated ({exc})")
+    if min(episodes) < 0 or not all(0 < t < 1e6 for t in at_s):
+        ap.error("--episodes must be >= 0 and --at-s moments finite and > 0 s")
+    from bench_docking import ROWS
+
+    if a.row not in {r.name for r in ROWS}:
+        ap.error(f"--row {a.row!r} is not a condition of bench_docking.py")
     rows = []
-    for k in (int(x) for x in a.episodes.split(",")):
+    for k in episodes:
         for r in trace(a.policy, a.row, a.seed, k, at_s):
             rows.append(r)
             pts = "; ".join(f"{c['point_ds_m']}" for c in r["contacts"]) or "none"
