@@ -29,7 +29,7 @@ import numpy as np
 from uwdock.calibration.frames import inv_T_b, wrap_angle_rad
 from uwdock.rl.config import EnvConfig
 from uwdock.rl.error_model import MIN_VIEW_DEPTH_M, N_ERR, N_VISIBLE_BINS, ErrorModel
-from uwdock.rl.observation import ACC_SCALE_MPS2, OBS_BOUND, POS_SCALE_M
+from uwdock.rl.observation import ACC_SCALE_MPS2, FINE_ERROR_SCALE_M, OBS_BOUND, POS_SCALE_M
 from uwdock.rl.rewards import RewardConfig
 from uwdock.rl.task import DockingTaskConfig
 
@@ -395,4 +395,6 @@ def observation_frames_b(
         if contact is None:
             raise ValueError("obs_contact: the frames need the contact values")
         parts.append(np.asarray(contact, dtype=np.float64).reshape(-1, 2))
+    if cfg.obs_fine_error:
+        parts.append(np.tanh(np.asarray(e_hat, dtype=np.float64) / FINE_ERROR_SCALE_M))
     return np.clip(np.concatenate(parts, axis=1), -OBS_BOUND, OBS_BOUND).astype(np.float32)

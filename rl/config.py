@@ -96,6 +96,10 @@ class EnvConfig:
             a trace of the IMU-detected collisions and how long it has been at rest
             (:class:`rl.observation.ContactMemory`; ours, not in the paper's observation), so
             a policy can tell it is wedged or has landed off the seat.
+        obs_fine_error: append the estimated error to the docking point again as tanh(e /
+            0.1 m) (3 values; :data:`rl.observation.FINE_ERROR_SCALE_M`): the error's first
+            entries are scaled by 5 m, so the seat's last centimetres are a few hundredths of
+            them; these resolve them (ours, not in the paper's observation).
         obs_frames: stack this many observation frames (1 = no history).
         obs_privileged: asymmetric actor-critic: the observation ends with privileged state
             (true errors, the estimate's error, time left) that only the critic reads and only
@@ -149,6 +153,7 @@ class EnvConfig:
     obs_last_action: bool = False
     obs_uncertainty: bool = True
     obs_contact: bool = False
+    obs_fine_error: bool = False
     obs_frames: Annotated[int, Interval(ge=1, le=64)] = 1
     obs_privileged: bool = False
     error_model_path: str | None = None

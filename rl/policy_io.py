@@ -30,6 +30,7 @@ POLICY_INTERFACE_FIELDS = (
     "obs_last_action",
     "obs_uncertainty",
     "obs_contact",
+    "obs_fine_error",
     "obs_frames",
     "obs_privileged",
     "wrench_limits",
@@ -181,8 +182,8 @@ def check_obs_dim(policy_dim: int, env_dim: int, policy: str) -> None:
         raise DockError(
             f"policy {policy} takes {policy_dim} observation values, the env gives {env_dim}: "
             "it was trained with another observation layout (obs_last_action, obs_uncertainty, "
-            "obs_contact, obs_frames); keep its run's config.toml (or the .json beside an .onnx) "
-            "next to it"
+            "obs_contact, obs_fine_error, obs_frames); keep its run's config.toml (or the .json "
+            "beside an .onnx) next to it"
         )
 
 
