@@ -381,10 +381,30 @@ def _check_request(
     check_env_files(cfg.env)
     init = None
     if init_policy:
-        init = load_policy(init_policy)  # refuses damaged or non-finite policies
+        model, vn = load_policy(init_policy)  # refuses damaged or non-finite policies
         env_dim = observation_size(cfg.env)
-        check_obs_dim(int(init[0].observation_space.shape[0]), env_dim, init_policy)
+        policy_dim = int(model.observation_space.shape[0])
+        index = _widening(init_policy, cfg.env) if policy_dim != env_dim else None
+        if index is None or index.size != policy_dim:
+            check_obs_dim(policy_dim, env_dim, init_policy)
+        init = (model, vn, index)
     return pool, init
+
+
+def _widening(init_policy: str, env: EnvConfig):
+    """Where the init policy's observation entries sit in ``env``'s when ``env`` only adds
+    inputs it lacks (:mod:`rl.widen`); None when its layout is unknown (no run config) or not a
+    widening of it (the dimension check then refuses it)."""
+    from uwdock.rl.env_settings import policy_training_env
+    from uwdock.rl.widen import widening_index
+
+    trained = policy_training_env(init_policy)
+    if trained is None:
+        return None
+    try:
+        return widening_index(trained.cfg, env)
+    except ValueError:
+        return None
 
 
 def _check_run_folder(run: Path, resume: bool) -> None:
@@ -470,7 +490,7 @@ def _run(
             session = TrainingSession(cfg, run, model, vecnorm, note)
             session.restore(unit)
         else:
-            model, vecnorm, warm = _new_model(cfg, run, init, venv, progress)
+            model, vecnorm, warm = _new_model(cfg, run, init, venv, progress, note)
             session = TrainingSession(cfg, run, model, vecnorm, note)
             session.start(warm_started=warm)
         if model.num_timesteps < cfg.total_steps:
@@ -514,7 +534,14 @@ def _restored_model(algo_cls: Any, run: Path, unit: Unit, venv) -> tuple[Any, An
     return model, vecnorm
 
 
-def _new_model(cfg: TrainConfig, run: Path, init, venv, progress: bool) -> tuple[Any, Any, bool]:
+def _new_model(
+    cfg: TrainConfig,
+    run: Path,
+    init,
+    venv,
+    progress: bool,
+    note: Callable[[str], None] = _stderr_note,
+) -> tuple[Any, Any, bool]:
     """A new run's model and normalisation (None without one), warm-started by imitation or
     from ``init``'s weights; and whether it was warm-started."""
     from stable_baselines3.common.vec_env import VecNormalize
@@ -537,10 +564,24 @@ def _new_model(cfg: TrainConfig, run: Path, init, venv, progress: bool) -> tuple
             # rollouts would shift the network's inputs under it
             vecnorm.training = False
     if init is not None:
-        src, vn_src = init
-        model.policy.load_state_dict(src.policy.state_dict())
+        src, vn_src, index = init
+        if index is None:
+            model.policy.load_state_dict(src.policy.state_dict())
+        else:  # the run's observation adds inputs the init policy lacks (rl.widen): at zero
+            from uwdock.rl.widen import widen_obs_rms, widen_state_dict
+
+            old_dim, new_dim = index.size, observation_size(cfg.env)
+            model.policy.load_state_dict(
+                widen_state_dict(
+                    src.policy.state_dict(), model.policy.state_dict(), index, old_dim, new_dim
+                )
+            )
+            note(f"--init-policy: widened from {old_dim} to {new_dim} observation values")
         if vecnorm is not None and vn_src is not None:
-            vecnorm.obs_rms, vecnorm.ret_rms = vn_src.obs_rms, vn_src.ret_rms
+            obs_rms = (
+                vn_src.obs_rms if index is None else widen_obs_rms(vn_src.obs_rms, index, new_dim)
+            )
+            vecnorm.obs_rms, vecnorm.ret_rms = obs_rms, vn_src.ret_rms
     return model, vecnorm, warm
 
 
