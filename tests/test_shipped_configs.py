@@ -98,23 +98,25 @@ def test_the_true_pose_policy_is_the_from_scratch_recipe():
 def test_shipped_policy_is_the_realistic_recipe():
     """The main job's policy: stage 2 of the realistic recipe (its own drifting navigation, the
     EvoLogics USBL, contact sensing, the refitted error model; near-seat starts in stage 1, the
-    highest-return evaluation kept in stage 2; the docking station's contact in the numba
-    kernel while training), from a stage 1 of the committed stage-1 config
-    whose best/ is recorded beside it; it matches its checksums and reads the observation the
-    recipe's env gives."""
+    highest-return evaluation kept in stage 2, the fine error added in stage 2; the docking
+    station's contact in the numba kernel while training), from a stage 1 of the committed
+    stage-1 config whose best/ is recorded beside it; it matches its checksums and reads the
+    observation the recipe's env gives, three values wider than stage 1's."""
     import hashlib
 
     from uwdock.rl.observation import observation_size
 
     shipped, cfg, model = _shipped_stage2(
-        "realistic_ppo", "realistic_batched_yaw_contact_gentle_return_kernel_ppo.toml"
+        "realistic_ppo", "realistic_batched_yaw_contact_gentle_return_kernel_fine_ppo.toml"
     )
     assert cfg.env.nav.preset == "mems-ahrs-dvl" and cfg.env.usbl.preset == "evologics-s2cr"
     assert cfg.env.obs_contact and cfg.env.error_model_path.endswith("_ar1_refit.json")
     assert cfg.env.world.batch_contact == "kernel"
     stage1_path = ROOT / "configs" / "realistic_batched_yaw_contact_near_kernel_ppo.toml"
     stage1 = load_config(TrainConfig, stage1_path, section="train")
-    assert replace(stage1.env, reward=cfg.env.reward) == cfg.env  # only the reward differs
+    assert cfg.env.obs_fine_error and not stage1.env.obs_fine_error
+    # only the reward and the fine error differ
+    assert replace(stage1.env, reward=cfg.env.reward, obs_fine_error=True) == cfg.env
     stage1_prov = json.loads((shipped / "stage1_provenance.json").read_text(encoding="utf-8"))
     assert stage1_prov["git"]["dirty"] is False and len(stage1_prov["git"]["commit"]) == 40
     assert "realistic_batched_yaw_contact_near_kernel_ppo.toml" in stage1_prov["command"]
@@ -129,6 +131,7 @@ def test_shipped_policy_is_the_realistic_recipe():
         kept / f"realistic_kernel_ship_s{cfg.seed}" / "best" / "checksums.sha256"
     ).read_text()
     assert (shipped / "checksums.sha256").read_text() == (
-        kept / f"realistic_kernel_ship_return_s{cfg.seed}" / "best" / "checksums.sha256"
+        kept / f"realistic_kernel_ship_fine_s{cfg.seed}" / "best" / "checksums.sha256"
     ).read_text()
     assert model.observation_space.shape[0] == observation_size(cfg.env)
+    assert observation_size(cfg.env) == observation_size(stage1.env) + 3
