@@ -49,12 +49,14 @@ from uwdock.rl.checkpoint import (
 )
 from uwdock.rl.config import EnvConfig, check_env_files
 from uwdock.rl.curriculum import CurriculumConfig
+from uwdock.rl.env_settings import policy_training_env
 from uwdock.rl.imitation import ImitationConfig, warm_start
 from uwdock.rl.observation import actor_observation_size, observation_size
 from uwdock.rl.policy_io import check_obs_dim, load_policy
 from uwdock.rl.ray_envs import RayEnvWorkers
 from uwdock.rl.session import TrainingSession, load_vecnormalize
 from uwdock.rl.vec_envs import EnvsPerWorker, EnvWorkers, env_groups
+from uwdock.rl.widen import widen_obs_rms, widen_state_dict, widening_index
 
 _LearningRate = Annotated[float, Interval(gt=0, le=1)]
 _Width = Annotated[int, Interval(ge=1, le=4096)]  # units in a hidden layer
@@ -395,9 +397,6 @@ def _widening(init_policy: str, env: EnvConfig):
     """Where the init policy's observation entries sit in ``env``'s when ``env`` only adds
     inputs it lacks (:mod:`rl.widen`); None when its layout is unknown (no run config) or not a
     widening of it (the dimension check then refuses it)."""
-    from uwdock.rl.env_settings import policy_training_env
-    from uwdock.rl.widen import widening_index
-
     trained = policy_training_env(init_policy)
     if trained is None:
         return None
@@ -568,8 +567,6 @@ def _new_model(
         if index is None:
             model.policy.load_state_dict(src.policy.state_dict())
         else:  # the run's observation adds inputs the init policy lacks (rl.widen): at zero
-            from uwdock.rl.widen import widen_obs_rms, widen_state_dict
-
             old_dim, new_dim = index.size, observation_size(cfg.env)
             model.policy.load_state_dict(
                 widen_state_dict(

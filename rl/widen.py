@@ -14,6 +14,7 @@ fine error without training stage 1 again.
 
 from __future__ import annotations
 
+import copy
 from typing import Any
 
 import numpy as np
@@ -91,8 +92,6 @@ def widen_state_dict(
 def widen_obs_rms(src_rms, index: np.ndarray, new_dim: int):
     """A copy of the running observation statistics ``src_rms`` (SB3's RunningMeanStd) over
     ``new_dim`` entries: the old ones at ``index``, mean 0 and variance 1 elsewhere."""
-    import copy
-
     rms = copy.deepcopy(src_rms)
     mean = np.zeros(new_dim, dtype=np.asarray(src_rms.mean).dtype)
     var = np.ones(new_dim, dtype=np.asarray(src_rms.var).dtype)
