@@ -23,8 +23,9 @@
 # `configs/scratch_error_model_precision_soft_ppo.toml` from its best/ (seed SEED, default 1: the
 # seed shipped, recorded in bench/results/scratch_runs/error_model_precision{,_soft}_s1);
 # training `configs/realistic_batched_yaw_contact_near_kernel_ppo.toml` then
-# `configs/realistic_batched_yaw_contact_gentle_return_kernel_fine_ppo.toml` from its best/ (seed SEED,
-# default 2; the seed shipped is recorded in rl/policies/realistic_ppo/ and in the docking page);
+# `configs/realistic_batched_yaw_contact_gentle_return_kernel_fine_ppo.toml` from its best/
+# (seed SEED, default 2; the seed shipped is recorded in rl/policies/realistic_ppo/ and in the
+# docking page);
 # evaluations on episode seeds 1000-1099.
 # WORK (default /tmp/uwdock-artefacts) holds the datasets, the run folder and the evaluation
 # folders; an interrupted stage resumes there.
@@ -141,9 +142,9 @@ scratch() {  # the true-pose recipe: PPO from scratch, then its best/ at collisi
 # the current detector, the docking station's contact in the numba kernel (batch_contact =
 # "kernel": no PhysX in training). Stage 1 from scratch with near-seat starts (30 % of the early
 # episodes start just above the seat); stage 2 from its best/, collision penalty 100, keeping the
-# evaluation of highest return, with the fine error in the observation (obs_fine_error: stage 1's
-# policy is widened for it, uwdock.rl.widen). The batch over BATCH_WORKERS processes (default 2, the count the
-# shipped policy trained with). A run repeats bit for bit on the same kind of machine; numba and
+# evaluation of highest return, with the fine error in the observation (obs_fine_error: stage
+# 1's policy is widened for it, uwdock.rl.widen). The batch over BATCH_WORKERS processes (default
+# 2, the count the shipped policy trained with). A run repeats bit for bit on the same kind of machine; numba and
 # torch compile for the CPU, so another CPU model can give another policy of the same recipe.
 realistic() {
   local seed=${SEED:-2}
