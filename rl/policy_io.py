@@ -176,14 +176,15 @@ def load_policy(path: str | os.PathLike[str]):
     return model, vecnorm
 
 
-def check_obs_dim(policy_dim: int, env_dim: int, policy: str) -> None:
-    """Raise DockError when a policy's observation size differs from the env's."""
+def check_obs_dim(policy_dim: int, env_dim: int, policy: str, why: str = "") -> None:
+    """Raise DockError when a policy's observation size differs from the env's (``why``: a
+    reason to append)."""
     if policy_dim != env_dim:
         raise DockError(
             f"policy {policy} takes {policy_dim} observation values, the env gives {env_dim}: "
             "it was trained with another observation layout (obs_last_action, obs_uncertainty, "
             "obs_contact, obs_fine_error, obs_frames); keep its run's config.toml (or the .json "
-            "beside an .onnx) next to it"
+            "beside an .onnx) next to it" + (f" ({why})" if why else "")
         )
 
 

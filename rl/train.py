@@ -386,24 +386,24 @@ def _check_request(
         model, vn = load_policy(init_policy)  # refuses damaged or non-finite policies
         env_dim = observation_size(cfg.env)
         policy_dim = int(model.observation_space.shape[0])
-        index = _widening(init_policy, cfg.env) if policy_dim != env_dim else None
+        index, why = _widening(init_policy, cfg.env) if policy_dim != env_dim else (None, "")
         if index is None or index.size != policy_dim:
-            check_obs_dim(policy_dim, env_dim, init_policy)
+            check_obs_dim(policy_dim, env_dim, init_policy, why)
         init = (model, vn, index)
     return pool, init
 
 
-def _widening(init_policy: str, env: EnvConfig):
+def _widening(init_policy: str, env: EnvConfig) -> tuple[Any, str]:
     """Where the init policy's observation entries sit in ``env``'s when ``env`` only adds
-    inputs it lacks (:mod:`rl.widen`); None when its layout is unknown (no run config) or not a
-    widening of it (the dimension check then refuses it)."""
+    inputs it lacks (:mod:`rl.widen`), or None and why not: its layout is unknown (no run
+    config) or not a widening of ``env``'s (the dimension check then refuses it)."""
     trained = policy_training_env(init_policy)
     if trained is None:
-        return None
+        return None, "it has no run config to widen it from"
     try:
-        return widening_index(trained.cfg, env)
-    except ValueError:
-        return None
+        return widening_index(trained.cfg, env), ""
+    except ValueError as exc:
+        return None, f"not a widening of it: {exc}"
 
 
 def _check_run_folder(run: Path, resume: bool) -> None:
