@@ -80,12 +80,48 @@ def package_versions(names: tuple[str, ...] = TRACKED_PACKAGES) -> dict[str, str
     return out
 
 
+#: Environment variables that change a run's floating-point results without changing its code
+#: or config (which SIMD kernels NumPy, torch's MKL and ATen, and numba use; thread counts that
+#: split reductions): :func:`numerics_env` records those set.
+NUMERICS_ENV = (
+    "NPY_DISABLE_CPU_FEATURES",
+    "NPY_ENABLE_CPU_FEATURES",
+    "MKL_CBWR",
+    "MKL_ENABLE_INSTRUCTIONS",
+    "ATEN_CPU_CAPABILITY",
+    "NUMBA_CPU_NAME",
+    "NUMBA_CPU_FEATURES",
+    "OMP_NUM_THREADS",
+    "MKL_NUM_THREADS",
+    "OPENBLAS_NUM_THREADS",
+)
+
+
+def numerics_env(environ: Mapping[str, str] | None = None) -> dict[str, Any]:
+    """What besides the CPU picks a run's arithmetic: the :data:`NUMERICS_ENV` variables set in
+    ``environ`` (default ``os.environ``), and, when NumPy is already imported, the SIMD targets
+    its dispatcher enabled on this CPU (``numpy_simd``; NumPy is not imported for it).
+
+    Measured on one machine (docs/results/docking.md, session 28): the same training run gave
+    the same evaluations with numba compiled for a generic x86-64 CPU and with ATen held to
+    AVX2, but another run from 102,400 steps on with NumPy's AVX-512 kernels disabled, and
+    another from the start with ``MKL_CBWR=COMPATIBLE``."""
+    env = os.environ if environ is None else environ
+    out: dict[str, Any] = {k: env[k] for k in NUMERICS_ENV if k in env}
+    umath = sys.modules.get("numpy._core._multiarray_umath")
+    features = getattr(umath, "__cpu_features__", None)
+    dispatch = getattr(umath, "__cpu_dispatch__", None)
+    if isinstance(features, dict) and dispatch is not None:
+        out["numpy_simd"] = [str(t) for t in dispatch if features.get(t)]
+    return out
+
+
 def cpu_description(cpuinfo: str | os.PathLike[str] = "/proc/cpuinfo") -> dict[str, Any]:
     """The first CPU of ``cpuinfo`` (Linux's format): vendor, model name, family, model and
-    stepping, and the SHA-256 (first 16 hex digits) of its sorted feature flags. Numba compiles
-    for the host CPU's features and torch picks its kernels by them, so two runs of one recipe
-    repeat bit for bit only where these agree. ``{}`` where the file cannot be read (not Linux).
-    Read once per file and process (every record a process writes names the same CPU)."""
+    stepping, and the SHA-256 (first 16 hex digits) of its sorted feature flags. NumPy, MKL and
+    numba pick their kernels by the CPU's features (:func:`numerics_env`), so two runs of one
+    recipe repeat bit for bit only where these agree. ``{}`` where the file cannot be read (not
+    Linux). Read once per file and process (every record a process writes names the same CPU)."""
     return dict(_cpu_fields(str(cpuinfo)))
 
 
@@ -134,6 +170,7 @@ def provenance(
             "processor": platform.machine(),
             "cpus": os.cpu_count(),
             "cpu": cpu_description(),
+            "numerics": numerics_env(),
         },
         "config": {k: to_dict(v) for k, v in (configs or {}).items()},
         **(dict(extra) if extra else {}),

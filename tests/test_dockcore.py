@@ -148,6 +148,28 @@ def test_provenance_records_the_cpu_a_run_compiled_for(tmp_path):
     assert "cpu" in write_provenance(tmp_path / "run", {})["machine"]
 
 
+def test_provenance_records_what_picks_the_arithmetic(tmp_path, monkeypatch):
+    """The numerics variables set (only those), and NumPy's enabled SIMD targets: a subset of
+    its dispatch list that agrees with its own feature table."""
+    import numpy  # noqa: F401  (imported: its dispatcher's targets are recorded)
+    from numpy._core._multiarray_umath import __cpu_dispatch__, __cpu_features__
+
+    from uwdock.dockcore.provenance import NUMERICS_ENV, numerics_env
+
+    got = numerics_env({"MKL_CBWR": "COMPATIBLE", "HOME": "/root", "NUMBA_CPU_NAME": "generic"})
+    assert {k: got[k] for k in got if k != "numpy_simd"} == {
+        "MKL_CBWR": "COMPATIBLE",
+        "NUMBA_CPU_NAME": "generic",
+    }
+    assert got["numpy_simd"] == [t for t in __cpu_dispatch__ if __cpu_features__.get(t)]
+    assert numerics_env({}).keys() == {"numpy_simd"}
+    for k in NUMERICS_ENV:
+        monkeypatch.delenv(k, raising=False)
+    monkeypatch.setenv("NPY_DISABLE_CPU_FEATURES", "X86_V4 AVX512_ICL")
+    machine = write_provenance(tmp_path / "run", {})["machine"]
+    assert machine["numerics"]["NPY_DISABLE_CPU_FEATURES"] == "X86_V4 AVX512_ICL"
+
+
 def test_interrupts_deferred_holds_a_signal_until_the_step_is_whole():
     """A SIGTERM sent inside the block reaches the process's handler only after the block (a
     scene whose constructor it cut in half segfaulted on its destruction); one sent after it
