@@ -43,10 +43,11 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from uwdock.dockcore.bench import format_table, save_results
+
+ROOT = Path(__file__).resolve().parent.parent
 
 SWITCHES = (
     "default",
