@@ -22,10 +22,10 @@
 # (seed 0); training `configs/scratch_error_model_precision_ppo.toml` then
 # `configs/scratch_error_model_precision_soft_ppo.toml` from its best/ (seed SEED, default 1: the
 # seed shipped, recorded in bench/results/scratch_runs/error_model_precision{,_soft}_s1);
-# training `configs/realistic_batched_yaw_contact_near_kernel_ppo.toml` then
-# `configs/realistic_batched_yaw_contact_gentle_return_kernel_fine_ppo.toml` from its best/
-# (seed SEED, default 2; the seed shipped is recorded in rl/policies/realistic_ppo/ and in the
-# docking page);
+# training `configs/realistic_batched_yaw_contact_near_kernel_ppo.toml` (or the run STAGE1_RUN
+# names) then `configs/realistic_batched_yaw_contact_gentle_return_kernel_fine_collision70_ppo.toml`
+# from its best/ (seed SEED, default 2; the seed shipped is recorded in rl/policies/realistic_ppo/
+# and in the docking page);
 # evaluations on episode seeds 1000-1099.
 # WORK (default /tmp/uwdock-artefacts) holds the datasets, the run folder and the evaluation
 # folders; an interrupted stage resumes there.
@@ -113,21 +113,33 @@ policy() {
 
 # two_stages SEED STAGE1 STAGE2 RUN SUFFIX DEST CURVE: train STAGE1 into RUN, then STAGE2 from its
 # best/ into RUN_SUFFIX; with SHIP=1 copy stage 2's best/ into DEST with both stages' records
-# (further arguments go to both `rl train` calls)
+# (further arguments go to both `rl train` calls). With STAGE1_RUN set to a finished stage-1 run
+# folder (best/ with its checksums.sha256, provenance.json, eval_history.jsonl; e.g. one kept in
+# bench/results/scratch_runs), stage 1 is not trained: stage 2 starts from that run's best/,
+# checked against its checksums first.
 two_stages() {
-  local seed=$1 stage1=$2 stage2=$3 w=$4 suffix=$5 dest=$6 curve=$7
+  local seed=$1 stage1=$2 stage2=$3 w=$4 suffix=$5 dest=$6 curve=$7 s1=$4
   shift 7
-  train "$stage1" "$w" --seed "$seed" "$@"
-  train "$stage2" "${w}_$suffix" --seed "$seed" --init-policy "$w/best" "$@"
+  if [ -n "${STAGE1_RUN:-}" ]; then
+    s1=$STAGE1_RUN
+    [ -f "$s1/best/checksums.sha256" ] && [ -f "$s1/provenance.json" ] \
+      || die "STAGE1_RUN=$s1: not a kept run (best/checksums.sha256, provenance.json)"
+    (cd "$s1/best" && sha256sum -c --quiet checksums.sha256) \
+      || die "STAGE1_RUN=$s1: best/ differs from its checksums.sha256"
+    say "stage 1: the kept run $s1 (not trained again)"
+  else
+    train "$stage1" "$w" --seed "$seed" "$@"
+  fi
+  train "$stage2" "${w}_$suffix" --seed "$seed" --init-policy "$s1/best" "$@"
   if [ "$SHIP" != 1 ]; then
     say "trained ${w}_$suffix; $dest is left as it is (SHIP=1 or --ship replaces it)"
     (cd "${w}_$suffix/best" && sha256sum policy.zip vecnormalize.pkl)
     return
   fi
   ship "${w}_$suffix" "$dest" "$curve"
-  cp "$w/provenance.json" "$dest/stage1_provenance.json"  # stage 1's records beside stage 2's
-  cp "$w/eval_history.jsonl" "$dest/stage1_eval_history.jsonl"
-  (cd "$w/best" && sha256sum policy.zip vecnormalize.pkl) >"$dest/stage1_checksums.sha256"
+  cp "$s1/provenance.json" "$dest/stage1_provenance.json"  # stage 1's records beside stage 2's
+  cp "$s1/eval_history.jsonl" "$dest/stage1_eval_history.jsonl"
+  (cd "$s1/best" && sha256sum policy.zip vecnormalize.pkl) >"$dest/stage1_checksums.sha256"
 }
 
 scratch() {  # the true-pose recipe: PPO from scratch, then its best/ at collision penalty 30
@@ -141,16 +153,19 @@ scratch() {  # the true-pose recipe: PPO from scratch, then its best/ at collisi
 # its contact sensing in the observation (obs_contact), the error model with memory fitted with
 # the current detector, the docking station's contact in the numba kernel (batch_contact =
 # "kernel": no PhysX in training). Stage 1 from scratch with near-seat starts (30 % of the early
-# episodes start just above the seat); stage 2 from its best/, collision penalty 100, keeping the
-# evaluation of highest return, with the fine error in the observation (obs_fine_error: stage
-# 1's policy is widened for it, uwdock.rl.widen). The batch over BATCH_WORKERS processes (default
-# 2, the count the shipped policy trained with). A run repeats bit for bit on the same kind of machine; numba and
-# torch compile for the CPU, so another CPU model can give another policy of the same recipe.
+# episodes start just above the seat); stage 2 from its best/, collision penalty 70 (the
+# candidate of session 28's rule; the shipped policy's stage 2 had 100:
+# ..._gentle_return_kernel_fine_ppo.toml), keeping the evaluation of highest return, with the
+# fine error in the observation (obs_fine_error: stage 1's policy is widened for it,
+# uwdock.rl.widen). The batch over BATCH_WORKERS processes (default 2, the count the shipped
+# policy trained with). A run repeats bit for bit on the same kind of CPU only (numba, NumPy and
+# MKL pick their kernels by CPU: bench/bench_numerics.py); STAGE1_RUN=bench/results/scratch_runs/
+# realistic_kernel_ship_s2 starts stage 2 from the shipped stage 1 kept there.
 realistic() {
   local seed=${SEED:-2}
   two_stages "$seed" configs/realistic_batched_yaw_contact_near_kernel_ppo.toml \
-    configs/realistic_batched_yaw_contact_gentle_return_kernel_fine_ppo.toml \
-    "$WORK/run_realistic_kernel_s$seed" fine "$POLICY" training_curve_realistic.png \
+    configs/realistic_batched_yaw_contact_gentle_return_kernel_fine_collision70_ppo.toml \
+    "$WORK/run_realistic_kernel_s$seed" fine70 "$POLICY" training_curve_realistic.png \
     --batch-workers "${BATCH_WORKERS:-2}"
 }
 
