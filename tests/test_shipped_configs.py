@@ -98,16 +98,17 @@ def test_the_true_pose_policy_is_the_from_scratch_recipe():
 def test_shipped_policy_is_the_realistic_recipe():
     """The main job's policy: stage 2 of the realistic recipe (its own drifting navigation, the
     EvoLogics USBL, contact sensing, the refitted error model; near-seat starts in stage 1, the
-    highest-return evaluation kept in stage 2, the fine error added in stage 2; the docking
-    station's contact in the numba kernel while training), from a stage 1 of the committed
-    stage-1 config whose best/ is recorded beside it; it matches its checksums and reads the
-    observation the recipe's env gives, three values wider than stage 1's."""
+    highest-return evaluation kept in stage 2, the fine error added and the collision penalty 70
+    in stage 2; the docking station's contact in the numba kernel while training), from a stage
+    1 of the committed stage-1 config whose best/ is recorded beside it; it matches its checksums
+    and reads the observation the recipe's env gives, three values wider than stage 1's."""
     import hashlib
 
     from uwdock.rl.observation import observation_size
 
     shipped, cfg, model = _shipped_stage2(
-        "realistic_ppo", "realistic_batched_yaw_contact_gentle_return_kernel_fine_ppo.toml"
+        "realistic_ppo",
+        "realistic_batched_yaw_contact_gentle_return_kernel_fine_collision70_ppo.toml",
     )
     assert cfg.env.nav.preset == "mems-ahrs-dvl" and cfg.env.usbl.preset == "evologics-s2cr"
     assert cfg.env.obs_contact and cfg.env.error_model_path.endswith("_ar1_refit.json")
@@ -127,11 +128,15 @@ def test_shipped_policy_is_the_realistic_recipe():
         digest, name = line.split("  ", 1)
         assert hashlib.sha256((shipped / name).read_bytes()).hexdigest() == digest, name
     kept = ROOT / "bench" / "results" / "scratch_runs"  # both stages' best/, kept with the runs
+    # stage 1 is the kept seed-2 run (stage 2 of each seed starts from it: STAGE1_RUN)
     assert (shipped / "stage1_checksums.sha256").read_text() == (
-        kept / f"realistic_kernel_ship_s{cfg.seed}" / "best" / "checksums.sha256"
+        kept / "realistic_kernel_ship_s2" / "best" / "checksums.sha256"
+    ).read_text()
+    assert (shipped / "stage1_provenance.json").read_text() == (
+        kept / "realistic_kernel_ship_s2" / "provenance.json"
     ).read_text()
     assert (shipped / "checksums.sha256").read_text() == (
-        kept / f"realistic_kernel_ship_fine_s{cfg.seed}" / "best" / "checksums.sha256"
+        kept / f"realistic_kernel_ship_fine70_s{cfg.seed}" / "best" / "checksums.sha256"
     ).read_text()
     assert model.observation_space.shape[0] == observation_size(cfg.env)
     assert observation_size(cfg.env) == observation_size(stage1.env) + 3
