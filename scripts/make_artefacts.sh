@@ -7,7 +7,8 @@
 #   bash scripts/make_artefacts.sh models_ar1  # rl/models/error_model_clear_tank_480_ar1_refit.json (with memory,
 #                                              # the current detector; the realistic recipe trains on it)
 #   bash scripts/make_artefacts.sh policy    # rl/policies/error_model_ppo/ (DAgger + PPO, the option), docs/results/training_curve.png
-#   bash scripts/make_artefacts.sh realistic # trains the realistic recipe into $WORK; with SHIP=1 (or --ship) it
+#   bash scripts/make_artefacts.sh realistic # trains the realistic recipe's stage 2 (from the kept stage 1;
+#                                            # STAGE1_RUN= for both stages) into $WORK; with SHIP=1 (or --ship) it
 #                                            # replaces rl/policies/realistic_ppo/ (the shipped policy)
 #                                            # and docs/results/training_curve_realistic.png
 #   bash scripts/make_artefacts.sh scratch   # trains PPO from scratch on the true pose into $WORK; with SHIP=1
@@ -22,10 +23,11 @@
 # (seed 0); training `configs/scratch_error_model_precision_ppo.toml` then
 # `configs/scratch_error_model_precision_soft_ppo.toml` from its best/ (seed SEED, default 1: the
 # seed shipped, recorded in bench/results/scratch_runs/error_model_precision{,_soft}_s1);
-# training `configs/realistic_batched_yaw_contact_near_kernel_ppo.toml` (or the run STAGE1_RUN
-# names) then `configs/realistic_batched_yaw_contact_gentle_return_kernel_fine_collision70_ppo.toml`
-# from its best/ (seed SEED, default 2; the seed shipped is recorded in rl/policies/realistic_ppo/
-# and in the docking page);
+# the shipped stage 1 kept in bench/results/scratch_runs/realistic_kernel_ship_s2 (STAGE1_RUN; set
+# it empty to train `configs/realistic_batched_yaw_contact_near_kernel_ppo.toml` instead) then
+# `configs/realistic_batched_yaw_contact_gentle_return_kernel_fine_collision70_ppo.toml` from its
+# best/ (seed SEED, default 0: the seed shipped, recorded in rl/policies/realistic_ppo/ and in the
+# docking page);
 # evaluations on episode seeds 1000-1099.
 # WORK (default /tmp/uwdock-artefacts) holds the datasets, the run folder and the evaluation
 # folders; an interrupted stage resumes there.
@@ -113,7 +115,7 @@ policy() {
 
 # two_stages SEED STAGE1 STAGE2 RUN SUFFIX DEST CURVE: train STAGE1 into RUN, then STAGE2 from its
 # best/ into RUN_SUFFIX; with SHIP=1 copy stage 2's best/ into DEST with both stages' records
-# (further arguments go to both `rl train` calls). With STAGE1_RUN set to a finished stage-1 run
+# (further arguments go to both `rl train` calls). With STAGE1_RUN naming a finished stage-1 run
 # folder (best/ with its checksums.sha256, provenance.json, eval_history.jsonl; e.g. one kept in
 # bench/results/scratch_runs), stage 1 is not trained: stage 2 starts from that run's best/,
 # checked against its checksums first.
@@ -153,16 +155,18 @@ scratch() {  # the true-pose recipe: PPO from scratch, then its best/ at collisi
 # its contact sensing in the observation (obs_contact), the error model with memory fitted with
 # the current detector, the docking station's contact in the numba kernel (batch_contact =
 # "kernel": no PhysX in training). Stage 1 from scratch with near-seat starts (30 % of the early
-# episodes start just above the seat); stage 2 from its best/, collision penalty 70 (the
-# candidate of session 28's rule; the shipped policy's stage 2 had 100:
-# ..._gentle_return_kernel_fine_ppo.toml), keeping the evaluation of highest return, with the
-# fine error in the observation (obs_fine_error: stage 1's policy is widened for it,
-# uwdock.rl.widen). The batch over BATCH_WORKERS processes (default 2, the count the shipped
-# policy trained with). A run repeats bit for bit on the same kind of CPU only (numba, NumPy and
-# MKL pick their kernels by CPU: bench/bench_numerics.py); STAGE1_RUN=bench/results/scratch_runs/
-# realistic_kernel_ship_s2 starts stage 2 from the shipped stage 1 kept there.
+# episodes start just above the seat); stage 2 from its best/, collision penalty 70 (session
+# 28), keeping the evaluation of highest return, with the fine error in the observation
+# (obs_fine_error: stage 1's policy is widened for it, uwdock.rl.widen). The batch over
+# BATCH_WORKERS processes (default 2, the count the shipped policy trained with). A run repeats
+# bit for bit on the same kind of CPU only (NumPy and MKL pick their kernels by CPU:
+# bench/bench_numerics.py), and a stage 1 trained on another CPU than the shipped one's is another
+# policy, so by default stage 2 starts from the shipped stage 1 kept in bench/results/scratch_runs
+# (STAGE1_RUN; STAGE1_RUN= trains stage 1 from scratch, seed SEED): with the defaults the command
+# regenerates the shipped policy.
 realistic() {
-  local seed=${SEED:-2}
+  local seed=${SEED:-0}
+  local STAGE1_RUN=${STAGE1_RUN-bench/results/scratch_runs/realistic_kernel_ship_s2}
   two_stages "$seed" configs/realistic_batched_yaw_contact_near_kernel_ppo.toml \
     configs/realistic_batched_yaw_contact_gentle_return_kernel_fine_collision70_ppo.toml \
     "$WORK/run_realistic_kernel_s$seed" fine70 "$POLICY" training_curve_realistic.png \
