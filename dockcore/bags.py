@@ -226,6 +226,27 @@ class Bag:
                 f"cannot read topic {name!r} of bag {self.path}: {_one_line(exc)}"
             ) from None
 
+    def messages(self, names: list[str]) -> Iterator[tuple[str, str, int, Any | None, bytes, str]]:
+        """Every message of the topics ``names``, in the order the bag recorded them:
+        ``(topic, type, record time (ns), message or None, raw bytes, error)``; a message that
+        does not deserialise comes with None and the reason. The raw bytes are CDR for ROS 2
+        recordings, the ROS 1 serialisation for ``.bag`` files."""
+        conns = [c for c in self._reader.connections if c.topic in set(names)]
+        try:
+            for conn, logtime, raw in self._reader.messages(connections=conns):
+                try:
+                    msg, error = self._reader.deserialize(raw, conn.msgtype), ""
+                except Exception as exc:  # a damaged message is refused, not the end
+                    msg, error = None, _one_line(exc)
+                yield conn.topic, conn.msgtype, int(logtime), msg, bytes(raw), error
+        except Exception as exc:
+            raise DockError(f"cannot read bag {self.path}: {_one_line(exc)}") from None
+
+    @property
+    def is_ros1(self) -> bool:
+        """Whether the bag is a ROS 1 ``.bag`` (its raw bytes are not CDR)."""
+        return self.path.suffix == ".bag"
+
     # ------------------------------------------------------------------ content
 
     def stamps(self, name: str, limit: int | None = None) -> list[int]:

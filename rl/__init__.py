@@ -1,7 +1,8 @@
 """Reinforcement learning for docking: the Gymnasium env, observation sources, the DS pose
 filter, PPO/SAC training, evaluation, the PID baseline and ONNX export.
 
-Importing ``rl`` registers the environment with Gymnasium as ``uwdock/Docking-v0``::
+Importing ``rl`` registers the environment with Gymnasium as ``uwdock/Docking-v0`` (where
+Gymnasium is installed: the vehicle install runs the node without it)::
 
     import gymnasium as gym
     import uwdock.rl  # noqa: F401
@@ -14,9 +15,11 @@ if __name__ != "uwdock.rl":  # this folder reached as a top-level name (the work
         "this folder is installed as uwdock.rl: import uwdock.rl "
         "(pip install -e . from the repository puts it there)"
     )
-import gymnasium as _gym
-
 ENV_ID = "uwdock/Docking-v0"
 
-if ENV_ID not in _gym.registry:
+try:  # the vehicle install (``uwdock[vehicle]``: the node and replay) has no Gymnasium
+    import gymnasium as _gym
+except ModuleNotFoundError:  # pragma: no cover - exercised by the vehicle-install test
+    _gym = None
+if _gym is not None and ENV_ID not in _gym.registry:
     _gym.register(id=ENV_ID, entry_point="uwdock.rl.env:DockingEnv", max_episode_steps=None)

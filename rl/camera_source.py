@@ -6,7 +6,8 @@ Each control step captures the downward camera at the vehicle's pose through the
 estimator (:class:`uwdock.perception.ds_pose.DSPoseEstimator`): detector, board PnP (the filter's
 estimate breaks the two-fold ambiguity of coplanar markers) and, since the DS stands level and
 the vehicle knows its roll and pitch, the level-DS re-solve (x, y, z, yaw). The result becomes a
-world-frame measurement with the fit's covariance (inflated by a model-mismatch factor, floored).
+world-frame measurement with the fit's covariance (inflated by a model-mismatch factor, floored:
+:func:`uwdock.rl.obs_sources.measurement`, shared with the vehicle node).
 """
 
 from __future__ import annotations
@@ -15,16 +16,9 @@ import numpy as np
 
 from uwdock.calibration.camera import CameraModel
 from uwdock.perception.detector import Detection, rendered_3dbm_config
-from uwdock.perception.ds_pose import DSPoseEstimate, DSPoseEstimator
-from uwdock.rl.obs_sources import Measurement, SourceNeeds, StepContext
+from uwdock.perception.ds_pose import DSPoseEstimator
+from uwdock.rl.obs_sources import Measurement, SourceNeeds, StepContext, measurement
 from uwdock.sim.camera import Frame
-
-#: PnP's first-order covariance is optimistic (corner bias, blur): scale it by this.
-COVARIANCE_INFLATION = 4.0
-#: Lower bounds of the measurement standard deviations: position (m), yaw (rad).
-SIGMA_FLOOR_M = 0.01
-SIGMA_FLOOR_YAW_RAD = 0.005
-_COVARIANCE_FLOOR = np.diag([SIGMA_FLOOR_M**2] * 3 + [SIGMA_FLOOR_YAW_RAD**2])
 
 
 class CameraSource:
@@ -70,16 +64,3 @@ class CameraSource:
         )
         self.last_detections = est.detections
         return measurement(est)
-
-
-def measurement(est: DSPoseEstimate) -> Measurement | None:
-    """The filter's measurement from a level-DS estimate (None without one).
-
-    Shared by the simulated camera source and the deployment runner: the world-frame
-    ``T_world_ds`` with the fit's (4, 4) [x, y, z, yaw] covariance scaled by
-    ``COVARIANCE_INFLATION`` and floored by ``SIGMA_FLOOR_M`` / ``SIGMA_FLOOR_YAW_RAD``.
-    """
-    if est.level is None:
-        return None
-    cov = COVARIANCE_INFLATION * est.level.covariance + _COVARIANCE_FLOOR
-    return Measurement(est.level.T_world_ds, cov, True)

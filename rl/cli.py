@@ -37,7 +37,7 @@ from uwdock.dockcore.provenance import write_provenance
 from uwdock.rl.baselines import PIDController
 from uwdock.rl.config import EnvConfig, ObsSourceName, check_env_files
 from uwdock.rl.env import DockingEnv
-from uwdock.rl.env_settings import policy_env_layer, policy_training_env, resolve_env
+from uwdock.rl.env_settings import command_env, policy_training_env
 from uwdock.rl.episode import EpisodeVideoConfig, record_episode
 from uwdock.rl.error_model import ErrorModelConfig, fit_error_model, save_error_model
 from uwdock.rl.export import export_onnx
@@ -101,27 +101,6 @@ ENV_FROM_OPTION = click.option(
     help="Take the env settings from this policy folder (policy.zip / run folder / .onnx) "
     "instead of --policy's, e.g. `--policy pid --env-from rl/policies/P` [--policy's].",
 )
-
-
-def _resolve_env(
-    policy: str,
-    env_from: Path | None,
-    config_path: Path | None,
-    flags: dict,
-    defaults: dict,
-):
-    """The env of a command (:mod:`uwdock.rl.env_settings`): ``defaults``, the training env of
-    ``env_from`` (else of ``policy``), the ``--config`` file's ``[env]``, then ``flags`` (None
-    values and empty tables: not given)."""
-    source = str(env_from) if env_from is not None else policy
-    layer, origin = policy_env_layer(source)
-    given = {k: v for k, v in flags.items() if v is not None and v != {}}
-    for model in ("usbl", "nav"):  # --usbl/--nav name a whole model: the policy's own fields
-        if model in given:  # of it do not apply
-            layer.pop(model, None)
-    file = config_data(config_path, section="env") if config_path is not None else {}
-    layers = [("default", defaults), ("policy config", layer), ("--config", file), ("flag", given)]
-    return resolve_env(layers, policy_config=origin)
 
 
 @command_group()
@@ -422,7 +401,7 @@ def eval_cmd(
             if v is not None
         },
     }
-    resolved = _resolve_env(str(policy), env_from, config_path, flags, _EVAL_DEFAULTS)
+    resolved = command_env(str(policy), env_from, config_path, flags, _EVAL_DEFAULTS)
     # the policy's observation layout and action scaling come from its own run config
     env_cfg = replace(resolved.cfg, **policy_env_settings(str(policy)))
     click.echo(resolved.line("rl eval"))
@@ -554,7 +533,7 @@ def episode(
     if film_water not in (None, "none"):
         world["water_preset"] = film_water
     flags = {"episode_s": seconds, "world": world}
-    resolved = _resolve_env("pid", env_from, config_path, flags, _EPISODE_DEFAULTS)
+    resolved = command_env("pid", env_from, config_path, flags, _EPISODE_DEFAULTS)
     env_cfg = resolved.cfg  # a flag, else the file's value, else the policy's, else our default
     water_name = film_water or env_cfg.world.water_preset
     outside_height_px = max(16, round(outside_width_px * 3 / 4))

@@ -120,6 +120,8 @@ class DockingEnv(gym.Env):
             self.nav.cfg.ds_prior == "usbl" and needs.acoustic_fixes and self.usbl.cfg.period_s > 0
         )
         self._usbl_prior_pending = False
+        self.last_usbl_fix: tuple[np.ndarray, float] | None = None
+        self.ds_prior: tuple[np.ndarray, np.ndarray] | None = None
         self._limits = c.action_limits
         self.reward_fn = DockingReward(c.reward, actuated=self._limits > 0)
         self.contact = ContactMemory(1, self.dt_s)  # obs_contact's values
@@ -262,6 +264,9 @@ class DockingEnv(gym.Env):
         # spawning a child sequence consumes no draws of the episode's stream
         self._film_rng = np.random.default_rng(rng.bit_generator.seed_seq.spawn(1)[0])
         self.filter.reset(T_world_ds, rng)
+        #: the DS pose and variances the run starts from, before any fix or frame: what a
+        #: mission message carries to the vehicle's node (``sim vehicle``)
+        self.ds_prior = (self.filter.T_world_ds, np.diag(self.filter.P).copy())
         self.usbl.reset(rng)  # after the prior: the acoustic bias draws leave it as it was
         # an ideal navigation draws nothing: the episode's stream is the one it always was
         self.nav.reset(0, None if self.nav.ideal else rng.standard_normal(RESET_NAV_DRAWS))
@@ -289,8 +294,24 @@ class DockingEnv(gym.Env):
         if a.shape != (6,) or not np.all(np.isfinite(a)):
             raise ValueError(f"action must be 6 finite numbers, got {np.asarray(action).tolist()}")
         a = np.clip(a, -1.0, 1.0)
+        return self._advance(a, a * self._limits)
+
+    def step_wrench(self, wrench):
+        """:meth:`step` with a body wrench (6,) [N, N m] instead of an action: the vehicle
+        simulated over the wire (``sim vehicle``) applies the wrench its controller sent,
+        saturated at the action limits, and the reward sees the action it amounts to."""
+        w = np.asarray(wrench, dtype=np.float64).reshape(-1)
+        if w.shape != (6,) or not np.all(np.isfinite(w)):
+            raise ValueError(f"wrench must be 6 finite numbers, got {np.asarray(wrench).tolist()}")
+        lim = self._limits
+        w = np.clip(w, -lim, lim)
+        a = np.divide(w, lim, out=np.zeros(6), where=lim > 0)
+        return self._advance(a, w)
+
+    def _advance(self, a: np.ndarray, wrench: np.ndarray):
+        """One control step applying ``wrench`` (the action ``a`` for the reward)."""
         world = self.world
-        world.step(a * self._limits, self.dt_s)
+        world.step(wrench, self.dt_s)
         self.steps += 1
         T_world_body = world.T_world_body
         if not np.all(np.isfinite(T_world_body)) or np.abs(T_world_body[:3, 3]).max() > 1e3:
@@ -321,6 +342,21 @@ class DockingEnv(gym.Env):
         info = self._info(T_world_body, e_true, psi_true, terms, collided)
         obs = self._obs(e_true, psi_true)
         return obs, float(sum(terms.values())), bool(docked), bool(truncated), info
+
+    def navigation_solution(self) -> dict[str, Any]:
+        """What the vehicle's own sensors and navigation report now (the values the
+        observation is built from): ``T_world_body`` (the navigation pose, NED/FRD),
+        ``velocity_frd_mps`` (DVL), ``angular_velocity_frd_radps`` (gyro),
+        ``acceleration_frd_mps2`` (gravity-free), ``specific_force_frd_mps2``
+        (accelerometer)."""
+        imu = self._last_imu
+        return {
+            "T_world_body": self.T_nav.copy(),
+            "velocity_frd_mps": self.nav.dvl_velocity(imu.velocity_frd_mps)[0],
+            "angular_velocity_frd_radps": np.asarray(imu.angular_velocity_frd_radps).copy(),
+            "acceleration_frd_mps2": np.asarray(imu.acceleration_frd_mps2).copy(),
+            "specific_force_frd_mps2": np.asarray(imu.specific_force_frd_mps2).copy(),
+        }
 
     def render(self):
         if self.render_mode == "rgb_array":
@@ -404,9 +440,12 @@ class DockingEnv(gym.Env):
             return
         world = self.world
         fix = self.usbl.fix(world.time_s, T_world_body, world.T_world_ds[:3, 3], self.np_random)
+        self.last_usbl_fix = None
         if fix is None:
             return
         p = fix.p_world_ds_m if C is None else C[:3, :3] @ fix.p_world_ds_m + C[:3, 3]
+        #: this step's fix as the navigator places it: (position (3,), sigma (m)), or None
+        self.last_usbl_fix = (p, fix.sigma_m)
         if self._usbl_prior_pending:
             T = self.filter.T_world_ds
             T[:3, 3] = p

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from uwdock.dockcore.config import from_dict, lift_moved_keys, merge
+from uwdock.dockcore.config import config_data, from_dict, lift_moved_keys, merge
 from uwdock.rl.config import EnvConfig
 from uwdock.rl.policy_io import policy_train_env, policy_train_settings
 
@@ -146,3 +146,24 @@ def policy_training_env(policy: str) -> ResolvedEnv | None:
         return None
     env = lift_moved_keys(EnvConfig, policy_train_env(policy))
     return resolve_env([("policy config", env)], policy_config=origin)
+
+
+def command_env(
+    policy: str,
+    env_from: Path | None,
+    config_path: Path | None,
+    flags: dict,
+    defaults: dict,
+):
+    """The env of a command (module docstring): ``defaults``, the training env of ``env_from``
+    (else of ``policy``), the ``--config`` file's ``[env]``, then ``flags`` (None values and
+    empty tables: not given)."""
+    source = str(env_from) if env_from is not None else policy
+    layer, origin = policy_env_layer(source)
+    given = {k: v for k, v in flags.items() if v is not None and v != {}}
+    for model in ("usbl", "nav"):  # --usbl/--nav name a whole model: the policy's own fields
+        if model in given:  # of it do not apply
+            layer.pop(model, None)
+    file = config_data(config_path, section="env") if config_path is not None else {}
+    layers = [("default", defaults), ("policy config", layer), ("--config", file), ("flag", given)]
+    return resolve_env(layers, policy_config=origin)

@@ -97,6 +97,18 @@ class DSPoseFilter:
         self.measured = False
         self.time_since_measurement_s = math.inf
 
+    def set_prior_variances(self, T_world_ds_prior: np.ndarray, var_xyzyaw: np.ndarray) -> None:
+        """Start from a prior DS pose with the variances of x, y, z (m^2) and yaw (rad^2), as a
+        message's covariance carries them (the same state as :meth:`set_prior` with their
+        square roots, without a round trip through them)."""
+        var = np.asarray(var_xyzyaw, dtype=np.float64)
+        if var.shape != (4,) or not np.all(np.isfinite(var)) or np.any(var < 0):
+            raise ValueError(f"prior variances must be 4 finite values >= 0, got {var.tolist()}")
+        self.x = self._state(T_world_ds_prior)
+        self.P = np.diag(np.maximum(var, 1e-12))
+        self.measured = False
+        self.time_since_measurement_s = math.inf
+
     def reset(self, T_world_ds_true: np.ndarray, rng: np.random.Generator) -> None:
         """Start from the USBL-like prior: the truth plus a draw of the prior's noise."""
         self.set_prior(T_world_ds_true)
@@ -136,11 +148,15 @@ class DSPoseFilter:
         self.time_since_measurement_s = 0.0
         return True
 
-    def update_position(self, p_world_ds_m: np.ndarray, sigma_m: float) -> bool:
-        """Fuse a position-only fix of the DS (USBL; world NED, m): the yaw estimate is kept."""
+    def update_position(
+        self, p_world_ds_m: np.ndarray, sigma_m: float | None = None, var_m2: float | None = None
+    ) -> bool:
+        """Fuse a position-only fix of the DS (USBL; world NED, m) with a standard deviation
+        ``sigma_m`` (m) or a variance ``var_m2`` (m^2) on each axis: the yaw estimate is kept."""
+        var = sigma_m**2 if var_m2 is None else var_m2
         T = self.T_world_ds.copy()
         T[:3, 3] = p_world_ds_m
-        return self.update(T, np.diag([sigma_m**2] * 3 + [1e6]))
+        return self.update(T, np.diag([var] * 3 + [1e6]))
 
     @property
     def T_world_ds(self) -> np.ndarray:

@@ -23,7 +23,15 @@ from typing import Protocol
 import numpy as np
 
 from uwdock.calibration.frames import inv_T
+from uwdock.perception.ds_pose import DSPoseEstimate
 from uwdock.rl.task import DockingTaskConfig, docking_errors, ds_visible
+
+#: PnP's first-order covariance is optimistic (corner bias, blur): scale it by this.
+COVARIANCE_INFLATION = 4.0
+#: Lower bounds of the measurement standard deviations: position (m), yaw (rad).
+SIGMA_FLOOR_M = 0.01
+SIGMA_FLOOR_YAW_RAD = 0.005
+_COVARIANCE_FLOOR = np.diag([SIGMA_FLOOR_M**2] * 3 + [SIGMA_FLOOR_YAW_RAD**2])
 
 
 @dataclass(frozen=True)
@@ -83,6 +91,20 @@ class StepContext:
     def T_world_body_believed(self) -> np.ndarray:
         """The pose the vehicle believes it has: the navigation pose, else the true one."""
         return self.T_world_body if self.T_world_body_nav is None else self.T_world_body_nav
+
+
+def measurement(est: DSPoseEstimate) -> Measurement | None:
+    """The filter's measurement from a level-DS estimate (None without one).
+
+    Shared by the simulated camera source (:mod:`rl.camera_source`) and the vehicle's chain
+    (:mod:`rl.runner`, :mod:`rl.deploy`): the world-frame
+    ``T_world_ds`` with the fit's (4, 4) [x, y, z, yaw] covariance scaled by
+    ``COVARIANCE_INFLATION`` and floored by ``SIGMA_FLOOR_M`` / ``SIGMA_FLOOR_YAW_RAD``.
+    """
+    if est.level is None:
+        return None
+    cov = COVARIANCE_INFLATION * est.level.covariance + _COVARIANCE_FLOOR
+    return Measurement(est.level.T_world_ds, cov, True)
 
 
 class ObservationSource(Protocol):

@@ -27,7 +27,8 @@ from uwdock.sim.vehicle import VehicleRandomisation
 from uwdock.sim.water import PRESET_ORDER
 
 
-def _csv(rows: list[dict[str, Any]]) -> str:
+def csv_text(rows: list[dict[str, Any]]) -> str:
+    """``episodes.csv``'s text: one row per episode, the first row's keys as the header."""
     buf = io.StringIO()
     if rows:
         w = csv.DictWriter(buf, fieldnames=list(rows[0]))
@@ -304,7 +305,7 @@ def _evaluate_into(
         "backend": pool.backend,
         **({"ray": res.ray_nodes} if res.ray_nodes else {}),
     }
-    atomic_write_text(out / "episodes.csv", _csv(res.episodes))
+    atomic_write_text(out / "episodes.csv", csv_text(res.episodes))
     plot_trajectories(res.traces, res.episodes, out / "trajectories_top.png")
     for k in sorted(set(video_episodes) | {0}):
         if k < len(res.traces):

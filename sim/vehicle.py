@@ -33,7 +33,6 @@ from uwdock.calibration.frames import check_R
 from uwdock.dockcore.config import check_fields
 from uwdock.dockcore.domains import Interval
 from uwdock.sim.domains import BodyCoord_m, Friction, RelativeRange, validate_each
-from uwdock.sim.fastpath import hydro_accel, hydro_params  # numba; no loop: see fastpath
 from uwdock.sim.thrusters import ThrusterArrayConfig, ThrusterRandomisation
 
 __all__ = [
@@ -411,6 +410,8 @@ class Hydrodynamics:
             (X..N) the applied wrench and ``depth_cb`` the CB's depth (m, ``inf``: deep); all
             floats.
         """
+        from uwdock.sim.fastpath import hydro_accel, hydro_params  # numba (+ SAPIEN)
+
         params = hydro_params(self)
 
         def accel(*args: float) -> tuple[float, float, float, float, float, float]:

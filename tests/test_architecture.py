@@ -376,15 +376,36 @@ def heavy_modules(root: Path, layers: dict[str, int]) -> set[str]:
     }
 
 
+def engine_modules(root: Path, layers: dict[str, int]) -> set[str]:
+    """The modules of the tree that import the simulator, its JIT or Gymnasium (a
+    ``MODULE_LEVEL_OK`` module) at module level, directly or through other modules of the
+    tree: a light module that needs one of them only in one place may import it there (the
+    vehicle model's numba kernel: a config file that names a vehicle must not compile it; the
+    simulated vehicle behind ``sim vehicle``: the node's commands must not load SAPIEN)."""
+    files = module_files(root, layers)
+    eager = [
+        imp
+        for imp in imports_in(files)
+        if not (imp.local or imp.typing_only or _is_script(imp.importer))
+    ]
+    found = {imp.importer for imp in eager if imp.target.split(".")[0] in MODULE_LEVEL_OK}
+    while True:  # and those that import one of them at module level, through the tree
+        more = {imp.importer for imp in eager if imp.target in found} - found
+        if not more:
+            return found
+        found |= more
+
+
 def local_import_violations(
     root: Path,
     layers: dict[str, int],
     allowed: frozenset[str] = HEAVY_OPTIONAL,
 ) -> list[str]:
-    """Function-local imports of a ``uwdock`` module that is not heavy (``heavy_modules``), of
-    the standard library or of a third-party module not in ``allowed`` (scripts aside)."""
+    """Function-local imports of a ``uwdock`` module that is neither heavy (``heavy_modules``)
+    nor an engine module (``engine_modules``), of the standard library or of a third-party
+    module not in ``allowed`` (scripts aside)."""
     files = module_files(root, layers)
-    heavy = heavy_modules(root, layers)
+    heavy = heavy_modules(root, layers) | engine_modules(root, layers)
     hits = [
         imp.where(files)
         for imp in imports_in(files)
@@ -500,6 +521,7 @@ def test_packages_are_the_layers():
         "dockcore",
         "calibration",
         "markers",
+        "ros",
         "perception",
         "sim",
         "datasets",

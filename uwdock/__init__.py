@@ -32,6 +32,7 @@ LAYERS = {
     "dockcore": 0,
     "calibration": 1,
     "markers": 2,
+    "ros": 2,
     "perception": 3,
     "sim": 3,
     "datasets": 4,

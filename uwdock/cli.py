@@ -19,6 +19,7 @@ EXTRAS: dict[str, str | None] = {
     "datasets": "sim",
     "sim": "sim",
     "rl": "rl",
+    "rl.deploy": "vehicle",
 }
 
 
@@ -30,10 +31,14 @@ FIT_WATER = (
     "writes a water file that every --water option takes."
 )
 
-#: group -> {command: the group whose module defines it}: commands a group shows as its own
-#: although another group's module defines them (the architecture keeps ``sim`` below
-#: ``perception``; the umbrella, above both, joins them).
-LENT: dict[str, dict[str, str]] = {"sim": {"fit-water": "datasets"}}
+#: group -> {command: the package whose ``cli`` module defines it}: commands a group shows as
+#: its own although another module defines them (the architecture keeps ``sim`` below
+#: ``perception``; the umbrella, above both, joins them). The vehicle's commands live in
+#: ``rl.deploy``, which loads neither torch nor SAPIEN (``uwdock[vehicle]``).
+LENT: dict[str, dict[str, str]] = {
+    "sim": {"fit-water": "datasets", "vehicle": "rl.deploy"},
+    "rl": {"node": "rl.deploy", "replay": "rl.deploy"},
+}
 
 #: command group -> (its help text, {command: the first paragraph of its help}): what
 #: ``<group> --help`` shows without importing the group's module (``uwdock.<group>.cli``, which
@@ -94,6 +99,9 @@ COMMANDS: dict[str, tuple[str, dict[str, str]]] = {
         "`rl episode`.",
         {
             "fit-water": FIT_WATER,
+            "vehicle": "Run the simulator as the vehicle on ROS 2 topics: the rendered downward "
+            "camera, the drifting navigation, USBL fixes and /clock out; body wrench commands "
+            "in (zero-order hold, its own timeout).",
             "water": "List the water presets, clearest first: attenuation and backscatter per "
             "channel (1/m), veiling light and forward-scatter blur.",
         },
@@ -110,6 +118,10 @@ COMMANDS: dict[str, tuple[str, dict[str, str]]] = {
             "which `rl eval` and the deployment runner take by default.",
             "fit-error-model": "Fit the image-derived error model from a labelled dataset "
             "(`datasets synth`).",
+            "node": "Run the docking node on ROS 2 topics (DDS, no ROS install needed).",
+            "replay": "Run a recorded mission (ROS 1 .bag, ROS 2 folder, .db3 or .mcap) through "
+            "the node's chain on message time: writes replay.mcap (inputs and outputs), "
+            "summary.json and a plot.",
             "sweep": "Sweep whole training runs over seeds and config values with Ray Tune, each "
             "trial a run folder that resumes from its own checkpoints.",
             "train": "Train a docking policy (PPO with the paper's hyperparameters by default).",
@@ -178,7 +190,7 @@ class _LazyGroups(click.Group):
     """``uwdock``: the six lazy groups, listed with the first line of their own help."""
 
     def list_commands(self, ctx: click.Context) -> list[str]:
-        return list(EXTRAS)
+        return list(COMMANDS)
 
     def get_command(self, ctx: click.Context, name: str) -> click.Command | None:
         return _LAZY.get(name)
