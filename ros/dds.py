@@ -46,7 +46,7 @@ from uwdock.ros import messages as rm
 from uwdock.ros.names import dds_topic_name
 from uwdock.ros.qos import QosProfile
 
-__all__ = ["DdsGraph", "Received", "dds_qos", "loopback_config"]
+__all__ = ["DdsGraph", "Received", "dds_qos", "idl_type", "loopback_config"]
 
 
 def dds_qos(profile: QosProfile, typename: str) -> Qos:
@@ -123,7 +123,7 @@ def _field_type(node: tuple) -> Any:
             return _PRIMITIVES[name]
         raise TypeError(f"ROS type {name!r} has no DDS mapping here")
     if kind == Nodetype.NAME:
-        return _idl_class(arg)
+        return idl_type(arg)
     if kind == Nodetype.ARRAY:
         sub, length = arg
         return idl.array[_field_type(sub), length]
@@ -172,8 +172,10 @@ def _make_class(typename: str, wire: bool) -> type:
 
 
 @functools.cache
-def _idl_class(typename: str) -> type:
-    """The DDS type of a nested message (described, never serialised here)."""
+def idl_type(typename: str) -> type:
+    """The DDS type of a ROS 2 message as a plain Cyclone ``IdlStruct`` (its fields, its own
+    CDR serialiser): the description discovery announces, and an independent serialiser of
+    the same layout (``tests/test_ros_wire.py`` checks the two agree byte for byte)."""
     return _make_class(typename, wire=False)
 
 

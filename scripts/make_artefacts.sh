@@ -15,6 +15,8 @@
 #                                            # it replaces rl/policies/scratch_error_model_ppo/ (the policy
 #                                            # shipped before realistic_ppo) and docs/results/training_curve_scratch.png
 #   bash scripts/make_artefacts.sh figures   # docs/results/ (evaluation summaries and figures of the shipped policy)
+#   bash scripts/make_artefacts.sh onnx      # rl/policies/realistic_ppo/policy.onnx + policy.json: the shipped
+#                                            # policy exported (`rl export`), what `rl node` and `rl replay` load
 #
 # Seeds and data: datasets `datasets synth --n 2500 --water clear_tank --seed 0` at 480 and 640 px
 # (their SHA-256 is recorded in each error model); the error model with memory from the PID's
@@ -222,6 +224,15 @@ PY
   fi
 }
 
+# The shipped policy as ONNX (observation normalisation inside) with its .json (the env it was
+# trained in): the vehicle node and the replay load only these, never a pickle.
+onnx() {
+  say "exporting $POLICY to ONNX"
+  "$BIN/rl" export --policy "$POLICY" --out "$WORK/policy.onnx"
+  cp "$WORK/policy.onnx" "$WORK/policy.json" "$POLICY/"
+  (cd "$POLICY" && sha256sum policy.onnx policy.json) >"$POLICY/onnx_checksums.sha256"
+}
+
 SHIP=${SHIP:-0}
 [ "${2:-}" != --ship ] || SHIP=1
 case "${1:-}" in
@@ -231,6 +242,7 @@ case "${1:-}" in
   realistic) realistic ;;
   scratch) scratch ;;
   figures) figures ;;
-  *) die "usage: bash scripts/make_artefacts.sh models|models_ar1|policy|realistic [--ship]|scratch [--ship]|figures" ;;
+  onnx) onnx ;;
+  *) die "usage: bash scripts/make_artefacts.sh models|models_ar1|policy|realistic [--ship]|scratch [--ship]|figures|onnx" ;;
 esac
 say "done: review and commit what changed (git status)"

@@ -154,17 +154,17 @@ def read_camera_info(msg: Any) -> CameraModel:
         raise ValueError("camera_info holds NaN or infinity")
     if len(d) not in (0, 4, 5, 8, 12, 14):
         raise ValueError(f"camera_info has {len(d)} distortion coefficients")
-    cam = CameraModel(
-        width_px=int(msg.width),
-        height_px=int(msg.height),
-        fx_px=float(k[0, 0]),
-        fy_px=float(k[1, 1]),
-        cx_px=float(k[0, 2]),
-        cy_px=float(k[1, 2]),
-        dist=d or (0.0, 0.0, 0.0, 0.0, 0.0),
-        name="camera_info",
-    )
     try:
+        cam = CameraModel(
+            width_px=int(msg.width),
+            height_px=int(msg.height),
+            fx_px=float(k[0, 0]),
+            fy_px=float(k[1, 1]),
+            cx_px=float(k[0, 2]),
+            cy_px=float(k[1, 2]),
+            dist=d or (0.0, 0.0, 0.0, 0.0, 0.0),
+            name="camera_info",
+        )
         cam.validate()
     except ValueError as exc:
         raise ValueError(f"camera_info: {exc}") from None
