@@ -273,3 +273,31 @@ def test_tick_messages_carry_the_estimate_command_and_reasons():
     # every message serialises to CDR and back (what DDS and MCAP carry)
     for _, ty, m in msgs.values():
         assert rm.serialize(rm.deserialize(rm.serialize(m, ty), ty), ty) == rm.serialize(m, ty)
+
+
+def test_foxglove_layout_names_the_nodes_topics():
+    """The shipped Foxglove layout shows topics the node (COLA2-like defaults) reads or
+    publishes, so it does not go stale when a topic is renamed."""
+    import json
+    from pathlib import Path
+
+    import uwdock.rl.deploy as deploy
+
+    layout = json.loads((Path(deploy.__file__).parent / "foxglove_layout.json").read_text())
+    t = NodeConfig().topics
+    known = {getattr(t, f) for f in t.__dataclass_fields__ if f != "image_format"}
+
+    def strings(node):
+        if isinstance(node, dict):
+            for k, v in node.items():
+                yield from strings(k)
+                yield from strings(v)
+        elif isinstance(node, list):
+            for v in node:
+                yield from strings(v)
+        elif isinstance(node, str):
+            yield node
+
+    used = {s.split(".")[0] for s in strings(layout["configById"]) if s.startswith("/")}
+    used -= {"/move_base_simple/goal", "/clicked_point", "/initialpose"}  # Foxglove's own
+    assert used and used <= known, used - known
