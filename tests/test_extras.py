@@ -95,11 +95,13 @@ finally:
 """
 
 
-def run_without_optional(tmp_path: Path, script: str, *args) -> tuple[dict, str, str]:
-    """Run console script ``script`` with ``args`` where the optional modules cannot be
-    imported; returns (report, stdout, stderr)."""
+def run_without_optional(
+    tmp_path: Path, script: str, *args, blocked: tuple[str, ...] = OPTIONAL_MODULES
+) -> tuple[dict, str, str]:
+    """Run console script ``script`` with ``args`` where the optional modules (``blocked``)
+    cannot be imported; returns (report, stdout, stderr)."""
     report = tmp_path / f"run_{script}.json"
-    env = {**os.environ, "UWDOCK_BLOCKED": ",".join(OPTIONAL_MODULES)}
+    env = {**os.environ, "UWDOCK_BLOCKED": ",".join(blocked)}
     env["UWDOCK_RUN_REPORT"] = str(report)
     res = subprocess.run(
         [sys.executable, "-c", _RUNNER, script, *map(str, args)],
@@ -297,3 +299,25 @@ def test_optional_stacks_are_not_base_dependencies():
     extras = project["optional-dependencies"]
     assert "open3d" in {_requirement_name(r) for r in extras["check"]}
     assert {"sapien", "numba"} <= {_requirement_name(r) for r in extras["sim"]}
+
+
+#: What ``uwdock[vehicle]`` leaves out: the simulator and the learning stack.
+NOT_IN_VEHICLE = tuple(m for m in OPTIONAL_MODULES if m != "onnxruntime")
+
+
+def test_rl_replay_runs_with_the_vehicle_extra_only(tmp_path):
+    """``rl replay`` (and so ``rl node``'s chain) needs neither SAPIEN, torch, SB3, Gymnasium
+    nor numba: the vehicle install (``tests/test_vehicle_install.py`` installs it for real)."""
+    from tests.test_replay import _ros2
+
+    _ros2(tmp_path / "m.mcap")
+    out = tmp_path / "replay"
+    report, stdout, err = run_without_optional(
+        tmp_path, "rl", "replay", tmp_path / "m.mcap", "--out", out, blocked=NOT_IN_VEHICLE
+    )
+    assert report["code"] == 0, err
+    assert report["loaded"] == []
+    assert set(report["tried"]) <= {"gymnasium"}  # the env's registration, skipped
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["frames"]["used"] == 12
+    assert "rl replay:" in stdout
