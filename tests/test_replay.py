@@ -130,9 +130,25 @@ def test_ros1_and_ros2_recordings_of_one_mission_replay_the_same(tmp_path):
     assert np.allclose(est, T_DS[:3, 3])
     with Bag(tmp_path / "b" / "replay.mcap") as bag:
         types = {t.name: t.msgtype for t in bag.topics()}
+        ours = {t: m for t, _, _, m, _, _ in bag.messages(["/uwdock/ds_estimate"])}
     assert types["/girona500/navigator/odometry"] == "nav_msgs/msg/Odometry"
     assert types["/uwdock/ds_estimate"] == "geometry_msgs/msg/PoseWithCovarianceStamped"
     assert types["/diagnostics"] == "diagnostic_msgs/msg/DiagnosticArray"
+    # Foxglove's own reader (its ros2msg parser and CDR decoder) reads every channel
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    seen = {}
+    with open(tmp_path / "b" / "replay.mcap", "rb") as fh:
+        reader = make_reader(fh, decoder_factories=[DecoderFactory()])
+        assert reader.get_header().profile == "ros2"
+        for schema, channel, _, decoded in reader.iter_decoded_messages():
+            assert (schema.encoding, channel.message_encoding) == ("ros2msg", "cdr")
+            seen[channel.topic] = decoded
+    assert set(seen) == set(types)
+    est = seen["/uwdock/ds_estimate"].pose.pose.position
+    mine = ours["/uwdock/ds_estimate"].pose.pose.position
+    assert (est.x, est.y, est.z) == (mine.x, mine.y, mine.z)
 
 
 @pytest.mark.parametrize(
