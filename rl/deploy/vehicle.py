@@ -186,14 +186,17 @@ class SimVehicle:
                     self._command = _Command(stamp, w)
 
     def wait_for_node(self, timeout_s: float) -> None:
-        """Wait until the node subscribes to the vehicle's topics and publishes its outputs.
+        """Wait until the node subscribes to the camera, the navigation, the mission (and, on
+        simulated time, ``/clock``) and publishes its outputs.
 
         Raises:
             VehicleTimeout: no node on this DDS domain within ``timeout_s``.
         """
-        ends = [p for p, _, _ in self.pubs.values()] + [s for s, _, _ in self.subs.values()]
+        needed = ["image", "odometry", "ds_prior"] + (["clock"] if self.sim_clock else [])
+        pubs = [self.pubs[k] for k in needed if k in self.pubs]
+        ends = [p for p, _, _ in pubs] + [s for s, _, _ in self.subs.values()]
         if not self.graph.wait_matched(ends, timeout_s):
-            missing = [t for p, t, _ in self.pubs.values() if p.matched() == 0]
+            missing = [t for p, t, _ in pubs if p.matched() == 0]
             missing += [t for s, t, _ in self.subs.values() if s.matched() == 0]
             raise VehicleTimeout(
                 f"no docking node on DDS domain {self.graph.domain_id} after {timeout_s:g} s "
@@ -298,6 +301,8 @@ class SimVehicle:
         (the keys of ``rl eval``'s ``episodes.csv``) and the time it ended."""
         env = self.env
         _, info = env.reset(seed=seed + k)
+        if not self.sim_clock:  # real time: the episode starts now, whatever the reset took
+            self._origin_ns = time.time_ns() - start_ns
         self._command = None
         T_prior, var = env.ds_prior
         cov = np.zeros((6, 6))
