@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from uwdock.calibration.frames import rpy_from_R
 from uwdock.dockcore.bags import Bag
 from uwdock.dockcore.config import to_dict
 from uwdock.dockcore.errors import DockError
@@ -38,10 +39,6 @@ __all__ = ["replay_bag"]
 _STAGES = ("decode", "perception", "filter", "policy", "total")
 
 
-def _yaw(T: np.ndarray) -> float:
-    return math.atan2(T[1, 0], T[0, 0])
-
-
 def _track_row(tick: Tick) -> dict[str, Any]:
     """One tick of the deterministic track (no wall-clock value)."""
     T, P = tick.T_world_ds, tick.cov_xyzyaw
@@ -52,13 +49,13 @@ def _track_row(tick: Tick) -> dict[str, Any]:
         "frame_t_s": None if tick.frame_stamp_ns is None else tick.frame_stamp_ns / 1e9,
         "detections": tick.detections,
         "ds_estimate_xyz_m": [float(v) for v in T[:3, 3]],
-        "ds_estimate_yaw_rad": _yaw(T),
+        "ds_estimate_yaw_rad": rpy_from_R(T[:3, :3])[2],
         "ds_estimate_sigma_xy_m": math.sqrt(max(P[0, 0], P[1, 1])),
         "command_wrench": None if tick.command is None else [float(v) for v in tick.command],
     }
     m = tick.measurement
     row["ds_pose_xyz_m"] = None if m is None else [float(v) for v in m.T_world_ds[:3, 3]]
-    row["ds_pose_yaw_rad"] = None if m is None else _yaw(m.T_world_ds)
+    row["ds_pose_yaw_rad"] = None if m is None else rpy_from_R(m.T_world_ds[:3, :3])[2]
     return row
 
 
