@@ -301,3 +301,26 @@ def test_foxglove_layout_names_the_nodes_topics():
     used = {s.split(".")[0] for s in strings(layout["configById"]) if s.startswith("/")}
     used -= {"/move_base_simple/goal", "/clicked_point", "/initialpose"}  # Foxglove's own
     assert used and used <= known, used - known
+
+
+def test_velocity_request_balances_the_damping():
+    """The optional body velocity request: the speed at which the damping balances the
+    wrench, d_l v + d_q |v| v = F, on each axis (and 0 for a zero or unactuated axis)."""
+    from uwdock.rl.deploy.wire import steady_velocity
+
+    dl = np.array([20.0, 20.0, 20.0, 130.0, 130.0, 130.0])
+    dq = np.array([148.0, 148.0, 148.0, 180.0, 180.0, 0.0])
+    F = np.array([140.0, -70.0, 0.0, 0.0, -39.0, 72.0])
+    v = steady_velocity(F, dl, dq)
+    assert np.allclose(dl * v + dq * np.abs(v) * v, F)
+    assert v[0] > 0 > v[1] and v[2] == 0 and v[5] == pytest.approx(72.0 / 130.0)
+    cfg = from_dict(NodeConfig, {"flat_markers": False, "topics": {"velocity_command": "/cmd_vel"}})
+    chain = build_chain(None, None, None, cfg, armed=True)
+    _start(chain)
+    tick = chain.tick(NS)
+    msgs = {kind: m for kind, _, _, m in tick_messages(tick, cfg, chain.damping)}
+    twist = msgs["velocity_command"].twist
+    got = np.array([twist.linear.x, twist.linear.y, twist.linear.z,
+                    twist.angular.x, twist.angular.y, twist.angular.z])  # fmt: skip
+    assert np.allclose(got, steady_velocity(tick.command, *chain.damping))
+    assert list(msgs).index("velocity_command") < list(msgs).index("diagnostics")

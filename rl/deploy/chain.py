@@ -261,6 +261,15 @@ class DockingChain:
         self.runner.camera = scaled_to_width(camera, width)
         self.camera_from_info = True
 
+    @property
+    def damping(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The vehicle's (linear, quadratic) damping (6,) each, from the policy's training env,
+        when the config publishes body velocity requests; else None."""
+        if not self.cfg.topics.velocity_command:
+            return None
+        v = self.runner.cfg.world.vehicle
+        return np.asarray(v.linear_damping, float), np.asarray(v.quadratic_damping, float)
+
     # ------------------------------------------------------------------ tick
 
     def next_tick_ns(self, after_ns: int) -> int:

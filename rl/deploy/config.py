@@ -58,6 +58,10 @@ class NodeTopics:
             (world frame), with the estimator's covariance.
         ds_estimate: output, ``PoseWithCovarianceStamped``: the filtered DS estimate, each tick.
         command: output, ``geometry_msgs/WrenchStamped``: the body wrench (N, N m).
+        velocity_command: output, ``geometry_msgs/TwistStamped``: the wrench as a body velocity
+            request (the velocity at which the vehicle's damping balances it on each axis:
+            for a controller that takes velocities, e.g. COLA2's body velocity requests through
+            a relay); empty: not published.
         tf: output, ``tf2_msgs/TFMessage``: world -> DS (estimate) each tick.
         diagnostics: output, ``diagnostic_msgs/DiagnosticArray``: state, rates, latency, why
             it holds, each tick.
@@ -77,6 +81,7 @@ class NodeTopics:
     ds_pose: str = "/uwdock/ds_pose"
     ds_estimate: str = "/uwdock/ds_estimate"
     command: str = "/girona500/controller/body_wrench_req"
+    velocity_command: str = ""
     tf: str = "/tf"
     diagnostics: str = "/diagnostics"
 

@@ -69,7 +69,8 @@ class VehicleNode:
         }
         self.pubs: dict[str, Publisher] = {}
         for kind, (topic, typename) in output_types(cfg).items():
-            qos = {"command": cfg.qos.command, "tf": cfg.qos.tf}.get(kind, cfg.qos.outputs)
+            qos = {"command": cfg.qos.command, "velocity_command": cfg.qos.command,
+                   "tf": cfg.qos.tf}.get(kind, cfg.qos.outputs)  # fmt: skip
             if sim_clock:
                 qos = QosProfile("reliable", qos.depth, qos.durability)
             self.pubs[kind] = graph.publisher(topic, typename, qos)
@@ -131,7 +132,7 @@ class VehicleNode:
 
     def _tick(self, t_ns: int) -> None:
         tick = self.chain.tick(t_ns)
-        self.publish(tick_messages(tick, self.cfg), t_ns)
+        self.publish(tick_messages(tick, self.cfg, self.chain.damping), t_ns)
         self.ticks += 1
         self.last_tick = tick
 

@@ -126,7 +126,7 @@ def replay_bag(
 
 def _tick(chain: DockingChain, cfg: NodeConfig, rec: McapRecorder, t_ns: int) -> Tick:
     tick = chain.tick(t_ns)
-    for _, topic, typename, msg in tick_messages(tick, cfg):
+    for _, topic, typename, msg in tick_messages(tick, cfg, chain.damping):
         rec.write(topic, typename, msg, t_ns)
     return tick
 

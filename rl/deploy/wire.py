@@ -26,13 +26,21 @@ from uwdock.ros import conventions as conv
 from uwdock.ros import messages as rm
 from uwdock.ros.qos import QosProfile
 
-__all__ = ["Dispatcher", "InputTopic", "input_topics", "output_types", "tick_messages"]
+__all__ = [
+    "Dispatcher",
+    "InputTopic",
+    "input_topics",
+    "output_types",
+    "steady_velocity",
+    "tick_messages",
+]
 
 #: the ROS 2 type of each output (``NodeTopics`` field -> type)
 OUTPUT_TYPES = {
     "ds_pose": "geometry_msgs/msg/PoseWithCovarianceStamped",
     "ds_estimate": "geometry_msgs/msg/PoseWithCovarianceStamped",
     "command": "geometry_msgs/msg/WrenchStamped",
+    "velocity_command": "geometry_msgs/msg/TwistStamped",
     "tf": "tf2_msgs/msg/TFMessage",
     "diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
 }
@@ -179,6 +187,22 @@ class Dispatcher:
         self.clock_ns = t if self.clock_ns is None else max(self.clock_ns, t)
 
 
+def steady_velocity(
+    wrench_6: np.ndarray, linear_damping: np.ndarray, quadratic_damping: np.ndarray
+) -> np.ndarray:
+    """(6,) body velocity at which the vehicle's damping balances ``wrench_6`` on each axis
+    (``d_l v + d_q |v| v = F``; restoring forces and coupling ignored): the policy's wrench as
+    a body velocity request, for vehicles whose controller takes velocities (m/s, rad/s)."""
+    F = np.asarray(wrench_6, dtype=np.float64)
+    dl = np.asarray(linear_damping, dtype=np.float64)
+    dq = np.asarray(quadratic_damping, dtype=np.float64)
+    a = np.abs(F)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        quad = (-dl + np.sqrt(dl * dl + 4.0 * dq * a)) / (2.0 * dq)
+        lin = np.where(dl > 0, a / dl, 0.0)
+    return np.sign(F) * np.where(dq > 0, quad, lin)
+
+
 def _cov6(cov_xyzyaw: np.ndarray) -> np.ndarray:
     """(6, 6) pose covariance of an [x, y, z, yaw] one (roll and pitch: not estimated, 0)."""
     c = np.zeros((6, 6))
@@ -187,10 +211,13 @@ def _cov6(cov_xyzyaw: np.ndarray) -> np.ndarray:
     return c
 
 
-def tick_messages(tick: Tick, cfg: NodeConfig) -> list[tuple[str, str, str, Any]]:
+def tick_messages(
+    tick: Tick, cfg: NodeConfig, damping: tuple[np.ndarray, np.ndarray] | None = None
+) -> list[tuple[str, str, str, Any]]:
     """The messages one tick publishes, in order: ``(kind, topic, type, message)``. The
     command comes before the diagnostics (a lock-step vehicle waits for the diagnostics, then
-    reads the command)."""
+    reads the command). ``damping``: the vehicle's (linear, quadratic) damping, for the body
+    velocity request (:func:`steady_velocity`) when ``topics.velocity_command`` is set."""
     axes, f, t = cfg.axes, cfg.frames, tick.stamp_ns
     outs = output_types(cfg)
     msgs: list[tuple[str, str, str, Any]] = []
@@ -214,6 +241,10 @@ def tick_messages(tick: Tick, cfg: NodeConfig) -> list[tuple[str, str, str, Any]
              conv.body_vector_to_wire(tick.command[3:], axes)]
         )  # fmt: skip
         add("command", rm.wrench_stamped_msg(w, t, f.body))
+        if damping is not None:
+            v = steady_velocity(tick.command, *damping)
+            v_wire = [conv.body_vector_to_wire(v[:3], axes), conv.body_vector_to_wire(v[3:], axes)]
+            add("velocity_command", rm.twist_stamped_msg(*v_wire, t, f.body))
     level = rm.DIAG_OK if tick.state == "armed" else rm.DIAG_WARN
     if tick.state == "holding":
         level = rm.DIAG_ERROR
