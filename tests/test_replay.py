@@ -6,6 +6,7 @@ its equality with the live node, is ``tests/test_vehicle_wire.py``'s."""
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -157,6 +158,7 @@ def test_ros1_and_ros2_recordings_of_one_mission_replay_the_same(tmp_path):
         ("missing", "not found"),
         ("no_camera", "has no camera topic"),
         ("not_a_bag", "not a ROS bag"),
+        ("fifo", "FIFO"),
     ],
 )
 def test_bad_recordings_are_one_line(tmp_path, setup, message):
@@ -169,6 +171,8 @@ def test_bad_recordings_are_one_line(tmp_path, setup, message):
     elif setup == "not_a_bag":
         bag = tmp_path / "x.txt"
         bag.write_text("hello")
+    elif setup == "fifo":
+        os.mkfifo(bag)
     res = _replay(bag, tmp_path / "out")
     assert res.returncode == 2
     assert res.stderr.count("\n") == 1 and message in res.stderr, res.stderr

@@ -26,7 +26,7 @@ from uwdock.calibration.frames import rpy_from_R
 from uwdock.dockcore.bags import Bag
 from uwdock.dockcore.config import to_dict
 from uwdock.dockcore.errors import DockError
-from uwdock.dockcore.io import atomic_path, atomic_write_json
+from uwdock.dockcore.io import atomic_path, atomic_write_json, check_regular_file
 from uwdock.dockcore.provenance import provenance
 from uwdock.rl.deploy.chain import DockingChain, Tick
 from uwdock.rl.deploy.config import NodeConfig
@@ -73,6 +73,8 @@ def replay_bag(
     Raises:
         DockError: the bag has none of the node's input topics, or no navigation topic.
     """
+    if not Path(bag_path).is_dir():  # a FIFO or device would block the reader
+        check_regular_file(bag_path, "recording")
     dispatch = Dispatcher(chain, cfg, camera_file_given)
     inputs = input_topics(cfg)
     ticks: list[Tick] = []
