@@ -129,6 +129,8 @@ class Tick:
         cov_xyzyaw: (4, 4) its covariance.
         latency_ms: per stage: ``decode``, ``perception`` (detector + PnP), ``filter``,
             ``policy``, ``total`` (this process's CPU path from tick start to command).
+        observation: the policy's input this tick (float32, the env's layout), None without
+            a navigation solution or a run.
         values: the diagnostics' key/value pairs.
     """
 
@@ -142,6 +144,7 @@ class Tick:
     T_world_ds: np.ndarray
     cov_xyzyaw: np.ndarray
     latency_ms: dict[str, float]
+    observation: np.ndarray | None = None
     values: dict[str, str] = field(default_factory=dict)
 
 
@@ -285,7 +288,7 @@ class DockingChain:
         dt_s = 0.0 if first or self._last_tick_ns is None else (now_ns - self._last_tick_ns) / _NS
         self._last_tick_ns = now_ns
         reasons: list[str] = []
-        command = None
+        command, obs = None, None
         meas, frame_ns, n_det = None, None, 0
         if self._prior_ns is None or now_ns < self._prior_ns:
             if self._prior_ns is None:
@@ -360,6 +363,7 @@ class DockingChain:
             r.filter.T_world_ds,
             r.filter.P.copy(),
             lat,
+            None if obs is None else obs.astype(np.float32),
         )
         tick.values = self._values(tick, now_ns)
         return tick
