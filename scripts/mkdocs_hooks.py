@@ -22,7 +22,7 @@ from mkdocs.structure.files import File, Files
 #: Image types served from the benchmark results.
 _SUFFIXES = (".png", ".jpg", ".jpeg", ".svg")
 #: The package folders, in rank order (``uwdock.LAYERS``).
-_PACKAGES = ("dockcore", "calibration", "markers", "perception", "sim", "datasets", "rl")
+_PACKAGES = ("dockcore", "calibration", "markers", "ros", "perception", "sim", "datasets", "rl")
 
 
 #: The repository root (this file is ``scripts/mkdocs_hooks.py``).
