@@ -57,8 +57,17 @@ def _inputs(chain: DockingChain, t: int, frame: bool = True, nav: bool = True) -
 
 
 def test_shipped_policy_is_exported():
-    """The node's default policy: an ONNX file and its .json, no pickle."""
-    assert SHIPPED_POLICY.is_file() and SHIPPED_POLICY.with_suffix(".json").is_file()
+    """The node's default policy: an ONNX file and its .json, no pickle, as
+    ``make_artefacts.sh onnx`` wrote them (checksums), carrying the env it was trained in."""
+    import hashlib
+    import json
+
+    folder = SHIPPED_POLICY.parent
+    for line in (folder / "onnx_checksums.sha256").read_text().splitlines():
+        digest, name = line.split()
+        assert hashlib.sha256((folder / name).read_bytes()).hexdigest() == digest, name
+    meta = json.loads(SHIPPED_POLICY.with_suffix(".json").read_text())
+    assert meta["obs_dim"] == 18 and meta["env"]["nav"]["preset"] == "mems-ahrs-dvl"
 
 
 def test_disarmed_publishes_no_command_and_enable_arms():
