@@ -26,6 +26,7 @@ import types
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
 from cyclonedds.core import (
     InstanceState,
     Policy,
@@ -208,11 +209,13 @@ class Received:
 class Publisher:
     """A DDS writer of one ROS 2 topic (made by :meth:`DdsGraph.publisher`)."""
 
-    def __init__(self, graph: DdsGraph, topic: str, typename: str, qos: QosProfile) -> None:
+    def __init__(
+        self, graph: DdsGraph, topic: str, typename: str, qos: QosProfile, raw: bool = False
+    ) -> None:
         self.topic, self.typename, self.qos = topic, typename, qos
         cls = _wire_class(typename)
         self._cls = cls
-        self._topic = graph.topic(topic, typename)
+        self._topic = graph.topic(topic, typename, raw)
         self._writer = DataWriter(graph.participant, self._topic, qos=dds_qos(qos, typename))
         self.count = 0
 
@@ -241,13 +244,20 @@ class Publisher:
         """How many readers are matched now."""
         return len(self._writer.get_matched_subscriptions())
 
+    @property
+    def gid(self) -> bytes:
+        """The writer's 16-byte GUID (ROS 2's gid of the publisher)."""
+        return self._writer.guid.bytes
+
 
 class Subscription:
     """A DDS reader of one ROS 2 topic (made by :meth:`DdsGraph.subscription`)."""
 
-    def __init__(self, graph: DdsGraph, topic: str, typename: str, qos: QosProfile) -> None:
+    def __init__(
+        self, graph: DdsGraph, topic: str, typename: str, qos: QosProfile, raw: bool = False
+    ) -> None:
         self.topic, self.typename, self.qos = topic, typename, qos
-        self._topic = graph.topic(topic, typename)
+        self._topic = graph.topic(topic, typename, raw)
         self._reader = DataReader(graph.participant, self._topic, qos=dds_qos(qos, typename))
         self.condition = ReadCondition(
             self._reader, SampleState.NotRead | ViewState.Any | InstanceState.Any
@@ -272,6 +282,11 @@ class Subscription:
     def matched(self) -> int:
         """How many writers are matched now."""
         return len(self._reader.get_matched_publications())
+
+    @property
+    def gid(self) -> bytes:
+        """The reader's 16-byte GUID (ROS 2's gid of the subscription)."""
+        return self._reader.guid.bytes
 
 
 #: Domains configured in this process (Cyclone takes one configuration per domain id).
@@ -308,9 +323,10 @@ class DdsGraph:
         self._waitset = WaitSet(self.participant)
         self.subscriptions: list[Subscription] = []
 
-    def topic(self, topic: str, typename: str) -> Topic:
-        """The DDS topic of a ROS 2 topic (one per name in this participant)."""
-        name = dds_topic_name(topic)
+    def topic(self, topic: str, typename: str, raw: bool = False) -> Topic:
+        """The DDS topic of a ROS 2 topic (one per name in this participant); ``raw``: the
+        name as it is (ROS 2's own ``ros_discovery_info`` has no ``rt/`` prefix)."""
+        name = topic if raw else dds_topic_name(topic)
         t = self._topics.get(name)
         if t is None:
             t = self._topics[name] = Topic(self.participant, name, _wire_class(typename))
@@ -320,9 +336,37 @@ class DdsGraph:
         """A writer of ``topic`` (``/a/b``) of type ``typename`` (``pkg/msg/T``)."""
         return Publisher(self, topic, typename, qos)
 
-    def subscription(self, topic: str, typename: str, qos: QosProfile) -> Subscription:
-        """A reader of ``topic``; :meth:`wait` wakes on its samples."""
-        sub = Subscription(self, topic, typename, qos)
+    def announce_node(self, name: str, endpoints: list, namespace: str = "/") -> Publisher:
+        """Tell ROS 2's graph that a node ``namespace/name`` owns ``endpoints`` (publishers and
+        subscriptions): ``rmw_dds_common/ParticipantEntitiesInfo`` on ``ros_discovery_info``
+        (latched), as every ROS 2 participant publishes it, so ``ros2 node list`` and ``ros2
+        node info`` show the node. Returns the writer (keep it alive)."""
+        typename = "rmw_dds_common/msg/ParticipantEntitiesInfo"
+        cls = rm.typestore().types
+        gid = cls["rmw_dds_common/msg/Gid"]
+
+        def g(raw: bytes):
+            return gid(data=np.frombuffer(raw, dtype=np.uint8).copy())
+
+        info = cls["rmw_dds_common/msg/NodeEntitiesInfo"](
+            node_namespace=namespace,
+            node_name=name,
+            reader_gid_seq=[g(e.gid) for e in endpoints if isinstance(e, Subscription)],
+            writer_gid_seq=[g(e.gid) for e in endpoints if isinstance(e, Publisher)],
+        )
+        msg = cls[typename](gid=g(self.participant.guid.bytes), node_entities_info_seq=[info])
+        pub = Publisher(
+            self, "ros_discovery_info", typename, QosProfile("reliable", 1, "transient_local"), True
+        )
+        pub.publish(msg)
+        return pub
+
+    def subscription(
+        self, topic: str, typename: str, qos: QosProfile, raw: bool = False
+    ) -> Subscription:
+        """A reader of ``topic`` (``raw``: a DDS name without the ``rt/`` prefix);
+        :meth:`wait` wakes on its samples."""
+        sub = Subscription(self, topic, typename, qos, raw)
         self._waitset.attach(sub.condition)
         self.subscriptions.append(sub)
         return sub

@@ -278,3 +278,33 @@ def test_samples_cross_dds_unchanged_and_advertise_the_type_hash():
     assert data.type_name == "geometry_msgs::msg::dds_::WrenchStamped_"
     hash_ = rm.type_hash("geometry_msgs/msg/WrenchStamped")
     assert f"Policy.Userdata(data=b'typehash={hash_};')" in str(data.qos)
+
+
+def test_the_node_announces_itself_to_the_ros2_graph():
+    """``ros_discovery_info`` (no ``rt/`` prefix, latched) carries the participant's GUID and the
+    node's readers and writers, as ROS 2's rmw publishes it for ``ros2 node list``."""
+    a, b = DdsGraph(228), DdsGraph(228)
+    pub = a.publisher(
+        "/uwdock/ds_pose", "geometry_msgs/msg/PoseWithCovarianceStamped", QosProfile()
+    )
+    sub = a.subscription("/girona500/navigator/odometry", "nav_msgs/msg/Odometry", QosProfile())
+    keep = a.announce_node("uwdock_docking", [pub, sub])
+    latched = QosProfile("reliable", 1, "transient_local")
+    typename = "rmw_dds_common/msg/ParticipantEntitiesInfo"
+    reader = b.subscription("ros_discovery_info", typename, latched, raw=True)
+    got = []
+    for _ in range(50):
+        b.wait(0.1)
+        got += reader.take()
+        if got:
+            break
+    assert got and keep.matched() >= 1
+    info = got[-1].msg
+    assert bytes(info.gid.data) == a.participant.guid.bytes
+    node = info.node_entities_info_seq[0]
+    assert (node.node_namespace, node.node_name) == ("/", "uwdock_docking")
+    assert [bytes(x.data) for x in node.writer_gid_seq] == [pub.gid]
+    assert [bytes(x.data) for x in node.reader_gid_seq] == [sub.gid]
+    data = keep._writer.get_matched_subscription_data(keep._writer.get_matched_subscriptions()[0])
+    assert data.topic_name == "ros_discovery_info"
+    assert data.type_name == "rmw_dds_common::msg::dds_::ParticipantEntitiesInfo_"

@@ -74,6 +74,8 @@ class VehicleNode:
             if sim_clock:
                 qos = QosProfile("reliable", qos.depth, qos.durability)
             self.pubs[kind] = graph.publisher(topic, typename, qos)
+        ends = [sub for sub, _ in self.subs.values()] + list(self.pubs.values())
+        self._announce = graph.announce_node(cfg.name, ends)  # ``ros2 node list`` shows it
         self.ticks = 0
         self.last_tick: Tick | None = None
 
