@@ -89,7 +89,7 @@ class NodeTopics:
         for name in self.__dataclass_fields__:
             value = getattr(self, name)
             if name != "image_format" and value:
-                check_topic(value, f"topics.{name}")
+                check_topic(value, name)
 
 
 @dataclass(frozen=True)
