@@ -37,7 +37,7 @@ import numpy as np
 
 from uwdock.rl.config import EnvConfig
 from uwdock.rl.deploy.config import NodeConfig
-from uwdock.rl.deploy.wire import output_types
+from uwdock.rl.deploy.wire import input_topics, output_types
 from uwdock.rl.env import DockingEnv
 from uwdock.rl.evaluate import episode_row, summarise
 from uwdock.rl.failures import FailureTracker
@@ -103,31 +103,18 @@ class SimVehicle:
         self.answer_timeout_s = answer_timeout_s
         self.recorder, self.log = recorder, log
         self.period_ns = round(_NS / env_cfg.control_hz)
-        t, q = node_cfg.topics, node_cfg.qos
+        q = node_cfg.qos
 
         def qos(p: QosProfile) -> QosProfile:
             return QosProfile("reliable", max(p.depth, 4), p.durability) if sim_clock else p
 
-        image_type = (
-            "sensor_msgs/msg/CompressedImage"
-            if t.image_format == "compressed"
-            else "sensor_msgs/msg/Image"
-        )
-        table = [
-            ("image", image_type, q.image),
-            ("camera_info", "sensor_msgs/msg/CameraInfo", q.camera_info),
-            ("odometry", "nav_msgs/msg/Odometry", q.navigation),
-            ("imu", "sensor_msgs/msg/Imu", q.navigation),
-            ("accel", "geometry_msgs/msg/AccelWithCovarianceStamped", q.navigation),
-            ("usbl", "geometry_msgs/msg/PoseWithCovarianceStamped", q.usbl),
-            ("ds_prior", "geometry_msgs/msg/PoseWithCovarianceStamped", q.mission),
-            ("clock", "rosgraph_msgs/msg/Clock", q.clock),
-        ]
-        self.pubs: dict[str, tuple[Publisher, str, str]] = {}
-        for kind, typename, profile in table:
-            topic = getattr(t, kind)
-            if topic:
-                self.pubs[kind] = (graph.publisher(topic, typename, qos(profile)), topic, typename)
+        # the vehicle publishes what the node reads (its topics, types and QoS), but the
+        # operator's enable and abort
+        self.pubs: dict[str, tuple[Publisher, str, str]] = {
+            it.kind: (graph.publisher(topic, it.typename, it.qos), topic, it.typename)
+            for topic, it in input_topics(node_cfg, sim_clock).items()
+            if it.kind not in ("enable", "abort")
+        }
         outs = output_types(node_cfg)
         self.subs: dict[str, tuple[Subscription, str, str]] = {}
         for kind in ("command", "diagnostics"):
