@@ -13,6 +13,7 @@ corners (-s/2, s/2), (s/2, s/2), (s/2, -s/2), (-s/2, -s/2)); pixel coordinates f
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Annotated, Any
 
@@ -115,6 +116,17 @@ class DetectorConfig:
             one more detection (three threshold windows) per frame, about OpenCV's own time,
             less in the small regions of a prior search. None: pipeline preset (True only for
             ``default``).
+        compressed_pass: on frames that show a block-coding grid (JPEG, intra-coded video:
+            :func:`perception.preprocess.block_grid_fraction`), also detect on the pipeline's
+            extra views (:class:`perception.preprocess.CompressedViews`: its candidate inverted,
+            the brightest channel inverted, each with its own threshold window); the IDs they
+            decode that the rest missed are added, unless they lie on a marker already found.
+            The gate is measured once on the whole frame, so an uncompressed frame (a render)
+            takes exactly the path it took without this pass. Measured on held-out rendered
+            frames at JPEG quality 25 (``bench/bench_compressed.py``). Explicit
+            ``adaptive_thresh_*``, ``corner_refinement`` and ``detect_inverted`` settings do not
+            reach the views. None: pipeline preset (True only for ``default``, also in
+            :func:`rendered_3dbm_config`).
     """
 
     dictionary: str = "DICT_4X4_50"
@@ -133,6 +145,7 @@ class DetectorConfig:
     rescue_max_quads: Annotated[int, Interval(ge=0, le=10000)] = 16
     rescue_min_side_px: Annotated[float, Interval(ge=0.0, le=10000.0)] = 16.0
     opencv_pass: bool | None = None
+    compressed_pass: bool | None = None
 
     def validate(self) -> None:
         """Raise ValueError naming the first bad field (names, IDs, the window sequence; each
@@ -178,6 +191,30 @@ class Detection:
 
     marker_id: int
     corners_px: np.ndarray
+
+
+def _preset_parameters(preset: Mapping[str, Any]) -> cv2.aruco.DetectorParameters:
+    """OpenCV's default parameters with ``preset``'s attributes set."""
+    params = cv2.aruco.DetectorParameters()
+    for key, value in preset.items():
+        setattr(params, key, value)
+    return params
+
+
+def _overlaps(d: Detection, found: list[Detection]) -> bool:
+    """True when ``d``'s centre lies in a quad of ``found`` or the centre of one of them lies in
+    ``d``'s quad: the same physical marker (or its enclosure) read again."""
+    q = d.corners_px.astype(np.float32).reshape(-1, 1, 2)
+    c = d.corners_px.mean(axis=0)
+    for o in found:
+        oc = o.corners_px.mean(axis=0)
+        oq = o.corners_px.astype(np.float32).reshape(-1, 1, 2)
+        if (
+            cv2.pointPolygonTest(oq, (float(c[0]), float(c[1])), False) >= 0
+            or cv2.pointPolygonTest(q, (float(oc[0]), float(oc[1])), False) >= 0
+        ):
+            return True
+    return False
 
 
 def _aruco_parameters(cfg: DetectorConfig, pipeline: Pipeline) -> cv2.aruco.DetectorParameters:
@@ -229,24 +266,51 @@ class Detector:
             if opencv_pass
             else None
         )
+        compressed = (
+            self.pipeline.compressed is not None
+            if cfg.compressed_pass is None
+            else cfg.compressed_pass and self.pipeline.compressed is not None
+        )
+        #: the pipeline's extra views for block-compressed frames (None: off)
+        self.compressed_views = self.pipeline.compressed if compressed else None
+        self._view_arucos = (
+            [
+                cv2.aruco.ArucoDetector(self._dictionary, _preset_parameters(p))
+                for p in self.compressed_views.presets(self.pipeline.aruco_preset)
+            ]
+            if self.compressed_views is not None
+            else []
+        )
         #: where the last :meth:`detect` found its markers: "regions" (the prior's) or "frame"
         self.last_search = "frame"
+        #: whether the last :meth:`detect` ran the extra views of a block-compressed frame
+        self.last_compressed = False
 
     def detect_candidate(self, grey: np.ndarray) -> list[Detection]:
         """ArUco on one preprocessed uint8 grey image; allow-listed IDs only, in OpenCV's order,
         then the rejected quads read again (``rescue_rejected``), IDs not yet found only."""
-        corners, ids, rejected = self._aruco.detectMarkers(grey)
+        subpix = self.parameters.cornerRefinementMethod == cv2.aruco.CORNER_REFINE_SUBPIX
+        return self._decode(grey, self._aruco, subpix)
+
+    def _decode(self, grey: np.ndarray, aruco: Any, subpix: bool) -> list[Detection]:
+        """:meth:`detect_candidate` with another ArUco detector; ``subpix``: refine rescued
+        quads' corners (:meth:`_refine_subpix`)."""
+        corners, ids, rejected = aruco.detectMarkers(grey)
         out = []
         if ids is not None:
             for marker_id, c in zip(ids.ravel().tolist(), corners, strict=True):
                 if self._allowed is None or marker_id in self._allowed:
                     out.append(Detection(int(marker_id), np.asarray(c, np.float64).reshape(4, 2)))
         if self._reader is not None and len(rejected):
-            out.extend(self._read_rejected(grey, rejected, {d.marker_id for d in out}))
+            out.extend(self._read_rejected(grey, rejected, {d.marker_id for d in out}, subpix))
         return out
 
     def _read_rejected(
-        self, grey: np.ndarray, rejected: tuple[np.ndarray, ...], have: set[int]
+        self,
+        grey: np.ndarray,
+        rejected: tuple[np.ndarray, ...],
+        have: set[int],
+        subpix: bool = True,
     ) -> list[Detection]:
         """Rejected quads decoded by :class:`perception.rescue.QuadReader`, largest first."""
         sized = []
@@ -262,7 +326,7 @@ class Detector:
             if got is None or got[0] in have:
                 continue
             marker_id, c = got
-            if self.parameters.cornerRefinementMethod == cv2.aruco.CORNER_REFINE_SUBPIX:
+            if subpix:
                 c = self._refine_subpix(grey, c)
             out.append(Detection(marker_id, c))
             have.add(marker_id)
@@ -298,7 +362,10 @@ class Detector:
         return pts.reshape(4, 2).astype(np.float64)
 
     def detect(
-        self, img_bgr: Any, predicted: dict[int, np.ndarray] | None = None
+        self,
+        img_bgr: Any,
+        predicted: dict[int, np.ndarray] | None = None,
+        compressed: bool | None = None,
     ) -> list[Detection]:
         """Detect markers in a camera image.
 
@@ -313,13 +380,21 @@ class Detector:
                 ones merged) and returns those detections when enough of them are found
                 (``roi_accept_fraction``); otherwise, or when none is predicted in the image,
                 it searches the whole frame.
+            compressed: whether the frame was block-coded, for ``compressed_pass``: None
+                measures it (:func:`perception.preprocess.block_grid_fraction` of the frame);
+                True runs the extra views whatever the frame shows, for a caller that knows
+                (a ``CompressedImage`` resized before detection: area averaging by 2x or more
+                blurs the 8 px grid away); False never runs them. Without ``compressed_pass``
+                it is ignored.
 
         Returns:
             Detections sorted by marker ID. An ID decoded in several candidate images is
             reported once, from the candidate with the most detections (ties: the earlier one),
             or, for a pipeline that merges "first", from the earliest candidate. With
             ``opencv_pass`` the IDs OpenCV's own pass decodes come from it (flat tags, corners
-            free of the inversion bias), the candidates add the IDs it missed.
+            free of the inversion bias), the candidates add the IDs it missed; on a
+            block-compressed frame (``compressed_pass``) the extra views add the IDs all of
+            those missed.
             An ID seen twice in the same candidate (two physical markers) is kept twice.
 
         Raises:
@@ -327,18 +402,33 @@ class Detector:
         """
         image = as_uint8(img_bgr)
         self.last_search = "frame"
+        grey = to_grey(image) if (self._opencv is not None or self._view_arucos) else None
+        views = self.compressed_views
+        if views is None or grey is None:
+            compressed = False
+        elif compressed is None:
+            compressed = views.applies(grey)
+        self.last_compressed = bool(compressed)
         if predicted:
-            found = self._detect_in_regions(image, predicted)
+            found = self._detect_in_regions(image, predicted, grey, bool(compressed))
             if found is not None:
                 self.last_search = "regions"
                 return found
-        return self._detect_image(image)
+        return self._detect_image(image, grey, bool(compressed))
 
-    def _detect_image(self, image: np.ndarray) -> list[Detection]:
-        """The pipeline's candidates of one uint8 image, detected and merged."""
-        merged = [] if self._opencv is None else self._opencv_pass(to_grey(image))
+    def _detect_image(
+        self, image: np.ndarray, grey: np.ndarray | None = None, compressed: bool = False
+    ) -> list[Detection]:
+        """The pipeline's candidates of one uint8 image, detected and merged; ``grey``: the
+        image's :func:`to_grey` when already computed; ``compressed``: add the extra views'
+        IDs (the gate decided on the whole frame)."""
+        if self._opencv is None:
+            merged = []
+        else:
+            merged = self._opencv_pass(to_grey(image) if grey is None else grey)
         seen = {d.marker_id for d in merged}
-        per_candidate = [self.detect_candidate(c) for c in self.pipeline(image)]
+        candidates = self.pipeline(grey if grey is not None and self.pipeline.grey_input else image)
+        per_candidate = [self.detect_candidate(c) for c in candidates]
         order = list(range(len(per_candidate)))  # "first": in the pipeline's order
         if self.pipeline.merge != "first":
             order.sort(key=lambda i: -len(per_candidate[i]))
@@ -348,6 +438,13 @@ class Detector:
             new = [d for d in per_candidate[i] if d.marker_id not in seen]
             merged.extend(new)
             seen.update(d.marker_id for d in new)
+        if compressed and candidates:
+            views = self.compressed_views.views(image, candidates)  # type: ignore[union-attr]
+            for view, aruco in zip(views, self._view_arucos, strict=True):
+                for d in self._decode(view, aruco, subpix=False):
+                    if d.marker_id not in seen and not _overlaps(d, merged):
+                        merged.append(d)
+                        seen.add(d.marker_id)
         return sorted(merged, key=lambda d: d.marker_id)
 
     def _opencv_pass(self, grey: np.ndarray) -> list[Detection]:
@@ -401,7 +498,11 @@ class Detector:
         return [tuple(b) for b in boxes], expected  # type: ignore[misc]
 
     def _detect_in_regions(
-        self, image: np.ndarray, predicted: dict[int, np.ndarray]
+        self,
+        image: np.ndarray,
+        predicted: dict[int, np.ndarray],
+        grey: np.ndarray | None = None,
+        compressed: bool = False,
     ) -> list[Detection] | None:
         """Detections in the predicted regions, or None when too few of the expected markers
         are found there (``roi_accept_fraction``) or none is expected."""
@@ -412,7 +513,8 @@ class Detector:
         for x0, y0, x1, y1 in boxes:
             if min(x1 - x0, y1 - y0) < MIN_IMAGE_PX:
                 return None
-            for d in self._detect_image(image[y0:y1, x0:x1]):
+            crop_grey = None if grey is None else grey[y0:y1, x0:x1]
+            for d in self._detect_image(image[y0:y1, x0:x1], crop_grey, compressed):
                 if d.marker_id not in found:
                     found[d.marker_id] = Detection(d.marker_id, d.corners_px + np.array([x0, y0]))
         hits = len(expected & found.keys())
@@ -426,9 +528,12 @@ class Detector:
 
 def rendered_3dbm_config(ids: tuple[int, ...] | None = None) -> DetectorConfig:
     """The detector for frames that show only 3DBMs, as the simulator renders them (the camera
-    source, the error-model fit, the tank report): ``default`` without its OpenCV pass, which
-    decodes no negative marker, so the same detections in about half the time
-    (``bench/bench_perception.py``: 5.3 against 9.5 ms at 968 px).
+    source, the error-model fit, the tank report) and as the vehicle node receives them:
+    ``default`` without its OpenCV pass, which decodes no negative marker, so the same
+    detections in about half the time (``bench/bench_perception.py``: 5.3 against 9.5 ms at
+    968 px). Its views for block-compressed frames (``compressed_pass``) stay on: a vehicle's
+    ``CompressedImage`` opens their gate, a render does not (it takes the path it took before
+    they existed, bit for bit).
 
     Args:
         ids: the marker IDs allowed (None: any of the dictionary).

@@ -169,6 +169,7 @@ class DSPoseEstimator:
         T_world_cam: ArrayLike | None = None,
         T_world_ds_prior: ArrayLike | None = None,
         T_cam_ds_prior: ArrayLike | None = None,
+        compressed: bool | None = None,
     ) -> DSPoseEstimate:
         """Estimate the DS pose in one image.
 
@@ -183,6 +184,8 @@ class DSPoseEstimator:
                 ``pose_cfg.search_from_prior``, to search around the predicted markers first).
             T_cam_ds_prior: (4, 4) predicted DS pose in the camera frame (e.g. the previous
                 video frame's estimate); used as ``T_world_ds_prior`` is, when that is not given.
+            compressed: whether the frame was block-coded (``Detector.detect``'s): None
+                measures it on the frame; True for a JPEG frame resized before it came here.
 
         Returns:
             The :class:`DSPoseEstimate`.
@@ -199,7 +202,10 @@ class DSPoseEstimator:
         predicted = None
         if prior is not None and self.pose_cfg.search_from_prior:
             predicted = self.predicted_corners(prior, camera)
-        dets = self.detector.detect(img_bgr, predicted)
+        if compressed is None:  # the detector measures it (and a stand-in needs no such argument)
+            dets = self.detector.detect(img_bgr, predicted)
+        else:
+            dets = self.detector.detect(img_bgr, predicted, compressed=compressed)
         board = level = None
         if dets:
             K, dist = camera.K, camera.dist_coeffs

@@ -171,6 +171,7 @@ class DockingRunner:
         predict: bool = True,
         T_world_body_frame: np.ndarray | None = None,
         moved: bool | None = None,
+        compressed: bool | None = None,
     ) -> np.ndarray:
         """Update the DS estimate from a BGR frame and return the policy's observation.
 
@@ -178,8 +179,11 @@ class DockingRunner:
         caller did, or the run has just started). ``T_world_body_frame``: the navigation pose
         at the frame's own stamp (the vehicle node's navigation buffer), None: ``odom``'s.
         ``moved``: a control period has passed since the last call (the contact sense compares
-        accelerometer readings across it); None: ``predict``. The measurement made is kept in
-        :attr:`last_measurement` (None without one)."""
+        accelerometer readings across it); None: ``predict``. ``compressed``: the frame was
+        JPEG-coded (a ``CompressedImage``; the detector's extra views then run even when the
+        resize to the policy's width has blurred the block grid away); None: the detector
+        measures it. The measurement made is kept in :attr:`last_measurement` (None without
+        one)."""
         if predict:
             self.filter.predict(self.dt_s)
         self.detected = False
@@ -191,6 +195,7 @@ class DockingRunner:
                 self.camera,
                 T_frame @ self.T_body_cam,
                 self.filter.T_world_ds,
+                compressed=compressed,
             )
             self.last_detections = est.detections
             m = self.last_measurement = measurement(est)

@@ -18,7 +18,7 @@ from uwdock.dockcore.errors import ConfigError
 
 PACKAGES = tuple(
     f"uwdock.{p}"
-    for p in ("dockcore", "markers", "perception", "calibration", "sim", "datasets", "rl")
+    for p in ("dockcore", "markers", "ros", "perception", "calibration", "sim", "datasets", "rl")
 )
 
 
@@ -33,6 +33,7 @@ def _roots() -> list[type]:
     from uwdock.markers.config import MarkerConfig
     from uwdock.perception.evaluate import PerceptionConfig
     from uwdock.rl.baselines import PIDConfig
+    from uwdock.rl.deploy.config import NodeConfig
     from uwdock.rl.episode import EpisodeVideoConfig
     from uwdock.rl.error_model import ErrorModelConfig
     from uwdock.rl.sweep import SweepConfig
@@ -58,6 +59,7 @@ def _roots() -> list[type]:
         WaterConfig,
         DockingStationConfig,
         WorldConfig,
+        NodeConfig,
     ]
 
 

@@ -333,3 +333,28 @@ def test_velocity_request_balances_the_damping():
                     twist.angular.x, twist.angular.y, twist.angular.z])  # fmt: skip
     assert np.allclose(got, steady_velocity(tick.command, *chain.damping))
     assert list(msgs).index("velocity_command") < list(msgs).index("diagnostics")
+
+
+def test_jpeg_frames_take_the_detectors_compressed_views():
+    """A ``CompressedImage`` frame runs the detector's views for block-coded frames even after
+    the chain has resized it to the policy's width (which blurs the 8x8 grid the detector would
+    otherwise measure); a raw ``Image`` leaves the detector to measure it."""
+    chain = _chain()
+    dispatch = Dispatcher(chain, chain.cfg, camera_file_given=True)
+    _start(chain)
+    chain.tick(NS)
+    detector = chain.runner.estimator.detector
+    big = np.full((726, 960, 3), 90, np.uint8)  # twice the policy's 480 px: resized first
+    for k, (msg_of, expect) in enumerate(
+        [
+            (lambda t: rm.compressed_image_msg(big, t, "camera", 25), True),
+            (lambda t: rm.image_msg(big, t, "camera"), False),
+        ],
+        start=1,
+    ):
+        t = NS + k * TICK
+        chain.on_nav(_nav(t))
+        dispatch.feed("image", msg_of(t), t)
+        chain.tick(t)
+        assert chain.counts["frames_used"] == 1 + k
+        assert detector.last_compressed is expect

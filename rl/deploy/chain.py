@@ -152,6 +152,7 @@ class Tick:
 class _Frame:
     stamp_ns: int
     decode: Callable[[], np.ndarray]  # raises ValueError for a frame that does not decode
+    compressed: bool | None = None  # JPEG-coded (True), or measured by the detector (None)
 
 
 class DockingChain:
@@ -224,10 +225,13 @@ class DockingChain:
         if self._accel is None or stamp_ns >= self._accel[0]:
             self._accel = (stamp_ns, acceleration_frd_mps2)
 
-    def on_frame(self, stamp_ns: int, decode: Callable[[], np.ndarray]) -> None:
-        """A camera frame, decoded only if it is the one a tick uses."""
+    def on_frame(
+        self, stamp_ns: int, decode: Callable[[], np.ndarray], compressed: bool | None = None
+    ) -> None:
+        """A camera frame, decoded only if it is the one a tick uses; ``compressed``: it came
+        JPEG-coded (``CompressedImage``), None: the detector measures it on the frame."""
         self.counts["frames"] += 1
-        self._frames.append(_Frame(stamp_ns, decode))
+        self._frames.append(_Frame(stamp_ns, decode, compressed))
 
     def on_usbl(self, stamp_ns: int, p_world_ds_m: np.ndarray, var_m2: float) -> None:
         """An acoustic fix of the DS position (world NED) with its variance per axis."""
@@ -326,7 +330,12 @@ class DockingChain:
                 odom = self._odometry(nav)
                 t = time.perf_counter()
                 obs = r.observe(
-                    img, odom, predict=False, T_world_body_frame=T_frame, moved=not first
+                    img,
+                    odom,
+                    predict=False,
+                    T_world_body_frame=T_frame,
+                    moved=not first,
+                    compressed=None if frame is None else frame.compressed,
                 )
                 lat["perception"] = (time.perf_counter() - t) * 1e3
                 meas, n_det = r.last_measurement, len(r.last_detections) if img is not None else 0

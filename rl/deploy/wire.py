@@ -153,7 +153,8 @@ class Dispatcher:
             raise ValueError(f"stamped {ahead:.3f} s ahead of the node's clock")
 
     def _image(self, msg: Any, now_ns: int) -> None:
-        self.chain.on_frame(rm.stamp_ns(msg), lambda: read_image(msg))
+        jpeg = hasattr(msg, "format") and "jpeg" in str(msg.format).lower()  # CompressedImage
+        self.chain.on_frame(rm.stamp_ns(msg), lambda: read_image(msg), True if jpeg else None)
 
     def _camera_info(self, msg: Any, now_ns: int) -> None:
         if self.use_camera_info and not self.chain.camera_from_info:
