@@ -30,7 +30,7 @@ def _run(*args: str, cwd: Path) -> subprocess.CompletedProcess:
         (["rl", "node", "--policy", "missing.onnx"], "not found"),
         (["rl", "node", "--config", "bad_key.toml"], "unknown config key 'topics.imagee'"),
         (["rl", "node", "--config", "bad_qos.toml"], "qos.image.depth: must be an integer"),
-        (["rl", "node", "--config", "bad_topic.toml"], "topics.odometry: must be an absolute ROS name"),
+        (["rl", "node", "--config", "bad_topic.toml"], "odometry: must be an absolute ROS"),
         (["rl", "node", "--config", "bad_rate.toml"], "trained at 5 Hz"),
         (["rl", "node", "--record", "/dev/null"], "character device"),
         (["rl", "node", "--domain-id", "300"], "--domain-id"),
