@@ -7,8 +7,9 @@ Usage::
 
 Frames: the docking station rendered by ``datasets synth`` (coastal water, seed 0) through a
 16:9 camera of 55 deg horizontal field of view at 1280x720 and 1920x1080, seen from the heights
-and angles of a docking approach. Each frame is sent as the node receives it, both as
-``sensor_msgs/Image`` (bgr8) and as ``sensor_msgs/CompressedImage`` (JPEG quality 90), and
+and angles of a docking approach. Each frame is sent as the node receives it, as
+``sensor_msgs/Image`` (bgr8) and as ``sensor_msgs/CompressedImage`` (JPEG quality 90, and 25:
+heavy compression, where the detector's views for compressed frames add the most work), and
 runs through the node's own chain (:class:`uwdock.rl.deploy.chain.DockingChain` with the shipped
 policy, ONNX): deserialise the CDR bytes, decode the image, detect the markers and solve the
 board pose (the chain resizes the frame to the policy's camera width first, as the simulated
@@ -21,7 +22,7 @@ Start time: ``rl node`` started as a process until its first ``/diagnostics`` me
 a loopback DDS domain (median of ``repeats`` starts).
 
 ``--json`` prints one line last: ``{"p50_ms": {"720": ..., "1080": ...}, "p99_ms": {...}}`` for
-the compressed frames (what vehicles send). Writes ``bench/results/node_latency.json``.
+the JPEG quality 90 frames (what vehicles send). Writes ``bench/results/node_latency.json``.
 """
 
 from __future__ import annotations
@@ -73,16 +74,18 @@ def render(folder: Path, size: tuple[int, int], n: int) -> tuple[list[np.ndarray
     return frames, labels, cam_file
 
 
-def time_chain(frames, labels, cam_file: Path, compressed: bool, repeats: int) -> dict:
-    """Per-stage times (ms) of every frame through the node's chain, ``repeats`` passes."""
+def time_chain(frames, labels, cam_file: Path, jpeg_quality: int | None, repeats: int) -> dict:
+    """Per-stage times (ms) of every frame through the node's chain, ``repeats`` passes, sent
+    as raw ``Image`` (``jpeg_quality`` None) or as JPEG ``CompressedImage``."""
     cfg = from_dict(NodeConfig, {"flat_markers": True})
     chain = build_chain(SHIPPED_POLICY, cam_file, None, cfg, armed=True)
     T_body_cam = chain.runner.T_body_cam
     msgs = []
     for k, (img, lab) in enumerate(zip(frames, labels, strict=True)):
         t = (k + 1) * chain.period_ns
+        compressed = jpeg_quality is not None
         m = (
-            rm.compressed_image_msg(img, t, "camera", 90)
+            rm.compressed_image_msg(img, t, "camera", jpeg_quality)
             if compressed
             else rm.image_msg(img, t, "camera")
         )
@@ -164,9 +167,9 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="uwdock-bench-node-") as tmp:
         for label, size in SIZES.items():
             frames, labels, cam = render(Path(tmp), size, n)
-            for compressed in (False, True):
-                r = time_chain(frames, labels, cam, compressed, repeats)
-                fmt = "jpeg q90" if compressed else "raw bgr8"
+            for quality in (None, 90, 25):
+                r = time_chain(frames, labels, cam, quality, repeats)
+                fmt = "raw bgr8" if quality is None else f"jpeg q{quality}"
                 for stage in STAGES:
                     v = np.array(r["samples"][stage])
                     rows.append({
@@ -176,7 +179,7 @@ def main() -> None:
                         "n": int(v.size), "frames_with_pose": r["frames_with_pose"],
                     })  # fmt: skip
                 total = np.array(r["samples"]["total"])
-                if compressed:
+                if quality == 90:
                     p50[label] = float(np.percentile(total, 50))
                     p99[label] = float(np.percentile(total, 99))
     starts = start_time(2 if a.quick else repeats)
