@@ -63,6 +63,9 @@ HEAVY_OPTIONAL = frozenset(
         "mpl_toolkits",
         "av",  # FFmpeg's libraries, loaded only where a video is written
         "ray",  # the uwdock[ray] extra, only for --backend ray (dockcore.pool)
+        # Cyclone DDS: only the commands on the wire (rl node, sim vehicle); PyPI has no
+        # aarch64 wheel of it, so rl replay must run without it
+        "cyclonedds",
     }
 )
 

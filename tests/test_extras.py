@@ -301,13 +301,15 @@ def test_optional_stacks_are_not_base_dependencies():
     assert {"sapien", "numba"} <= {_requirement_name(r) for r in extras["sim"]}
 
 
-#: What ``uwdock[vehicle]`` leaves out: the simulator and the learning stack.
-NOT_IN_VEHICLE = tuple(m for m in OPTIONAL_MODULES if m != "onnxruntime")
+#: What ``uwdock[vehicle]`` leaves out (the simulator and the learning stack), and Cyclone DDS,
+#: which it has only where PyPI has a wheel (x86-64): a replay needs no DDS.
+NOT_IN_VEHICLE = (*(m for m in OPTIONAL_MODULES if m != "onnxruntime"), "cyclonedds")
 
 
 def test_rl_replay_runs_with_the_vehicle_extra_only(tmp_path):
-    """``rl replay`` (and so ``rl node``'s chain) needs neither SAPIEN, torch, SB3, Gymnasium
-    nor numba: the vehicle install (``tests/test_vehicle_install.py`` installs it for real)."""
+    """``rl replay`` (and so ``rl node``'s chain) needs neither SAPIEN, torch, SB3, Gymnasium,
+    numba nor Cyclone DDS: the vehicle install (``tests/test_vehicle_install.py`` installs it
+    for real); ``rl node`` without DDS is one line naming what to install."""
     from tests.test_replay import _ros2
 
     _ros2(tmp_path / "m.mcap")
@@ -321,3 +323,6 @@ def test_rl_replay_runs_with_the_vehicle_extra_only(tmp_path):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["frames"]["used"] == 12
     assert "rl replay:" in stdout
+    report, _, err = run_without_optional(tmp_path, "rl", "node", blocked=NOT_IN_VEHICLE)
+    assert report["code"] == 2 and report["loaded"] == []
+    assert err.count("\n") == 1 and "needs Cyclone DDS's Python binding" in err

@@ -16,6 +16,8 @@ import math
 import numpy as np
 import pytest
 
+pytest.importorskip("cyclonedds", reason="Cyclone DDS's binding (x86-64 wheels on PyPI only)")
+
 from uwdock.calibration.frames import R_from_rpy, make_T
 from uwdock.rl.deploy import inputs
 from uwdock.ros import conventions as conv

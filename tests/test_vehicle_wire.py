@@ -35,6 +35,7 @@ from uwdock.dockcore.bags import Bag
 from uwdock.ros import messages as rm
 
 pytestmark = pytest.mark.render
+pytest.importorskip("cyclonedds", reason="Cyclone DDS's binding (x86-64 wheels on PyPI only)")
 
 ROOT = Path(__file__).resolve().parents[1]
 PROFILE = ROOT / "rl" / "deploy" / "profiles" / "sim.toml"

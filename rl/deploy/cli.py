@@ -31,7 +31,6 @@ from uwdock.rl.deploy.replay import replay_bag
 from uwdock.rl.env_settings import command_env
 from uwdock.rl.policy_io import policy_env_settings
 from uwdock.rl.runner import DockingRunner
-from uwdock.ros.dds import DdsGraph
 from uwdock.ros.mcap import McapRecorder
 
 #: The shipped policy, exported (``rl export``): what ``rl node`` and ``rl replay`` run unless
@@ -133,9 +132,23 @@ def build_chain(
     return DockingChain(runner, cfg, armed=armed, log=lambda line: click.echo(line, err=True))
 
 
-def _graph(domain_id: int, network: str) -> DdsGraph:
+def _dds():
+    """The DDS modules (Cyclone DDS's Python binding), imported only by the commands on the
+    wire: ``rl replay`` runs without them (PyPI has no aarch64 wheel of ``cyclonedds``)."""
     try:
-        return DdsGraph(domain_id, loopback=network == "loopback")
+        from uwdock.ros import dds
+    except ModuleNotFoundError as exc:
+        raise DockError(
+            f"this command needs Cyclone DDS's Python binding ({exc.name} is not installed): "
+            "pip install 'uwdock[vehicle]' (x86-64; elsewhere see docs/guides/vehicle.md)"
+        ) from None
+    return dds
+
+
+def _graph(domain_id: int, network: str):
+    dds = _dds()
+    try:
+        return dds.DdsGraph(domain_id, loopback=network == "loopback")
     except Exception as exc:  # Cyclone's DDSException and configuration errors
         raise DockError(f"cannot join DDS domain {domain_id}: {exc}") from None
 

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -27,9 +27,11 @@ from uwdock.rl.deploy.chain import DockingChain, Tick
 from uwdock.rl.deploy.config import NodeConfig
 from uwdock.rl.deploy.wire import Dispatcher, input_topics, output_types, tick_messages
 from uwdock.ros import messages as rm
-from uwdock.ros.dds import DdsGraph, Publisher
 from uwdock.ros.mcap import McapRecorder
 from uwdock.ros.qos import QosProfile
+
+if TYPE_CHECKING:  # Cyclone DDS: the graph is made by the command (rl.deploy.cli)
+    from uwdock.ros.dds import DdsGraph, Publisher
 
 __all__ = ["VehicleNode"]
 

@@ -31,7 +31,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -43,9 +43,11 @@ from uwdock.rl.evaluate import episode_row, summarise
 from uwdock.rl.failures import FailureTracker
 from uwdock.ros import conventions as conv
 from uwdock.ros import messages as rm
-from uwdock.ros.dds import DdsGraph, Publisher, Subscription
 from uwdock.ros.mcap import McapRecorder
 from uwdock.ros.qos import QosProfile
+
+if TYPE_CHECKING:  # Cyclone DDS: the graph is made by the command (rl.deploy.cli)
+    from uwdock.ros.dds import DdsGraph, Publisher, Subscription
 
 __all__ = ["SimVehicle", "VehicleTimeout"]
 
