@@ -10,9 +10,10 @@ Each timing is one whole ``rl train`` command in a fresh process (PPO, ``--envs`
 checkpoints or evaluations in between; the steps are the ones the run did, ``--steps`` rounded
 up to whole rollouts of 512 steps per env), the median of ``--repeats``, for every ``K`` of
 ``--per-worker`` and every backend (Ray through a head started once with ``ray start``, as on a
-cluster). While it runs, the proportional set size (PSS: shared pages divided among the
-processes sharing them) of the command's whole process tree is sampled every 0.2 s; its peak
-is the memory the job takes. Ray's own daemons (the head) are not counted, only the command and
+cluster; here ``python -m uwdock.dockcore.rayloop start``, which keeps it on 127.0.0.1). While
+it runs, the proportional set size (PSS: shared pages divided among the processes sharing them)
+of the command's whole process tree is sampled every 0.2 s; its peak is the memory the job
+takes. Ray's own daemons (the head) are not counted, only the command and
 its actors.
 
 * ``proxy``: the paper's visibility test (cheap steps: the transport is what is measured);
@@ -43,6 +44,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from uwdock.dockcore.bench import format_table, save_results
 
 BIN = Path(sys.executable).parent
+#: The port of the Ray head the Ray rows run on (127.0.0.1 only).
+RAY_PORT = 6392
 TOML = """\
 checkpoint_every = 1000000000
 eval_every = 0
@@ -108,7 +111,7 @@ def row(source: str, backend: str, k: int, a, toml: Path) -> dict:
                    "--steps", str(steps), "--seed", "5", "--out", str(run),
                    "--envs-per-worker", str(k)]  # fmt: skip
             if backend == "ray":
-                cmd += ["--backend", "ray", "--ray-address", "auto"]
+                cmd += ["--backend", "ray", "--ray-address", f"127.0.0.1:{RAY_PORT}"]
             wall, peak = _run(cmd)
             steps = int(json.loads((run / "DONE").read_text())["steps"])  # whole rollouts
         walls.append(wall)
@@ -137,9 +140,10 @@ def main() -> None:
     backends = a.backends.split(",")
     work = Path(tempfile.mkdtemp(prefix="bench-groups-cfg-"))
     env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0"}
-    if "ray" in backends:
-        subprocess.run([str(BIN / "ray"), "start", "--head", "--port", "6392", "--num-cpus",
-                        str(a.envs), "--include-dashboard=false", "--disable-usage-stats"],
+    if "ray" in backends:  # a head on 127.0.0.1 only (docs/guides/scale-out.md)
+        subprocess.run([sys.executable, "-m", "uwdock.dockcore.rayloop", "start", "--head",
+                        "--port", str(RAY_PORT), "--num-cpus", str(a.envs),
+                        "--include-dashboard=false", "--disable-usage-stats"],
                        check=True, capture_output=True, env=env)  # fmt: skip
     rows = []
     try:

@@ -17,7 +17,8 @@ started, each building its SAPIEN scene or env, the work, the files written), th
 
 Each command runs with ``--backend local`` and with ``--backend ray --ray-address`` of a Ray
 instance started once beforehand with ``ray start --head`` (as on a cluster, where the instance
-is up before the jobs; its start time is reported on its own). The rows give Ray's overhead
+is up before the jobs; its start time is reported on its own), here through
+``python -m uwdock.dockcore.rayloop``, which keeps it on 127.0.0.1. The rows give Ray's overhead
 against the local pool at the same worker count and, for the evaluation, the balance of the
 work: the makespan of its episodes as handed out now (one at a time to a free worker) against
 the old static split (``range(w, n, workers)``) and the ideal, in control steps.
@@ -150,11 +151,12 @@ def main() -> None:
     env_toml.write_text("episode_s = 20.0\ncamera_width_px = 480\n")
     train_toml.write_text(TRAIN_TOML)
     port = 6391
-    address = "auto"  # the instance `ray start` just started on this machine
+    address = f"127.0.0.1:{port}"  # the head started just now, on loopback only
     env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0"}
     t0 = time.perf_counter()
-    subprocess.run([str(BIN / "ray"), "start", "--head", "--port", str(port), "--num-cpus",
-                    str(max(counts)), "--include-dashboard=false", "--disable-usage-stats"],
+    subprocess.run([sys.executable, "-m", "uwdock.dockcore.rayloop", "start", "--head", "--port",
+                    str(port), "--num-cpus", str(max(counts)), "--include-dashboard=false",
+                    "--disable-usage-stats"],
                    check=True, capture_output=True, env=env)  # fmt: skip
     ray_start_s = time.perf_counter() - t0
     print(f"Ray head up in {ray_start_s:.1f} s (port {port})", flush=True)

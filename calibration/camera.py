@@ -39,12 +39,16 @@ from numpy.typing import ArrayLike
 from uwdock.calibration.frames import check_T
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_write_files, check_regular_file, read_text
-from uwdock.dockcore.media import quiet_native_stderr
+from uwdock.dockcore.media import display_name, quiet_native_stderr
 
 __all__ = [
     "CAMERA_FILE_VERSION",
+    "MAX_CAMERA_OFFSET_M",
     "REFERENCE_T_BODYFRD_CAMCV",
     "CameraModel",
+    "camera_file_bytes",
+    "check_T_body_cam",
+    "check_camera",
     "check_plausible",
     "filestorage_yaml_text",
     "load_camera",
@@ -103,6 +107,8 @@ class CameraModel:
             object.__setattr__(self, "dist", tuple(float(d) for d in self.dist))
         except (TypeError, ValueError):
             raise ValueError(f"dist: expected a sequence of numbers, got {self.dist!r}") from None
+        if isinstance(self.name, str):  # bytes that are not UTF-8 (--name) as \\xNN: no crash
+            object.__setattr__(self, "name", display_name(self.name))
         self.validate()
 
     def validate(self) -> None:
@@ -274,6 +280,20 @@ MAX_FOV_DEG = 179.0
 #: than this is a wrong file (k1 = 1000 scales the reference camera's corners 271 times).
 MIN_RADIAL_SCALE = 0.2
 MAX_RADIAL_SCALE = 5.0
+#: Largest pixel aspect ``fx / fy`` (and its inverse) a camera may state. Sensors have square
+#: pixels (1.00 within a percent); the most anamorphic real imaging is a 2x squeeze lens or 2x1
+#: binning (2:1), so 4:1 leaves room for any real optics while a 20:1 typo is refused.
+MAX_PIXEL_ASPECT = 4.0
+#: Largest tangential (decentring) distortion ``|p1|``, ``|p2|``. A decentred lens element or a
+#: tilted flat port gives 1e-4 ... 1e-2; at 0.5 a ray at the image corner of a 90 deg camera
+#: moves by over half its radius, which no lens does (p1 = 5 found markers whose poses the
+#: solver then dropped without a word).
+MAX_TANGENTIAL = 0.5
+#: Largest |x|, |y| or |z| of the camera in the vehicle body frame (m): a vehicle is a few metres
+#: long. ``calibration extrinsics set`` takes positions in this range and every reader of
+#: ``T_body_cam`` refuses one beyond it (10^6 m put ``datasets synth``'s vehicle 997 km from the
+#: station).
+MAX_CAMERA_OFFSET_M = 100.0
 #: Radii at which the radial distortion is sampled between the centre and the farthest corner.
 _RADIAL_SAMPLES = 1024
 
@@ -317,13 +337,17 @@ def check_plausible(cam: CameraModel) -> None:
     * the principal point lies inside the image (pixel edges: ``-0.5 <= cx <= width - 0.5``);
     * the focal lengths give a pinhole field of view of ``MIN_FOV_DEG`` ... ``MAX_FOV_DEG``
       across the image, horizontally (fx) and vertically (fy);
+    * the pixel aspect ``fx / fy`` lies within 1 / ``MAX_PIXEL_ASPECT`` ... ``MAX_PIXEL_ASPECT``;
+    * the tangential distortion ``|p1|``, ``|p2|`` is at most ``MAX_TANGENTIAL``;
     * the radial distortion is monotonic: the distorted radius grows strictly with the
       undistorted one from the centre out to the farthest image corner (taken at the corner's
       pinhole radius), and its scale ``r_d / r`` stays within ``MIN_RADIAL_SCALE`` ...
       ``MAX_RADIAL_SCALE`` there.
 
-    Called by the camera file readers (:func:`load_camera`, the imports of other tools' files),
-    not by the constructor: a model built in code may be anything ``validate`` allows.
+    Called by every reader of a camera (:func:`check_camera`: :func:`load_camera`, the imports
+    of other tools' files, bags' camera_info, stereo files, error models, the vehicle node's
+    camera_info), not by the constructor: a model built in code may be anything ``validate``
+    allows.
 
     Raises:
         ValueError: one line naming the field and its value.
@@ -343,6 +367,19 @@ def check_plausible(cam: CameraModel) -> None:
             raise ValueError(
                 f"{key}: {getattr(cam, key):g} px gives a field of view of {fov:.4g} deg across "
                 f"{size} px (a pinhole camera sees {MIN_FOV_DEG:g} ... {MAX_FOV_DEG:g} deg)"
+            )
+    aspect = cam.fx_px / cam.fy_px
+    if not 1.0 / MAX_PIXEL_ASPECT <= aspect <= MAX_PIXEL_ASPECT:
+        raise ValueError(
+            f"fx_px / fy_px: the pixel aspect {cam.fx_px:g} / {cam.fy_px:g} = {aspect:.4g} is "
+            f"outside 1/{MAX_PIXEL_ASPECT:g} ... {MAX_PIXEL_ASPECT:g} (pixels are square, "
+            "anamorphic optics reach 2:1)"
+        )
+    for key, value in zip(("p1", "p2"), cam.dist[2:4], strict=True):
+        if abs(value) > MAX_TANGENTIAL:
+            raise ValueError(
+                f"dist: tangential distortion {key} = {value:g} is beyond +-{MAX_TANGENTIAL:g} "
+                "(decentred lenses and tilted ports give at most about 0.01)"
             )
     if not any(cam.dist):
         return
@@ -366,6 +403,48 @@ def check_plausible(cam: CameraModel) -> None:
             f"{r[worst + 1]:.3g} (a lens stays within {MIN_RADIAL_SCALE:g} ... "
             f"{MAX_RADIAL_SCALE:g} out to the image corners)"
         )
+
+
+def check_T_body_cam(T_body_cam: ArrayLike, name: str = "T_body_cam") -> np.ndarray:
+    """Check a camera mounting ``T_bodyfrd_camcv``: a rigid transform
+    (:func:`calibration.frames.check_T`) whose translation lies within
+    +-``MAX_CAMERA_OFFSET_M`` on each axis (the range ``calibration extrinsics set`` takes).
+
+    Returns:
+        A float64 (4, 4) copy.
+
+    Raises:
+        ValueError: one line naming ``name`` and the value.
+    """
+    T = check_T(T_body_cam, name)
+    t = T[:3, 3]
+    if np.any(np.abs(t) > MAX_CAMERA_OFFSET_M):
+        shown = ", ".join(f"{v:g}" for v in t)
+        raise ValueError(
+            f"{name}: the camera is at ({shown}) m in the body frame; each of x, y, z must be "
+            f"within +-{MAX_CAMERA_OFFSET_M:g} m (a vehicle is a few metres long)"
+        )
+    return T
+
+
+def check_camera(
+    cam: CameraModel, T_body_cam: ArrayLike | None = None
+) -> tuple[CameraModel, np.ndarray | None]:
+    """The one check of a camera read from anywhere (a camera file, another tool's file, a
+    bag's or the wire's camera_info, a stereo file, an error model): its values
+    (:meth:`CameraModel.validate`), that it can be a physical camera (:func:`check_plausible`:
+    principal point, field of view, pixel aspect, tangential and radial distortion) and its
+    mounting (:func:`check_T_body_cam`), when given.
+
+    Returns:
+        ``(cam, T_body_cam as a float64 copy or None)``.
+
+    Raises:
+        ValueError: one line naming the field and its value.
+    """
+    cam.validate()
+    check_plausible(cam)
+    return cam, None if T_body_cam is None else check_T_body_cam(T_body_cam)
 
 
 def reference_camera() -> CameraModel:
@@ -437,10 +516,27 @@ def save_camera(
 
     Raises:
         ValueError: ``cam`` or ``T_body_cam`` is invalid.
+        DockError: the path has an unsupported suffix, or a twin is not a regular file.
+    """
+    files = camera_file_bytes(path, cam, T_body_cam)
+    # the twins as one unit: both new or both as they were (twins that disagree are refused)
+    atomic_write_files(files)
+    yaml_path, json_path = files
+    return yaml_path, json_path
+
+
+def camera_file_bytes(
+    path: str | os.PathLike[str], cam: CameraModel, T_body_cam: ArrayLike | None = None
+) -> dict[Path, bytes]:
+    """What :func:`save_camera` writes: ``{yaml_path: bytes, json_path: bytes}``, for a caller
+    that writes the twins in one unit with other files (``dockcore.io.atomic_write_files``).
+
+    Raises:
+        ValueError: ``cam`` or ``T_body_cam`` is invalid.
         DockError: the path has an unsupported suffix.
     """
     cam.validate()
-    T = None if T_body_cam is None else check_T(T_body_cam, "T_body_cam")
+    T = None if T_body_cam is None else check_T_body_cam(T_body_cam)  # as every reader checks
     yaml_path, json_path = twin_paths(path)
 
     items: list[tuple[str, Any]] = [
@@ -469,14 +565,10 @@ def save_camera(
         doc["rms_px"] = float(cam.rms_px)
     if T is not None:
         doc["T_body_cam"] = T.tolist()
-    # the twins as one unit: both new or both as they were (twins that disagree are refused)
-    atomic_write_files(
-        {
-            yaml_path: yaml_text.encode("utf-8"),
-            json_path: (json.dumps(doc, indent=2) + "\n").encode("utf-8"),
-        }
-    )
-    return yaml_path, json_path
+    return {
+        yaml_path: yaml_text.encode("utf-8"),
+        json_path: (json.dumps(doc, indent=2) + "\n").encode("utf-8"),
+    }
 
 
 def _one_line(exc: BaseException) -> str:
@@ -612,13 +704,13 @@ def _model_from_raw(raw: dict[str, Any], path: Path) -> tuple[CameraModel, np.nd
             rms_px=rms,
             name=name,
         )
-        check_plausible(cam)
+        check_camera(cam)
     except ValueError as exc:
         raise DockError(f"{path}: {exc}") from None
     T = None
     if raw.get("T_body_cam") is not None:
         try:
-            T = check_T(raw_matrix(raw, "T_body_cam", path, (4, 4)), "T_body_cam")
+            T = check_camera(cam, raw_matrix(raw, "T_body_cam", path, (4, 4)))[1]
         except ValueError as exc:
             raise DockError(f"{path}: key {exc}") from None
     return cam, T

@@ -8,7 +8,7 @@ from typing import Annotated
 
 import click
 
-from uwdock.calibration.camera import load_camera
+from uwdock.calibration.camera import MAX_CAMERA_OFFSET_M, load_camera, twin_paths
 from uwdock.calibration.extrinsics import (
     T_body_cam_from_xyz_rpy,
     format_extrinsics,
@@ -25,10 +25,12 @@ from uwdock.calibration.formats_export import (
     export_camera_file,
 )
 from uwdock.calibration.intrinsics import IntrinsicsConfig, calibrate_intrinsics, write_outputs
+from uwdock.calibration.intrinsics_report import output_paths as intrinsics_output_paths
 from uwdock.calibration.stereo import (
     StereoConfig,
     StereoResult,
     calibrate_stereo,
+    stereo_output_paths,
     write_stereo_outputs,
 )
 from uwdock.calibration.stereo_formats import export_stereo_file, import_stereo_file
@@ -38,17 +40,20 @@ from uwdock.dockcore.cli import DomainType, domain_type, field_type, run_group
 from uwdock.dockcore.config import load_config
 from uwdock.dockcore.domains import Interval
 from uwdock.dockcore.errors import DockError
+from uwdock.dockcore.io import check_output_path
+from uwdock.dockcore.media import display_name, silence_opencv_log
 from uwdock.dockcore.options import (
     command_group,
     config_option,
     json_option,
     out_file_option,
+    out_path_checked,
     quiet_option,
 )
 
 #: ``extrinsics set --xyz-m``: the camera's position in the body frame (m; a vehicle is a few
-#: metres long).
-XyzM = Annotated[float, Interval(ge=-100.0, le=100.0)]
+#: metres long): the range every reader of ``T_body_cam`` accepts (``check_T_body_cam``).
+XyzM = Annotated[float, Interval(ge=-MAX_CAMERA_OFFSET_M, le=MAX_CAMERA_OFFSET_M)]
 #: ``extrinsics set --rpy-deg``: roll, pitch, yaw (deg).
 RpyDeg = Annotated[float, Interval(ge=-360.0, le=360.0)]
 #: ``reference-camera --width/--height`` (px).
@@ -95,12 +100,14 @@ def _target_options(fn):
 
 def _echo_note(note: str) -> None:
     """A result's note on stderr: "note: ...", or the warning as it is ("warning: ...")."""
+    note = display_name(note)  # a file name that is not UTF-8: \\xNN
     click.echo(note if note.startswith("warning: ") else f"note: {note}", err=True)
 
 
 @command_group()
 def cli() -> None:
     """Calibration: camera intrinsics and the camera-to-vehicle extrinsics."""
+    silence_opencv_log()  # the toolkit's own lines only (library noise: dockcore.media)
 
 
 @cli.command()
@@ -170,6 +177,7 @@ def intrinsics(
     folds' spread is reported as the uncertainty. Calibrate an underwater camera in water,
     behind its own port.
     """
+    check_output_path(out_path, "--out", intrinsics_output_paths(out_path))  # before any work
     cfg = load_config(
         IntrinsicsConfig,
         config_path,
@@ -318,6 +326,7 @@ def stereo(
     cfg = _stereo_config(config_path, target, pair_tolerance_ms, skip_unpaired, rectify_alpha)
     if out_path.suffix.lower() not in (".yaml", ".yml", ".json"):
         raise click.UsageError(f"--out must end in .yaml, .yml or .json: {out_path}")
+    check_output_path(out_path, "--out", stereo_output_paths(out_path, write_maps))
     result = calibrate_stereo(
         left, right, cfg, left_camera, right_camera, left_topic, right_topic,
         progress=False if quiet else None,
@@ -417,6 +426,7 @@ def set_(camera_file, xyz_m, rpy_deg) -> None:
     for name, value in (("--xyz-m", xyz_m), ("--rpy-deg", rpy_deg)):
         if value is None:
             raise click.UsageError(f"Missing option '{name}'.")
+    check_output_path(camera_file, "camera file", twin_paths(camera_file))
     T = T_body_cam_from_xyz_rpy(xyz_m, rpy_deg)
     yaml_path, json_path = write_extrinsics(camera_file, T)
     click.echo(format_extrinsics(T, f"written to {yaml_path} and {json_path}"))
@@ -438,6 +448,7 @@ def set_(camera_file, xyz_m, rpy_deg) -> None:
 )
 def reference_camera(out_path, width, height) -> None:
     """Write the reference Girona downward camera (968x732, 55 deg HFOV) with its T_body_cam."""
+    check_output_path(out_path, "--out", twin_paths(out_path))
     yaml_path, json_path = write_reference_camera(out_path, width, height)
     cam, _ = load_camera(yaml_path)
     click.echo(
@@ -484,6 +495,7 @@ _SOURCE_LABELS = {
 @click.option(
     "--stereo-out",
     type=click.Path(dir_okay=False, path_type=Path),
+    callback=out_path_checked,
     help="Stereo file written when SOURCE holds a stereo pair (a camchain whose --cam has a "
     "T_cn_cnm1 link, or --right) [<out stem>_stereo.yaml].",
 )
@@ -508,6 +520,9 @@ def import_(source, fmt, cam_key, out_path, right, stereo_out, no_stereo) -> Non
     if no_stereo and (right is not None or stereo_out is not None):
         raise click.UsageError("--no-stereo goes with neither --right nor --stereo-out")
     stereo_path = stereo_out or out_path.with_name(f"{out_path.stem}_stereo.yaml")
+    check_output_path(out_path, "--out", twin_paths(out_path))
+    if stereo_out is not None:  # the default one is checked when SOURCE holds a pair
+        check_output_path(stereo_out, "--stereo-out", twin_paths(stereo_out))
     found = None
     if not no_stereo:  # checked first: a pair that cannot be represented writes nothing
         found = import_stereo_file(source, stereo_path, fmt, cam_key, right)
@@ -556,6 +571,7 @@ def import_(source, fmt, cam_key, out_path, right, stereo_out, no_stereo) -> Non
 @click.option(
     "--right-out",
     type=click.Path(dir_okay=False, path_type=Path),
+    callback=out_path_checked,
     help="ROS, a stereo file: the right camera's camera_info (required).",
 )
 @click.option(

@@ -24,6 +24,7 @@ from numpy.typing import ArrayLike
 
 from uwdock.calibration.camera import (
     REFERENCE_T_BODYFRD_CAMCV,
+    check_T_body_cam,
     load_camera,
     resolve_camera,
     save_camera,
@@ -98,7 +99,7 @@ def write_extrinsics(path: str | os.PathLike[str], T_body_cam: ArrayLike) -> tup
     """
     cam, _ = load_camera(path)
     try:
-        T = check_T(T_body_cam, "T_body_cam")
+        T = check_T_body_cam(T_body_cam)
     except ValueError as exc:
         raise DockError(str(exc)) from None
     return save_camera(path, cam, T)

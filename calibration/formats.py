@@ -54,7 +54,7 @@ from ruamel.yaml.events import AliasEvent
 from uwdock.calibration.camera import (
     MAX_IMAGE_PX,
     CameraModel,
-    check_plausible,
+    check_camera,
     load_camera,
     save_camera,
     twin_paths,
@@ -264,7 +264,7 @@ def _string(value: Any, where: str, key: str) -> str:
 def _model(where: str, **fields: Any) -> CameraModel:
     try:
         cam = CameraModel(**fields)
-        check_plausible(cam)
+        check_camera(cam)
         return cam
     except ValueError as exc:
         raise DockError(f"{where}: {exc}") from None

@@ -19,9 +19,11 @@ from uwdock.dockcore.io import check_regular_file
 from uwdock.dockcore.media import (
     IMAGE_SUFFIXES,
     MAX_CONSECUTIVE_VIDEO_FAILURES,
+    display_name,
     open_video,
     quiet_native_stderr,
     read_image,
+    scale_to_uint8,
 )
 
 __all__ = ["iter_views", "to_grey"]
@@ -32,18 +34,20 @@ def to_grey(image: np.ndarray | None) -> np.ndarray | None:
     frames give the same corners whatever their container.
 
     Args:
-        image: a decoded frame: (H, W) or (H, W, 3) BGR, uint8 or uint16; None passes through.
+        image: a decoded frame: (H, W) or (H, W, 3) BGR, uint8, uint16 or float; None passes
+            through.
 
     Returns:
         (H, W) uint8: 16-bit keeps its top byte (as ``cv2.imread``'s greyscale flag does),
+        float is scaled by its range (:func:`dockcore.media.scale_to_uint8`),
         colour goes through ``cv2.COLOR_BGR2GRAY`` (0.299 R + 0.587 G + 0.114 B).
     """
     if image is None:
         return None
     if image.dtype == np.uint16:
         image = (image >> 8).astype(np.uint8)
-    elif image.dtype != np.uint8:
-        image = np.clip(image, 0, 255).astype(np.uint8)
+    elif image.dtype != np.uint8:  # float (a TIFF), NaN as black: by its range
+        image = scale_to_uint8(image)
     if image.ndim == 3:
         image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
     return image
@@ -148,5 +152,6 @@ def iter_views(
         )
         if not files:
             raise DockError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in folder {path}")
-        return len(files), ((p.name, to_grey(read_image(p))) for p in files)
+        # views are named as every output can show them (a name that is not UTF-8: \\xNN)
+        return len(files), ((display_name(p.name), to_grey(read_image(p))) for p in files)
     return _video_frames(check_regular_file(path, "input"), video_max_frames)

@@ -5,26 +5,28 @@ per-view errors and the folds' spread (:func:`write_outputs`).
 from __future__ import annotations
 
 import contextlib
+import io
+import json
 import os
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from uwdock.calibration.camera import load_camera, save_camera
+from uwdock.calibration.camera import camera_file_bytes, load_camera, twin_paths
 from uwdock.dockcore.errors import DockError
-from uwdock.dockcore.io import atomic_path, atomic_write_json
+from uwdock.dockcore.io import atomic_write_files
 from uwdock.dockcore.provenance import provenance
 
 if TYPE_CHECKING:  # the result's class; that module imports this one
     from uwdock.calibration.intrinsics import IntrinsicsResult
 
-__all__ = ["write_outputs"]
+__all__ = ["output_paths", "write_outputs"]
 
 
-def _plot_errors(result: IntrinsicsResult, path: Path) -> None:
+def _plot_errors(result: IntrinsicsResult) -> bytes:
     """Per-view RMS error in the fit and held out (px), and each fold's fx / fy against the
-    final fit's (the spread the uncertainty comes from)."""
+    final fit's (the spread the uncertainty comes from), as PNG bytes."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -80,15 +82,36 @@ def _plot_errors(result: IntrinsicsResult, path: Path) -> None:
     )
     ax2.legend(fontsize=7)
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
+    buf = io.BytesIO()
+    try:
+        fig.savefig(buf, format="png")
+    finally:
+        plt.close(fig)
+    return buf.getvalue()
+
+
+def output_paths(out: str | os.PathLike[str]) -> list[Path]:
+    """Every file :func:`write_outputs` writes for ``out``: the camera twins,
+    ``<stem>_report.json`` and ``<stem>_errors.png`` (checked by the command before it
+    calibrates: ``dockcore.io.check_output_path``).
+
+    Raises:
+        DockError: ``out`` has an unsupported suffix.
+    """
+    out = Path(out)
+    return [
+        *twin_paths(out),
+        out.with_name(f"{out.stem}_report.json"),
+        out.with_name(f"{out.stem}_errors.png"),
+    ]
 
 
 def write_outputs(
     result: IntrinsicsResult, out: str | os.PathLike[str], keep_extrinsics: bool = True
 ) -> tuple[list[Path], bool]:
-    """Write the camera file twins, ``<stem>_report.json`` and ``<stem>_errors.png``.
+    """Write the camera file twins, ``<stem>_report.json`` and ``<stem>_errors.png``, as one
+    unit (``dockcore.io.atomic_write_files``): all four are written and verified before any is
+    renamed, so a failure (a full disk) leaves the existing files as they were.
 
     Args:
         result: a calibration.
@@ -104,12 +127,12 @@ def write_outputs(
     if keep_extrinsics and out.is_file():
         with contextlib.suppress(DockError):
             T = load_camera(out)[1]
-    yaml_path, json_path = save_camera(out, result.camera, T)
+    files = camera_file_bytes(out, result.camera, T)
     report = result.report()
     report["T_body_cam_kept"] = T is not None
     report["provenance"] = provenance()  # code version, packages, machine, command line
     report_path = out.with_name(f"{out.stem}_report.json")
     plot_path = out.with_name(f"{out.stem}_errors.png")
-    atomic_write_json(report_path, report)
-    _plot_errors(result, plot_path)
-    return [yaml_path, json_path, report_path, plot_path], T is not None
+    files[report_path] = (json.dumps(report, indent=2) + "\n").encode("utf-8")
+    files[plot_path] = _plot_errors(result)
+    return atomic_write_files(files), T is not None

@@ -18,6 +18,8 @@ Frames and units: ``T_right_left`` maps points of the left ``cam_cv`` frame into
 from __future__ import annotations
 
 import contextlib
+import io
+import json
 import math
 import os
 import sys
@@ -31,7 +33,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from uwdock.calibration.camera import CameraModel, load_camera, save_camera
+from uwdock.calibration.camera import CameraModel, camera_file_bytes, load_camera, twin_paths
 from uwdock.calibration.intrinsics import MIN_VIEWS, IntrinsicsConfig
 from uwdock.calibration.patterns import Detection, PatternDetector, blur_px
 from uwdock.calibration.stereo_formats import (
@@ -39,11 +41,11 @@ from uwdock.calibration.stereo_formats import (
     ros_stereo_camera_info_yaml,
 )
 from uwdock.calibration.stereo_inputs import View, stereo_pairs
-from uwdock.calibration.stereo_rig import StereoRig, save_stereo
+from uwdock.calibration.stereo_rig import StereoRig, stereo_file_bytes
 from uwdock.dockcore.config import to_dict, validated
 from uwdock.dockcore.domains import Interval
 from uwdock.dockcore.errors import DockError
-from uwdock.dockcore.io import atomic_path, atomic_write_json, atomic_write_text
+from uwdock.dockcore.io import atomic_write_files
 from uwdock.dockcore.provenance import provenance
 
 __all__ = [
@@ -51,6 +53,7 @@ __all__ = [
     "StereoConfig",
     "StereoResult",
     "calibrate_stereo",
+    "stereo_output_paths",
     "write_stereo_outputs",
 ]
 
@@ -649,8 +652,9 @@ def _notes(rig: StereoRig, records: list[PairRecord], detector: PatternDetector)
 # --------------------------------------------------------------------------- outputs
 
 
-def _plot_errors(result: StereoResult, path: Path) -> None:
-    """Bar chart of per-pair errors: stereo reprojection RMS and epipolar distance (px)."""
+def _plot_errors(result: StereoResult) -> bytes:
+    """Bar chart of per-pair errors: stereo reprojection RMS and epipolar distance (px), as PNG
+    bytes."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -675,26 +679,49 @@ def _plot_errors(result: StereoResult, path: Path) -> None:
     )
     ax.legend(fontsize=7)
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
+    buf = io.BytesIO()
+    try:
+        fig.savefig(buf, format="png")
+    finally:
+        plt.close(fig)
+    return buf.getvalue()
 
 
-def _camera_file(path: Path, cam: CameraModel, T_fallback: np.ndarray | None) -> list[Path]:
-    """Write one camera's file; an existing file's ``T_body_cam`` (else ``T_fallback``) kept."""
+def _camera_file(path: Path, cam: CameraModel, T_fallback: np.ndarray | None) -> dict[Path, bytes]:
+    """One camera's file twins; an existing file's ``T_body_cam`` (else ``T_fallback``) kept."""
     T = None
     if path.is_file():
         with contextlib.suppress(DockError):
             T = load_camera(path)[1]
-    return list(save_camera(path, cam, T if T is not None else T_fallback))
+    return camera_file_bytes(path, cam, T if T is not None else T_fallback)
+
+
+def stereo_output_paths(out: str | os.PathLike[str], write_maps: bool = False) -> list[Path]:
+    """Every file :func:`write_stereo_outputs` may write for ``out`` (the camchain only when
+    radtan holds the distortion), checked by the command before it calibrates
+    (``dockcore.io.check_output_path``)."""
+    out = Path(out)
+    stem, sib = out.stem, out.with_name
+    cam_suffix = out.suffix if out.suffix != ".json" else ".yaml"
+    paths = list(twin_paths(out))
+    for side in ("left", "right"):
+        paths += twin_paths(sib(f"{stem}_{side}{cam_suffix}"))
+    for name in ("left_camera_info", "right_camera_info", "camchain"):
+        paths.append(sib(f"{stem}_{name}.yaml"))
+    if write_maps:
+        paths.append(sib(f"{stem}_rectify_maps.npz"))
+    return [*paths, sib(f"{stem}_report.json"), sib(f"{stem}_errors.png")]
 
 
 def write_stereo_outputs(
     result: StereoResult, out: str | os.PathLike[str], write_maps: bool = False
 ) -> tuple[list[Path], list[str]]:
-    """Write everything a stereo calibration produces, each file atomically.
+    """Write everything a stereo calibration produces, as one unit
+    (``dockcore.io.atomic_write_files``: every file written and verified before any is renamed,
+    so a failure leaves the existing files as they were).
 
-    Beside ``out`` (``<stem>.yaml``): the stereo file twins (:func:`save_stereo`),
+    Beside ``out`` (``<stem>.yaml``): the stereo file twins
+    (:func:`calibration.stereo_rig.save_stereo`),
     ``<stem>_left.yaml`` / ``<stem>_right.yaml`` camera files (+ JSON twins; an existing
     file's ``T_body_cam``, else the input camera file's, is kept), ``<stem>_left_camera_info.yaml``
     and ``<stem>_right_camera_info.yaml`` (ROS), ``<stem>_camchain.yaml`` (Kalibr, when radtan
@@ -709,35 +736,35 @@ def write_stereo_outputs(
     rig = result.rig
     stem = out.stem
     sib = out.with_name
-    paths = list(save_stereo(out, rig))
+    files = stereo_file_bytes(out, rig)
     for side, cam in (("left", rig.left), ("right", rig.right)):
-        paths += _camera_file(
-            sib(f"{stem}_{side}{out.suffix if out.suffix != '.json' else '.yaml'}"),
-            cam,
-            result.camera_T_body_cam.get(side),
+        files.update(
+            _camera_file(
+                sib(f"{stem}_{side}{out.suffix if out.suffix != '.json' else '.yaml'}"),
+                cam,
+                result.camera_T_body_cam.get(side),
+            )
         )
     left_text, right_text = ros_stereo_camera_info_yaml(rig)
-    paths.append(atomic_write_text(sib(f"{stem}_left_camera_info.yaml"), left_text))
-    paths.append(atomic_write_text(sib(f"{stem}_right_camera_info.yaml"), right_text))
+    files[sib(f"{stem}_left_camera_info.yaml")] = left_text.encode("utf-8")
+    files[sib(f"{stem}_right_camera_info.yaml")] = right_text.encode("utf-8")
     skipped: list[str] = []
     try:
-        paths.append(
-            atomic_write_text(sib(f"{stem}_camchain.yaml"), kalibr_stereo_camchain_yaml(rig))
-        )
+        files[sib(f"{stem}_camchain.yaml")] = kalibr_stereo_camchain_yaml(rig).encode("utf-8")
     except DockError as exc:
         skipped.append(f"Kalibr camchain not written: {exc}")
     maps_path = None
     if write_maps:
         maps_path = sib(f"{stem}_rectify_maps.npz")
         lx, ly, rx, ry = rig.rectify_maps()
-        with atomic_path(maps_path) as tmp, open(tmp, "wb") as fh:
-            np.savez_compressed(fh, left_x=lx, left_y=ly, right_x=rx, right_y=ry)
-        paths.append(maps_path)
+        buf = io.BytesIO()
+        np.savez_compressed(buf, left_x=lx, left_y=ly, right_x=rx, right_y=ry)
+        files[maps_path] = buf.getvalue()
     report = result.report()
     report["rectification"]["maps"]["file"] = None if maps_path is None else maps_path.name
     report["notes"] = report["notes"] + skipped
     report["provenance"] = provenance()
     report_path, plot_path = sib(f"{stem}_report.json"), sib(f"{stem}_errors.png")
-    atomic_write_json(report_path, report)
-    _plot_errors(result, plot_path)
-    return [*paths, report_path, plot_path], skipped
+    files[report_path] = (json.dumps(report, indent=2, sort_keys=False) + "\n").encode("utf-8")
+    files[plot_path] = _plot_errors(result)
+    return atomic_write_files(files), skipped

@@ -36,7 +36,7 @@ from uwdock.calibration.formats_export import (
 )
 from uwdock.calibration.stereo_rig import StereoRig, load_stereo, save_stereo
 from uwdock.dockcore.errors import DockError
-from uwdock.dockcore.io import atomic_write_text
+from uwdock.dockcore.io import atomic_write_files, atomic_write_text
 
 __all__ = [
     "DEFAULT_STEREO_TOPICS",
@@ -278,5 +278,8 @@ def export_stereo_file(
         raise DockError(f"--out and --right-out are the same file: {out}")
     left_text, right_text = ros_stereo_camera_info_yaml(rig, where)
     models = {ros_distortion_model(c, where) for c in (rig.left, rig.right)}
-    paths = [atomic_write_text(out, left_text), atomic_write_text(Path(right_out), right_text)]
+    # the pair as one unit: both new, or both as they were
+    paths = atomic_write_files(
+        {out: left_text.encode("utf-8"), Path(right_out): right_text.encode("utf-8")}
+    )
     return paths, "/".join(sorted(models))

@@ -21,6 +21,8 @@ from uwdock.dockcore.io import check_regular_file
 from uwdock.dockcore.media import (
     IMAGE_SUFFIXES,
     MAX_CONSECUTIVE_VIDEO_FAILURES,
+    display_name,
+    native_path,
     open_video,
     quiet_native_stderr,
     read_image,
@@ -75,14 +77,15 @@ def _folder_pairs(
 
     def pairs() -> Iterator[tuple[str, View, View]]:
         for stem in common:
-            yield stem, to_grey(read_image(stems[0][stem])), to_grey(read_image(stems[1][stem]))
+            pair = read_image(stems[0][stem]), read_image(stems[1][stem])
+            yield display_name(stem), to_grey(pair[0]), to_grey(pair[1])  # not UTF-8: \\xNN
 
     return len(common), pairs()
 
 
 def _video_count(path: Path) -> int:
-    with quiet_native_stderr():
-        cap = cv2.VideoCapture(str(path))
+    with quiet_native_stderr(), native_path(path) as name:
+        cap = cv2.VideoCapture(name)
         n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) if cap.isOpened() else 0
         cap.release()
     return n

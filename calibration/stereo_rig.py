@@ -45,6 +45,7 @@ from numpy.typing import ArrayLike
 
 from uwdock.calibration.camera import (
     CameraModel,
+    check_camera,
     filestorage_yaml_text,
     raw_integer,
     raw_matrix,
@@ -53,7 +54,7 @@ from uwdock.calibration.camera import (
 )
 from uwdock.calibration.frames import check_T
 from uwdock.dockcore.errors import DockError
-from uwdock.dockcore.io import atomic_write_json, atomic_write_text, read_text
+from uwdock.dockcore.io import atomic_write_files, read_text
 
 __all__ = [
     "STEREO_FILE_VERSION",
@@ -62,6 +63,7 @@ __all__ = [
     "load_stereo",
     "rectification",
     "save_stereo",
+    "stereo_file_bytes",
 ]
 
 #: Version written into (and accepted from) stereo files.
@@ -359,19 +361,30 @@ def save_stereo(path: str | os.PathLike[str], rig: StereoRig) -> tuple[Path, Pat
         rig: the stereo pair.
 
     Returns:
-        (yaml_path, json_path) as written.
+        (yaml_path, json_path) as written, as one unit (both new or both as they were).
     """
+    files = stereo_file_bytes(path, rig)
+    atomic_write_files(files)
+    yaml_path, json_path = files
+    return yaml_path, json_path
+
+
+def stereo_file_bytes(path: str | os.PathLike[str], rig: StereoRig) -> dict[Path, bytes]:
+    """What :func:`save_stereo` writes: ``{yaml_path: bytes, json_path: bytes}``, for a caller
+    that writes the twins in one unit with other files (``dockcore.io.atomic_write_files``)."""
     yaml_path, json_path = twin_paths(path)
     scalars, matrices = _scalars(rig), _matrices(rig)
     items = [(k, float(v) if isinstance(v, float) else v) for k, v in scalars.items()]
     items += [(k, np.ascontiguousarray(v, dtype=np.float64)) for k, v in matrices.items()]
-    atomic_write_text(yaml_path, filestorage_yaml_text(items))
+    yaml_text = filestorage_yaml_text(items)
     doc = dict(scalars)
     doc.update({k: v.tolist() for k, v in matrices.items()})
     doc["left_distortion_coefficients"] = list(rig.left.dist)
     doc["right_distortion_coefficients"] = list(rig.right.dist)
-    atomic_write_json(json_path, doc)
-    return yaml_path, json_path
+    return {
+        yaml_path: yaml_text.encode("utf-8"),
+        json_path: (json.dumps(doc, indent=2, sort_keys=False) + "\n").encode("utf-8"),
+    }
 
 
 def _read_raw(path: Path) -> dict[str, Any]:
@@ -457,6 +470,7 @@ def load_stereo(path: str | os.PathLike[str]) -> StereoRig:
                     name=name if isinstance(name, str) and name else side,
                 )
             )
+            check_camera(cams[-1])
         except ValueError as exc:
             raise DockError(f"{path}: {side} camera: {exc}") from None
     try:

@@ -75,7 +75,8 @@ from uwdock.dockcore.errors import ConfigError, DockError
 from uwdock.dockcore.io import atomic_path, atomic_write_bytes, atomic_write_json
 from uwdock.dockcore.outdir import claim_output_dir
 from uwdock.dockcore.pool import PoolConfig, preflight, worker_pool
-from uwdock.markers.markerset import MarkerSet
+from uwdock.dockcore.procs import workers_ended_on_error
+from uwdock.markers.markerset import MarkerSet, marker_set_files
 from uwdock.perception.groundtruth import (
     FrameTruth,
     MarkerTruth,
@@ -512,7 +513,10 @@ def _absolute_inputs(cfg: SynthConfig) -> tuple[SynthConfig, list[str]]:
             changes[name] = str(Path(getattr(cfg, name)).expanduser().resolve())
     if is_water_file(cfg.water):
         changes["water"] = str(Path(cfg.water).expanduser().resolve())
-    return dataclasses.replace(cfg, **changes), list(changes.values())
+    files = list(changes.values())
+    if "marker_set_path" in changes:  # and the meshes it names, beside it or elsewhere
+        files += marker_set_files(changes["marker_set_path"])[1:]
+    return dataclasses.replace(cfg, **changes), files
 
 
 def _render_all(
@@ -537,10 +541,13 @@ def _render_all(
     if pool_cfg.backend == "local":
         pool_cfg = dataclasses.replace(pool_cfg, workers=min(pool_cfg.workers, len(todo)))
     pose_list = None if poses is None else np.asarray(poses).tolist()
-    if pool_cfg.backend == "ray":  # the actors' input files by absolute path, checked on nodes
+    if pool_cfg.backend == "ray":  # the actors' input files, sent to them as content
         cfg, inputs = _absolute_inputs(cfg)
         pool_cfg = dataclasses.replace(pool_cfg, inputs=tuple(inputs))
-    with worker_pool(pool_cfg, FrameWorker, (to_dict(cfg), pose_list)) as pool:
+    with (
+        worker_pool(pool_cfg, FrameWorker, (to_dict(cfg), pose_list)) as pool,
+        workers_ended_on_error(pool),  # an interrupt stops the workers now, mid-frame
+    ):
         for k, (png, label) in pool.imap_unordered("render", todo):
             on_frame(_write_frame(out_dir, k, png, label))
         if pool_cfg.backend != "ray":

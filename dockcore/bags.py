@@ -39,6 +39,7 @@ import cv2
 import numpy as np
 
 from uwdock.dockcore.errors import DockError
+from uwdock.dockcore.media import quiet_native_stderr
 
 __all__ = [
     "BAG_SUFFIXES",
@@ -267,7 +268,12 @@ class Bag:
         """
         self.topic(name, ("image",))
         for stamp, msg in self._messages(name):
-            yield stamp, (None if msg is None else decode_image_msg(msg, name))
+            if msg is None:
+                yield stamp, None
+                continue
+            with quiet_native_stderr():  # libpng / libjpeg warnings on fd 2 (frames as read)
+                image = decode_image_msg(msg, name)
+            yield stamp, image
 
     def camera_info(self, name: str) -> dict[str, Any]:
         """The first ``CameraInfo`` message of a topic as a dict (see the module docstring)."""

@@ -15,6 +15,7 @@ they override, ``type=field_type(MarkerConfig, "size_mm")``.
 from __future__ import annotations
 
 import atexit
+import contextlib
 import errno
 import functools
 import gc
@@ -33,6 +34,7 @@ import click
 
 from uwdock.dockcore.domains import check, describe, domain_of, split_annotated
 from uwdock.dockcore.errors import DockError
+from uwdock.dockcore.names import display_name
 
 #: ``context_settings`` of every group and command (``-h`` as well as ``--help``).
 CONTEXT = {"help_option_names": ["-h", "--help"]}
@@ -153,6 +155,14 @@ def _interrupt(signum: int, frame: Any, exc: type[BaseException]) -> None:
     raise exc()
 
 
+def interrupt_name(exc: BaseException) -> str:
+    """``"SIGTERM"`` or ``"SIGINT"``: the signal behind an interrupt that is ending a command
+    (what an interrupted run writes into the outputs it marks incomplete)."""
+    if isinstance(exc, _Interrupted) or _received[-1:] == [signal.SIGTERM]:
+        return "SIGTERM"
+    return "SIGINT"
+
+
 def _redeliver(signum: int) -> None:
     """Send ``signum`` to this process again in a moment, from a timer thread."""
     threading.Timer(REDELIVER_DELAY_S, os.kill, (os.getpid(), signum)).start()
@@ -225,6 +235,16 @@ def _is_process_entry() -> bool:
         return False
 
 
+def _print_names_as_given() -> None:
+    """Let the process's standard output print a path that is not UTF-8 (``--quiet`` prints
+    the output path) as its bytes, as Python does in the C locale, instead of failing with a
+    UnicodeEncodeError in a strict UTF-8 locale after the work is done."""
+    out = sys.stdout
+    if out is sys.__stdout__ and getattr(out, "errors", None) == "strict":
+        with contextlib.suppress(AttributeError, ValueError, OSError):
+            out.reconfigure(errors="surrogateescape")
+
+
 def run_group(group: click.Group, args: list[str] | None = None) -> None:
     """Run a click group with the toolkit's error convention (module docstring)."""
     global _previous_unraisable
@@ -245,6 +265,7 @@ def run_group(group: click.Group, args: list[str] | None = None) -> None:
         previous = None
         _installed.clear()
     argv = list(sys.argv[1:] if args is None else args)
+    _print_names_as_given()
     try:
         code = _invoke(group, argv)
     finally:
@@ -318,11 +339,11 @@ def _invoke(group: click.Group, argv: list[str]) -> int:
         return exc.exit_code
     except click.exceptions.Exit as exc:
         return exc.exit_code
-    except DockError as exc:
-        click.echo(f"error: {' '.join(str(exc).split())}", err=True)
+    except DockError as exc:  # a name that is not UTF-8 shown as \\xNN (dockcore.names)
+        click.echo(f"error: {display_name(' '.join(str(exc).split()))}", err=True)
         return 2
     except OSError as exc:
-        click.echo(f"error: {_oserror_line(exc)}", err=True)
+        click.echo(f"error: {display_name(_oserror_line(exc))}", err=True)
         return 2
     except Exception as exc:  # a bug: one line, the traceback on request
         if _received:  # what an interrupt left behind (e.g. a module that failed to load)

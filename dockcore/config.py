@@ -302,10 +302,29 @@ def merge(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
     return out
 
 
+def _sets_nothing(data: Mapping[str, Any]) -> bool:
+    """Whether a TOML document holds no value at all (nothing, or only empty tables)."""
+    return all(isinstance(v, Mapping) and _sets_nothing(v) for v in data.values())
+
+
 def config_data(path: str | os.PathLike[str], section: str | None = None) -> dict[str, Any]:
     """The plain data of a TOML config file; with ``section``, a file whose only top-level key
-    is that table (an output's ``config.toml``) is read from inside it."""
+    is that table (an output's ``config.toml``) is read from inside it.
+
+    Raises:
+        ConfigError: also for a file that sets nothing (0 bytes, only comments, blank lines or
+            empty tables): a ``--config`` given is meant to change something, and an empty one
+            (a truncated copy, the wrong file) would otherwise run with every default, e.g.
+            ``rl train`` for two million steps, without a word.
+    """
     data: dict[str, Any] = read_toml(path)
+    if _sets_nothing(data):
+        empty = "0 bytes" if not Path(path).stat().st_size else "only comments or empty tables"
+        table = f" [{section}]" if section else ""
+        raise ConfigError(
+            f"config {path} is empty ({empty}): it sets no{table} value; "
+            "leave --config out to run with the defaults"
+        )
     if section is not None and set(data) == {section} and isinstance(data[section], Mapping):
         data = dict(data[section])
     return data

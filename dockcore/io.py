@@ -150,6 +150,10 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
 
     On an exception the temporary file is removed and ``path`` is left as it was; a failed
     write (disk full, read-only disk) is an ``OSError`` naming ``path``, not the temporary file.
+    What is at ``path`` must be a regular file (a symbolic link to one is followed: the file it
+    leads to is replaced) or nothing (:func:`output_target`, checked before the block runs and
+    again right before the rename): a device, FIFO, socket, folder or symlink loop there is a
+    ``DockError`` and is left as it is.
     """
     with _atomic_path(path, sync=True) as tmp:
         yield tmp
@@ -159,13 +163,14 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
 def _atomic_path(path: str | os.PathLike[str], sync: bool) -> Iterator[Path]:
     """:func:`atomic_path`; ``sync=False`` when the block has flushed and verified the file."""
     path = Path(path)
-    tmp_path = temp_sibling(path)
+    target = output_target(path)  # refused before anything is written
+    tmp_path = temp_sibling(target)
     try:
         yield tmp_path
         if sync:
             _sync(tmp_path)
         os.chmod(tmp_path, 0o644)
-        os.replace(tmp_path, path)
+        replace_checked(tmp_path, target)
     except OSError as exc:
         tmp_path.unlink(missing_ok=True)
         # a failed write through a file object (fh.write, close) names no file at all
@@ -195,7 +200,9 @@ def atomic_write_files(files: Mapping[str | os.PathLike[str], bytes]) -> list[Pa
     renamed; the renames then run one after the other, and if one fails the files already
     renamed get their previous content back (kept as hard links until the end). So a failure
     (a full disk, an interrupt) leaves either all the new files or the old set as it was
-    (a file that did not exist before is removed again).
+    (a file that did not exist before is removed again). Each target must be a regular file
+    (or a symbolic link to one, followed) or nothing: checked before anything is written,
+    before the first rename and before each (:func:`output_target`).
 
     Args:
         files: target path -> content, in the order of the renames.
@@ -205,13 +212,19 @@ def atomic_write_files(files: Mapping[str | os.PathLike[str], bytes]) -> list[Pa
 
     Raises:
         OSError: naming the target whose write or rename failed.
+        DockError: a target is not a regular file (:func:`output_target`).
     """
-    targets = [Path(p) for p in files]
+    given = [Path(p) for p in files]
+    # every target checked before anything is written: a device, FIFO, socket, folder or
+    # symlink loop at any of them refuses the whole unit (a symlink to a file is followed)
+    targets = [output_target(p) for p in given]
+    if len(set(targets)) < len(targets):
+        raise DockError(f"the files {', '.join(map(str, given))} are not all different files")
     temps: list[Path] = []
     backups: dict[Path, Path | None] = {}
     done: list[Path] = []
     try:
-        for target, data in zip(targets, files.values(), strict=True):
+        for shown, target, data in zip(given, targets, files.values(), strict=True):
             tmp = temp_sibling(target)
             temps.append(tmp)
             try:
@@ -219,7 +232,9 @@ def atomic_write_files(files: Mapping[str | os.PathLike[str], bytes]) -> list[Pa
                 _verify(tmp, data)
                 os.chmod(tmp, 0o644)
             except OSError as exc:
-                raise _name_target(exc, target) from None
+                raise _name_target(exc, shown) from None
+        for target in targets:  # again, now that all is written: before the first rename
+            output_target(target)
         for target in targets:  # keep the old versions until every rename went through
             backups[target] = None
             if target.is_file():
@@ -230,11 +245,11 @@ def atomic_write_files(files: Mapping[str | os.PathLike[str], bytes]) -> list[Pa
                 except OSError:  # a file system without hard links: a copy
                     shutil.copy2(target, backup)
                 backups[target] = backup
-        for target, tmp in zip(targets, temps, strict=True):
+        for shown, target, tmp in zip(given, targets, temps, strict=True):
             try:
-                os.replace(tmp, target)
+                replace_checked(tmp, target)
             except OSError as exc:
-                raise _name_target(exc, target) from None
+                raise _name_target(exc, shown) from None
             done.append(target)
     except BaseException:
         for target in reversed(done):  # put the old set back
@@ -249,7 +264,7 @@ def atomic_write_files(files: Mapping[str | os.PathLike[str], bytes]) -> list[Pa
         for p in [*temps, *(b for b in backups.values() if b is not None)]:
             with contextlib.suppress(OSError):
                 p.unlink(missing_ok=True)
-    return targets
+    return given
 
 
 def atomic_write_text(path: str | os.PathLike[str], text: str) -> Path:
@@ -266,9 +281,10 @@ def ensure_writable_dir(path: str | os.PathLike[str]) -> Path:
     """Create ``path`` if needed and check that files can be created in it.
 
     Raises:
-        DockError: one line naming the folder, if it cannot be created or written.
+        DockError: one line naming the folder, if it cannot be created or written, or if
+            something other than a folder is there (:func:`check_output_dir`).
     """
-    path = Path(path)
+    path = check_output_dir(path)
     try:
         path.mkdir(parents=True, exist_ok=True)
         temp_sibling(path / "write-probe").unlink()
@@ -316,6 +332,124 @@ def check_regular_file(path: str | os.PathLike[str], what: str = "file") -> Path
     if not path.is_file():
         raise DockError(f"{what} not found: {path}")
     return path
+
+
+# ----------------------------------------------------------------- what an output may replace
+
+
+def _node_kind(mode: int) -> str | None:
+    """What a file of ``mode`` is when it is not a regular file ("a folder", "a FIFO (named
+    pipe)", ...), else None."""
+    if stat.S_ISDIR(mode):
+        return "a folder"
+    for test, kind in _SPECIAL_KINDS:
+        if test(mode):
+            return kind
+    return None if stat.S_ISREG(mode) else "a special file"
+
+
+def _follow(path: Path, what: str) -> os.stat_result | None:
+    """``lstat`` of ``path`` and, for a symbolic link, ``stat`` of what it leads to; None when
+    nothing is there. A symlink loop (at ``path`` or in a folder above it) or a dangling link
+    is a ``DockError`` (one line, naming ``path``); another failure (a file where a folder of
+    the path should be, no permission) the ``OSError``, naming ``path``."""
+    try:
+        st = os.lstat(path)
+    except FileNotFoundError:
+        return None
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise DockError(f"{what} {path}: a folder on its path is a symlink loop") from None
+        raise _name_target(exc, path) from None
+    if not stat.S_ISLNK(st.st_mode):
+        return st
+    try:
+        return os.stat(path)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise DockError(f"{what} {path} is a symlink loop") from None
+        if exc.errno in (errno.ENOENT, errno.ENOTDIR):
+            try:
+                link = os.readlink(path)
+            except OSError:
+                link = "?"
+            raise DockError(f"{what} {path} is a dangling symlink (to {link})") from None
+        raise _name_target(exc, path) from None
+
+
+def output_target(path: str | os.PathLike[str], what: str = "output file") -> Path:
+    """The file a write to ``path`` replaces, checked: ``path`` itself when nothing or a regular
+    file is there, the file a symbolic link leads to when it leads to a regular file.
+
+    Only ``lstat``/``stat``: nothing is opened (a FIFO does not block).
+
+    Raises:
+        DockError: one line naming ``path`` (called ``what``) and what is there: a folder, a
+            character or block device, a FIFO, a socket, a symlink loop or a dangling symlink.
+        OSError: ``path`` cannot be looked at (a file where a folder of it should be).
+    """
+    path = Path(path)
+    st = _follow(path, what)
+    if st is None:
+        return path
+    kind = _node_kind(st.st_mode)
+    if kind == "a folder":
+        raise DockError(f"{what} {path} is a folder, not a file")
+    if kind is not None:
+        raise DockError(f"{what} {path} is {kind}, not a regular file: it is not replaced")
+    return Path(os.path.realpath(path)) if os.path.islink(path) else path
+
+
+def replace_checked(tmp: str | os.PathLike[str], target: str | os.PathLike[str]) -> None:
+    """``os.replace(tmp, target)`` when ``target`` is still a regular file or nothing (a node
+    can appear between an output's first check and its rename); a ``DockError`` otherwise, and
+    ``tmp`` is left for the caller to remove."""
+    output_target(target)
+    os.replace(tmp, target)
+
+
+def check_output_path(
+    path: str | os.PathLike[str],
+    what: str = "--out",
+    sidecars: tuple[str | os.PathLike[str], ...] | list[Path] = (),
+) -> Path:
+    """Check an output file and the files written with it (``x.json`` beside ``x.yaml``,
+    ``<stem>_report.json``) before any work: each must be a regular file (or a symbolic link
+    to one) or nothing (:func:`output_target`).
+
+    Returns:
+        ``path`` as a ``Path``.
+
+    Raises:
+        DockError: one line naming the first path that is refused and what it is.
+    """
+    path = Path(path)
+    output_target(path, what)
+    for sidecar in sidecars:
+        output_target(sidecar, f"{what} {path}: its sidecar")
+    return path
+
+
+def check_output_dir(path: str | os.PathLike[str], what: str = "output folder") -> Path:
+    """Check an output folder before any work: nothing there (it is created later), a folder,
+    or a symbolic link to one.
+
+    Returns:
+        ``path`` as a ``Path``.
+
+    Raises:
+        DockError: one line naming ``path`` and what it is: a file, a device, a FIFO, a socket,
+            a symlink loop or a dangling symlink; or that it cannot be looked at.
+    """
+    path = Path(path)
+    try:
+        st = _follow(path, what)
+    except OSError as exc:
+        raise DockError(f"cannot write to output folder {path}: {exc.strerror or exc}") from None
+    if st is None or stat.S_ISDIR(st.st_mode):
+        return path
+    kind = _node_kind(st.st_mode) or "a file"
+    raise DockError(f"{what} {path} is {kind}, not a folder")
 
 
 def read_text(path: str | os.PathLike[str], what: str = "file") -> str:

@@ -4,6 +4,11 @@
   (libjpeg, FFmpeg) that write straight to file descriptor 2;
 * :func:`open_video` opens a video file and decodes its first frame, quietly;
 * :func:`read_image` decodes an image file (``IMAGE_SUFFIXES``), None when it cannot;
+* :func:`scale_to_uint8` brings an image of any real pixel type (16-bit, float, with NaN or
+  infinities) to uint8, the one scaling every reader shares;
+* :func:`native_path` gives OpenCV a name it can open for any path (OpenCV's Python binding
+  crashes, exit 139, on a name that is not UTF-8; :mod:`dockcore.names` shows such a name as
+  text, re-exported here);
 * :class:`AtomicVideoWriter` writes BGR frames to a video that appears at its path only when
   it is closed successfully (like :func:`dockcore.io.atomic_path` for files): ``.mp4`` is
   H.264 (libx264 through PyAV), ``yuv420p``, with the index in front (``+faststart``), which
@@ -24,7 +29,9 @@ from __future__ import annotations
 
 import contextlib
 import os
+import shutil
 import sys
+import tempfile
 from collections.abc import Iterator
 from fractions import Fraction
 from pathlib import Path
@@ -34,7 +41,8 @@ import cv2
 import numpy as np
 
 from uwdock.dockcore.errors import DockError
-from uwdock.dockcore.io import special_file_kind, temp_sibling
+from uwdock.dockcore.io import output_target, replace_checked, special_file_kind, temp_sibling
+from uwdock.dockcore.names import ascii_text, display_name
 
 __all__ = [
     "H264_CRF",
@@ -43,9 +51,14 @@ __all__ = [
     "MAX_CONSECUTIVE_VIDEO_FAILURES",
     "VIDEO_CODECS",
     "AtomicVideoWriter",
+    "ascii_text",
+    "display_name",
+    "native_path",
     "open_video",
     "quiet_native_stderr",
     "read_image",
+    "scale_to_uint8",
+    "silence_opencv_log",
 ]
 
 # FFmpeg (behind cv2.VideoCapture) logs decoding errors of damaged videos from its decoder
@@ -71,6 +84,101 @@ MAX_CONSECUTIVE_VIDEO_FAILURES = 25
 
 #: File suffixes read as images (case-insensitive).
 IMAGE_SUFFIXES: tuple[str, ...] = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+
+
+@contextlib.contextmanager
+def native_path(path: str | os.PathLike[str]) -> Iterator[str]:
+    """A name of ``path`` that OpenCV's file functions can take, for the length of the block.
+
+    OpenCV's Python binding converts a path to UTF-8 and crashes the process (a segfault) on a
+    name that is not UTF-8. Such a path is given to OpenCV as a symbolic link with an ASCII
+    name (and the path's suffix, which OpenCV's writers choose the container by) in a private
+    temporary folder, removed when the block ends (OpenCV and FFmpeg hold the file open by
+    then); any other path is given as it is.
+
+    Raises:
+        DockError: the temporary folder's own path is not UTF-8 either.
+    """
+    text = os.fspath(path)
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        pass
+    else:
+        yield text
+        return
+    suffix = os.path.splitext(text)[1]
+    suffix = suffix if suffix[1:].isascii() and suffix[1:].isalnum() else ""
+    folder = tempfile.mkdtemp(prefix="uwdock-path-")
+    try:
+        link = os.path.join(folder, "file" + suffix)
+        try:
+            link.encode("utf-8")
+        except UnicodeEncodeError:
+            raise DockError(
+                f"cannot open {display_name(text)}: its name is not UTF-8 and neither is the "
+                f"temporary folder {display_name(folder)} (set TMPDIR)"
+            ) from None
+        os.symlink(os.path.abspath(text), link)
+        yield link
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def scale_to_uint8(image: np.ndarray) -> np.ndarray:
+    """An image of any real pixel type as uint8, same shape: the one scaling of every reader.
+
+    * uint8: unchanged;
+    * uint16: ``v / 257`` rounded (65535 -> 255);
+    * bool: 0 / 255;
+    * float and other integers, by the range of their finite values: float within [-0.5, 1.5]
+      is an image in [0, 1] (``v * 255``, clipped: a filter's overshoot is not another scale);
+      else within [0, 255] they are taken as they are; else min-max normalised to [0, 255] (a
+      camera's raw counts, signed data). NaN and -inf pixels become 0 and +inf 255 (a pixel
+      without a value is dark, a saturated one bright), so a frame full of NaN is black.
+
+    Raises:
+        DockError: a pixel type that is not a real number (complex, object, text).
+    """
+    image = np.asarray(image)
+    kind = image.dtype.kind
+    if image.dtype == np.uint8:
+        return image
+    if image.dtype == np.uint16:
+        return (image.astype(np.float32) * (1.0 / 257.0) + 0.5).astype(np.uint8)
+    if kind == "b":
+        return image.astype(np.uint8) * np.uint8(255)
+    if kind not in "iuf":
+        raise DockError(f"unsupported image pixel type {image.dtype} (use uint8, uint16 or float)")
+    x = image.astype(np.float64 if image.dtype.itemsize > 4 else np.float32)
+    finite = np.isfinite(x) if kind == "f" else None
+    vals = x if finite is None else x[finite]
+    if vals.size == 0:
+        return np.where(x == np.inf, 255, 0).astype(np.uint8)
+    lo, hi = float(vals.min()), float(vals.max())
+    if kind == "f" and lo >= -0.5 and hi <= 1.5:
+        scale, offset = 255.0, 0.0
+    elif lo >= 0.0 and hi <= 255.0:
+        scale, offset = 1.0, 0.0
+    else:
+        scale = 255.0 / (hi - lo) if hi > lo else 0.0
+        offset = -lo * scale
+    out = np.clip(np.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0) * scale + offset + 0.5, 0, 255)
+    out = out.astype(np.uint8)
+    if finite is not None and not finite.all():
+        out[~finite] = 0
+        out[x == np.inf] = 255
+    return out
+
+
+def silence_opencv_log() -> None:
+    """Turn OpenCV's own log off for the rest of the process (its ``[ WARN:0@...]`` and
+    ``[ERROR:0@...]`` lines): the footage commands (``perception``, ``calibration``,
+    ``markers``) check what OpenCV returns and say what went wrong in their own line. A user's
+    ``OPENCV_LOG_LEVEL`` wins. Native libraries that write to file descriptor 2 themselves
+    (libpng, libjpeg) are silenced where they decode (:func:`quiet_native_stderr`)."""
+    if "OPENCV_LOG_LEVEL" not in os.environ:
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
 
 
 @contextlib.contextmanager
@@ -104,8 +212,9 @@ def read_image(path: str | os.PathLike[str], grey: bool = False) -> np.ndarray |
     """Decode an image file, quietly; None when it is missing, empty or not decodable.
 
     Returns:
-        (H, W) uint8 grey when ``grey``; else (H, W) grey or (H, W, 3) BGR, uint8 or uint16
-        (alpha dropped).
+        (H, W) uint8 grey when ``grey``; else (H, W) grey or (H, W, 3) BGR, uint8, uint16 or
+        float as decoded (a TIFF; may hold NaN), other integer types brought to uint8 by
+        :func:`scale_to_uint8` (alpha dropped).
     """
     if special_file_kind(path) is not None:  # a FIFO would block the read
         return None
@@ -122,6 +231,8 @@ def read_image(path: str | os.PathLike[str], grey: bool = False) -> np.ndarray |
         return None
     if img.ndim == 3 and img.shape[2] == 4:
         img = np.ascontiguousarray(img[:, :, :3])
+    if img.dtype != np.uint16 and img.dtype.kind in "iub":  # signed (TIFF): 8-bit by its range
+        img = scale_to_uint8(img)
     return img
 
 
@@ -138,8 +249,8 @@ def open_video(path: str | os.PathLike[str]) -> tuple[Any, np.ndarray, int]:
         DockError: one line when the file is not a video or holds no decodable frame among the
             first ones.
     """
-    with quiet_native_stderr():
-        cap = cv2.VideoCapture(str(path))
+    with quiet_native_stderr(), native_path(path) as name:
+        cap = cv2.VideoCapture(name)
         ok, first, leading = False, None, 0
         while cap.isOpened() and leading < MAX_CONSECUTIVE_VIDEO_FAILURES:
             ok, first = cap.read()
@@ -214,8 +325,8 @@ class _Mjpeg:
     """Motion-JPEG AVI through ``cv2.VideoWriter`` (frame-indexed, what tank cameras record)."""
 
     def __init__(self, tmp: Path, fps: float, size_px: tuple[int, int]) -> None:
-        with quiet_native_stderr():
-            self.writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"MJPG"), fps, size_px)
+        with quiet_native_stderr(), native_path(tmp) as name:
+            self.writer = cv2.VideoWriter(name, cv2.VideoWriter_fourcc(*"MJPG"), fps, size_px)
         if not self.writer.isOpened():
             raise RuntimeError("OpenCV's MJPG writer did not open")
         self.size_px = size_px
@@ -277,6 +388,8 @@ class AtomicVideoWriter:
             raise DockError(f"video must end in {' or '.join(VIDEO_CODECS)}: {self.path}")
         if not fps > 0:
             raise ValueError(f"fps: must be > 0, got {fps}")
+        # what the video replaces: a regular file (a symlink to one is followed) or nothing
+        self._target = output_target(self.path, "video")
         self.fps = float(fps)
         self.resize = resize
         self.frames = 0
@@ -289,7 +402,7 @@ class AtomicVideoWriter:
         suffix = self.path.suffix
         if min(size_px) < 1:
             raise DockError(f"cannot open a video writer for {self.path}: frame is {size_px} px")
-        self._tmp = temp_sibling(self.path, suffix)
+        self._tmp = temp_sibling(self._target, suffix)
         backend = _H264 if suffix.lower() == ".mp4" else _Mjpeg
         try:
             self._encoder = backend(self._tmp, self.fps, size_px)
@@ -339,7 +452,7 @@ class AtomicVideoWriter:
             encoder, self._encoder = self._encoder, None
             encoder.finish()
             os.chmod(self._tmp, 0o644)
-            os.replace(self._tmp, self.path)
+            replace_checked(self._tmp, self._target)  # a node that appeared meanwhile: kept
         except BaseException:
             self.abort()
             raise

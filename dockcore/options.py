@@ -19,6 +19,8 @@ Destinations: ``--config`` -> ``config_path``, ``--out`` -> ``out_dir`` (a folde
 
 from __future__ import annotations
 
+import json
+import os
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -26,6 +28,8 @@ from typing import Any
 import click
 
 from uwdock.dockcore.cli import CONTEXT
+from uwdock.dockcore.errors import DockError
+from uwdock.dockcore.io import check_output_dir, check_output_path
 
 Decorator = Callable[[Callable[..., Any]], Callable[..., Any]]
 
@@ -65,27 +69,87 @@ def config_option(help_text: str) -> Decorator:
     )
 
 
+def ray_job_id() -> str | None:
+    """The submission ID of the ``ray job submit`` job this process is the command of (Ray
+    passes it to the job's command in ``RAY_JOB_CONFIG_JSON_ENV_VAR``), else None."""
+    raw = os.environ.get("RAY_JOB_CONFIG_JSON_ENV_VAR")
+    if not raw:
+        return None
+    try:
+        metadata = json.loads(raw).get("metadata") or {}
+        job = metadata.get("job_submission_id")
+    except (ValueError, AttributeError):
+        return None
+    return job if isinstance(job, str) and job else None
+
+
+def refuse_relative_in_ray_job(path: Path, what: str = "--out") -> Path:
+    """Under ``ray job submit`` a relative output path is refused in one line: the job's
+    command runs in Ray's temporary copy of ``--working-dir`` (or in Ray's own folder), not in
+    the submitter's folder, and what it wrote there is deleted when the cluster stops."""
+    job = ray_job_id()
+    if job is not None and not path.is_absolute():
+        raise DockError(
+            f"{what} {path} is relative, and under `ray job submit` (job {job}) this command "
+            f"runs in Ray's temporary working dir {Path.cwd()}, deleted when the cluster "
+            f"stops: give {what} as an absolute path on the node that runs the job"
+        )
+    return path
+
+
+def _checked_dir(ctx: click.Context, param: click.Parameter, value: Path | None) -> Path | None:
+    """``--out DIRECTORY`` checked as it is parsed, before the command does any work: a file,
+    device, FIFO, socket or symlink loop there is refused (:func:`dockcore.io.check_output_dir`),
+    and a relative path under ``ray job submit`` (:func:`refuse_relative_in_ray_job`)."""
+    if value is None:
+        return None
+    return check_output_dir(refuse_relative_in_ray_job(value), "--out")
+
+
+def _checked_file(ctx: click.Context, param: click.Parameter, value: Path | None) -> Path | None:
+    """``--out FILE`` checked as it is parsed, before the command does any work: a folder,
+    device, FIFO, socket or symlink loop there is refused (:func:`dockcore.io.output_target`;
+    the files written beside it are checked by the command), and a relative path under
+    ``ray job submit`` (:func:`refuse_relative_in_ray_job`)."""
+    if value is None:
+        return None
+    return check_output_path(refuse_relative_in_ray_job(value), "--out")
+
+
 def out_dir_option(help_text: str | None = "Output folder.", **kwargs: Any) -> Decorator:
     """``--out DIRECTORY`` (-> ``out_dir``, a Path); ``kwargs`` add ``required``, ``default``,
-    ``show_default``."""
+    ``show_default``. What is there must be a folder or nothing (checked when parsed)."""
     return click.option(
         "--out",
         "out_dir",
         type=click.Path(file_okay=False, path_type=Path),
         help=help_text,
+        callback=_checked_dir,
         **kwargs,
     )
 
 
 def out_file_option(help_text: str, **kwargs: Any) -> Decorator:
-    """``--out FILE`` (-> ``out_path``, a Path); ``kwargs`` as for :func:`out_dir_option`."""
+    """``--out FILE`` (-> ``out_path``, a Path); ``kwargs`` as for :func:`out_dir_option`. What
+    is there must be a regular file (or a symbolic link to one) or nothing (checked when
+    parsed)."""
     return click.option(
         "--out",
         "out_path",
         type=click.Path(dir_okay=False, path_type=Path),
         help=help_text,
+        callback=_checked_file,
         **kwargs,
     )
+
+
+def out_path_checked(ctx: click.Context, param: click.Parameter, value: Any) -> Any:
+    """A click callback for another output file option (``--right-out``, ``--stereo-out``):
+    checked as :func:`out_file_option`'s ``--out``, under the option's own name."""
+    if value is None:
+        return None
+    what = param.opts[0] if param.opts else "output file"
+    return check_output_path(refuse_relative_in_ray_job(Path(value), what), what)
 
 
 def quiet_option(help_text: str) -> Decorator:

@@ -37,7 +37,12 @@ from pathlib import Path
 from filelock import FileLock, Timeout
 
 from uwdock.dockcore.errors import DockError
-from uwdock.dockcore.io import atomic_write_json, clean_stale_temps, ensure_writable_dir
+from uwdock.dockcore.io import (
+    atomic_write_json,
+    check_output_dir,
+    clean_stale_temps,
+    ensure_writable_dir,
+)
 
 OWNER_FILE = ".uwdock-owner.json"
 LOCK_FILE = ".uwdock.lock"
@@ -115,8 +120,10 @@ def claim_output_dir(path: str | os.PathLike[str], tool: str) -> Iterator[Path]:
 
     Raises:
         DockError: one line when the folder cannot be written, is locked by another process,
-            or belongs to another tool.
+            belongs to another tool, or is not a folder (a file, device, FIFO, socket or
+            symlink loop: :func:`dockcore.io.check_output_dir`).
     """
+    check_output_dir(path)  # a device, FIFO, socket, file or symlink loop: refused first
     absolute = Path(path).absolute()
     made = [p for p in (absolute, *absolute.parents) if not p.exists()]  # innermost first
     _refuse_foreign(absolute, tool)  # before the lock: nothing is created in their folder

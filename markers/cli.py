@@ -9,6 +9,7 @@ import click
 from uwdock.dockcore.cli import DomainType, field_type, run_group
 from uwdock.dockcore.config import load_config
 from uwdock.dockcore.errors import DockError
+from uwdock.dockcore.media import silence_opencv_log
 from uwdock.dockcore.options import command_group, config_option, out_dir_option, quiet_option
 from uwdock.markers.config import MarkerConfig
 from uwdock.markers.dictionary import DICTIONARY_NAMES, bits_per_side, dictionary_size
@@ -33,6 +34,7 @@ def _mm(name: str) -> DomainType:
 @command_group()
 def cli() -> None:
     """3D Binary Markers: printable parts, flat sheets, the marker set file."""
+    silence_opencv_log()  # the toolkit's own lines only (library noise: dockcore.media)
 
 
 @cli.command()

@@ -397,3 +397,11 @@ def load_marker_set(path: str | os.PathLike[str]) -> MarkerSet:
     if complaint:
         raise _fail(path, complaint)
     return MarkerSet(tuple(specs), geometry, path.resolve())
+
+
+def marker_set_files(path: str | os.PathLike[str]) -> list[str]:
+    """A marker set file and the render meshes it names (absolute paths; a mesh that is not
+    there is left out, the renderer says so): what a worker on another machine needs of it."""
+    ms = load_marker_set(path)
+    meshes = (ms.render_mesh_path(m.marker_id) for m in ms.markers)
+    return [str(Path(path).resolve()), *sorted({str(p) for p in meshes if p and p.is_file()})]

@@ -17,6 +17,7 @@ from uwdock.dockcore.cli import domain_type, run_group
 from uwdock.dockcore.config import load_config
 from uwdock.dockcore.domains import Interval
 from uwdock.dockcore.errors import DockError
+from uwdock.dockcore.media import display_name, silence_opencv_log
 from uwdock.dockcore.options import (
     command_group,
     config_option,
@@ -39,9 +40,11 @@ from uwdock.perception.report_plots import COMPARE_COLUMNS
 @command_group()
 def cli() -> None:
     """Perception: 3DBM detection and docking-station pose from the marker board."""
+    silence_opencv_log()  # the toolkit's own lines only (library noise: dockcore.media)
 
 
 def _note(msg: str) -> None:
+    msg = display_name(msg)  # a file name that is not UTF-8: \\xNN
     click.echo(msg if msg.startswith("warning: ") else f"note: {msg}", err=True)
 
 

@@ -10,11 +10,13 @@ few decoded frames spread over the input (:class:`FrameSampler`) for it.
 from __future__ import annotations
 
 import re
+from collections.abc import Sequence
 
 import cv2
 import numpy as np
 
 from uwdock.markers.dictionary import DICTIONARY_NAMES, get_dictionary
+from uwdock.perception.preprocess import as_uint8, to_grey
 
 __all__ = ["CANDIDATES", "FrameSampler", "dictionary_warning", "family"]
 
@@ -54,7 +56,7 @@ class FrameSampler:
         self.frames: list[np.ndarray] = []
 
     def offer(self, image: np.ndarray) -> None:
-        """Offer the next decoded frame (BGR or grey, uint8)."""
+        """Offer the next decoded frame (BGR or grey; uint8, uint16 or float)."""
         if self.offered % self.stride == 0:
             self.frames.append(image)
             if len(self.frames) > self.cap:
@@ -83,7 +85,7 @@ def _detect_ids(name: str, frames: list[np.ndarray]) -> tuple[int, set[int]]:
     detector = cv2.aruco.ArucoDetector(get_dictionary(name), params)
     hits, ids = 0, set()
     for img in frames:
-        grey = img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+        grey = to_grey(as_uint8(img))  # a 16-bit or float frame as the detector sees it
         side = max(grey.shape)
         if side > MAX_SIDE_PX:
             scale = MAX_SIDE_PX / side
@@ -95,27 +97,64 @@ def _detect_ids(name: str, frames: list[np.ndarray]) -> tuple[int, set[int]]:
     return hits, ids
 
 
-def dictionary_warning(dictionary: str, frames: list[np.ndarray], n_frames: int) -> str:
-    """The one-line warning for an input where no frame held a marker of ``dictionary``.
+def _shown(ids: set[int] | Sequence[int]) -> str:
+    ids = sorted(ids)
+    return ", ".join(str(i) for i in ids[:10]) + (", ..." if len(ids) > 10 else "")
+
+
+def _other_ids_warning(
+    dictionary: str, ids: Sequence[int], frames: list[np.ndarray], n_frames: int
+) -> str | None:
+    """The warning for a marker set whose dictionary is the frames' but whose IDs are not the
+    ones in view (the detector looks for the set's IDs only), or None when the frames show no
+    marker of the set's dictionary family with another ID."""
+    fam = [c for c in CANDIDATES if family(c) == family(dictionary)]
+    hits, found = _detect_ids(fam[0] if fam else dictionary, frames)
+    others = found - set(ids)
+    if not others:
+        return None
+    name = _smallest_of_family(dictionary, found) if fam else dictionary
+    return (
+        f"warning: no marker of the marker set ({dictionary}, {len(ids)} ID(s): {_shown(ids)}) "
+        f"found in {n_frames} frame(s), but {name} markers with IDs the set does not list are "
+        f"in view (IDs {_shown(others)}) in {hits} of {len(frames)} sampled frame(s): only the "
+        f"set's IDs are looked for; use a marker set that lists the markers in view (or "
+        f"--dictionary {name} for single markers)"
+    )
+
+
+def dictionary_warning(
+    dictionary: str, frames: list[np.ndarray], n_frames: int, ids: Sequence[int] | None = None
+) -> str:
+    """The one-line warning for an input where no frame held a marker of ``dictionary`` (of
+    the marker set's ``ids``, when given).
 
     Args:
         dictionary: the configured dictionary (canonical name).
         frames: a few decoded frames of the input (:class:`FrameSampler`).
         n_frames: decoded frames of the input (for the message).
+        ids: the marker set's IDs (the detector looks for these only), or None (single
+            markers: any ID).
 
     Returns:
-        ``"warning: ..."``: the other dictionary that finds the most markers on ``frames``
-        (the smallest of its family holding the IDs found) and what to pass, or that none of
-        :data:`CANDIDATES` finds any.
+        ``"warning: ..."``: with ``ids``, first whether markers of the set's dictionary with
+        other IDs are in view (the set does not list the markers the frames show); else the
+        other dictionary that finds the most markers on ``frames`` (the smallest of its family
+        holding the IDs found) and what to pass, or that none of :data:`CANDIDATES` finds any.
     """
-    lead = f"warning: no marker of {dictionary} found in {n_frames} frame(s)"
+    if ids:
+        other = _other_ids_warning(dictionary, ids, frames, n_frames)
+        if other is not None:
+            return other
+    what = f"{dictionary}" if not ids else f"the marker set ({dictionary}, IDs {_shown(ids)})"
+    lead = f"warning: no marker of {what} found in {n_frames} frame(s)"
     best: tuple[int, int, str, set[int]] | None = None
     for cand in CANDIDATES:
         if family(cand) == family(dictionary):
             continue
-        hits, ids = _detect_ids(cand, frames)
-        if hits and (best is None or (hits, len(ids)) > best[:2]):
-            best = (hits, len(ids), cand, ids)
+        hits, cand_ids = _detect_ids(cand, frames)
+        if hits and (best is None or (hits, len(cand_ids)) > best[:2]):
+            best = (hits, len(cand_ids), cand, cand_ids)
     if best is None:
         tried = ", ".join(
             re.sub(r"_(\d+)$", "", c) for c in CANDIDATES if family(c) != family(dictionary)
@@ -125,10 +164,9 @@ def dictionary_warning(dictionary: str, frames: list[np.ndarray], n_frames: int)
             f"{len(frames)} sampled frame(s): check the camera, exposure, focus and that "
             "markers are in view"
         )
-    hits, _, cand, ids = best
-    name = _smallest_of_family(cand, ids)
-    shown = ", ".join(str(i) for i in sorted(ids)[:10]) + (", ..." if len(ids) > 10 else "")
+    hits, _, cand, found = best
+    name = _smallest_of_family(cand, found)
     return (
-        f"{lead}; {name} finds markers (IDs {shown}) in {hits} of {len(frames)} sampled "
+        f"{lead}; {name} finds markers (IDs {_shown(found)}) in {hits} of {len(frames)} sampled "
         f"frame(s): pass --dictionary {name} or a marker set of that dictionary"
     )

@@ -36,6 +36,7 @@ from numpy.typing import ArrayLike
 from uwdock.calibration.camera import CameraModel
 from uwdock.calibration.frames import check_T, inv_T
 from uwdock.dockcore.config import validated
+from uwdock.dockcore.errors import ConfigError
 from uwdock.markers.markerset import MarkerSet
 from uwdock.perception.detector import Detection, Detector, DetectorConfig
 from uwdock.perception.pose import (
@@ -132,6 +133,9 @@ class DSPoseEstimator:
             :meth:`from_marker_set`).
         board_cfg: board PnP settings.
         pose_cfg: refinement settings.
+
+    Raises:
+        ConfigError: ``board_cfg.min_markers`` is more than the board's markers.
     """
 
     def __init__(
@@ -145,6 +149,13 @@ class DSPoseEstimator:
         self.detector = Detector(detector_cfg or DetectorConfig())
         self.board_cfg = validated(board_cfg or BoardPoseConfig())
         self.pose_cfg = validated(pose_cfg or DSPoseConfig())
+        n = len(corners_ds)
+        if n and self.board_cfg.min_markers > n:  # the config checked against its set
+            ids = ", ".join(str(i) for i in sorted(corners_ds))
+            raise ConfigError(
+                f"board.min_markers: {self.board_cfg.min_markers} is more than the {n} markers "
+                f"of the marker set (IDs {ids}): no frame could give a DS pose; use at most {n}"
+            )
 
     @classmethod
     def from_marker_set(

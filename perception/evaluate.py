@@ -210,7 +210,7 @@ def _detect_frames(
     for warning in source.warnings:
         note(warning)
     if not counts["frames_with_detection"]:
-        note(dictionary_warning(setup.dictionary, sampler.frames, sampler.offered))
+        note(dictionary_warning(setup.dictionary, sampler.frames, sampler.offered, setup.ids))
     return counts, [*outputs, jsonl, table]
 
 
@@ -472,7 +472,7 @@ def _check_eval_frames(
     if not any(not r.corrupt for r in main):
         raise DockError(f"no decodable frame in {source.path} ({source.corrupt} corrupt)")
     if not any(r.ids for rs in records.values() for r in rs):
-        note(dictionary_warning(setup.dictionary, sampler.frames, sampler.offered))
+        note(dictionary_warning(setup.dictionary, sampler.frames, sampler.offered, setup.ids))
     if truth is not None and not any(r.truth is not None for r in main):
         raise DockError(
             f"ground truth {truth_source or ''} matches none of the frames of {source.path} "

@@ -22,6 +22,7 @@ from uwdock.calibration.camera import CameraModel, reference_camera
 from uwdock.calibration.frames import pos_quat_from_T
 from uwdock.dockcore.domains import check, split_annotated
 from uwdock.dockcore.errors import DockError
+from uwdock.dockcore.media import display_name
 from uwdock.markers.config import MarkerConfig, MarkerSideM
 from uwdock.markers.dictionary import normalise_dictionary_name
 from uwdock.markers.markerset import load_marker_set, marker_set_from_config
@@ -297,6 +298,7 @@ def _T(T: np.ndarray | None) -> list | None:
 
 def detection_row(index: int, name: str, res: FrameResult | None) -> dict[str, Any]:
     """The ``detections.jsonl`` object of a frame (``corrupt`` when it could not be decoded)."""
+    name = display_name(name)  # a name that is not UTF-8: its bytes as \\xNN (valid text)
     if res is None:
         return {"frame": index, "name": name, "corrupt": True}
     markers = []

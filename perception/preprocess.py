@@ -74,6 +74,7 @@ import cv2
 import numpy as np
 
 from uwdock.dockcore.errors import DockError
+from uwdock.dockcore.media import scale_to_uint8
 
 __all__ = [
     "MIN_IMAGE_PX",
@@ -105,7 +106,8 @@ def as_uint8(image: Any) -> np.ndarray:
 
     Args:
         image: (H, W), (H, W, 1), (H, W, 3) BGR or (H, W, 4) BGRA array; uint8, uint16
-            (scaled by 1/257) or float in [0, 1] (scaled by 255, clipped).
+            (scaled by 1/257), float in [0, 1] (scaled by 255) or float of another range
+            (by its range; NaN as 0: :func:`dockcore.media.scale_to_uint8`).
 
     Returns:
         (H, W) or (H, W, 3) uint8 array (alpha dropped; a single channel squeezed).
@@ -128,15 +130,9 @@ def as_uint8(image: Any) -> np.ndarray:
         raise DockError(f"image must be (H, W), (H, W, 3) or (H, W, 4), got shape {image.shape}")
     if image.shape[0] < MIN_IMAGE_PX or image.shape[1] < MIN_IMAGE_PX:
         raise DockError(f"image is too small to hold a marker (shape {image.shape})")
-    if image.dtype == np.uint8:
-        out = image
-    elif image.dtype == np.uint16:
-        out = (image.astype(np.float32) * (1.0 / 257.0) + 0.5).astype(np.uint8)
-    elif np.issubdtype(image.dtype, np.floating):
-        out = np.clip(image.astype(np.float32) * 255.0 + 0.5, 0.0, 255.0).astype(np.uint8)
-    else:
+    if image.dtype not in (np.uint8, np.uint16) and not np.issubdtype(image.dtype, np.floating):
         raise DockError(f"unsupported image dtype {image.dtype} (use uint8, uint16 or float)")
-    return np.ascontiguousarray(out)
+    return np.ascontiguousarray(scale_to_uint8(image))
 
 
 def to_grey(image: np.ndarray) -> np.ndarray:

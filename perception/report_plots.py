@@ -26,6 +26,7 @@ import numpy as np
 from uwdock.calibration.frames import rotation_angle_deg
 from uwdock.dockcore.domains import Interval, Positive
 from uwdock.dockcore.io import atomic_path
+from uwdock.dockcore.media import display_name
 from uwdock.perception.groundtruth import FrameTruth
 
 __all__ = [
@@ -124,11 +125,12 @@ class EvalRecord:
 
     def to_json(self) -> dict[str, Any]:
         """The ``frames.jsonl`` object of this frame."""
+        name = display_name(self.name)  # not UTF-8: its bytes as \\xNN (valid text)
         if self.corrupt:
-            return {"frame": self.frame, "name": self.name, "corrupt": True}
+            return {"frame": self.frame, "name": name, "corrupt": True}
         out: dict[str, Any] = {
             "frame": self.frame,
-            "name": self.name,
+            "name": name,
             "corrupt": False,
             "ids": list(self.ids),
             "n_markers": len(self.ids),

@@ -54,6 +54,8 @@ from uwdock.dockcore.media import (
     IMAGE_SUFFIXES,
     MAX_CONSECUTIVE_VIDEO_FAILURES,
     AtomicVideoWriter,
+    ascii_text,
+    display_name,
     open_video,
     quiet_native_stderr,
     read_image,
@@ -128,7 +130,7 @@ class FrameSource:
         for index, file in enumerate(self._files):
             image = read_image(file)
             if image is not None and min(image.shape[:2]) < MIN_IMAGE_PX:
-                small.append(f"{file.name} ({image.shape[1]}x{image.shape[0]} px)")
+                small.append(f"{display_name(file.name)} ({image.shape[1]}x{image.shape[0]} px)")
                 image = None
             if image is None:
                 self.corrupt += 1
@@ -366,6 +368,7 @@ def _bgr(image: np.ndarray) -> np.ndarray:
 
 
 def _text(img: np.ndarray, text: str, org: tuple[int, int], scale: float, colour) -> None:
+    text = ascii_text(text)  # a name that is not UTF-8 would crash OpenCV (exit 139)
     thick = max(1, round(2 * scale))
     cv2.putText(
         img, text, org, cv2.FONT_HERSHEY_SIMPLEX, 0.6 * scale, _BLACK, thick + 2, cv2.LINE_AA

@@ -1,6 +1,7 @@
 """Training callback: the rollout boundaries of :class:`rl.session.TrainingSession` (checkpoints,
 evaluations), the critic warm-up, the progress bar, and ``charts/`` (episode success rates,
-reward terms) in TensorBoard.
+reward terms) in TensorBoard; and, for a resumed run, its TensorBoard events cut back to the
+checkpoint it resumes from (:func:`drop_tensorboard_events_after`), so each step is logged once.
 
 This module subclasses Stable-Baselines3's ``BaseCallback``, so it imports SB3 (and torch under
 it) at module level: only the function that trains imports it (``rl.train``), so importing
@@ -10,13 +11,65 @@ heavy modules of the tree).
 
 from __future__ import annotations
 
+import os
 from collections import defaultdict
+from pathlib import Path
 
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
 from tqdm import tqdm
 
-__all__ = ["TrainingCallback"]
+from uwdock.dockcore.io import atomic_path
+
+__all__ = ["TrainingCallback", "drop_tensorboard_events_after"]
+
+
+def drop_tensorboard_events_after(tb_dir: str | os.PathLike[str], step: int) -> int:
+    """Cut a run's TensorBoard event files back to ``step``: every event of a later step is
+    removed (each file rewritten atomically, its other events byte for byte).
+
+    A run killed after its checkpoint at ``step`` had logged the steps up to the kill; resumed
+    from that checkpoint (SB3 goes on writing into the same ``tb/tb_N`` folder) it logs them
+    again, and TensorBoard would show both (34 duplicated points in a killed and resumed
+    run). Called before the resumed run's writer opens: what it logs from ``step`` on is then
+    the only record of those steps. A record cut short by the kill (the file's tail) goes too.
+
+    Args:
+        tb_dir: the run's ``tb/`` folder (searched recursively; missing: nothing to do).
+        step: the checkpoint's step (0: a run started again from the beginning).
+
+    Returns:
+        The number of events removed.
+    """
+    files = sorted(Path(tb_dir).rglob("events.out.tfevents.*")) if Path(tb_dir).is_dir() else []
+    if not files:
+        return 0
+    from tensorboard.backend.event_processing.event_file_loader import RawEventFileLoader
+    from tensorboard.compat.proto.event_pb2 import Event
+    from tensorboard.summary.writer.record_writer import RecordWriter
+
+    dropped = 0
+    for path in files:
+        if not path.is_file() or path.is_symlink():
+            continue
+        records, keep = [], []
+        for r in RawEventFileLoader(str(path)).Load():
+            try:
+                event_step = Event.FromString(r).step
+            except Exception:  # protobuf's DecodeError: a damaged record, cut with the rest
+                break
+            records.append(r)
+            if event_step <= step:
+                keep.append(r)
+        cut_tail = path.stat().st_size != sum(len(r) + 16 for r in records)  # 16: framing
+        if len(keep) == len(records) and not cut_tail:
+            continue
+        dropped += len(records) - len(keep)
+        with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+            writer = RecordWriter(fh)
+            for r in keep:
+                writer.write(r)
+    return dropped
 
 
 class TrainingCallback(BaseCallback):

@@ -1,22 +1,27 @@
 """Training checkpoints as transactions.
 
 A checkpoint is one folder ``checkpoints/step_<N>/`` holding everything a run needs to go on
-exactly as if it had never stopped:
+exactly as if it had never stopped, as data (nothing in it is unpickled):
 
-* ``model.zip``: the SB3 model (policy, optimiser, step counter, last observation), written
-  byte-deterministically (fixed zip timestamps, no wall-clock fields), so two runs that reach
-  the same state write the same bytes;
-* ``vecnormalize.pkl``: the observation/reward normalisation, when the run normalises;
-* ``replay_buffer.pkl``: SAC's replay buffer;
-* ``best/policy.zip`` (+ ``best/vecnormalize.pkl``): the best evaluated policy so far;
+* ``training.json`` + ``training.npz``: the model's training state: the policy's weights, its
+  optimisers' state (and SAC's entropy coefficient and replay buffer), the step counters, the
+  last observation, and the observation/reward normalisation when the run normalises; arrays in
+  the ``.npz`` (read with ``allow_pickle=False``), the rest in the JSON; the network and its
+  hyperparameters are rebuilt from the run's ``config.toml``;
+* ``best/model.json`` + ``best/weights.npz``: the best evaluated policy so far
+  (:mod:`rl.policy_format`);
 * ``state.json``: the training schedule (next checkpoint, next evaluation), the evaluation
   state (best score and step, evaluations done), the critic warm-up phase and the random
   number generators (Python, NumPy, PyTorch, the action space);
 * ``manifest.json``, written last: every file's size and SHA-256.
 
-The folder is assembled under a hidden temporary name and renamed into place, so it either
-exists complete or not at all; :func:`latest_unit` takes the newest unit whose manifest checks
-out and falls back past damaged ones (a truncated file, a missing manifest), saying so.
+Every file is written byte-deterministically (fixed zip timestamps, sorted keys), so two runs
+that reach the same state write the same bytes. The folder is assembled under a hidden
+temporary name and renamed into place, so it either exists complete or not at all;
+:func:`latest_unit` takes the newest unit whose manifest checks out and falls back past damaged
+ones (a truncated file, a missing manifest), saying so. Units of format version 1 (SB3's
+``model.zip`` and pickles) are read only when the user trusts the run folder
+(``rl train --resume --trust-pickle``).
 """
 
 from __future__ import annotations
@@ -27,12 +32,9 @@ import hashlib
 import io
 import json
 import os
-import pickle
 import random
 import re
 import shutil
-import sys
-import zipfile
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -41,24 +43,30 @@ from typing import Any
 import numpy as np
 
 from uwdock.dockcore.errors import DockError
-from uwdock.dockcore.io import TEMP_MARK, temp_sibling
+from uwdock.dockcore.io import TEMP_MARK, check_output_dir, temp_sibling
+from uwdock.rl.policy_format import npz_bytes, read_arrays
 
 FORMAT = "uwdock.checkpoint"
-VERSION = 1
+VERSION = 2
+#: the versions read: 1 held SB3's zip and pickles (read only with --trust-pickle)
+READ_VERSIONS = (1, 2)
+TRAINING = "training.json"
+TRAINING_ARRAYS = "training.npz"
 MANIFEST = "manifest.json"
 STATE = "state.json"
 _UNIT_RE = re.compile(r"^step_(\d+)$")
-#: SB3 attributes that hold wall-clock time, the folder's path or where this process started;
-#: left out, so a checkpoint depends on the run's state only (the loader sets
-#: ``tensorboard_log`` again).
-_WALL_CLOCK = [
-    "start_time",
-    "ep_info_buffer",
-    "ep_success_buffer",
-    "tensorboard_log",
-    "_num_timesteps_at_start",
-]
 _ZIP_TIME = (1980, 1, 1, 0, 0, 0)
+#: the SB3 attributes a run's training moves on (everything else is rebuilt from its config)
+_COUNTERS = (
+    "num_timesteps",
+    "_n_updates",
+    "_episode_num",
+    "_current_progress_remaining",
+    "_total_timesteps",
+)
+_LAST = ("_last_obs", "_last_episode_starts", "_last_original_obs")
+#: SAC's replay buffer arrays
+_REPLAY = ("observations", "next_observations", "actions", "rewards", "dones", "timeouts")
 
 
 def unit_name(step: int) -> str:
@@ -66,81 +74,181 @@ def unit_name(step: int) -> str:
     return f"step_{step:010d}"
 
 
-# ----------------------------------------------------------------------------- byte formats
+# ----------------------------------------------------------------------------- training state
 
 
-def _interned(obj: Any) -> Any:
-    """``obj`` with every string in its dicts, lists and tuples interned."""
-    if isinstance(obj, str):
-        return sys.intern(obj)
-    if isinstance(obj, dict):
-        return {_interned(k): _interned(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return type(obj)(_interned(v) for v in obj)
-    return obj
+def _tensor_table(sd: dict[str, Any], prefix: str, arrays: dict[str, np.ndarray]) -> list[str]:
+    import torch
+
+    names = []
+    for key, value in sd.items():
+        if not torch.is_tensor(value):
+            raise DockError(f"{prefix}.{key} is not a tensor")
+        arrays[f"{prefix}/{key}"] = value.detach().cpu().numpy()
+        names.append(key)
+    return names
 
 
-def _canonical_torch(body: bytes) -> bytes:
-    """A ``torch.save`` file re-saved from a canonical object graph.
+def _optimizer_data(sd: dict[str, Any], prefix: str, arrays: dict[str, np.ndarray]) -> dict:
+    """An optimiser's ``state_dict``: tensors into ``arrays``, the rest as JSON."""
+    import torch
 
-    Pickle memoises by object identity, so equal states can serialise differently: an
-    optimiser loaded from a checkpoint holds its state keys as unpickled strings, one that
-    never stopped holds the interned literals of ``torch.optim``. Interning every string first
-    makes the bytes depend on the content only.
+    state = {}
+    for index, entry in sd["state"].items():
+        item = {}
+        for key, value in entry.items():
+            if torch.is_tensor(value):
+                arrays[f"{prefix}/{index}/{key}"] = value.detach().cpu().numpy()
+                item[key] = {"array": f"{prefix}/{index}/{key}"}
+            else:
+                item[key] = {"value": value}
+        state[str(index)] = item
+    return {"state": state, "param_groups": sd["param_groups"]}
+
+
+def _optimizer_state(meta: dict, arrays: dict[str, np.ndarray]) -> dict[str, Any]:
+    import torch
+
+    state = {}
+    for index, entry in meta["state"].items():
+        state[int(index)] = {
+            k: torch.tensor(arrays[v["array"]]) if "array" in v else v["value"]
+            for k, v in entry.items()
+        }
+    groups = [dict(g) for g in meta["param_groups"]]
+    for g in groups:
+        if isinstance(g.get("betas"), list):
+            g["betas"] = tuple(g["betas"])
+    return {"state": state, "param_groups": groups}
+
+
+def training_files(model, vecnorm) -> dict[str, bytes]:
+    """``training.json`` and ``training.npz``: ``model``'s training state (module docstring)
+    and its ``VecNormalize`` (or None), as deterministic bytes."""
+    arrays: dict[str, np.ndarray] = {}
+    params = model.get_parameters()  # the policy's state, then each optimiser's
+    meta: dict[str, Any] = {
+        "algorithm": type(model).__name__.lower(),
+        "policy": _tensor_table(params.pop("policy"), "policy", arrays),
+        "optimizers": {n: _optimizer_data(sd, f"opt/{n}", arrays) for n, sd in params.items()},
+        "variables": [],
+        "counters": {k: getattr(model, k) for k in _COUNTERS},
+        "last": [],
+        "normalization": None,
+        "replay_buffer": None,
+    }
+    for name in model._get_torch_save_params()[1]:  # SAC's log_ent_coef
+        arrays[f"var/{name}"] = getattr(model, name).detach().cpu().numpy()
+        meta["variables"].append(name)
+    for name in _LAST:
+        value = getattr(model, name, None)
+        if value is not None:
+            arrays[f"last/{name}"] = np.asarray(value)
+            meta["last"].append(name)
+    if vecnorm is not None:
+        for name in ("obs_rms", "ret_rms"):
+            rms = getattr(vecnorm, name)
+            arrays[f"{name}/mean"] = np.asarray(rms.mean, dtype=np.float64)
+            arrays[f"{name}/var"] = np.asarray(rms.var, dtype=np.float64)
+        meta["normalization"] = {
+            "norm_obs": bool(vecnorm.norm_obs),
+            "norm_reward": bool(vecnorm.norm_reward),
+            "clip_obs": float(vecnorm.clip_obs),
+            "clip_reward": float(vecnorm.clip_reward),
+            "gamma": float(vecnorm.gamma),
+            "epsilon": float(vecnorm.epsilon),
+            "obs_count": float(vecnorm.obs_rms.count),
+            "ret_count": float(vecnorm.ret_rms.count),
+            "training": bool(vecnorm.training),
+        }
+    buffer = getattr(model, "replay_buffer", None)
+    if buffer is not None:
+        for name in _REPLAY:
+            if getattr(buffer, name, None) is not None:
+                arrays[f"replay/{name}"] = np.asarray(getattr(buffer, name))
+        meta["replay_buffer"] = {"pos": int(buffer.pos), "full": bool(buffer.full)}
+    text = json.dumps(meta, indent=1, sort_keys=True, allow_nan=False) + "\n"
+    return {TRAINING: text.encode("utf-8"), TRAINING_ARRAYS: npz_bytes(arrays)}
+
+
+def read_training(files: dict[str, bytes]) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """The JSON and arrays of :func:`training_files` (the unit's manifest checked them)."""
+    try:
+        meta = json.loads(files[TRAINING].decode("utf-8"))
+    except (KeyError, ValueError) as exc:
+        raise DockError(f"checkpoint {TRAINING} unreadable: {exc}") from None
+    return meta, read_arrays(files[TRAINING_ARRAYS], f"checkpoint {TRAINING_ARRAYS}")
+
+
+def normaliser_for(venv, meta: dict[str, Any], arrays: dict[str, np.ndarray]):
+    """``venv`` wrapped in the ``VecNormalize`` a checkpoint records (its statistics, settings
+    and training flag)."""
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    n = meta
+    vecnorm = VecNormalize(
+        venv,
+        training=n["training"],
+        norm_obs=n["norm_obs"],
+        norm_reward=n["norm_reward"],
+        clip_obs=n["clip_obs"],
+        clip_reward=n["clip_reward"],
+        gamma=n["gamma"],
+        epsilon=n["epsilon"],
+    )
+    for name in ("obs_rms", "ret_rms"):
+        rms = getattr(vecnorm, name)
+        rms.mean = arrays[f"{name}/mean"].copy()
+        rms.var = arrays[f"{name}/var"].copy()
+    vecnorm.obs_rms.count, vecnorm.ret_rms.count = n["obs_count"], n["ret_count"]
+    return vecnorm
+
+
+def restore_training(model, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> None:
+    """Put a checkpoint's training state into ``model``, built from the run's config.
+
+    Raises:
+        DockError: the state does not fit the model (another algorithm or network).
     """
     import torch
 
-    obj = torch.load(io.BytesIO(body), map_location="cpu", weights_only=False)
-    out = io.BytesIO()
-    torch.save(_interned(obj), out)
-    return out.getvalue()
+    if meta.get("algorithm") != type(model).__name__.lower():
+        raise DockError(
+            f"the checkpoint is of {meta.get('algorithm')!r}, the run's config trains "
+            f"{type(model).__name__}"
+        )
+    params = {"policy": {k: torch.tensor(arrays[f"policy/{k}"]) for k in meta["policy"]}}
+    for name, opt in meta["optimizers"].items():
+        params[name] = _optimizer_state(opt, arrays)
+    try:
+        model.set_parameters(params, exact_match=True, device="cpu")
+    except (ValueError, RuntimeError, KeyError) as exc:
+        raise DockError(f"the checkpoint does not fit the run's network: {exc}") from None
+    for name in meta["variables"]:
+        getattr(model, name).data = torch.tensor(arrays[f"var/{name}"])
+    for key, value in meta["counters"].items():
+        if key in _COUNTERS:
+            setattr(model, key, value)
+    for name in _LAST:
+        setattr(model, name, arrays[f"last/{name}"].copy() if name in meta["last"] else None)
+    if meta["replay_buffer"] is not None:
+        buffer = model.replay_buffer
+        for name in _REPLAY:
+            if f"replay/{name}" in arrays:
+                got, want = arrays[f"replay/{name}"], getattr(buffer, name)
+                if want is None or got.shape != want.shape:
+                    raise DockError("the checkpoint's replay buffer does not fit the run's")
+                setattr(buffer, name, got.copy())
+        buffer.pos, buffer.full = meta["replay_buffer"]["pos"], meta["replay_buffer"]["full"]
 
 
-def _repack(data: bytes) -> bytes:
-    """A zip with fixed timestamps, canonical torch files, and the memory addresses in SB3's
-    readable ``data`` blurbs masked (only the ``:serialized:`` fields are read back)."""
-    src = zipfile.ZipFile(io.BytesIO(data))
-    out = io.BytesIO()
-    with zipfile.ZipFile(out, "w") as dst:
-        for info in src.infolist():
-            body = src.read(info.filename)
-            if info.filename == "data":
-                body = re.sub(rb" at 0x[0-9a-f]+>", b" at 0x0>", body)
-            elif info.filename.endswith(".pth"):
-                body = _canonical_torch(body)
-            zi = zipfile.ZipInfo(info.filename, date_time=_ZIP_TIME)
-            zi.compress_type = info.compress_type
-            zi.external_attr = 0o644 << 16
-            dst.writestr(zi, body)
-    return out.getvalue()
-
-
-def model_bytes(model) -> bytes:
-    """``model.save`` as deterministic bytes (same state -> same bytes)."""
-    buf = io.BytesIO()
-    model.save(buf, exclude=list(_WALL_CLOCK))
-    return _repack(buf.getvalue())
+# ----------------------------------------------------------------------------- version 1
 
 
 def load_model(algo_cls, data: bytes, env=None):
-    """An SB3 model from :func:`model_bytes`, on ``env`` (None: no env, to predict only), on
-    the CPU."""
+    """An SB3 model from a version-1 checkpoint's ``model.zip`` (or a best/ ``policy.zip``)
+    on ``env``, on the CPU. Unpickles: only for a run folder the user trusts."""
     return algo_cls.load(io.BytesIO(data), env=env, device="cpu")
-
-
-def pickle_bytes(obj: Any) -> bytes:
-    """``obj`` pickled without the memo ("fast" mode), so the bytes depend on its content only,
-    not on which parts happen to share objects (a loaded and a live ``VecNormalize`` differ
-    there). For acyclic objects (normalisation statistics, replay buffers)."""
-    buf = io.BytesIO()
-    pickler = pickle.Pickler(buf, protocol=4)
-    pickler.fast = True
-    pickler.dump(obj)
-    return buf.getvalue()
-
-
-def replay_buffer_bytes(model) -> bytes:
-    return pickle_bytes(model.replay_buffer)
 
 
 def rng_state(model) -> dict[str, Any]:
@@ -250,7 +358,8 @@ def write_unit(
             os.fsync(fh.fileno())
         _fsync_dir(tmp)
         final = checkpoints / name
-        if final.exists():
+        check_output_dir(final, "checkpoint")  # a device, FIFO or loop there is not replaced
+        if os.path.lexists(final):
             old = checkpoints / f".{name}.{os.getpid()}.replaced{TEMP_MARK}"
             os.replace(final, old)
             os.replace(tmp, final)
@@ -278,7 +387,7 @@ def read_unit(path: Path) -> Unit:
         raise DamagedUnit(f"unreadable manifest.json ({exc})") from None
     if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
         raise DamagedUnit("manifest.json is not a uwdock checkpoint manifest")
-    if manifest.get("version") != VERSION:
+    if manifest.get("version") not in READ_VERSIONS:
         raise DamagedUnit(f"checkpoint format version {manifest.get('version')} (need {VERSION})")
     files: dict[str, bytes] = {}
     for rel, meta in dict(manifest.get("files", {})).items():

@@ -21,7 +21,8 @@ from uwdock.dockcore.config import (
 )
 from uwdock.dockcore.domains import Count, Interval, Seed
 from uwdock.dockcore.errors import DockError
-from uwdock.dockcore.io import atomic_write_json
+from uwdock.dockcore.io import atomic_write_json, check_output_path
+from uwdock.dockcore.library_notes import with_library_notes
 from uwdock.dockcore.options import (
     backend_options,
     command_group,
@@ -41,6 +42,7 @@ from uwdock.rl.env_settings import command_env, policy_training_env
 from uwdock.rl.episode import EpisodeVideoConfig, record_episode
 from uwdock.rl.error_model import ErrorModelConfig, fit_error_model, save_error_model
 from uwdock.rl.export import export_onnx
+from uwdock.rl.policy_convert import convert_policy
 from uwdock.rl.policy_io import policy_env_settings
 from uwdock.rl.report import evaluate_to_folder
 from uwdock.rl.sweep import SweepConfig, parse_grid, run_sweep
@@ -162,11 +164,17 @@ def cli() -> None:
     help="With --simulator batched: processes the batch is split over, to use more cores "
     "(the same rollouts).",
 )
+@click.option(
+    "--trust-pickle",
+    is_flag=True,
+    help="With --resume: read checkpoints of an older version (SB3's zip and pickles, which "
+    "run any code they hold); only for a run folder that is your own.",
+)
 @out_dir_option("Run folder.", required=True)
 def train(
     config_path, obs, error_model, usbl, nav, water, algo, steps, envs, simulator, seed,
     init_policy, resume, allow_config_change, backend, ray_address, envs_per_worker,
-    batch_workers, out_dir,
+    batch_workers, trust_pickle, out_dir,
 ) -> None:  # fmt: skip
     """Train a docking policy (PPO with the paper's hyperparameters by default).
 
@@ -208,6 +216,7 @@ def train(
         ray_address=ray_address,
         envs_per_worker=envs_per_worker,
         batch_workers=batch_workers,
+        trust_pickle=trust_pickle,
     )
     click.echo(f"policy: {final}")
 
@@ -297,7 +306,7 @@ def sweep(
     "--policy",
     required=True,
     type=click.Path(path_type=Path),
-    help="policy.zip / run folder / .onnx, or 'pid' for the classical baseline.",
+    help="Policy folder (model.json + weights.npz) / .onnx, or 'pid' for the classical baseline.",
 )
 @click.option("--episodes", type=domain_type(Count), default=100, show_default=True)
 @click.option("--obs", type=OBS_CHOICES, help="Observation source [camera].")
@@ -442,12 +451,39 @@ def export(policy, out_path) -> None:
     """Export a policy to ONNX (observation normalisation included); the .json beside it
     carries the env the policy was trained in (one line names its settings), which `rl eval`
     and the deployment runner take by default."""
+    # the .onnx and its .json, checked before the policy is loaded
+    if out_path.suffix.lower() == ".json":  # the ONNX and its sidecar would be one file
+        raise DockError(f"--out must not end in .json (its .json is written beside it): {out_path}")
+    check_output_path(out_path, "--out", [out_path.with_suffix(".json")])
     written = export_onnx(policy, out_path)
     trained = policy_training_env(str(policy))
     if trained is None:
         click.echo(f"rl export env: no run config beside {policy}: only its interface is known")
     else:
         click.echo(trained.line("rl export"))
+    click.echo(f"wrote {written}")
+
+
+@cli.command("convert-policy")
+@click.argument("source", type=click.Path(path_type=Path))
+@click.option(
+    "--trust-pickle",
+    is_flag=True,
+    help="Read SOURCE's pickles (policy.zip, vecnormalize.pkl): they can run code, so only for "
+    "a folder whose origin you trust.",
+)
+@out_dir_option("Folder to write (model.json, weights.npz and the run's records).", required=True)
+def convert_policy_cmd(source, trust_pickle, out_dir) -> None:
+    """Convert a policy folder of the pickled format (SB3's policy.zip, vecnormalize.pkl) into
+    the data format every command loads (model.json + weights.npz; nothing in it can run code).
+    The same actions, bit for bit."""
+    if trust_pickle:
+        click.echo(
+            f"warning: --trust-pickle: reading the pickles of {source}, which run any code "
+            "they hold",
+            err=True,
+        )
+    written = convert_policy(source, out_dir, trust_pickle)
     click.echo(f"wrote {written}")
 
 
@@ -562,6 +598,10 @@ def episode(
                     water_name=water_name,
                     cfg=video_cfg,
                     on_step=lambda _k: bar.update(1),
+                    # an interrupt writes it as {"complete": false, "interrupted": ...}
+                    # and removes a previous run's video and provenance
+                    summary_name="summary.json",
+                    previous_outputs=("provenance.json", "config.toml"),
                 )
             summary["controller"] = controller
             atomic_write_json(out / "summary.json", summary)
@@ -639,6 +679,10 @@ def trajectories(out_dir, episodes, seed, obs, error_model, config_path, quiet) 
         f"{summary['success_strict']:.0%} docked strictly) -> {csv_path}; render them with "
         f"`datasets render --poses {csv_path} --width {env_cfg.world.camera_width_px} --water ...`"
     )
+
+
+# SB3's, gymnasium's and torch's warnings as one `note:` line each (dockcore.library_notes)
+with_library_notes(cli)
 
 
 def main() -> None:

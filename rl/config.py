@@ -14,7 +14,7 @@ import numpy as np
 
 from uwdock.calibration.camera import load_camera
 from uwdock.dockcore.domains import Interval
-from uwdock.markers.markerset import load_marker_set
+from uwdock.markers.markerset import load_marker_set, marker_set_files
 from uwdock.rl.error_model import load_error_model
 from uwdock.rl.estimator import EstimatorConfig
 from uwdock.rl.rewards import RewardConfig
@@ -189,8 +189,8 @@ class EnvConfig:
         """Raise ValueError naming the first field that breaks a rule across fields (the world's
         own rules are :meth:`WorldConfig.validate`'s, reported under ``world.``)."""
         w = self.world
-        ratio = w.physics_hz / self.control_hz
-        if self.control_hz <= 0 or abs(ratio - round(ratio)) > 1e-9:
+        ratio = w.physics_hz / self.control_hz  # inf for a control_hz of 5e-324
+        if self.control_hz <= 0 or not np.isfinite(ratio) or abs(ratio - round(ratio)) > 1e-9:
             raise ValueError("world.physics_hz: must be a positive multiple of control_hz")
         if round(self.episode_s * self.control_hz) < 1:
             raise ValueError(
@@ -260,10 +260,14 @@ def with_absolute_inputs(cfg: EnvConfig) -> EnvConfig:
 
 
 def absolute_inputs(cfg: EnvConfig) -> tuple[EnvConfig, list[str]]:
-    """:func:`with_absolute_inputs` and the absolute input files it names: what a job whose
-    workers may start elsewhere passes them and checks on every node."""
+    """:func:`with_absolute_inputs` and the absolute input files it names, with the render
+    meshes its marker set names: what a job whose workers may start elsewhere sends them
+    (``dockcore.pool.PoolConfig.inputs``) or checks on every node."""
     cfg = with_absolute_inputs(cfg)
-    return cfg, list(env_input_files(cfg).values())
+    files = list(env_input_files(cfg).values())
+    if cfg.world.marker_set_path:
+        files += [f for f in marker_set_files(cfg.world.marker_set_path) if f not in files]
+    return cfg, files
 
 
 def check_env_files(cfg: EnvConfig) -> None:

@@ -38,9 +38,11 @@ import sapien
 
 from uwdock.calibration.camera import CameraModel
 from uwdock.calibration.frames import inv_T, make_T, transform_points
+from uwdock.dockcore.cli import interrupt_name
 from uwdock.dockcore.config import check_fields, validated
 from uwdock.dockcore.domains import Interval
 from uwdock.dockcore.errors import DockError
+from uwdock.dockcore.io import atomic_write_json
 from uwdock.dockcore.media import AtomicVideoWriter
 from uwdock.sim.camera import SimCamera
 from uwdock.sim.domains import RGB
@@ -282,6 +284,8 @@ def record_episode(
     cfg: EpisodeVideoConfig | None = None,
     video_name: str = "episode.mp4",
     on_step: Callable[[int], None] | None = None,
+    summary_name: str | None = None,
+    previous_outputs: tuple[str, ...] = (),
 ) -> dict[str, Any]:
     """Run one episode with ``policy`` and write ``out_dir/episode.mp4``.
 
@@ -296,11 +300,21 @@ def record_episode(
         cfg: video settings.
         video_name: the video file name inside ``out_dir``.
         on_step: called with the step index after each step (progress).
+        summary_name: the summary file the caller writes into ``out_dir`` on success (e.g.
+            ``"summary.json"``), or None. Given, an interrupted episode (SIGINT, SIGTERM)
+            writes it as ``{"complete": false, "interrupted": "SIGTERM", "steps": ...,
+            "video": null, ...}`` and removes a previous run's video from the folder (so an
+            interrupted rerun cannot leave another run's outputs looking like its own); its
+            own video is discarded, never renamed into place
+            (:class:`dockcore.media.AtomicVideoWriter`). Any other failure leaves the folder's
+            files as they were.
+        previous_outputs: further files of a previous run in ``out_dir`` (its provenance) that
+            an interrupted episode removes with its video.
 
     Returns:
-        The summary (JSON-serialisable): frames, steps, simulated time, success flags, final
-        errors, return and reward-term sums, collisions, the fraction of steps with the DS
-        detected (``info["detected"]``), video name, fps.
+        The summary (JSON-serialisable): ``complete`` (true), frames, steps, simulated time,
+        success flags, final errors, return and reward-term sums, collisions, the fraction of
+        steps with the DS detected (``info["detected"]``), video name, fps.
         One video frame per control step plus the initial one.
     """
     cfg = validated(cfg or EpisodeVideoConfig())
@@ -312,17 +326,48 @@ def record_episode(
     views = _Views(env, cfg, water, rng)
     fps = float(getattr(getattr(env, "cfg", None), "control_hz", 5.0))  # real time
     t0 = time.perf_counter()
+    done = {"steps": 0, "sim_time_s": 0.0}  # how far the episode got (an interrupt's summary)
     try:
         summary = _film(env, policy, views, out / video_name, fps, seed, water_name, max_steps,
-                        on_step)  # fmt: skip
+                        on_step, done)  # fmt: skip
+    except KeyboardInterrupt as exc:  # SIGINT, and SIGTERM (raised as an interrupt)
+        if summary_name is not None:  # a previous run's video is not this summary's
+            for name in (video_name, *previous_outputs):
+                (out / name).unlink(missing_ok=True)
+            _write_interrupted(out / summary_name, exc, done, seed, water_name, fps, t0)
+        raise
     finally:
         views.close()
     summary["wall_s"] = time.perf_counter() - t0
     return summary
 
 
-def _film(env, policy, views, path, fps, seed, water_name, max_steps, on_step) -> dict[str, Any]:
-    """The episode into ``path`` (record_episode's loop); its summary without ``wall_s``."""
+def _write_interrupted(
+    path: Path, exc: BaseException, done: dict[str, Any], seed, water_name, fps, t0
+) -> None:
+    """The summary of an interrupted episode: says so, and how far it got; no video."""
+    summary = {
+        "complete": False,
+        "interrupted": interrupt_name(exc),
+        "video": None,
+        **done,
+        "fps": fps,
+        "seed": int(seed),
+        "water": water_name,
+        "wall_s": time.perf_counter() - t0,
+    }
+    try:
+        atomic_write_json(path, summary)
+    except OSError:  # a full disk: the run still ends as interrupted, without the mark
+        pass
+
+
+def _film(
+    env, policy, views, path, fps, seed, water_name, max_steps, on_step, done=None
+) -> dict[str, Any]:
+    """The episode into ``path`` (record_episode's loop); its summary without ``wall_s``.
+    ``done`` (a dict), when given, is kept up to date with the steps and simulated time."""
+    done = {} if done is None else done
     with AtomicVideoWriter(path, fps) as writer:
         obs, info = env.reset(seed=seed)
         policy.reset()
@@ -338,11 +383,13 @@ def _film(env, policy, views, path, fps, seed, water_name, max_steps, on_step) -
             detected += int(bool(info.get("detected", False)))
             for k, v in info.get("reward_terms", {}).items():
                 terms[k] = terms.get(k, 0.0) + float(v)
+            done.update(steps=steps, sim_time_s=float(info.get("time_s", math.nan)))
             writer.write(views.render(*_lines(info, water_name)))
             if on_step is not None:
                 on_step(steps)
     e = np.asarray(info.get("e_true", np.full(3, np.nan)), np.float64)
     return {
+        "complete": True,
         "video": writer.path.name,
         "frames": writer.frames,
         "fps": fps,

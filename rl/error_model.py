@@ -49,10 +49,12 @@ from tqdm import tqdm
 from uwdock.calibration.camera import (
     REFERENCE_T_BODYFRD_CAMCV,
     CameraModel,
-    check_plausible,
+    check_camera,
+    check_T_body_cam,
     resolve_camera,
 )
-from uwdock.calibration.frames import check_T, inv_T, make_T
+from uwdock.calibration.frames import inv_T, make_T
+from uwdock.datasets.loaders import load_checked_dataset
 from uwdock.datasets.sequences import FrameSequences, sequences_from_manifest
 from uwdock.dockcore.config import to_dict
 from uwdock.dockcore.domains import Interval
@@ -63,7 +65,6 @@ from uwdock.markers.markerset import load_marker_set
 from uwdock.markers.view import markers_in_view
 from uwdock.perception.detector import rendered_3dbm_config
 from uwdock.perception.ds_pose import DSPoseEstimator
-from uwdock.perception.groundtruth import load_dataset
 from uwdock.rl.obs_sources import Measurement, SourceNeeds, StepContext
 from uwdock.rl.task import DockingTaskConfig
 
@@ -172,7 +173,7 @@ def fit_error_model(
     """Fit the model from a labelled dataset folder (see the module docstring); its memory when
     the dataset's frames form time sequences (``dataset.json`` ``sequences``)."""
     cfg = cfg or ErrorModelConfig()
-    ds = load_dataset(dataset)
+    ds = load_checked_dataset(dataset)  # labels inside it, in range, images regular files
     frames = sorted(ds.frames.items())
     sequences = sequences_from_manifest(ds.manifest, len(frames), str(ds.root / "dataset.json"))
     if sequences is not None and [k for k, _ in frames] != list(range(len(frames))):
@@ -437,12 +438,12 @@ class ErrorModel:
                 cy_px=float(cam["cy_px"]),
                 dist=tuple(cam["dist"]),
             )
-            check_plausible(self.camera)
+            check_camera(self.camera)
         except ValueError as exc:
             raise ValueError(f"camera.{exc}") from None
         tb = cam.get("T_body_cam")
         self.T_body_cam = (
-            check_T(_numbers(tb, "camera.T_body_cam", (4, 4)), "camera.T_body_cam")
+            check_T_body_cam(_numbers(tb, "camera.T_body_cam", (4, 4)), "camera.T_body_cam")
             if tb is not None
             else np.array(REFERENCE_T_BODYFRD_CAMCV)
         )
@@ -536,7 +537,7 @@ def _checked_table(t: Any, key: str, n_bins: int) -> dict[str, Any]:
         bias.append(_numbers(b["bias"], f"{where}.bias", (N_ERR,)))
         c = _numbers(b["cov"], f"{where}.cov", (N_ERR, N_ERR))
         _numbers(np.diag(c), f"{where}.cov diagonal (variances)", (N_ERR,), lo=0.0)
-        cov.append(c)
+        cov.append(_checked_cov(c, f"{where}.cov"))
         p_out.append(float(_numbers(b["p_outlier"], f"{where}.p_outlier", (), 0.0, 1.0)))
         raw = b["outliers"]
         outliers.append(
@@ -547,7 +548,7 @@ def _checked_table(t: Any, key: str, n_bins: int) -> dict[str, Any]:
     return {
         "p": p,
         "bias": np.asarray(bias),
-        "chol": np.stack([np.linalg.cholesky(_psd(c)) for c in cov]),
+        "chol": np.stack([np.linalg.cholesky(c) for c in cov]),
         "cov": np.stack(cov),
         "p_out": np.asarray(p_out),
         "outliers": outliers,
@@ -572,6 +573,41 @@ def _rho(ar1: Any, water: str) -> np.ndarray:
     return rho
 
 
+#: Largest asymmetry ``|C - C^T|`` a covariance may carry, relative to its largest element
+#: ``max|C|`` (-): JSON round-trips float64 exactly, so a fitted model is symmetric to the bit;
+#: 1e-9 leaves room for a file written by other tools (a few ulps of a 6x6 product), while any
+#: asymmetry a person or a bug puts in (a copied entry, a transposed block) is orders larger.
+COV_SYMMETRY_RTOL = 1e-9
+
+
+def _checked_cov(c: np.ndarray, key: str) -> np.ndarray:
+    """A (6, 6) covariance of a model file, symmetric (to :data:`COV_SYMMETRY_RTOL` of its
+    scale) and positive definite (its Cholesky factorisation exists), as it is: nothing is
+    symmetrised or projected, since a projected non-PD matrix is another error model (one whose
+    off-diagonal entries were wrong gave 0.7 m errors where the file's variances said 5 mm).
+
+    Raises:
+        ValueError: one line naming ``key`` and what is wrong (the worst entry, or the smallest
+            eigenvalue).
+    """
+    scale = float(np.max(np.abs(c)))
+    asym = np.abs(c - c.T)
+    if asym.max() > COV_SYMMETRY_RTOL * scale:
+        i, j = (int(k) for k in np.unravel_index(int(np.argmax(asym)), asym.shape))
+        raise ValueError(
+            f"{key}: not symmetric ({key}[{i}][{j}] = {c[i, j]:.6g} but [{j}][{i}] = {c[j, i]:.6g})"
+        )
+    try:
+        np.linalg.cholesky(c)
+    except np.linalg.LinAlgError:
+        w = np.linalg.eigvalsh(c)
+        raise ValueError(
+            f"{key}: not positive definite (smallest eigenvalue {w[0]:.3g}): "
+            "not the covariance of any error"
+        ) from None
+    return c
+
+
 def _psd(c: np.ndarray) -> np.ndarray:
     w, v = np.linalg.eigh(0.5 * (c + c.T))
     return (v * np.maximum(w, 1e-10)) @ v.T
@@ -587,7 +623,14 @@ def load_error_model(path: str | os.PathLike[str] | None) -> ErrorModel:
         data = json.loads(read_text(p, "error model file"))
     except json.JSONDecodeError as exc:
         raise DockError(f"{p}: malformed JSON ({exc})") from None
-    version = data.get("version") if isinstance(data, dict) else None
+    except ValueError as exc:  # an integer past Python's int-to-str limit (4300 digits)
+        why = "a number too long" if "digits" in str(exc) else " ".join(str(exc).split())[:120]
+        raise DockError(f"{p}: malformed JSON ({why})") from None
+    except RecursionError:
+        raise DockError(f"{p}: malformed JSON (nested too deeply)") from None
+    if not isinstance(data, dict):
+        raise DockError(f"{p}: not an error model (a JSON {type(data).__name__}, not an object)")
+    version = data.get("version")
     if data.get("format") != FORMAT or isinstance(version, bool) or version not in READ_VERSIONS:
         raise DockError(f"{p}: not a version-{'/'.join(map(str, READ_VERSIONS))} '{FORMAT}' file")
     try:

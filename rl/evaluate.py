@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
+import io
+import json
 import math
 import tempfile
 from dataclasses import dataclass, field
@@ -10,14 +14,17 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from uwdock.dockcore.config import to_dict
 from uwdock.dockcore.errors import DockError
-from uwdock.dockcore.io import atomic_write_bytes
+from uwdock.dockcore.io import atomic_write_bytes, atomic_write_json
 from uwdock.dockcore.pool import PoolConfig, worker_pool
+from uwdock.dockcore.procs import workers_ended_on_error
 from uwdock.rl.config import EnvConfig, absolute_inputs
 from uwdock.rl.env import DockingEnv
 from uwdock.rl.episode_media import write_frames_sheet, write_video
 from uwdock.rl.failures import FailureTracker, failure_counts
 from uwdock.rl.observation import POS_SCALE_M, frame_dim
+from uwdock.rl.policy_format import SUMS
 from uwdock.rl.policy_io import load_controller, policy_input_files
 
 
@@ -54,7 +61,7 @@ class SB3Controller:
         if not np.all(np.isfinite(o)):
             raise DockError(
                 "the policy's observation normalisation gives NaN or infinity "
-                "(a broken vecnormalize.pkl)"
+                "(broken normalisation statistics)"
             )
         if self.pre_clip:
             import torch
@@ -63,8 +70,14 @@ class SB3Controller:
                 t = torch.as_tensor(o, dtype=torch.float32)
                 mean = self.model.policy.get_distribution(t).distribution.mean
             return mean.numpy().astype(np.float64)
-        action, _ = self.model.predict(o, deterministic=True)
-        return np.asarray(action, dtype=np.float64)
+        try:
+            action, _ = self.model.predict(o, deterministic=True)
+        except ValueError:  # torch's distribution refuses a NaN mean
+            action = np.full((o.shape[0], 6), np.nan)
+        action = np.asarray(action, dtype=np.float64)
+        if not np.all(np.isfinite(action)):
+            raise DockError("the policy outputs NaN or infinity (its weights overflow)")
+        return action
 
 
 @dataclass
@@ -280,6 +293,87 @@ def _one_thread() -> None:
     torch.set_num_threads(1)
 
 
+def _policy_inputs(policy_spec: str) -> list[str]:
+    """The files loading ``policy_spec`` reads (:func:`policy_input_files`), with the policy
+    folder's checksum file, which the loader checks them against."""
+    files = [str(f) for f in policy_input_files(policy_spec)]
+    if files:
+        sums = Path(files[0]).parent / SUMS
+        if sums.is_file():
+            files.append(str(sums))
+    return files
+
+
+#: The folder (in an evaluation's output folder) that keeps its finished episodes until the
+#: report is written: a rerun after a failure or an interrupt goes on from them.
+PARTIAL_EVAL_DIR = ".partial-episodes"
+
+
+class EpisodeStore:
+    """Finished episodes of an evaluation, kept on disk as they come (``ep<k>.json``: the row;
+    ``ep<k>.npz``: the trace, plain arrays), under a key naming what they are episodes of (the
+    policy's and the env's input files by content, the env config, the seed): a rerun of the
+    same evaluation reuses them, any other starts afresh."""
+
+    def __init__(self, folder: Path, key: str) -> None:
+        self.folder, self.key = folder, key
+        try:
+            same = json.loads((folder / "key.json").read_text(encoding="utf-8")).get("key") == key
+        except (OSError, ValueError, AttributeError):
+            same = False
+        if not same and folder.is_dir():  # another evaluation's episodes: not these
+            for f in folder.iterdir():
+                if f.is_file():
+                    f.unlink()
+
+    def load(self, n_episodes: int) -> dict[int, tuple[dict[str, Any], EpisodeTrace]]:
+        """The episodes below ``n_episodes`` kept whole (a damaged one is run again)."""
+        out = {}
+        for k in range(n_episodes):
+            row_file, trace_file = self.folder / f"ep{k}.json", self.folder / f"ep{k}.npz"
+            if not row_file.is_file() or not trace_file.is_file():
+                continue
+            try:
+                row = json.loads(row_file.read_text(encoding="utf-8"))
+                with np.load(trace_file, allow_pickle=False) as arrays:
+                    trace = EpisodeTrace(**{
+                        f.name: (arrays[f.name].tolist() if arrays[f.name].ndim == 1
+                                 else list(arrays[f.name]))
+                        for f in dataclasses.fields(EpisodeTrace)
+                    })  # fmt: skip
+            except (OSError, ValueError, KeyError, TypeError):
+                continue
+            if isinstance(row, dict) and row.get("episode") == k:
+                out[k] = (row, trace)
+        return out
+
+    def save(self, k: int, row: dict[str, Any], trace: EpisodeTrace) -> None:
+        """Episode ``k`` kept (its trace first: the row marks it whole)."""
+        if not (self.folder / "key.json").is_file():
+            self.folder.mkdir(exist_ok=True)
+            atomic_write_json(self.folder / "key.json", {"key": self.key})
+        arrays = {}
+        for f in dataclasses.fields(EpisodeTrace):
+            value = getattr(trace, f.name)
+            arrays[f.name] = np.asarray(value) if len(value) else np.zeros(0)
+        buf = io.BytesIO()
+        np.savez(buf, **arrays)
+        atomic_write_bytes(self.folder / f"ep{k}.npz", buf.getvalue())
+        atomic_write_json(self.folder / f"ep{k}.json", row)
+
+
+def episodes_key(policy_spec: str, env_cfg: EnvConfig, seed: int, record: bool) -> str:
+    """What an evaluation's episodes depend on, as a digest (:class:`EpisodeStore`)."""
+    _, env_files = absolute_inputs(env_cfg)
+    files = _policy_inputs(policy_spec) if policy_spec != "pid" else []
+    h = hashlib.sha256()
+    h.update(json.dumps([policy_spec == "pid", to_dict(env_cfg), seed, record], default=str,
+                        sort_keys=True).encode())  # fmt: skip
+    for f in sorted(set(files + env_files)):
+        h.update(Path(f).name.encode() + b"\0" + Path(f).read_bytes())
+    return h.hexdigest()
+
+
 def run_episodes_parallel(
     policy_spec: str,
     env_cfg: EnvConfig,
@@ -292,10 +386,13 @@ def run_episodes_parallel(
     progress=None,
     backend: str = "local",
     ray_address: str | None = None,
+    store: EpisodeStore | None = None,
 ) -> EvalResult:
     """:func:`run_episodes` over ``workers`` processes or Ray actors (each loads the policy and
     builds its own simulator once), the episodes handed out one at a time to whichever worker is
-    free (:mod:`dockcore.pool`); the result is the same as in one process."""
+    free (:mod:`dockcore.pool`); the result is the same as in one process. With a ``store``,
+    the episodes it holds are not run again and each finished one is kept there as it comes
+    (so a failed or interrupted evaluation goes on where it stopped)."""
     if backend == "local" and (workers <= 1 or n_episodes <= 1):
         ctrl, vecnorm, _ = load_controller(policy_spec, env_cfg)
         return run_episodes(
@@ -312,27 +409,36 @@ def run_episodes_parallel(
     if backend == "local":
         workers = min(workers, n_episodes)
         pool_cfg = PoolConfig(backend, workers, ray_address)
-    else:  # Ray workers may start in another folder or on another node: absolute paths,
-        # checked on every node before work starts there
+    else:  # Ray workers may start in another folder or on another node: the input files
+        # by absolute path, sent to them as content (a node needs none of this machine's)
         if policy_spec != "pid":
             policy_spec = str(Path(policy_spec).expanduser().resolve())
         env_cfg, inputs = absolute_inputs(env_cfg)
-        inputs += [str(f) for f in policy_input_files(policy_spec)]
+        inputs += _policy_inputs(policy_spec)
         pool_cfg = PoolConfig(backend, workers, ray_address, tuple(inputs))
     args = (policy_spec, env_cfg, seed, record, tuple(video_episodes), video_dir is not None)
-    results: dict[int, tuple[dict[str, Any], EpisodeTrace]] = {}
-    with worker_pool(pool_cfg, EpisodeWorker, args) as pool:
-        for k, (row, trace, files) in pool.imap_unordered("episode", range(n_episodes)):
-            for name, data in files.items():
-                atomic_write_bytes(Path(str(video_dir)) / name, data)
-            results[k] = (row, trace)
-            if progress is not None:
-                progress(len(results), n_episodes)
-        ray_nodes = (
-            {"tasks_by_node": dict(pool.tasks_by_node), "workers_replaced": pool.replaced}
-            if backend == "ray"
-            else {}
-        )
+    results = store.load(n_episodes) if store is not None else {}
+    todo = [k for k in range(n_episodes) if k not in results]
+    if progress is not None and results:
+        progress(len(results), n_episodes)
+    ray_nodes: dict[str, Any] = {}
+    if todo:
+        pool_cfg = dataclasses.replace(pool_cfg, workers=min(pool_cfg.workers, len(todo)))
+        with (
+            worker_pool(pool_cfg, EpisodeWorker, args) as pool,
+            workers_ended_on_error(pool),  # an interrupt stops the workers now, mid-episode
+        ):
+            for k, (row, trace, files) in pool.imap_unordered("episode", todo):
+                for name, data in files.items():
+                    atomic_write_bytes(Path(str(video_dir)) / name, data)
+                results[k] = (row, trace)
+                if store is not None:
+                    store.save(k, row, trace)
+                if progress is not None:
+                    progress(len(results), n_episodes)
+            if backend == "ray":
+                ray_nodes = {"tasks_by_node": dict(pool.tasks_by_node),
+                             "workers_replaced": pool.replaced}  # fmt: skip
     rows = [results[k][0] for k in range(n_episodes)]
     traces = [results[k][1] for k in range(n_episodes)]
     return EvalResult(summarise(rows), rows, traces, ray_nodes)

@@ -18,7 +18,7 @@ import numpy as np
 
 from uwdock.dockcore.config import to_dict
 from uwdock.dockcore.errors import DockError
-from uwdock.dockcore.io import atomic_write_files
+from uwdock.dockcore.io import atomic_write_files, check_output_path
 from uwdock.rl.env_settings import policy_training_env
 from uwdock.rl.policy_io import load_policy, policy_env_settings
 
@@ -36,6 +36,10 @@ def export_onnx(policy_path: str | os.PathLike[str], out: str | os.PathLike[str]
     pair as it was."""
     import torch
 
+    out = Path(out)
+    if out.suffix == ".json":
+        raise DockError(f"--out {out}: the ONNX file's .json sidecar would be the file itself")
+    check_output_path(out, "--out", [out.with_suffix(".json")])  # before the policy loads
     model, vecnorm = load_policy(policy_path)
     actor = _actor_module(model, vecnorm)
     dim = model.observation_space.shape[0]
@@ -53,7 +57,6 @@ def export_onnx(policy_path: str | os.PathLike[str], out: str | os.PathLike[str]
             opset_version=17,
             dynamo=False,
         )
-    out = Path(out)
     trained = policy_training_env(str(policy_path))
     sidecar = {
         "obs_dim": int(dim),

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 import torch
-from stable_baselines3 import SAC
+from stable_baselines3.sac.policies import SACPolicy
 
 __all__ = ["ExportActor"]
 
@@ -25,7 +25,8 @@ class ExportActor(torch.nn.Module):
     leading ``actor_obs_dim`` values of the normalised observation.
 
     Args:
-        model: the SB3 model (PPO or SAC); its networks are shared, not copied.
+        model: the SB3 model or loaded policy (PPO or SAC; :mod:`rl.policy_format`); its
+            networks are shared, not copied.
         vecnorm: its ``VecNormalize`` (observation statistics), or None (no normalisation).
 
     Input ``obs``: ``(batch, obs_dim)`` float32; output: ``(batch, 6)`` in [-1, 1].
@@ -44,8 +45,9 @@ class ExportActor(torch.nn.Module):
         self.register_buffer("mean", mean)
         self.register_buffer("std", std)
         self.clip = clip
-        if isinstance(model, SAC):
-            self.net = torch.nn.Sequential(model.actor.latent_pi, model.actor.mu)
+        if isinstance(model.policy, SACPolicy):
+            actor = model.policy.actor
+            self.net = torch.nn.Sequential(actor.latent_pi, actor.mu)
             self.squash = True
         else:
             pol = model.policy

@@ -1,6 +1,7 @@
-"""Policies on disk: loading a ``policy.zip`` (PPO/SAC, with its observation normalisation) or an
-exported ``.onnx``, the interface of the env a policy was trained in, and the controller that
-``rl eval``, the deployment runner and training's evaluations drive.
+"""Policies on disk: loading a policy folder (PPO/SAC with its observation normalisation, as
+data: :mod:`rl.policy_format`) or an exported ``.onnx``, the interface of the env a policy was
+trained in, and the controller that ``rl eval``, the deployment runner and training's
+evaluations drive.
 
 The bottom of ``rl`` above the env: evaluation, the report writer, export and training import
 it; it imports none of them.
@@ -10,8 +11,6 @@ from __future__ import annotations
 
 import json
 import os
-import pickle
-import warnings
 from pathlib import Path
 from typing import Any
 
@@ -21,9 +20,9 @@ from uwdock.dockcore.config import read_toml
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import check_regular_file
 from uwdock.rl.baselines import PIDController
-from uwdock.rl.checkpoint import require_finite_policy
 from uwdock.rl.config import EnvConfig
 from uwdock.rl.observation import observation_size
+from uwdock.rl.policy_format import MODEL, WEIGHTS, legacy_refusal, read_policy
 
 #: EnvConfig fields that define a policy's interface (observation layout, action scaling).
 POLICY_INTERFACE_FIELDS = (
@@ -39,10 +38,49 @@ POLICY_INTERFACE_FIELDS = (
 )
 
 
+#: the files a training env names (key paths in ``[train.env]``)
+_FILE_KEYS = (
+    ("error_model_path",),
+    ("world", "marker_set_path"),
+    ("world", "camera_file"),
+    ("world", "water_preset"),
+)
+
+
+def _beside(value: str, folder: Path) -> str:
+    """A relative file name of a policy's config, resolved where the policy is: in its folder,
+    else in the nearest folder above it that holds it (a run inside a checkout names files from
+    the checkout's root); as given (relative to the current folder) when none does."""
+    p = Path(value)
+    if p.is_absolute() or (len(p.parts) == 1 and p.suffix == ""):  # a preset's name
+        return value
+    for base in (folder, *folder.parents):
+        if (base / p).is_file():
+            return str(base / p)
+    return value
+
+
+def _files_beside(env: dict[str, Any], folder: Path) -> dict[str, Any]:
+    """``env`` with the files it names resolved against ``folder`` (:func:`_beside`)."""
+    out = dict(env)
+    for keys in _FILE_KEYS:
+        table = out
+        for k in keys[:-1]:
+            if not isinstance(table.get(k), dict):
+                break
+            table[k] = table = dict(table[k])
+        else:
+            value = table.get(keys[-1])
+            if isinstance(value, str) and value:
+                table[keys[-1]] = _beside(value, folder.absolute())
+    return out
+
+
 def policy_train_env(policy: str) -> dict[str, Any]:
     """The ``[train.env]`` table of the run a policy comes from: the ``config.toml`` of its run
-    folder (beside ``policy.zip`` or one level up, as for ``best/``) or, for an exported
-    ``.onnx``, the ``.json`` written beside it; {} if none."""
+    folder (the policy folder or one level up, as for ``best/``) or, for an exported ``.onnx``,
+    the ``.json`` written beside it; {} if none. The files it names are resolved where the
+    policy is (:func:`_beside`), so a policy folder works from any current folder."""
     if policy == "pid":
         return {}
     p = Path(policy)
@@ -53,12 +91,12 @@ def policy_train_env(policy: str) -> dict[str, Any]:
         except (OSError, ValueError) as exc:
             raise DockError(f"cannot read {meta}: {exc}") from None
         env = data.get("env", {}) if isinstance(data, dict) else {}
-        return env if isinstance(env, dict) else {}
+        return _files_beside(env, p.parent) if isinstance(env, dict) else {}
     train, cand = policy_train_settings(p)
     env = train.get("env", {})
     if not isinstance(env, dict):
         raise DockError(f"{cand}: [train.env] is not a table")
-    return env
+    return _files_beside(env, cand.parent) if cand is not None else env
 
 
 def policy_train_settings(policy: str | os.PathLike[str]) -> tuple[dict[str, Any], Path | None]:
@@ -91,25 +129,23 @@ def policy_error_model(policy: str) -> str | None:
 
 def policy_input_files(policy: str) -> list[Path]:
     """The files :func:`load_controller` reads for ``policy`` (absolute): the ``.onnx`` and its
-    ``.json`` sidecar, or the ``policy.zip``, its ``vecnormalize.pkl`` and run config where
-    they exist; none for 'pid'."""
+    ``.json`` sidecar, or a policy folder's ``model.json``, ``weights.npz`` and run config
+    where it has one; none for 'pid'."""
     if policy == "pid":
         return []
     p = Path(policy).expanduser().resolve()
     if p.suffix == ".onnx":
         return [f for f in (p, p.with_suffix(".json")) if f.is_file()] or [p]
-    zip_path = p / "policy.zip" if p.is_dir() else p
-    files = [zip_path]
-    if zip_path.with_name("vecnormalize.pkl").is_file():
-        files.append(zip_path.with_name("vecnormalize.pkl"))
-    _, run_config = policy_train_settings(zip_path)
+    folder = p if p.is_dir() else p.parent
+    files = [folder / "model.json", folder / "weights.npz"]
+    _, run_config = policy_train_settings(folder)
     if run_config is not None:
         files.append(run_config.resolve())
     return files
 
 
 def load_controller(policy: str, env_cfg: EnvConfig):
-    """'pid', an .onnx file, or a policy.zip / run folder -> (controller, vecnorm, label)."""
+    """'pid', an .onnx file, or a policy folder -> (controller, vecnorm, label)."""
     if policy == "pid":
         return PIDController.for_env(env_cfg), None, "pid"
     path = Path(policy)
@@ -125,54 +161,34 @@ def load_controller(policy: str, env_cfg: EnvConfig):
 
 
 def load_policy(path: str | os.PathLike[str]):
-    """Load ``policy.zip`` (PPO or SAC) and, if beside it, ``vecnormalize.pkl``.
+    """Load a policy folder (``model.json`` + ``weights.npz``, :mod:`rl.policy_format`) and its
+    observation normalisation, without running any code from the folder: ``(model,
+    vecnorm)``, ``model`` a :class:`rl.policy_format.LoadedPolicy`, ``vecnorm`` a
+    ``VecNormalize`` without env or None. ``path`` may name the folder, its ``model.json``, or a
+    ``policy.zip`` in it.
 
     Raises:
-        DockError: one line for a missing, truncated or garbage policy or normalisation file,
-            or a policy whose weights or statistics hold NaN or infinity.
+        DockError: one line for a missing, damaged or non-finite policy, for normalisation that
+            contradicts the run config, and for a folder in the pickled format (refused: it can
+            run code when loaded; ``rl convert-policy --trust-pickle`` converts it).
     """
-    from stable_baselines3 import PPO, SAC
-
     p = Path(path)
-    if p.is_dir():
-        p = p / "policy.zip"
-    check_regular_file(p, "policy file")
-    model, reasons = None, []
-    for cls in (PPO, SAC):
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                model = cls.load(str(p), device="cpu")
-            break
-        except Exception as exc:  # SB3 raises anything from zip, pickle and torch errors
-            reasons.append(" ".join(str(exc).split())[:160] or type(exc).__name__)
-    if model is None:
-        raise DockError(f"cannot read policy {p}: not a PPO or SAC model ({reasons[0]})")
-    require_finite_policy(model, f"policy {p}")
-    vecnorm = None
-    vn = p.with_name("vecnormalize.pkl")
-    train, run_config = policy_train_settings(p)
+    folder = p if p.is_dir() else p.parent
+    if not p.exists():
+        raise DockError(f"policy file not found: {p}")
+    if not (folder / MODEL).exists():
+        legacy = ("policy.zip", "vecnormalize.pkl")
+        if p.suffix in (".zip", ".pkl") or any((folder / n).exists() for n in legacy):
+            raise legacy_refusal(p)
+        raise DockError(f"{folder} holds no policy ({MODEL} and {WEIGHTS})")
+    model, vecnorm = read_policy(folder)
+    train, run_config = policy_train_settings(folder)
     normalised = train.get("normalize_obs") is True
-    if normalised and not vn.exists():
+    if normalised and (vecnorm is None or not vecnorm.norm_obs):
         raise DockError(
-            f"policy {p}: its run config {run_config} says normalize_obs = true but "
-            f"{vn.name} is missing beside it (the policy reads normalised observations)"
+            f"policy {folder}: its run config {run_config} says normalize_obs = true but its "
+            f"{MODEL} has no observation normalisation (the policy reads normalised observations)"
         )
-    if vn.exists():
-        try:
-            with vn.open("rb") as fh:
-                vecnorm = pickle.load(fh)
-            stats = (vecnorm.obs_rms.mean, vecnorm.obs_rms.var)
-        except Exception as exc:
-            raise DockError(f"cannot read normalisation {vn}: {type(exc).__name__}") from None
-        if not all(np.all(np.isfinite(a)) for a in stats):
-            raise DockError(f"normalisation {vn} holds NaN or infinity")
-        if normalised and not getattr(vecnorm, "norm_obs", False):
-            raise DockError(
-                f"normalisation {vn} does not normalise observations, but the run config "
-                f"{run_config} says normalize_obs = true"
-            )
-        vecnorm.training = False
     return model, vecnorm
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import shutil
 import time
 from pathlib import Path
 from typing import Any
@@ -12,6 +13,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from uwdock.dockcore.cli import interrupt_name
 from uwdock.dockcore.config import replace, to_dict
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_path, atomic_write_json, atomic_write_text
@@ -20,7 +22,13 @@ from uwdock.dockcore.pool import PoolConfig, preflight
 from uwdock.dockcore.provenance import provenance
 from uwdock.rl.config import EnvConfig, check_env_files
 from uwdock.rl.env import SOURCE_CLASSES
-from uwdock.rl.evaluate import EpisodeTrace, run_episodes_parallel
+from uwdock.rl.evaluate import (
+    PARTIAL_EVAL_DIR,
+    EpisodeStore,
+    EpisodeTrace,
+    episodes_key,
+    run_episodes_parallel,
+)
 from uwdock.rl.policy_io import load_controller
 from uwdock.sim.thrusters import ThrusterRandomisation
 from uwdock.sim.vehicle import VehicleRandomisation
@@ -243,16 +251,36 @@ def evaluate_to_folder(
     check_env_files(env_cfg)
     _, _, label = load_controller(policy, env_cfg)  # fail fast on a bad policy
     with claim_output_dir(out_dir, "rl eval") as out, tracked_outputs(out) as files:
-        summary = _evaluate_into(
-            out, policy, label, env_cfg, episodes, seed, video_episodes, stress,
-            stress_episodes, pool, env_settings,
-        )  # fmt: skip
+        try:
+            summary = _evaluate_into(
+                out, policy, label, env_cfg, episodes, seed, video_episodes, stress,
+                stress_episodes, pool, env_settings,
+            )  # fmt: skip
+        except KeyboardInterrupt as exc:
+            _mark_interrupted(out / "summary.json", exc, episodes)
+            raise
         # what this run wrote: a rerun with fewer films or episodes removes the rest
         names = ["episodes.csv", "trajectories_top.png", "summary.json"]
         names += [f"traces_ep{k}.png" for k in sorted(set(video_episodes) | {0})]
         names += [f"camera_ep{k}{s}" for k in video_episodes for s in (".mp4", "_frames.jpg")]
         files.add(*(out / n for n in names if (out / n).is_file()))
         return summary
+
+
+def _mark_interrupted(path: Path, exc: BaseException, episodes: int) -> None:
+    """``summary.json`` of an evaluation stopped by SIGINT or SIGTERM: says so, in place of a
+    previous run's report (which would otherwise sit beside this run's films and tables as if
+    it were theirs). The episodes it finished are kept for the rerun (``PARTIAL_EVAL_DIR``)."""
+    record = {
+        "complete": False,
+        "interrupted": interrupt_name(exc),
+        "episodes": episodes,
+        "resume": "run the same command again: it goes on from the episodes it finished",
+    }
+    try:
+        atomic_write_json(path, record)
+    except OSError:  # a full disk: the run still ends as interrupted, without the mark
+        pass
 
 
 def _evaluate_into(
@@ -284,6 +312,8 @@ def _evaluate_into(
             progress=lambda k, n: bar.update(k - bar.n),
             backend=pool.backend,
             ray_address=pool.ray_address,
+            # finished episodes kept until the report is written: a rerun goes on from them
+            store=EpisodeStore(out / PARTIAL_EVAL_DIR, episodes_key(policy, env_cfg, seed, True)),
         )
     finally:
         bar.close()
@@ -319,4 +349,5 @@ def _evaluate_into(
     atomic_write_json(
         out / "summary.json", {**summary, "config": to_dict(env_cfg), "provenance": record}
     )
+    shutil.rmtree(out / PARTIAL_EVAL_DIR, ignore_errors=True)  # the report holds them now
     return summary

@@ -23,18 +23,18 @@ from typing import Any
 
 import numpy as np
 
-from uwdock.dockcore.io import atomic_write_bytes, atomic_write_text
+from uwdock.dockcore.io import atomic_write_files, atomic_write_text
 from uwdock.rl.checkpoint import (
     Unit,
-    model_bytes,
-    pickle_bytes,
-    replay_buffer_bytes,
+    load_model,
     restore_rng,
     rng_state,
+    training_files,
     write_unit,
 )
 from uwdock.rl.curriculum import curriculum_level, curriculum_z_end, near_start_share
 from uwdock.rl.evaluate import run_episodes, summarise
+from uwdock.rl.policy_format import LEGACY, MODEL, WEIGHTS, policy_files
 from uwdock.rl.report import plot_eval_history
 from uwdock.rl.workers import EvalJob
 
@@ -104,6 +104,8 @@ class TrainingSession:
         self.schedule = dict(unit.state["schedule"])
         self.history = list(unit.state["eval_history"])
         self.best_files = {k[5:]: v for k, v in unit.files.items() if k.startswith("best/")}
+        if LEGACY[0] in self.best_files:  # a checkpoint of an older version: best/ as data
+            self.best_files = legacy_best_files(type(self.model), self.best_files)
         self.last_checkpoint = unit.step
         self._write_history()
         self._write_best()
@@ -166,11 +168,7 @@ class TrainingSession:
     def checkpoint(self, step: int) -> Path:
         """Reset the envs, then write the unit of ``step``."""
         self.reset_envs(step)
-        files = {"model.zip": model_bytes(self.model)}
-        if self.vecnorm is not None:
-            files["vecnormalize.pkl"] = pickle_bytes(self.vecnorm)
-        if hasattr(self.model, "replay_buffer") and self.model.replay_buffer is not None:
-            files["replay_buffer.pkl"] = replay_buffer_bytes(self.model)
+        files = training_files(self.model, self.vecnorm)
         files.update({f"best/{k}": v for k, v in self.best_files.items()})
         state = {
             "step": step,
@@ -196,9 +194,7 @@ class TrainingSession:
         record = {"step": step, **summary}
         if best is None or score > best:
             self.schedule["best_score"], self.schedule["best_step"] = score, step
-            self.best_files = {"policy.zip": model_bytes(self.model)}
-            if self.vecnorm is not None:
-                self.best_files["vecnormalize.pkl"] = pickle_bytes(self.vecnorm)
+            self.best_files = policy_files(self.model, self.vecnorm)
             self._write_best()
             record["best"] = True
         self.history.append(record)
@@ -230,9 +226,7 @@ class TrainingSession:
     def _eval_job(self, n: int, n_workers: int) -> EvalJob:
         """The evaluation of the current policy, for ``n_workers`` workers to share."""
         return EvalJob(
-            type(self.model),
-            model_bytes(self.model),
-            pickle_bytes(self.vecnorm) if self.vecnorm is not None else None,
+            policy_files(self.model, self.vecnorm),
             self.cfg.env,
             n,
             EVAL_SEED,
@@ -250,15 +244,23 @@ class TrainingSession:
 
     def _write_best(self) -> None:
         best = self.run / "best"
-        for name, data in self.best_files.items():
-            atomic_write_bytes(best / name, data)
-        for stale in ("policy.zip", "vecnormalize.pkl"):
+        atomic_write_files({best / name: data for name, data in self.best_files.items()})
+        for stale in (*LEGACY, MODEL, WEIGHTS):
             if best.is_dir() and stale not in self.best_files:
                 (best / stale).unlink(missing_ok=True)
 
 
+def legacy_best_files(algo_cls: Any, files: dict[str, bytes]) -> dict[str, bytes]:
+    """``best/`` of a version-1 checkpoint (``policy.zip`` and ``vecnormalize.pkl``) in the
+    policy format. Unpickles: only for a run folder the user trusts (``--trust-pickle``)."""
+    model = load_model(algo_cls, files[LEGACY[0]])
+    vecnorm = pickle.loads(files[LEGACY[1]]) if LEGACY[1] in files else None
+    return policy_files(model, vecnorm)
+
+
 def load_vecnormalize(data: bytes, venv):
-    """A pickled ``VecNormalize`` put back on ``venv``."""
+    """A version-1 checkpoint's pickled ``VecNormalize`` put back on ``venv``. Unpickles: only
+    for a run folder the user trusts (``--trust-pickle``)."""
     vecnorm = pickle.loads(data)
     vecnorm.set_venv(venv)
     return vecnorm

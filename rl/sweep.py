@@ -350,7 +350,7 @@ def run_sweep(
     ray, tune = _import_ray_tune()
     # the address answers and Ray starts or joins before anything is written: a bad address
     # is one line and leaves no sweep folder behind
-    preflight(PoolConfig("ray", 1, ray_address))
+    preflight(PoolConfig("ray", 1, ray_address), start=False)  # started by _start_cluster
     # Ctrl-C ends the command as any other (one line, exit 130; rerunning resumes every trial
     # from its own run folder), not through Tune's graceful stop and its Tuner.restore advice
     os.environ["TUNE_DISABLE_SIGINT_HANDLER"] = "1"

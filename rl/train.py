@@ -8,9 +8,9 @@ Run folder layout::
                                      best/, schedule, evaluation state, RNG states, manifest
       tb/                            TensorBoard scalars (charts/, losses/, eval/)
       eval_history.jsonl, .png       periodic deterministic evaluation (success rates)
-      best/                          the best evaluated policy (policy.zip, vecnormalize.pkl)
+      best/                          the best evaluated policy (model.json, weights.npz)
       imitation.json                 the DAgger warm start's history (when there is one)
-      policy.zip, vecnormalize.pkl   the final policy; DONE is written last
+      model.json, weights.npz        the final policy (rl.policy_format); DONE is written last
       resume_log.jsonl               one line per resume (step, command, commit, config change)
 
 ``--resume`` continues from the newest complete checkpoint (falling back past damaged ones)
@@ -32,7 +32,7 @@ from typing import Annotated, Any, Literal
 from uwdock.dockcore.config import changed_keys, dumps_toml, load_config, to_dict, validated
 from uwdock.dockcore.domains import Count, Fraction, Interval, Seed, check, split_annotated
 from uwdock.dockcore.errors import DockError
-from uwdock.dockcore.io import atomic_write_bytes, atomic_write_json, atomic_write_text
+from uwdock.dockcore.io import atomic_write_json, atomic_write_text
 from uwdock.dockcore.outdir import claim_output_dir
 from uwdock.dockcore.pool import PoolConfig, preflight
 from uwdock.dockcore.provenance import git_commit, write_provenance
@@ -43,15 +43,17 @@ from uwdock.rl.checkpoint import (
     latest_unit,
     list_units,
     load_model,
-    model_bytes,
-    pickle_bytes,
+    normaliser_for,
+    read_training,
     require_finite_policy,
+    restore_training,
 )
 from uwdock.rl.config import EnvConfig, check_env_files
 from uwdock.rl.curriculum import CurriculumConfig
 from uwdock.rl.env_settings import policy_training_env
 from uwdock.rl.imitation import ImitationConfig, warm_start
 from uwdock.rl.observation import actor_observation_size, observation_size
+from uwdock.rl.policy_format import write_policy
 from uwdock.rl.policy_io import check_obs_dim, load_policy
 from uwdock.rl.ray_envs import RayEnvWorkers
 from uwdock.rl.session import TrainingSession, load_vecnormalize
@@ -311,6 +313,7 @@ def train(
     ray_address: str | None = None,
     envs_per_worker: int = 1,
     batch_workers: int = 1,
+    trust_pickle: bool = False,
 ) -> Path:
     """Train (or resume) into ``run_dir``; returns the final policy path.
 
@@ -336,6 +339,8 @@ def train(
             (:mod:`rl.vec_envs`; the same rollouts). Not part of the run's config either.
         batch_workers: with ``simulator = "batched"``, the processes the batch is split over
             (1: the trainer's own; the same rollouts). Not part of the run's config.
+        trust_pickle: resume from checkpoints of format version 1 (SB3's zip and pickles,
+            which run any code they hold): only for a run folder that is the user's own.
 
     Raises:
         DockError: a bad config, a run folder that does not fit the request, a damaged or
@@ -349,8 +354,8 @@ def train(
         _check_run_folder(run, resume)
         changed = _check_config(cfg, run, allow_config_change) if resume else []
         if resume and _is_complete(run, cfg, note):
-            return run / "policy.zip"
-        unit = _prepare_run(cfg, run, resume, changed, note)
+            return run
+        unit = _prepare_run(cfg, run, resume, changed, note, trust_pickle)
         return _run(cfg, run, unit, init, progress, note, pool, envs_per_worker, batch_workers)
 
 
@@ -414,7 +419,8 @@ def _check_run_folder(run: Path, resume: bool) -> None:
     if resume and has_legacy_checkpoints(ckpts) and not list_units(ckpts):
         raise DockError(
             f"{run} holds checkpoints of an older version (step_N.zip) that cannot be "
-            "resumed exactly: start a new run (--init-policy RUN/policy.zip keeps its weights)"
+            "resumed exactly: start a new run (--init-policy RUN keeps its weights, after `rl "
+            "convert-policy RUN --trust-pickle`)"
         )
 
 
@@ -430,12 +436,25 @@ def _is_complete(run: Path, cfg: TrainConfig, note: Callable[[str], None]) -> bo
 
 
 def _prepare_run(
-    cfg: TrainConfig, run: Path, resume: bool, changed: list[str], note: Callable[[str], None]
+    cfg: TrainConfig,
+    run: Path,
+    resume: bool,
+    changed: list[str],
+    note: Callable[[str], None],
+    trust_pickle: bool = False,
 ) -> Unit | None:
     """The checkpoint unit to start from (None: the beginning), with the resume logged or the
     provenance written, and ``DONE`` removed."""
     ckpts = run / "checkpoints"
     unit = latest_unit(ckpts, note) if resume else None
+    if unit is not None and "model.zip" in unit.files:
+        if not trust_pickle:
+            raise DockError(
+                f"checkpoint {unit.path.name} of {run} is of an older version (SB3's model.zip "
+                "and pickles, which can run code when loaded): resume with --trust-pickle if "
+                "the run folder is your own"
+            )
+        note(f"--trust-pickle: reading the pickles of checkpoint {unit.path.name}")
     if resume and unit is None:
         note(f"no complete checkpoint in {run}: starting the run again from the beginning")
     if resume:
@@ -474,18 +493,20 @@ def _run(
     batch_workers: int = 1,
 ) -> Path:
     """Train ``run`` from ``unit`` (None: the beginning) in env workers of ``pool``; returns
-    the final policy path (``DONE`` written after it)."""
+    the run folder (its final policy, then ``DONE``, written)."""
     import torch
-    from stable_baselines3 import PPO, SAC
 
     torch.set_num_threads(1)
-    algo_cls = PPO if cfg.algo == "ppo" else SAC
+    from uwdock.rl.callbacks import drop_tensorboard_events_after  # SB3 at module level
+
+    # a resumed run logs again from its checkpoint: what the killed run logged later goes
+    drop_tensorboard_events_after(run / "tb", unit.step if unit is not None else 0)
     workers = _env_workers(cfg, pool, per_worker, batch_workers)
     session = None
     try:
         venv = workers.venv
         if unit is not None:
-            model, vecnorm = _restored_model(algo_cls, run, unit, venv)
+            model, vecnorm = _restored_model(cfg, run, unit, venv)
             session = TrainingSession(cfg, run, model, vecnorm, note)
             session.restore(unit)
         else:
@@ -521,15 +542,27 @@ def _env_workers(cfg: TrainConfig, pool: PoolConfig, per_worker: int, batch_work
     return EnvWorkers(cfg.env, cfg.n_envs, cfg.seed, per_worker)
 
 
-def _restored_model(algo_cls: Any, run: Path, unit: Unit, venv) -> tuple[Any, Any]:
-    """The model and normalisation (None without one) of checkpoint ``unit`` on ``venv``."""
+def _restored_model(cfg: TrainConfig, run: Path, unit: Unit, venv) -> tuple[Any, Any]:
+    """The model and normalisation (None without one) of checkpoint ``unit`` on ``venv``: the
+    network and hyperparameters built from ``cfg``, the training state from the unit
+    (:mod:`rl.checkpoint`; a version-1 unit through SB3's loader, trusted by the caller)."""
+    from stable_baselines3 import PPO, SAC
+
+    if "model.zip" in unit.files:  # version 1
+        vecnorm = None
+        if "vecnormalize.pkl" in unit.files:
+            venv = vecnorm = load_vecnormalize(unit.files["vecnormalize.pkl"], venv)
+        model = load_model(PPO if cfg.algo == "ppo" else SAC, unit.files["model.zip"], venv)
+        model.tensorboard_log = str(run / "tb")
+        if "replay_buffer.pkl" in unit.files:
+            model.load_replay_buffer(io.BytesIO(unit.files["replay_buffer.pkl"]))
+        return model, vecnorm
+    meta, arrays = read_training(unit.files)
     vecnorm = None
-    if "vecnormalize.pkl" in unit.files:
-        venv = vecnorm = load_vecnormalize(unit.files["vecnormalize.pkl"], venv)
-    model = load_model(algo_cls, unit.files["model.zip"], venv)
-    model.tensorboard_log = str(run / "tb")
-    if "replay_buffer.pkl" in unit.files:
-        model.load_replay_buffer(io.BytesIO(unit.files["replay_buffer.pkl"]))
+    if meta["normalization"] is not None:
+        venv = vecnorm = normaliser_for(venv, meta["normalization"], arrays)
+    model = build_model(cfg, venv, run / "tb")
+    restore_training(model, meta, arrays)
     return model, vecnorm
 
 
@@ -599,11 +632,10 @@ def _learn(model, session: TrainingSession, total_steps: int, fresh: bool, progr
 
 
 def _write_final(run: Path, model, vecnorm, session: TrainingSession) -> Path:
-    """The last checkpoint, then ``policy.zip``, ``vecnormalize.pkl`` and ``DONE`` (last)."""
+    """The last checkpoint, then the final policy (``model.json`` + ``weights.npz``,
+    :mod:`rl.policy_format`) and ``DONE`` (last); the run folder."""
     session.boundary(final=True)
     require_finite_policy(model, "the trained policy")
-    final = atomic_write_bytes(run / "policy.zip", model_bytes(model))
-    if vecnorm is not None:
-        atomic_write_bytes(run / "vecnormalize.pkl", pickle_bytes(vecnorm))
+    write_policy(run, model, vecnorm)
     atomic_write_json(run / "DONE", {"steps": int(model.num_timesteps)})
-    return final
+    return run

@@ -19,7 +19,6 @@ processes) and :mod:`rl.ray_envs` (Ray actors). What a worker adds to SB3's own:
 from __future__ import annotations
 
 import os
-import pickle
 import signal
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -29,10 +28,11 @@ import gymnasium as gym
 
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.procs import die_with_parent
-from uwdock.rl.checkpoint import global_rng_kept, load_model
+from uwdock.rl.checkpoint import global_rng_kept
 from uwdock.rl.config import EnvConfig
 from uwdock.rl.env import DockingEnv
 from uwdock.rl.evaluate import SB3Controller, run_episodes
+from uwdock.rl.policy_format import policy_from_files
 
 
 class WorkerError(DockError):
@@ -95,30 +95,26 @@ class EvalJob:
     """Evaluation episodes of a policy snapshot, split between the env workers.
 
     Attributes:
-        algo_cls: the SB3 algorithm class of the snapshot.
-        policy_zip: the model's bytes (:func:`rl.checkpoint.model_bytes`).
-        vecnorm_pkl: its pickled observation normalisation, or None.
+        policy_files: the snapshot in the policy format (:func:`rl.policy_format.policy_files`:
+            ``model.json`` and ``weights.npz``, normalisation included).
         env_cfg: the evaluation env.
         n_episodes: episodes in all (episode k has seed ``seed + k``).
         seed: seed of episode 0.
         n_workers: how many workers share them (worker i runs i, i + n, ...).
     """
 
-    algo_cls: type
-    policy_zip: bytes
-    vecnorm_pkl: bytes | None
+    policy_files: dict[str, bytes]
     env_cfg: EnvConfig
     n_episodes: int
     seed: int
     n_workers: int
 
     def policy(self) -> tuple:
-        """The snapshot's model and its observation normalisation (None without one); the
+        """The snapshot's policy and its observation normalisation (None without one); the
         process's global generators are left as they were (:func:`rl.checkpoint.
-        global_rng_kept`)."""
+        global_rng_kept`: building the network draws its initial weights)."""
         with global_rng_kept():
-            model = load_model(self.algo_cls, self.policy_zip)
-        return model, pickle.loads(self.vecnorm_pkl) if self.vecnorm_pkl is not None else None
+            return policy_from_files(self.policy_files)
 
     def rows(self, index: int) -> list[dict]:
         """The rows of worker ``index``'s episodes."""

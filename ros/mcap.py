@@ -18,7 +18,7 @@ from typing import Any
 from mcap.writer import CompressionType, Writer
 
 from uwdock.dockcore.errors import DockError
-from uwdock.dockcore.io import special_file_kind, temp_sibling
+from uwdock.dockcore.io import output_target, replace_checked, temp_sibling
 from uwdock.ros import messages as rm
 
 __all__ = ["McapRecorder"]
@@ -36,14 +36,14 @@ class McapRecorder:
 
     def __init__(self, path: str | os.PathLike[str]) -> None:
         self.path = Path(path)
-        kind = "a folder" if self.path.is_dir() else special_file_kind(self.path)
-        if kind is not None:
-            raise DockError(f"--record {self.path}: is {kind}, not a file to write")
+        # a regular file (a symlink to one is followed) or nothing; a folder, device, FIFO,
+        # socket or symlink loop is refused
+        self._target = output_target(self.path, "--record")
         if self.path.suffix.lower() != ".mcap":
             raise DockError(f"--record {self.path}: the recording must be a .mcap file")
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._tmp = temp_sibling(self.path, ".mcap")
+            self._tmp = temp_sibling(self._target, ".mcap")
             self._fh = self._tmp.open("wb")
         except OSError as exc:
             raise DockError(f"cannot write {self.path}: {exc.strerror or exc}") from None
@@ -91,7 +91,10 @@ class McapRecorder:
             self._fh.flush()
             os.fsync(self._fh.fileno())
             self._fh.close()
-            os.replace(self._tmp, self.path)
+            replace_checked(self._tmp, self._target)  # a node that appeared meanwhile: kept
+        except DockError:
+            self.discard()
+            raise
         except OSError as exc:
             self.discard()
             raise DockError(f"cannot write {self.path}: {exc.strerror or exc}") from None

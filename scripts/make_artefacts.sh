@@ -25,7 +25,7 @@
 # (seed 0); training `configs/scratch_error_model_precision_ppo.toml` then
 # `configs/scratch_error_model_precision_soft_ppo.toml` from its best/ (seed SEED, default 1: the
 # seed shipped, recorded in bench/results/scratch_runs/error_model_precision{,_soft}_s1);
-# the shipped stage 1 kept in bench/results/scratch_runs/realistic_kernel_ship_s2 (STAGE1_RUN; set
+# the shipped stage 1 kept in rl/policies/realistic_ppo/stage1 (STAGE1_RUN; set
 # it empty to train `configs/realistic_batched_yaw_contact_near_kernel_ppo.toml` instead) then
 # `configs/realistic_batched_yaw_contact_gentle_return_kernel_fine_collision70_ppo.toml` from its
 # best/ (seed SEED, default 0: the seed shipped, recorded in rl/policies/realistic_ppo/ and in the
@@ -92,15 +92,16 @@ train() {
   fi
 }
 
-# ship RUN DEST CURVE: copy RUN's best/ checkpoint and its records into DEST, its curve to
-# $RESULTS/CURVE; DEST/checksums.sha256 holds the SHA-256 of the best/ files (`sha256sum -c
-# checksums.sha256` in DEST checks the shipped weights, and against a kept run's best/)
+# ship RUN DEST CURVE: copy RUN's best/ policy (model.json + weights.npz, data only) and its records
+# into DEST, its curve to $RESULTS/CURVE; DEST/checksums.sha256 holds the SHA-256 of the policy
+# files (`sha256sum -c checksums.sha256` in DEST checks the shipped weights)
 ship() {
   local run=$1 dest=$2 curve=$3
   say "shipping best/ (the best evaluated checkpoint) into $dest"
   mkdir -p "$dest"
-  cp "$run/best/policy.zip" "$run/best/vecnormalize.pkl" "$dest/"
-  (cd "$run/best" && sha256sum policy.zip vecnormalize.pkl) >"$dest/checksums.sha256"
+  rm -f "$dest/policy.zip" "$dest/vecnormalize.pkl"  # the pickled format is not shipped
+  cp "$run/best/model.json" "$run/best/weights.npz" "$dest/"
+  (cd "$run/best" && sha256sum model.json weights.npz) >"$dest/checksums.sha256"
   (cd "$dest" && sha256sum -c --quiet checksums.sha256) \
     || die "the files copied into $dest differ from $run/best/"
   cp "$run/config.toml" "$run/provenance.json" "$run/eval_history.jsonl" "$dest/"
@@ -116,34 +117,37 @@ policy() {
 }
 
 # two_stages SEED STAGE1 STAGE2 RUN SUFFIX DEST CURVE: train STAGE1 into RUN, then STAGE2 from its
-# best/ into RUN_SUFFIX; with SHIP=1 copy stage 2's best/ into DEST with both stages' records
-# (further arguments go to both `rl train` calls). With STAGE1_RUN naming a finished stage-1 run
-# folder (best/ with its checksums.sha256, provenance.json, eval_history.jsonl; e.g. one kept in
-# bench/results/scratch_runs), stage 1 is not trained: stage 2 starts from that run's best/,
-# checked against its checksums first.
+# best/ into RUN_SUFFIX; with SHIP=1 copy stage 2's best/ into DEST and stage 1's policy and
+# records into DEST/stage1/ (further arguments go to both `rl train` calls). With STAGE1_RUN
+# naming a kept stage-1 policy folder (model.json, weights.npz, checksums.sha256,
+# provenance.json, eval_history.jsonl: e.g. rl/policies/realistic_ppo/stage1), stage 1 is not
+# trained: stage 2 starts from it, checked against its checksums first.
 two_stages() {
-  local seed=$1 stage1=$2 stage2=$3 w=$4 suffix=$5 dest=$6 curve=$7 s1=$4
+  local seed=$1 stage1=$2 stage2=$3 w=$4 suffix=$5 dest=$6 curve=$7 s1 s1_policy
   shift 7
   if [ -n "${STAGE1_RUN:-}" ]; then
-    s1=$STAGE1_RUN
-    [ -f "$s1/best/checksums.sha256" ] && [ -f "$s1/provenance.json" ] \
-      || die "STAGE1_RUN=$s1: not a kept run (best/checksums.sha256, provenance.json)"
-    (cd "$s1/best" && sha256sum -c --quiet checksums.sha256) \
-      || die "STAGE1_RUN=$s1: best/ differs from its checksums.sha256"
-    say "stage 1: the kept run $s1 (not trained again)"
+    s1=$STAGE1_RUN s1_policy=$STAGE1_RUN
+    [ -f "$s1/checksums.sha256" ] && [ -f "$s1/provenance.json" ] \
+      || die "STAGE1_RUN=$s1: not a kept stage 1 (checksums.sha256, provenance.json)"
+    (cd "$s1" && sha256sum -c --quiet checksums.sha256) \
+      || die "STAGE1_RUN=$s1: its policy differs from its checksums.sha256"
+    say "stage 1: the kept policy $s1 (not trained again)"
   else
+    s1=$w s1_policy=$w/best
     train "$stage1" "$w" --seed "$seed" "$@"
   fi
-  train "$stage2" "${w}_$suffix" --seed "$seed" --init-policy "$s1/best" "$@"
+  train "$stage2" "${w}_$suffix" --seed "$seed" --init-policy "$s1_policy" "$@"
   if [ "$SHIP" != 1 ]; then
     say "trained ${w}_$suffix; $dest is left as it is (SHIP=1 or --ship replaces it)"
-    (cd "${w}_$suffix/best" && sha256sum policy.zip vecnormalize.pkl)
+    (cd "${w}_$suffix/best" && sha256sum model.json weights.npz)
     return
   fi
   ship "${w}_$suffix" "$dest" "$curve"
-  cp "$s1/provenance.json" "$dest/stage1_provenance.json"  # stage 1's records beside stage 2's
-  cp "$s1/eval_history.jsonl" "$dest/stage1_eval_history.jsonl"
-  (cd "$s1/best" && sha256sum policy.zip vecnormalize.pkl) >"$dest/stage1_checksums.sha256"
+  if [ "$(cd "$s1_policy" && pwd -P)" != "$(mkdir -p "$dest/stage1" && cd "$dest/stage1" && pwd -P)" ]; then
+    cp "$s1_policy/model.json" "$s1_policy/weights.npz" "$s1/config.toml" "$s1/provenance.json" \
+      "$s1/eval_history.jsonl" "$dest/stage1/"  # stage 1 beside stage 2, as shipped
+    (cd "$dest/stage1" && sha256sum model.json weights.npz) >"$dest/stage1/checksums.sha256"
+  fi
 }
 
 scratch() {  # the true-pose recipe: PPO from scratch, then its best/ at collision penalty 30
@@ -163,12 +167,12 @@ scratch() {  # the true-pose recipe: PPO from scratch, then its best/ at collisi
 # BATCH_WORKERS processes (default 2, the count the shipped policy trained with). A run repeats
 # bit for bit on the same kind of CPU only (NumPy and MKL pick their kernels by CPU:
 # bench/bench_numerics.py), and a stage 1 trained on another CPU than the shipped one's is another
-# policy, so by default stage 2 starts from the shipped stage 1 kept in bench/results/scratch_runs
+# policy, so by default stage 2 starts from the shipped stage 1, rl/policies/realistic_ppo/stage1
 # (STAGE1_RUN; STAGE1_RUN= trains stage 1 from scratch, seed SEED): with the defaults the command
 # regenerates the shipped policy.
 realistic() {
   local seed=${SEED:-0}
-  local STAGE1_RUN=${STAGE1_RUN-bench/results/scratch_runs/realistic_kernel_ship_s2}
+  local STAGE1_RUN=${STAGE1_RUN-$POLICY/stage1}
   two_stages "$seed" configs/realistic_batched_yaw_contact_near_kernel_ppo.toml \
     configs/realistic_batched_yaw_contact_gentle_return_kernel_fine_collision70_ppo.toml \
     "$WORK/run_realistic_kernel_s$seed" fine70 "$POLICY" training_curve_realistic.png \

@@ -9,7 +9,7 @@ import pytest
 
 import uwdock.rl.session as session_mod
 from uwdock.dockcore.config import ConfigError, from_dict, replace
-from uwdock.rl.checkpoint import model_bytes
+from uwdock.rl.policy_format import policy_files
 from uwdock.rl.session import TrainingSession, eval_score
 from uwdock.rl.sweep import _trial_summary
 from uwdock.rl.train import TrainConfig
@@ -66,7 +66,7 @@ def test_select_best_is_checked_when_a_config_is_read():
 def test_the_session_keeps_the_selected_evaluation_in_best(
     tmp_path, monkeypatch, select_best, kept_step
 ):
-    """A real PPO model whose weights change before every evaluation: best/policy.zip is the
+    """A real PPO model whose weights change before every evaluation: best/ holds the
     model as it was at the kept evaluation, the history flags it last, and a sweep's summary
     of the run reports that evaluation."""
     from stable_baselines3 import PPO
@@ -82,10 +82,11 @@ def test_the_session_keeps_the_selected_evaluation_in_best(
     weights = {}
     for step, *_ in STAGE2:
         model.policy.action_net.bias.data += 1.0  # a different policy at every evaluation
-        weights[step] = model_bytes(model)
+        weights[step] = policy_files(model, None)
         session.evaluate(step)
     assert session.schedule["best_step"] == kept_step
-    assert (tmp_path / "best" / "policy.zip").read_bytes() == weights[kept_step]
+    for name, data in weights[kept_step].items():
+        assert (tmp_path / "best" / name).read_bytes() == data, name
     history = [json.loads(line) for line in (tmp_path / "eval_history.jsonl").open()]
     assert [r["step"] for r in history if r.get("best")][-1] == kept_step
     assert _trial_summary(tmp_path)["best_eval"]["step"] == kept_step

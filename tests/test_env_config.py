@@ -248,7 +248,7 @@ def test_an_old_layout_run_folder_resumes_unchanged(run_cli, tmp_path):
     assert run_config(run) == load_config(TrainConfig, small, section="train", overrides={
         "env": {"world": {"water_preset": "coastal"}}})  # fmt: skip
     # stopped after its first checkpoint
-    for name in ("DONE", "policy.zip", "vecnormalize.pkl"):
+    for name in ("DONE", "model.json", "weights.npz"):
         (run / name).unlink()
     last = sorted((run / "checkpoints").glob("step_*"))[-1]
     for p in sorted(last.rglob("*"), reverse=True):

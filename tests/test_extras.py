@@ -61,7 +61,7 @@ BASE_PACKAGES = ("dockcore", "markers", "perception", "calibration")
 
 #: Third-party modules a base package may import only inside a function, guarded, with the
 #: extra that declares them.
-GUARDED_OPTIONAL = {"open3d": "check", "ray": "ray"}
+GUARDED_OPTIONAL = {"open3d": "check", "ray": "ray", "grpc": "ray", "psutil": "ray"}
 
 # Runs one console script with the optional modules refused; writes what was tried and loaded.
 _RUNNER = r"""

@@ -308,7 +308,10 @@ def test_a_write_that_does_not_read_back_is_refused(tmp_path, monkeypatch):
 
 def test_intrinsics_over_an_existing_camera_on_a_full_disk(tmp_path):
     """``calibration intrinsics --out cam.yaml`` over an existing file said "no space left"
-    but left the old file empty; now both twins keep their bytes, whichever fails."""
+    but left the old file empty; now both twins keep their bytes, whichever fails. With 2-3
+    pages free the small twins went through and the report or the plot failed after them: the
+    run exited 2 with the new calibration in cam.yaml/cam.json. All four files are one unit
+    now: whichever fails, every existing file keeps its bytes."""
     import cv2
 
     from tests.test_calibration import (
@@ -328,8 +331,10 @@ def test_intrinsics_over_an_existing_camera_on_a_full_disk(tmp_path):
     cam = tmp_path / "cam.yaml"
     assert _prep_reference(tmp_path)[2] == cam
     before = _snapshot(tmp_path)
+    (tmp_path / "cam_report.json").write_text("{}\n")  # a previous run's report
+    before = _snapshot(tmp_path)
     args = ["intrinsics", views, *CB_ARGS, "--out", cam]
-    for name in ("cam.yaml", "cam.json"):
+    for name in ("cam.yaml", "cam.json", "cam_report.json", "cam_errors.png"):
         disk = FullDisk(None, fail_on=name)
         code, _, err = _run(_calibration(), args, disk)
         assert code == 2 and f"error: {tmp_path / name}: no space left on the device" in err

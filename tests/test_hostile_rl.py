@@ -3,16 +3,16 @@ Each is one ``error:`` line, exit status 2, no traceback, and nothing written.""
 
 from __future__ import annotations
 
-import io
-import pickle
+import hashlib
+import json
 import shutil
-import zipfile
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from uwdock.rl import cli
+from uwdock.rl.policy_format import npz_bytes
 
 SHIPPED = Path(__file__).resolve().parent.parent / "rl" / "policies" / "error_model_ppo"
 
@@ -92,35 +92,32 @@ def test_fit_error_model_bins_are_bounded(run_cli, tmp_path):
 # ----------------------------------------------------------------------------- policy files
 
 
-def _rewrite_zip(src: Path, dst: Path, name: str, body: bytes) -> Path:
-    zin = zipfile.ZipFile(src)
-    with zipfile.ZipFile(dst, "w") as zout:
-        for info in zin.infolist():
-            zout.writestr(info, body if info.filename == name else zin.read(info.filename))
-    return dst
-
-
 def _policy_folder(tmp_path: Path, name: str) -> Path:
     folder = tmp_path / name
     folder.mkdir()
-    for f in ("policy.zip", "vecnormalize.pkl", "config.toml"):
+    for f in ("model.json", "weights.npz", "config.toml"):
         shutil.copy(SHIPPED / f, folder / f)
     return folder
 
 
-def _nan_weights(folder: Path) -> Path:
-    import torch
-
-    z = zipfile.ZipFile(folder / "policy.zip")
-    state = torch.load(io.BytesIO(z.read("policy.pth")), weights_only=False)
-    key = next(k for k in state if k.startswith("action_net.weight"))
-    state[key][0, 0] = float("nan")
-    buf = io.BytesIO()
-    torch.save(state, buf)
-    tmp = folder / "policy.tmp.zip"
-    _rewrite_zip(folder / "policy.zip", tmp, "policy.pth", buf.getvalue())
-    tmp.replace(folder / "policy.zip")
+def _rewrite_weights(folder: Path, change) -> Path:
+    """``folder``'s weights.npz with ``change(arrays)`` applied, its model.json recording the new
+    file's SHA-256 (so the loader reads the changed arrays)."""
+    arrays = dict(np.load(folder / "weights.npz", allow_pickle=False))
+    change(arrays)
+    data = npz_bytes(arrays)
+    (folder / "weights.npz").write_bytes(data)
+    meta = json.loads((folder / "model.json").read_text())
+    meta["weights_sha256"] = hashlib.sha256(data).hexdigest()
+    (folder / "model.json").write_text(json.dumps(meta))
     return folder
+
+
+def _nan_weights(folder: Path) -> Path:
+    def poison(arrays):
+        arrays["policy/action_net.weight"][0, 0] = np.nan
+
+    return _rewrite_weights(folder, poison)
 
 
 def _eval(run_cli, policy, out, *extra):
@@ -130,18 +127,34 @@ def _eval(run_cli, policy, out, *extra):
     )  # fmt: skip
 
 
-def test_garbage_inside_a_policy_zip(run_cli, tmp_path):
+def test_garbage_weights_file(run_cli, tmp_path):
     folder = _policy_folder(tmp_path, "p")
-    _rewrite_zip(SHIPPED / "policy.zip", folder / "policy.zip", "policy.pth", b"\x00garbage" * 9)
+    garbage = b"PK\x03\x04garbage" * 9
+    (folder / "weights.npz").write_bytes(garbage)
+    meta = json.loads((folder / "model.json").read_text())
+    meta["weights_sha256"] = hashlib.sha256(garbage).hexdigest()
+    (folder / "model.json").write_text(json.dumps(meta))
     out = tmp_path / "e"
-    _refused(_eval(run_cli, folder, out), out, f"cannot read policy {folder}/policy.zip")
+    _refused(_eval(run_cli, folder, out), out, f"cannot read policy weights {folder}/weights.npz")
 
 
-def test_corrupt_normalisation_file(run_cli, tmp_path):
+def test_replaced_weights_differ_from_the_recorded_digest(run_cli, tmp_path):
     folder = _policy_folder(tmp_path, "p")
-    (folder / "vecnormalize.pkl").write_bytes(b"\x80\x04not a pickle")
+    arrays = dict(np.load(folder / "weights.npz", allow_pickle=False))
+    arrays["policy/action_net.bias"] = arrays["policy/action_net.bias"] + 1.0
+    (folder / "weights.npz").write_bytes(npz_bytes(arrays))
     out = tmp_path / "e"
-    message = f"cannot read normalisation {folder}/vecnormalize.pkl: UnpicklingError"
+    message = "differ from the SHA-256 its model.json records"
+    _refused(_eval(run_cli, folder, out), out, message)
+
+
+def test_corrupt_normalisation_statistics(run_cli, tmp_path):
+    def poison(arrays):
+        arrays["obs_rms/var"] = -np.ones_like(arrays["obs_rms/var"])
+
+    folder = _rewrite_weights(_policy_folder(tmp_path, "p"), poison)
+    out = tmp_path / "e"
+    message = "obs_rms statistics hold NaN, infinity or a negative variance"
     _refused(_eval(run_cli, folder, out), out, message)
 
 
@@ -156,7 +169,8 @@ def test_truncated_onnx(run_cli, tmp_path):
 def test_other_observation_layout_without_its_config(run_cli, tmp_path):
     folder = tmp_path / "bare"
     folder.mkdir()
-    shutil.copy(SHIPPED / "policy.zip", folder / "policy.zip")  # no config.toml beside it
+    for f in ("model.json", "weights.npz"):  # no config.toml beside them
+        shutil.copy(SHIPPED / f, folder / f)
     env = tmp_path / "env.toml"
     env.write_text("obs_frames = 2\n")
     out = tmp_path / "e"
@@ -176,21 +190,22 @@ def test_nan_policy_is_refused_by_eval_export_and_init_policy(run_cli, tmp_path)
     _refused(res, run, message)
 
 
-@pytest.mark.filterwarnings("ignore:invalid value encountered in sqrt:RuntimeWarning")
+@pytest.mark.filterwarnings("ignore:overflow encountered:RuntimeWarning")
 def test_policy_with_finite_weights_but_nan_outputs(run_cli, tmp_path):
-    """Broken normalisation (negative variance): NaN actions. Export refuses; eval stops at the
-    first such action with one line."""
-    folder = _policy_folder(tmp_path, "neg")
-    vn = pickle.loads((folder / "vecnormalize.pkl").read_bytes())
-    vn.obs_rms.var = -np.ones_like(vn.obs_rms.var)
-    vn.class_attributes, vn.venv, vn.returns = {}, None, np.zeros(1)
-    (folder / "vecnormalize.pkl").write_bytes(pickle.dumps(vn))
-    onnx = tmp_path / "neg.onnx"
+    """Finite weights too large for float32 arithmetic: NaN or infinite actions. Export refuses;
+    eval stops at the first such action with one line."""
+
+    def blow_up(arrays):
+        for key in ("policy/mlp_extractor.policy_net.0.weight", "policy/action_net.weight"):
+            arrays[key] = np.full_like(arrays[key], 3e38)
+
+    folder = _rewrite_weights(_policy_folder(tmp_path, "big"), blow_up)
+    onnx = tmp_path / "big.onnx"
     res = run_cli(cli.main, "export", "--policy", folder, "--out", onnx)
     _refused(res, onnx, "outputs NaN or infinity: refusing to export it")
     out = tmp_path / "e"
     res = _eval(run_cli, folder, out)
-    assert res.code == 2 and "normalisation gives NaN or infinity" in res.err
+    assert res.code == 2 and "NaN" in res.err, res.err
     assert res.err.count("error:") == 1 and "Traceback" not in res.err
 
 

@@ -5,7 +5,6 @@ to the PhysX paths, and a policy trained with PhysX contact still docking on it.
 from __future__ import annotations
 
 import math
-import pickle
 from pathlib import Path
 
 import numpy as np
@@ -325,13 +324,10 @@ def test_the_shipped_policy_trained_on_the_kernels_contact_docks_on_physx():
     policy, trained with the kernel's contact, docks in 16 episodes with PhysX's contact (one
     shared scene) about as it does on the kernel's (held out on the per-env PhysX env with the
     camera: bench/results/docking_kernel_ship_s2.json)."""
-    from stable_baselines3 import PPO
-
     from uwdock.rl.batch_env import batched_episodes
+    from uwdock.rl.policy_io import load_policy
 
-    vn = pickle.loads((POLICY / "vecnormalize.pkl").read_bytes())
-    vn.training = False
-    model = PPO.load(POLICY / "policy.zip", device="cpu")
+    model, vn = load_policy(POLICY)
     rows = batched_episodes(model, _env_cfg("shared"), 16, 91000, vecnorm=vn)
     docked = sum(bool(r["success_strict"]) for r in rows)
     assert docked >= 14, [r.get("failure_mode") for r in rows]

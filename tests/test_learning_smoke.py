@@ -55,7 +55,7 @@ def test_ppo_from_scratch_beats_its_random_start(tmp_path):
         ),
     )
     train(cfg, tmp_path / "run", progress=False, note=lambda m: None)
-    model, vecnorm = load_policy(tmp_path / "run" / "policy.zip")
+    model, vecnorm = load_policy(tmp_path / "run")
     held_out = 900  # training used seeds 0.. (env resets); these spawns were never trained on
     trained = run_episodes(model, EASY, 30, seed=held_out, vecnorm=vecnorm, record=False)
     start = GaussianController(math.exp(LOG_STD_INIT), seed=1)

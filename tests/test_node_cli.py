@@ -25,8 +25,8 @@ def _run(*args: str, cwd: Path) -> subprocess.CompletedProcess:
 @pytest.mark.parametrize(
     ("args", "message"),
     [
-        (["rl", "node", "--policy", str(SHIPPED)], "pickles"),
-        (["rl", "node", "--policy", str(SHIPPED / "policy.zip")], "pickles"),
+        (["rl", "node", "--policy", str(SHIPPED)], "rl export --policy"),
+        (["rl", "node", "--policy", str(SHIPPED / "policy.zip")], "a pickle"),
         (["rl", "node", "--policy", "missing.onnx"], "not found"),
         (["rl", "node", "--config", "bad_key.toml"], "unknown config key 'topics.imagee'"),
         (["rl", "node", "--config", "bad_qos.toml"], "qos.image.depth: must be an integer"),

@@ -25,7 +25,7 @@ def policy_dir(tmp_path: Path) -> Path:
     the Cerulean USBL, a drifting navigation, coastal water, 320 px, the paper's termination."""
     folder = tmp_path / "policy"
     folder.mkdir()
-    for name in ("policy.zip", "vecnormalize.pkl"):
+    for name in ("model.json", "weights.npz"):
         shutil.copy(SHIPPED / name, folder / name)
     text = (SHIPPED / "config.toml").read_text()
     swaps = (
@@ -142,6 +142,6 @@ def test_export_carries_the_training_env_to_eval_and_the_runner(run_cli, tmp_pat
 def test_shipped_policy_matches_its_recorded_checksums():
     lines = (SHIPPED / "checksums.sha256").read_text().splitlines()
     recorded = dict(reversed(line.split("  ", 1)) for line in lines if line.strip())
-    assert set(recorded) == {"policy.zip", "vecnormalize.pkl"}
+    assert set(recorded) == {"model.json", "weights.npz"}
     for name, digest in recorded.items():
         assert hashlib.sha256((SHIPPED / name).read_bytes()).hexdigest() == digest, name

@@ -149,7 +149,7 @@ def test_killed_and_resumed_training_equals_uninterrupted(reference):
     assert [k for k in a if a[k] != b[k]] == []
     history = [json.loads(line) for line in (run / "eval_history.jsonl").read_text().splitlines()]
     assert [h["step"] for h in history] == [0, 192, 384]  # the warm start, then every 192
-    assert (run / "best" / "policy.zip").is_file()
+    assert (run / "best" / "model.json").is_file() and (run / "best" / "weights.npz").is_file()
     log = [json.loads(line) for line in (run / "resume_log.jsonl").read_text().splitlines()]
     assert 2 <= len(log) <= len(kills) and all(r["config_changed"] == [] for r in log)
     assert log[-1]["from_step"] >= 256
@@ -159,10 +159,10 @@ def test_resume_falls_back_past_a_damaged_checkpoint(reference, tmp_path):
     ref = _finished(reference)
     run = tmp_path / "damaged"
     shutil.copytree(ref, run)
-    for name in ("DONE", "policy.zip", "vecnormalize.pkl"):
+    for name in ("DONE", "model.json", "weights.npz"):
         (run / name).unlink()
     newest = run / "checkpoints" / "step_0000000512"
-    with (newest / "model.zip").open("r+b") as fh:  # a torn write
+    with (newest / "training.npz").open("r+b") as fh:  # a torn write
         fh.truncate(1000)
     (run / "checkpoints" / "step_0000000384" / "manifest.json").unlink()  # never completed
     notes: list[str] = []

@@ -100,11 +100,13 @@ def test_shipped_policy_is_the_realistic_recipe():
     EvoLogics USBL, contact sensing, the refitted error model; near-seat starts in stage 1, the
     highest-return evaluation kept in stage 2, the fine error added and the collision penalty 70
     in stage 2; the docking station's contact in the numba kernel while training), from a stage
-    1 of the committed stage-1 config whose best/ is recorded beside it; it matches its checksums
-    and reads the observation the recipe's env gives, three values wider than stage 1's."""
+    1 of the committed stage-1 config shipped beside it (``stage1/``); both match their
+    checksums and stage 2 reads the observation the recipe's env gives, three values wider than
+    stage 1's."""
     import hashlib
 
     from uwdock.rl.observation import observation_size
+    from uwdock.rl.policy_io import load_policy
 
     shipped, cfg, model = _shipped_stage2(
         "realistic_ppo",
@@ -118,25 +120,20 @@ def test_shipped_policy_is_the_realistic_recipe():
     assert cfg.env.obs_fine_error and not stage1.env.obs_fine_error
     # only the reward and the fine error differ
     assert replace(stage1.env, reward=cfg.env.reward, obs_fine_error=True) == cfg.env
-    stage1_prov = json.loads((shipped / "stage1_provenance.json").read_text(encoding="utf-8"))
+    kept = shipped / "stage1"  # stage 1 ships beside stage 2, in the same format
+    stage1_prov = json.loads((kept / "provenance.json").read_text(encoding="utf-8"))
     assert stage1_prov["git"]["dirty"] is False and len(stage1_prov["git"]["commit"]) == 40
     assert "realistic_batched_yaw_contact_near_kernel_ppo.toml" in stage1_prov["command"]
-    for sums in ("checksums.sha256", "stage1_checksums.sha256"):
-        lines = (shipped / sums).read_text().splitlines()
-        assert {line.split("  ", 1)[1] for line in lines} == {"policy.zip", "vecnormalize.pkl"}
-    for line in (shipped / "checksums.sha256").read_text().splitlines():
-        digest, name = line.split("  ", 1)
-        assert hashlib.sha256((shipped / name).read_bytes()).hexdigest() == digest, name
-    kept = ROOT / "bench" / "results" / "scratch_runs"  # both stages' best/, kept with the runs
-    # stage 1 is the kept seed-2 run (stage 2 of each seed starts from it: STAGE1_RUN)
-    assert (shipped / "stage1_checksums.sha256").read_text() == (
-        kept / "realistic_kernel_ship_s2" / "best" / "checksums.sha256"
-    ).read_text()
-    assert (shipped / "stage1_provenance.json").read_text() == (
-        kept / "realistic_kernel_ship_s2" / "provenance.json"
-    ).read_text()
-    assert (shipped / "checksums.sha256").read_text() == (
-        kept / f"realistic_kernel_ship_fine70_s{cfg.seed}" / "best" / "checksums.sha256"
-    ).read_text()
+    assert load_config(TrainConfig, kept / "config.toml", section="train") == replace(
+        stage1, seed=stage1_prov["config"]["train"]["seed"]
+    )
+    for folder in (shipped, kept):
+        lines = (folder / "checksums.sha256").read_text().splitlines()
+        assert {line.split("  ", 1)[1] for line in lines} == {"model.json", "weights.npz"}
+        for line in lines:
+            digest, name = line.split("  ", 1)
+            assert hashlib.sha256((folder / name).read_bytes()).hexdigest() == digest, name
+    stage1_model = load_policy(kept)[0]
+    assert stage1_model.observation_space.shape[0] == observation_size(stage1.env)
     assert model.observation_space.shape[0] == observation_size(cfg.env)
     assert observation_size(cfg.env) == observation_size(stage1.env) + 3

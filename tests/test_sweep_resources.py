@@ -210,15 +210,15 @@ def test_a_batched_trial_runs_through_the_sweep_as_plain_rl_train(tmp_path) -> N
 
 
 def test_policy_input_files_are_what_loading_the_policy_reads(tmp_path) -> None:
-    """The files a Ray job checks on every node for ``--policy``: a run folder's policy.zip, its
-    vecnormalize.pkl and run config; an .onnx and its sidecar; nothing for the PID."""
+    """The files a Ray job checks on every node for ``--policy``: a policy folder's model.json,
+    weights.npz and run config; an .onnx and its sidecar; nothing for the PID."""
     from uwdock.rl.policy_io import policy_input_files
 
     assert policy_input_files("pid") == []
     shipped = Path(__file__).resolve().parents[1] / "rl/policies/scratch_error_model_ppo"
     got = policy_input_files(str(shipped))
-    assert got == [shipped / "policy.zip", shipped / "vecnormalize.pkl", shipped / "config.toml"]
-    assert policy_input_files(str(shipped / "policy.zip")) == got
+    assert got == [shipped / "model.json", shipped / "weights.npz", shipped / "config.toml"]
+    assert policy_input_files(str(shipped / "model.json")) == got
     onnx = tmp_path / "p.onnx"
     onnx.write_bytes(b"x")
     (tmp_path / "p.json").write_text("{}")

@@ -134,10 +134,15 @@ def test_nan_error_model_stops_rl_train_with_one_line(run_cli, tmp_path):
 
 
 def _policy_without_normalisation(tmp_path: Path) -> Path:
+    """The shipped policy written again without its normalisation (its config says
+    normalize_obs = true)."""
+    from uwdock.rl.policy_format import write_policy
+    from uwdock.rl.policy_io import load_policy
+
     folder = tmp_path / "policy"
-    folder.mkdir()
-    for name in ("policy.zip", "config.toml"):  # the config says normalize_obs = true
-        shutil.copy(SHIPPED_POLICY / name, folder / name)
+    model, _ = load_policy(SHIPPED_POLICY)
+    write_policy(folder, model, None)
+    shutil.copy(SHIPPED_POLICY / "config.toml", folder / "config.toml")
     return folder
 
 
@@ -148,7 +153,7 @@ def test_policy_folder_missing_its_normalisation_is_refused(run_cli, tmp_path):
 
     assert "normalize_obs = true" in (SHIPPED_POLICY / "config.toml").read_text()
     folder = _policy_without_normalisation(tmp_path)
-    expected = "says normalize_obs = true but vecnormalize.pkl is missing beside it"
+    expected = "says normalize_obs = true but its model.json has no observation normalisation"
     with pytest.raises(DockError, match=expected):
         load_policy(folder)
     out = tmp_path / "e"
@@ -164,7 +169,8 @@ def test_policy_folder_missing_its_normalisation_is_refused(run_cli, tmp_path):
     # best/ reads the run config one level up
     best = folder / "best"
     best.mkdir()
-    shutil.copy(folder / "policy.zip", best / "policy.zip")
+    for name in ("model.json", "weights.npz"):
+        shutil.copy(folder / name, best / name)
     with pytest.raises(DockError, match=expected):
         load_policy(best)
     # the shipped folder, complete, loads
@@ -537,7 +543,9 @@ def test_special_files_are_refused_before_reading(run_cli, tmp_path):
     msg = _one_line(run_cli(perception_cli.main, "detect", image, "--out", out))
     assert f"input {image} is a FIFO (named pipe), not a regular file" in msg
     video = _fifo(tmp_path / "dive.mp4")
-    msg = _one_line(run_cli(calibration_cli.main, "intrinsics", video, "--out", tmp_path / "c"))
+    msg = _one_line(
+        run_cli(calibration_cli.main, "intrinsics", video, "--out", tmp_path / "c.yaml")
+    )
     assert f"input {video} is a FIFO" in msg
     for option, name, what in (
         ("--camera", "fifo_cam.yaml", "camera file"),
@@ -597,19 +605,25 @@ def test_an_empty_water_file_is_refused_not_rendered_as_the_default(tmp_path):
 
 @pytest.mark.render
 @pytest.mark.usefixtures("alarm")
-def test_synth_resume_over_a_fifo_in_images_renders_the_frame_again(tmp_path):
-    """A FIFO where a frame's image was hung the resume (it opened the FIFO to check the PNG):
-    it is a frame to render again, and the rerun completes the dataset."""
+def test_synth_resume_over_a_fifo_in_images_is_refused_then_completes(tmp_path):
+    """A FIFO where a frame's image was hung the resume (it opened the FIFO to check the PNG).
+    A special file is never replaced: the resume stops in one line naming it, the FIFO left as
+    it was; once it is removed, the rerun completes the dataset."""
+    import stat
+
     from tests.hostile_runs import dataset
     from uwdock.datasets.synth import SynthConfig, generate
 
     cfg = SynthConfig(n_frames=3, seed=4, width_px=64)
     out, reference = tmp_path / "ds", tmp_path / "ref"
     generate(out, cfg, progress=False)
-    (out / "images" / "000001.png").unlink()
-    _fifo(out / "images" / "000001.png")
-    (out / "labels.jsonl").unlink()
-    _fifo(out / "labels.jsonl")
-    assert generate(out, cfg, progress=False).rendered == (0, 1, 2)
+    fifo = out / "images" / "000001.png"
+    fifo.unlink()
+    _fifo(fifo)
+    with pytest.raises(DockError, match=r"000001\.png is a FIFO"):
+        generate(out, cfg, progress=False)
+    assert stat.S_ISFIFO(fifo.lstat().st_mode)
+    fifo.unlink()
+    assert generate(out, cfg, progress=False).rendered == (1,)
     generate(reference, cfg, progress=False)
     assert dataset(out) == dataset(reference)

@@ -106,10 +106,10 @@ def test_a_run_with_the_fine_error_starts_from_a_policy_trained_without_it(tmp_p
     notes: list[str] = []
     wide = TrainConfig(**base, env=_env(obs_fine_error=True))
     train(wide, tmp_path / "b", progress=False, note=notes.append,
-          init_policy=str(tmp_path / "a" / "policy.zip"))  # fmt: skip
+          init_policy=str(tmp_path / "a"))  # fmt: skip
     od, nd = observation_size(_env()), observation_size(_env(obs_fine_error=True))
     assert f"--init-policy: widened from {od} to {nd} observation values" in notes
     other = TrainConfig(**base, env=_env(obs_contact=False, obs_fine_error=True))
     with pytest.raises(DockError, match=r"observation values.*differs in obs_contact"):
         train(other, tmp_path / "c", progress=False, note=lambda m: None,
-              init_policy=str(tmp_path / "a" / "policy.zip"))  # fmt: skip
+              init_policy=str(tmp_path / "a"))  # fmt: skip

@@ -109,6 +109,9 @@ COMMANDS: dict[str, tuple[str, dict[str, str]]] = {
     "rl": (
         "Reinforcement learning: docking env, PPO training, evaluation, export.",
         {
+            "convert-policy": "Convert a policy folder of the pickled format (SB3's policy.zip, "
+            "vecnormalize.pkl) into the data format every command loads (model.json + "
+            "weights.npz; nothing in it can run code). The same actions, bit for bit.",
             "episode": "Run the scripted PID controller in the docking env and write a "
             "side-by-side MP4 of the downward camera (with water) and an outside view, plus "
             "summary.json.",

@@ -20,7 +20,13 @@ from uwdock.dockcore.config import replace, to_dict
 from uwdock.dockcore.domains import Count, Interval, Seed
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_write_json, atomic_write_text, check_regular_file
-from uwdock.dockcore.options import command_group, config_option, out_dir_option, seed_option
+from uwdock.dockcore.options import (
+    command_group,
+    config_option,
+    out_dir_option,
+    out_path_checked,
+    seed_option,
+)
 from uwdock.dockcore.outdir import claim_output_dir
 from uwdock.dockcore.provenance import provenance
 from uwdock.perception.detector import rendered_3dbm_config
@@ -82,6 +88,7 @@ NETWORK_OPTION = click.option(
 RECORD_OPTION = click.option(
     "--record",
     type=click.Path(path_type=Path),
+    callback=out_path_checked,
     help="Record every input received and output published to this .mcap file.",
 )
 
@@ -94,11 +101,15 @@ def cli() -> None:
 def _policy_path(policy: Path | None) -> Path:
     """The exported policy to load: only an .onnx with its .json (no pickle ever)."""
     p = SHIPPED_POLICY if policy is None else Path(policy)
-    if p.is_dir() or p.suffix in (".zip", ".pkl"):
+    if p.is_dir():
         raise DockError(
-            f"--policy {p}: the node runs exported policies only (an .onnx from `rl export`); "
-            "a policy folder's policy.zip and vecnormalize.pkl are pickles, which can run code "
-            "when loaded"
+            f"--policy {p}: the node runs an exported policy (an .onnx and its .json): `rl "
+            f"export --policy {p} --out POLICY.onnx` writes one"
+        )
+    if p.suffix in (".zip", ".pkl"):
+        raise DockError(
+            f"--policy {p}: a pickle, which can run code when loaded; the node runs an exported "
+            "policy (an .onnx from `rl export`)"
         )
     if p.suffix != ".onnx":
         raise DockError(f"--policy {p}: not an .onnx file")

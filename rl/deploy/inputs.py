@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from uwdock.calibration.camera import CameraModel
+from uwdock.calibration.camera import CameraModel, check_camera
 from uwdock.dockcore.bags import decode_image_msg
 from uwdock.dockcore.errors import DockError
 from uwdock.ros import conventions as conv
@@ -165,7 +165,7 @@ def read_camera_info(msg: Any) -> CameraModel:
             dist=d or (0.0, 0.0, 0.0, 0.0, 0.0),
             name="camera_info",
         )
-        cam.validate()
+        check_camera(cam)  # the check of every camera the toolkit reads
     except ValueError as exc:
         raise ValueError(f"camera_info: {exc}") from None
     return cam
