@@ -548,7 +548,7 @@ def _checked_table(t: Any, key: str, n_bins: int) -> dict[str, Any]:
     return {
         "p": p,
         "bias": np.asarray(bias),
-        "chol": np.stack([np.linalg.cholesky(c) for c in cov]),
+        "chol": np.stack([np.linalg.cholesky(_psd(c)) for c in cov]),
         "cov": np.stack(cov),
         "p_out": np.asarray(p_out),
         "outliers": outliers,
@@ -582,9 +582,11 @@ COV_SYMMETRY_RTOL = 1e-9
 
 def _checked_cov(c: np.ndarray, key: str) -> np.ndarray:
     """A (6, 6) covariance of a model file, symmetric (to :data:`COV_SYMMETRY_RTOL` of its
-    scale) and positive definite (its Cholesky factorisation exists), as it is: nothing is
-    symmetrised or projected, since a projected non-PD matrix is another error model (one whose
+    scale) and positive semi-definite (no eigenvalue below ``-COV_SYMMETRY_RTOL`` of its scale:
+    a zero variance, an exact component, is a covariance), as it is: nothing is symmetrised or
+    projected, since a projected indefinite matrix is another error model (one whose
     off-diagonal entries were wrong gave 0.7 m errors where the file's variances said 5 mm).
+    The sampler's Cholesky factor floors eigenvalues at 1e-10 (:func:`_psd`), as it always did.
 
     Raises:
         ValueError: one line naming ``key`` and what is wrong (the worst entry, or the smallest
@@ -597,14 +599,12 @@ def _checked_cov(c: np.ndarray, key: str) -> np.ndarray:
         raise ValueError(
             f"{key}: not symmetric ({key}[{i}][{j}] = {c[i, j]:.6g} but [{j}][{i}] = {c[j, i]:.6g})"
         )
-    try:
-        np.linalg.cholesky(c)
-    except np.linalg.LinAlgError:
-        w = np.linalg.eigvalsh(c)
+    w = np.linalg.eigvalsh(c)
+    if w[0] < -COV_SYMMETRY_RTOL * scale:
         raise ValueError(
-            f"{key}: not positive definite (smallest eigenvalue {w[0]:.3g}): "
+            f"{key}: not positive semi-definite (smallest eigenvalue {w[0]:.3g}): "
             "not the covariance of any error"
-        ) from None
+        )
     return c
 
 

@@ -49,17 +49,19 @@ def _one_line_error(path: Path) -> str:
 # ----------------------------------------------------------------------------- error models
 
 
-def test_a_covariance_that_is_not_positive_definite_is_refused(tmp_path):
+def test_a_covariance_that_is_not_positive_semidefinite_is_refused(tmp_path):
     """Before, the matrix was projected to the nearest PSD one without a word: a model whose
-    variances said 5 mm sampled errors of 0.7 m."""
+    variances said 5 mm sampled errors of 0.7 m. A zero variance (an exact component) is a
+    covariance and loads."""
     bad = COV.copy()
     bad[0, 1] = bad[1, 0] = 0.5  # |corr| >> 1
     msg = _one_line_error(_model_file(tmp_path, bad))
-    assert "tables.all.bins[0].cov: not positive definite (smallest eigenvalue -0.5" in msg
+    assert "tables.all.bins[0].cov: not positive semi-definite (smallest eigenvalue -0.5" in msg
     semidefinite = COV.copy()
-    semidefinite[2, 2] = 0.0  # a variance of zero: no Cholesky factor, no error to draw
-    semidefinite[0, 2] = semidefinite[2, 0] = 0.0
-    assert "not positive definite" in _one_line_error(_model_file(tmp_path, semidefinite))
+    semidefinite[2, 2] = 0.0  # a variance of zero: that component is exact
+    semidefinite[0, 2] = semidefinite[2, 0] = semidefinite[1, 2] = semidefinite[2, 1] = 0.0
+    model = load_error_model(_model_file(tmp_path, semidefinite))
+    assert model.table("all")["cov"][0, 2, 2] == 0.0
 
 
 def test_an_asymmetric_covariance_is_refused_a_rounding_one_is_not(tmp_path):
@@ -106,7 +108,7 @@ def test_rl_eval_refuses_a_bad_covariance_in_one_line(run_cli, tmp_path):
     res = run_cli(rl_cli.main, "eval", "--policy", "pid", "--obs", "error-model",
                   "--error-model", em, "--episodes", "1", "--out", out)  # fmt: skip
     line = assert_refused(res, out)
-    assert "em.json" in line and "cov: not positive definite" in line
+    assert "em.json" in line and "cov: not positive semi-definite" in line
 
 
 # ----------------------------------------------------------------------------- dataset labels

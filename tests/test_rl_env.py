@@ -246,21 +246,16 @@ def test_eval_pid_and_bad_policy_file(run_cli, tmp_path):
         tmp_path / "e2",
     )
     assert res.code != 0 and "policy file not found" in res.err
-    bad = tmp_path / "bad.zip"
+    bad = tmp_path / "bad.zip"  # the pickled format: refused unread
     bad.write_bytes(b"not a zip")
-    res = run_cli(
-        cli.main,
-        "eval",
-        "--policy",
-        bad,
-        "--episodes",
-        "1",
-        "--obs",
-        "proxy",
-        "--out",
-        tmp_path / "e3",
-    )
-    assert res.code != 0 and "cannot read policy" in res.err and res.err.count("\n") == 1
+    args = ["--episodes", "1", "--obs", "proxy"]
+    res = run_cli(cli.main, "eval", "--policy", bad, *args, "--out", tmp_path / "e3")
+    assert res.code == 2 and "pickled format" in res.err and res.err.count("\n") == 1
+    garbage = tmp_path / "garbage"
+    garbage.mkdir()
+    (garbage / "model.json").write_bytes(b"\xff not json")
+    res = run_cli(cli.main, "eval", "--policy", garbage, *args, "--out", tmp_path / "e4")
+    assert res.code == 2 and "cannot read policy model" in res.err and res.err.count("\n") == 1
 
 
 def test_error_model_source_requires_a_model(run_cli, tmp_path):
