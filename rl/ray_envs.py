@@ -8,9 +8,11 @@ The PPO learner, the checkpoints and the resume logic do not know the difference
 are the local ones, step for step. The periodic evaluation's share
 (``env_method("evaluate_share", job)``) runs on the actors too.
 
-The actors may sit on other machines of a Ray cluster (``--ray-address``); they only exchange
-actions, observations and rewards with the learner, one round trip per group and step (so
-``K`` envs per actor cut the round trips ``K``-fold). An actor that fails (an env error, a lost
+The actors may sit on other machines of a Ray cluster (``--ray-address``): the env's input files
+(error model, camera, marker set and meshes, water file) travel to them as content, so no node
+needs the driver's paths; they only exchange actions, observations and rewards with the
+learner, one round trip per group and step (so ``K`` envs per actor cut the round trips
+``K``-fold). An actor that fails (an env error, a lost
 node) stops training with one line; ``rl train --resume`` goes on from the newest checkpoint.
 """
 
@@ -21,12 +23,15 @@ from typing import Any
 
 from uwdock.dockcore.pool import (
     actor_cpus,
-    check_inputs_on_nodes,
     import_ray,
+    input_mapping,
     kill_actors,
+    materialize_inputs,
+    read_inputs,
+    relocate,
     start_ray,
 )
-from uwdock.rl.config import EnvConfig, absolute_inputs
+from uwdock.rl.config import EnvConfig, absolute_inputs, env_input_files
 from uwdock.rl.vec_envs import EnvGroup, env_groups
 from uwdock.rl.workers import WorkerError, failure_reason
 
@@ -34,14 +39,36 @@ __all__ = ["RayEnvWorkers", "RayHosts", "RayVecEnv"]
 
 
 class _RayGroup(EnvGroup):
-    """A group of training envs in a Ray actor."""
+    """A group of training envs in a Ray actor. The env's input files come as content
+    (``files``: absolute path -> bytes, through the object store), written on this node
+    (:func:`dockcore.pool.materialize_inputs`); the env config, and the evaluation jobs' (which
+    may name them as the driver's config did, ``aliases``: that name -> absolute path), are
+    pointed at the copies, so no node needs the driver's paths."""
 
-    def __init__(self, env_cfg: EnvConfig, seed: int, indices: Sequence[int]) -> None:
+    def __init__(
+        self,
+        env_cfg: EnvConfig,
+        seed: int,
+        indices: Sequence[int],
+        files: dict[str, bytes] | None = None,
+        aliases: dict[str, str] | None = None,
+    ) -> None:
         import torch  # one thread per actor: the actors are the parallelism
 
         torch.set_num_threads(1)
         super().__init__(indices)
+        self._mapping: dict[str, str] = {}
+        if files:
+            copies = input_mapping(files, materialize_inputs(files))
+            named = {a: copies[b] for a, b in (aliases or {}).items() if b in copies}
+            self._mapping = {**named, **copies}
+            env_cfg = relocate(env_cfg, self._mapping)
         self.build(env_cfg, seed)
+
+    def env_method(self, slots: Sequence[int], name: str, args: tuple, kwargs: dict) -> list:
+        if name == "evaluate_share" and self._mapping:
+            args = (relocate(args[0], self._mapping), *args[1:])
+        return super().env_method(slots, name, args, kwargs)
 
 
 class RayHosts:
@@ -54,12 +81,19 @@ class RayHosts:
         groups: the env indices of each actor (:func:`rl.vec_envs.env_groups`).
     """
 
-    def __init__(self, env_cfg: EnvConfig, seed: int, groups: list[list[int]]) -> None:
+    def __init__(
+        self,
+        env_cfg: EnvConfig,
+        seed: int,
+        groups: list[list[int]],
+        files: Any = None,
+        aliases: dict[str, str] | None = None,
+    ) -> None:
         import ray
 
         self._ray = ray
         actor = ray.remote(num_cpus=actor_cpus(ray, len(groups)))(_RayGroup)
-        self.actors = [actor.remote(env_cfg, seed, g) for g in groups]
+        self.actors = [actor.remote(env_cfg, seed, g, files, aliases) for g in groups]
 
     def submit(self, worker: int, method: str, *args: Any) -> Any:
         return getattr(self.actors[worker], method).remote(*args)
@@ -83,13 +117,21 @@ class RayHosts:
         kill_actors(self._ray, self.actors)
 
 
-def RayVecEnv(env_cfg: EnvConfig, n_envs: int, seed: int, envs_per_worker: int = 1) -> Any:
+def RayVecEnv(
+    env_cfg: EnvConfig,
+    n_envs: int,
+    seed: int,
+    envs_per_worker: int = 1,
+    files: Any = None,
+    aliases: dict[str, str] | None = None,
+) -> Any:
     """``n_envs`` docking envs in Ray actors (``envs_per_worker`` each) behind SB3's ``VecEnv``
-    (see the module docstring); env i is reset first with ``seed + i``."""
+    (see the module docstring); env i is reset first with ``seed + i``; ``files`` and
+    ``aliases`` as for :class:`_RayGroup` (``files`` an object-store reference)."""
     from uwdock.rl.grouped_vec_env import GroupedVecEnv  # SB3 at module level
 
     groups = env_groups(n_envs, envs_per_worker)
-    return GroupedVecEnv(RayHosts(env_cfg, seed, groups), groups)
+    return GroupedVecEnv(RayHosts(env_cfg, seed, groups, files, aliases), groups)
 
 
 class RayEnvWorkers:
@@ -106,11 +148,14 @@ class RayEnvWorkers:
     ) -> None:
         ray = import_ray(ray_address)
         start_ray(ray, len(env_groups(n_envs, envs_per_worker)), ray_address)
-        # the actors may start in another folder or on another node: the env's input files by
-        # absolute path, checked on every node before any actor starts
+        # the actors may start in another folder or on another node: the env's input files
+        # travel to them as content, once through the object store
+        given = env_input_files(env_cfg)
         env_cfg, inputs = absolute_inputs(env_cfg)
-        check_inputs_on_nodes(ray, inputs)
-        self.venv = RayVecEnv(env_cfg, n_envs, seed, envs_per_worker)
+        absolute = env_input_files(env_cfg)
+        aliases = {given[k]: absolute[k] for k in given if given[k] != absolute[k]}
+        files = ray.put(read_inputs(inputs)) if inputs else None
+        self.venv = RayVecEnv(env_cfg, n_envs, seed, envs_per_worker, files, aliases)
 
     def worker_errors(self) -> list[str]:
         return []

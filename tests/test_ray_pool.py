@@ -8,11 +8,13 @@ Ray runs in subprocesses: its instances stay out of the test process."""
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import os
 import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -690,3 +692,37 @@ def test_a_node_lost_with_no_room_left_ends_synth_with_one_line_and_a_rerun_comp
     reference = tmp_path / "reference"
     generate(reference, cfg, progress=False)
     assert dataset(out) == dataset(reference)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Share:
+    """An evaluation job's stand-in: its rows say which error model file it would open."""
+
+    env_cfg: Any
+
+    def rows(self, index: int) -> list[dict]:
+        return [{"error_model_path": self.env_cfg.error_model_path, "index": index}]
+
+
+def test_training_env_actors_read_their_inputs_from_the_content_sent(tmp_path) -> None:
+    """``rl train --backend ray``'s env actor (built here without Ray): the error model named at
+    a driver path that does not exist on its node comes as content; the env and the periodic
+    evaluation's share (whose config names the file as the driver's config did) read the copy."""
+    from uwdock.rl.config import EnvConfig
+    from uwdock.rl.ray_envs import _RayGroup
+
+    shipped = Path(__file__).resolve().parent.parent / "rl" / "models"
+    shipped = shipped / "error_model_clear_tank_480.json"
+    absent = str(tmp_path / "driver" / "em.json")  # the driver's path: not on this "node"
+    cfg = dataclasses.replace(
+        EnvConfig(), obs_source="error-model", error_model_path=absent, episode_s=1.0
+    )
+    group = _RayGroup(cfg, 3, [0], {absent: shipped.read_bytes()}, {"em.json": absent})
+    assert group.reset([3], [{}])[0][0].shape[0] > 0  # the env read the model
+    assert not Path(absent).exists()
+    copy = group._mapping[absent]
+    assert copy != absent and Path(copy).read_bytes() == shipped.read_bytes()
+    for named in ("em.json", absent):  # as the driver's config named it, relative or absolute
+        job = _Share(dataclasses.replace(cfg, error_model_path=named))
+        rows = group.env_method([0], "evaluate_share", (job,), {})
+        assert rows == [[{"error_model_path": copy, "index": 0}]]
