@@ -44,7 +44,7 @@ import numpy as np
 
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import TEMP_MARK, check_output_dir, temp_sibling
-from uwdock.rl.policy_format import npz_bytes, read_arrays
+from uwdock.rl.policy_format import normalisation_data, npz_bytes, read_arrays
 
 FORMAT = "uwdock.checkpoint"
 VERSION = 2
@@ -146,19 +146,8 @@ def training_files(model, vecnorm) -> dict[str, bytes]:
             arrays[f"last/{name}"] = np.asarray(value)
             meta["last"].append(name)
     if vecnorm is not None:
-        for name in ("obs_rms", "ret_rms"):
-            rms = getattr(vecnorm, name)
-            arrays[f"{name}/mean"] = np.asarray(rms.mean, dtype=np.float64)
-            arrays[f"{name}/var"] = np.asarray(rms.var, dtype=np.float64)
         meta["normalization"] = {
-            "norm_obs": bool(vecnorm.norm_obs),
-            "norm_reward": bool(vecnorm.norm_reward),
-            "clip_obs": float(vecnorm.clip_obs),
-            "clip_reward": float(vecnorm.clip_reward),
-            "gamma": float(vecnorm.gamma),
-            "epsilon": float(vecnorm.epsilon),
-            "obs_count": float(vecnorm.obs_rms.count),
-            "ret_count": float(vecnorm.ret_rms.count),
+            **normalisation_data(vecnorm, arrays),
             "training": bool(vecnorm.training),
         }
     buffer = getattr(model, "replay_buffer", None)

@@ -145,6 +145,24 @@ def _constructor(policy: Any) -> dict[str, Any]:
     return out
 
 
+def normalisation_data(vecnorm: Any, arrays: dict[str, np.ndarray]) -> dict[str, Any]:
+    """A ``VecNormalize``'s settings and counts (JSON), its statistics into ``arrays``."""
+    for name in ("obs_rms", "ret_rms"):
+        rms = getattr(vecnorm, name)
+        arrays[f"{name}/mean"] = np.asarray(rms.mean, dtype=np.float64)
+        arrays[f"{name}/var"] = np.asarray(rms.var, dtype=np.float64)
+    return {
+        "norm_obs": bool(vecnorm.norm_obs),
+        "norm_reward": bool(vecnorm.norm_reward),
+        "clip_obs": float(vecnorm.clip_obs),
+        "clip_reward": float(vecnorm.clip_reward),
+        "gamma": float(vecnorm.gamma),
+        "epsilon": float(vecnorm.epsilon),
+        "obs_count": float(vecnorm.obs_rms.count),
+        "ret_count": float(vecnorm.ret_rms.count),
+    }
+
+
 def policy_files(model: Any, vecnorm: Any | None) -> dict[str, bytes]:
     """``model.json`` and ``weights.npz`` of an SB3 model (PPO or SAC, or a
     :class:`LoadedPolicy`) and its normalisation (a ``VecNormalize`` or None): name -> bytes,
@@ -176,20 +194,7 @@ def policy_files(model: Any, vecnorm: Any | None) -> dict[str, bytes]:
         "normalization": None,
     }
     if vecnorm is not None:
-        arrays["obs_rms/mean"] = np.asarray(vecnorm.obs_rms.mean, dtype=np.float64)
-        arrays["obs_rms/var"] = np.asarray(vecnorm.obs_rms.var, dtype=np.float64)
-        arrays["ret_rms/mean"] = np.asarray(vecnorm.ret_rms.mean, dtype=np.float64)
-        arrays["ret_rms/var"] = np.asarray(vecnorm.ret_rms.var, dtype=np.float64)
-        meta["normalization"] = {
-            "norm_obs": bool(vecnorm.norm_obs),
-            "norm_reward": bool(vecnorm.norm_reward),
-            "clip_obs": float(vecnorm.clip_obs),
-            "clip_reward": float(vecnorm.clip_reward),
-            "gamma": float(vecnorm.gamma),
-            "epsilon": float(vecnorm.epsilon),
-            "obs_count": float(vecnorm.obs_rms.count),
-            "ret_count": float(vecnorm.ret_rms.count),
-        }
+        meta["normalization"] = normalisation_data(vecnorm, arrays)
     weights = npz_bytes(arrays)
     meta["weights_sha256"] = hashlib.sha256(weights).hexdigest()
     text = json.dumps(meta, indent=2, sort_keys=True, allow_nan=False) + "\n"
