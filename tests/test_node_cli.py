@@ -5,6 +5,8 @@ a folder, a domain id out of range, a malformed camera outage."""
 
 from __future__ import annotations
 
+import os
+import stat
 import subprocess
 import sys
 from pathlib import Path
@@ -32,7 +34,7 @@ def _run(*args: str, cwd: Path) -> subprocess.CompletedProcess:
         (["rl", "node", "--config", "bad_qos.toml"], "qos.image.depth: must be an integer"),
         (["rl", "node", "--config", "bad_topic.toml"], "odometry: must be an absolute ROS"),
         (["rl", "node", "--config", "bad_rate.toml"], "trained at 5 Hz"),
-        (["rl", "node", "--record", "/dev/null"], "character device"),
+        (["rl", "node", "--record", "null.mcap"], "character device"),
         (["rl", "node", "--domain-id", "300"], "--domain-id"),
         (["rl", "node", "--duration-s", "nan"], "--duration-s"),
         (["sim", "vehicle", "--camera-outage-s", "5:2"], "START < END"),
@@ -45,6 +47,7 @@ def test_bad_input_is_one_line(tmp_path, args, message):
     (tmp_path / "bad_qos.toml").write_text("[node.qos.image]\ndepth = 0\n")
     (tmp_path / "bad_topic.toml").write_text('[node.topics]\nodometry = "no slash"\n')
     (tmp_path / "bad_rate.toml").write_text("[node]\ncontrol_hz = 10.0\n")
+    os.mknod(tmp_path / "null.mcap", stat.S_IFCHR | 0o666, os.makedev(1, 3))  # a /dev/null
     res = _run(*args, cwd=tmp_path)
     assert res.returncode == 2, res.stderr
     assert res.stderr.count("\n") == 1 and res.stderr.startswith("error: "), res.stderr

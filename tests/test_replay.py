@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import stat
 import subprocess
 import sys
 from pathlib import Path
@@ -184,11 +185,14 @@ def test_record_refuses_special_files(tmp_path):
 
     with pytest.raises(DockError, match="folder"):
         McapRecorder(tmp_path)
+    null = tmp_path / "null.mcap"  # a character device of its own, as /dev/null is
+    os.mknod(null, stat.S_IFCHR | 0o666, os.makedev(1, 3))
     with pytest.raises(DockError, match="character device"):
-        McapRecorder(Path("/dev/null"))
+        McapRecorder(null)
     with pytest.raises(DockError, match=r"\.mcap"):
         McapRecorder(tmp_path / "x.bag")
     rec = McapRecorder(tmp_path / "r.mcap")
     rec.write("/clock", "rosgraph_msgs/msg/Clock", rm.clock_msg(5), 5)
     rec.discard()  # an interrupted recording leaves nothing
-    assert list(tmp_path.iterdir()) == []
+    assert list(tmp_path.iterdir()) == [null]  # nothing else, the device left as it was
+    assert stat.S_ISCHR(null.lstat().st_mode)
