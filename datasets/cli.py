@@ -37,6 +37,7 @@ from uwdock.dockcore.options import (
 )
 from uwdock.dockcore.outdir import claim_output_dir
 from uwdock.dockcore.provenance import write_provenance
+from uwdock.dockcore.supervise import clean_after_kill, supervise
 from uwdock.markers.markerset import load_marker_set
 from uwdock.perception.video import open_frames
 from uwdock.sim.docking_station import DockingStationConfig, resolve_marker_set
@@ -124,6 +125,7 @@ def synth(
     Writes images/, labels.jsonl (T_cam_ds, marker corners and visibility, water per frame),
     camera.yaml/.json, markerset.toml, dataset.json, config.toml and provenance.json.
     """
+    supervise(clean_after_kill(out_dir))  # frames rendered in this process stop in time too
     cfg = load_config(
         SynthConfig,
         config_path,

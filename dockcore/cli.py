@@ -33,6 +33,7 @@ from typing import Any
 import click
 
 from uwdock.dockcore.domains import check, describe, domain_of, split_annotated
+from uwdock.dockcore.early_signals import HELD, holding
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.names import display_name
 
@@ -144,14 +145,31 @@ def _in_import_machinery(frame: Any) -> bool:
     return frame is not None and frame.f_code.co_filename.startswith("<frozen importlib")
 
 
+#: whether a signal after the first is only recorded (a supervised child: dockcore.supervise)
+_repeats_ignored: list[bool] = []
+#: whether an interrupt has been raised (and not lost where Python could not propagate it)
+_raised: list[bool] = []
+
+
+def ignore_repeated_signals() -> None:
+    """From now on a SIGINT/SIGTERM after the first is recorded, not raised: a supervised
+    child (:mod:`dockcore.supervise`) gets a terminal's Ctrl-C twice (from the terminal and
+    from its parent), and its cleanup must not be interrupted by the copy; the parent kills
+    it if it does not end in time."""
+    _repeats_ignored[:] = [True]
+
+
 def _interrupt(signum: int, frame: Any, exc: type[BaseException]) -> None:
     # recorded first, also when the raise is put off: an error that surfaces before the signal
     # is delivered again (the C extension whose import it broke) is then still reported as the
     # interrupt, not as a bug
     _received.append(signum)
+    if _repeats_ignored and _raised:
+        return
     if _in_import_machinery(frame):
         _redeliver(signum)
         return
+    _raised[:] = [True]
     raise exc()
 
 
@@ -177,6 +195,7 @@ def _interrupt_unraisable(unraisable: Any) -> None:
     Everything else goes to the hook that was there before."""
     exc = unraisable.exc_value
     if isinstance(exc, KeyboardInterrupt) and _received:
+        _raised.clear()  # lost: the next delivery raises again
         _redeliver(_received[-1])
         return
     _previous_unraisable(unraisable)
@@ -223,6 +242,17 @@ def _oserror_line(exc: OSError) -> str:
     return f"{name}: {reason}" if name else reason
 
 
+#: set while :func:`run_group` runs a command as its process's program (a console script,
+#: given no ``args``): what :mod:`dockcore.supervise` may fork
+_program_command: list[bool] = []
+
+
+def runs_program_command() -> bool:
+    """Whether a command is running as this process's program (not a library caller's or a
+    test's in-process call)."""
+    return bool(_program_command)
+
+
 def _is_process_entry() -> bool:
     """Whether this process runs the command as its program (a console script, ``python -m``):
     its ``__main__`` is the file ``argv[0]`` names. In-process callers (tests) are not."""
@@ -250,6 +280,7 @@ def run_group(group: click.Group, args: list[str] | None = None) -> None:
     global _previous_unraisable
     previous = previous_int = None
     _received.clear()
+    _raised.clear()
     _installed.clear()
     hook = sys.unraisablehook
     if hook is not _interrupt_unraisable:
@@ -258,7 +289,7 @@ def run_group(group: click.Group, args: list[str] | None = None) -> None:
     try:
         previous = signal.signal(signal.SIGTERM, _on_sigterm)
         _installed[signal.SIGTERM] = _on_sigterm
-        if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # not ignored
+        if signal.getsignal(signal.SIGINT) is signal.default_int_handler or holding(signal.SIGINT):
             previous_int = signal.signal(signal.SIGINT, _on_sigint)
             _installed[signal.SIGINT] = _on_sigint
     except ValueError:  # not the main thread (embedded use): leave the signals alone
@@ -266,9 +297,11 @@ def run_group(group: click.Group, args: list[str] | None = None) -> None:
         _installed.clear()
     argv = list(sys.argv[1:] if args is None else args)
     _print_names_as_given()
+    _program_command[:] = [True] if args is None and _is_process_entry() else []
     try:
         code = _invoke(group, argv)
     finally:
+        _program_command.clear()
         # A program whose command has finished only has the interpreter's shutdown left
         # (joining workers, atexit): a signal landing there would end it by an unhandled
         # KeyboardInterrupt (exit -2, no message) instead of the status the command chose, so
@@ -313,6 +346,10 @@ def _invoke(group: click.Group, argv: list[str]) -> int:
     """Run the command; its exit status, with the one line for an error written (module
     docstring). ``UWDOCK_DEBUG=1`` adds the traceback of a bug, or of where a SIGTERM landed."""
     try:
+        if HELD:  # a signal that landed before the handlers were in place (early_signals)
+            _received.append(HELD[-1])
+            _raised[:] = [True]
+            raise _Interrupted() if HELD[-1] == signal.SIGTERM else KeyboardInterrupt()
         # click's main() without its standalone handling (which prints a blank line on an
         # interrupt): make the context, invoke, and let every exception come here
         with group.make_context(Path(sys.argv[0]).name or group.name, argv) as ctx:

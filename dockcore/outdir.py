@@ -73,6 +73,16 @@ def folder_owner(path: str | os.PathLike[str]) -> str | None:
     return None
 
 
+def claimed_by(path: str | os.PathLike[str]) -> int | None:
+    """The process id in the claim :func:`claim_output_dir` wrote into ``path``, or None."""
+    try:
+        owner = json.loads((Path(path) / OWNER_FILE).read_text(encoding="utf-8"))
+        pid = owner.get("pid") if isinstance(owner, dict) else None
+    except (OSError, ValueError):
+        return None
+    return pid if isinstance(pid, int) and not isinstance(pid, bool) else None
+
+
 def _holder(path: Path) -> str:
     try:
         owner = json.loads((path / OWNER_FILE).read_text(encoding="utf-8"))

@@ -696,19 +696,24 @@ def read_inputs(paths: Iterable[str | os.PathLike[str]]) -> dict[str, bytes]:
 INPUTS_DIR_PREFIX = "uwdock-ray-inputs-"
 
 
-def materialize_inputs(files: dict[str, bytes]) -> Path:
+def materialize_inputs(files: dict[str, bytes], base: str | os.PathLike[str] | None = None) -> Path:
     """On a worker: ``files`` (absolute path -> bytes, :func:`read_inputs`) written under a
-    folder of this node's temp dir at their own absolute paths (``ROOT/abs/path``), so files
-    that name each other relatively (a marker set and its meshes, a policy and its run
-    config) still do. The folder is named by the content and written once (atomically)."""
+    folder of this node's temp dir (or of ``base``) at their own absolute paths
+    (``ROOT/abs/path``), so files that name each other relatively (a marker set and its meshes,
+    a policy and its run config) still do. The folder is named by the content and written once
+    (atomically); returns it."""
     h = hashlib.sha256()
     for path in sorted(files):
         h.update(path.encode("utf-8", "surrogateescape") + b"\0")
         h.update(hashlib.sha256(files[path]).digest())
-    base = Path(tempfile.gettempdir()) / f"{INPUTS_DIR_PREFIX}{os.getuid()}"
-    base.mkdir(mode=0o700, exist_ok=True)
-    if base.stat().st_uid != os.getuid():  # another user's folder: one of our own
-        base = Path(tempfile.mkdtemp(prefix=INPUTS_DIR_PREFIX))
+    if base is not None:
+        base = Path(base)
+        base.mkdir(parents=True, exist_ok=True)
+    else:
+        base = Path(tempfile.gettempdir()) / f"{INPUTS_DIR_PREFIX}{os.getuid()}"
+        base.mkdir(mode=0o700, exist_ok=True)
+        if base.stat().st_uid != os.getuid():  # another user's folder: one of our own
+            base = Path(tempfile.mkdtemp(prefix=INPUTS_DIR_PREFIX))
     root = base / h.hexdigest()[:24]
     if root.is_dir():
         return root

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 from typing import Annotated, get_args
 
@@ -35,11 +36,12 @@ from uwdock.dockcore.options import (
 )
 from uwdock.dockcore.outdir import claim_output_dir
 from uwdock.dockcore.provenance import write_provenance
+from uwdock.dockcore.supervise import clean_after_kill, supervise
 from uwdock.rl.baselines import PIDController
 from uwdock.rl.config import EnvConfig, ObsSourceName, check_env_files
 from uwdock.rl.env import DockingEnv
 from uwdock.rl.env_settings import command_env, policy_training_env
-from uwdock.rl.episode import EpisodeVideoConfig, record_episode
+from uwdock.rl.episode import EpisodeVideoConfig, mark_killed, record_episode
 from uwdock.rl.error_model import ErrorModelConfig, fit_error_model, save_error_model
 from uwdock.rl.export import export_onnx
 from uwdock.rl.policy_convert import convert_policy
@@ -64,6 +66,8 @@ _VIDEO = "uwdock.rl.episode:EpisodeVideoConfig"
 #: ``rl episode``'s values of EnvConfig fields that neither a flag nor ``--config`` sets (the
 #: camera's render width is the env's own, ``WorldConfig.camera_width_px``).
 _EPISODE_DEFAULTS = {"episode_s": 30.0, "world": {"water_preset": "coastal"}}
+#: a previous episode's files that an interrupted one removes with its video
+_EPISODE_OLD = ("provenance.json", "config.toml")
 #: ``rl eval``'s values of EnvConfig fields that neither a flag, ``--config`` nor the policy's
 #: training env sets: the camera in the loop, both success rates on the same episodes.
 _EVAL_DEFAULTS = {"terminate_on": "strict", "obs_source": "camera"}
@@ -181,6 +185,7 @@ def train(
     Killed at any moment, `--resume` goes on from the newest complete checkpoint and gives the
     same checkpoints, evaluation history and best/ as a run never stopped.
     """
+    supervise(clean_after_kill(out_dir))  # an env rendering in this process stops in time too
     env_over = {
         "obs_source": obs,
         "error_model_path": str(error_model) if error_model else None,
@@ -270,7 +275,8 @@ def sweep(
     folder that resumes from its own checkpoints.
 
     Run again with the same arguments after an interruption, the sweep goes on where it
-    stopped: finished trials are kept, the others resume.
+    stopped: finished trials are kept, the others resume. The trials' input files are copied
+    into the sweep folder (OUT/inputs), which every Ray node must mount.
     """
     try:
         seed_list = tuple(int(s, 10) for s in seeds.split(",") if s.strip())
@@ -395,6 +401,7 @@ def eval_cmd(
     vehicle, ...; `--env-from` another policy's, e.g. for the PID), then the --config file, then
     the flags; one line names the settings used and where each came from.
     """
+    supervise(clean_after_kill(out_dir))  # an env rendering in this process stops in time too
     flags = {
         "obs_source": obs,
         "error_model_path": str(error_model) if error_model else None,
@@ -564,6 +571,9 @@ def episode(
     termination, ...); the --config file and the flags override it. One line names the settings
     used and where each came from.
     """
+    # the first frame's shaders compile for seconds inside SAPIEN, deaf to signals: run in a
+    # child this process can stop in time, and mark the folder as the child would
+    supervise(functools.partial(mark_killed, out_dir, outputs=("episode.mp4", *_EPISODE_OLD)))
     film_water = water_choice(water, allow_random=False) if water else None
     world = {"camera_width_px": width_px} if width_px is not None else {}
     if film_water not in (None, "none"):
@@ -601,7 +611,7 @@ def episode(
                     # an interrupt writes it as {"complete": false, "interrupted": ...}
                     # and removes a previous run's video and provenance
                     summary_name="summary.json",
-                    previous_outputs=("provenance.json", "config.toml"),
+                    previous_outputs=_EPISODE_OLD,
                 )
             summary["controller"] = controller
             atomic_write_json(out / "summary.json", summary)

@@ -42,8 +42,9 @@ from uwdock.dockcore.cli import interrupt_name
 from uwdock.dockcore.config import check_fields, validated
 from uwdock.dockcore.domains import Interval
 from uwdock.dockcore.errors import DockError
-from uwdock.dockcore.io import atomic_write_json
+from uwdock.dockcore.io import atomic_write_json, clean_stale_temps
 from uwdock.dockcore.media import AtomicVideoWriter
+from uwdock.dockcore.outdir import claimed_by
 from uwdock.sim.camera import SimCamera
 from uwdock.sim.domains import RGB
 from uwdock.sim.render import CameraRig, RenderConfig
@@ -358,6 +359,38 @@ def _write_interrupted(
     }
     try:
         atomic_write_json(path, summary)
+    except OSError:  # a full disk: the run still ends as interrupted, without the mark
+        pass
+
+
+def mark_killed(
+    out_dir: str | os.PathLike[str],
+    signal_name: str,
+    pid: int,
+    summary_name: str = "summary.json",
+    outputs: tuple[str, ...] = ("episode.mp4",),
+) -> None:
+    """What :func:`record_episode` leaves on an interrupt, written for it by the process that
+    supervised a run it had to kill (``dockcore.supervise``: the renderer held the interpreter
+    past the grace time): the temporary files of the killed run and ``outputs`` of a previous
+    run removed, ``summary_name`` saying the run was interrupted (how far it got unknown).
+    Nothing is touched in a folder that the killed process ``pid`` had not claimed (it was
+    killed before it got there)."""
+    out = Path(out_dir)
+    if claimed_by(out) != pid:
+        return
+    clean_stale_temps(out, recursive=False)
+    for name in outputs:
+        (out / name).unlink(missing_ok=True)
+    summary = {
+        "complete": False,
+        "interrupted": signal_name,
+        "video": None,
+        "steps": None,
+        "killed": "did not stop within the grace time after the signal (renderer busy)",
+    }
+    try:
+        atomic_write_json(out / summary_name, summary)
     except OSError:  # a full disk: the run still ends as interrupted, without the mark
         pass
 

@@ -43,8 +43,12 @@ from uwdock.dockcore.io import atomic_write_json, atomic_write_text
 from uwdock.dockcore.pool import (
     PoolConfig,
     check_inputs_on_nodes,
+    input_mapping,
     loopback_local_ray,
+    materialize_inputs,
     preflight,
+    read_inputs,
+    relocate,
     start_ray,
 )
 from uwdock.rl.config import absolute_inputs, check_env_files, with_absolute_inputs
@@ -357,12 +361,14 @@ def run_sweep(
     reserve = {
         t.name: trial_resources(t.config, cfg.cpus_per_trial, cfg.gpus_per_trial) for t in trials
     }
-    _start_cluster(ray, reserve, inputs, ray_address)
+    _start_cluster(ray, reserve, ray_address)
     out = Path(out_dir)
     created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
     _check_shared(ray, out, created)
-    plan = _write_plan(out, trials, reserve, cfg, grid)
+    named = trials
+    trials = _share_inputs(out, trials, inputs)
+    plan = _write_plan(out, trials, reserve, cfg, grid, named)
     tuner = _tuner(tune, plan, reserve, cfg, out)
     note(f"{len(trials)} trials into {out}")
     results = tuner.fit()
@@ -378,8 +384,8 @@ def run_sweep(
 
 def _with_absolute_inputs(trials: list[Trial]) -> tuple[list[Trial], set[str]]:
     """The trials with their env's input files checked and named by absolute path, and those
-    files (read here: a missing or broken one is one line before anything starts; by absolute
-    path a trial finds them from its own folder; checked on every node once Ray is up)."""
+    files (read here: a missing or broken one is one line before anything starts; copied into
+    the sweep folder once Ray is up, :func:`_share_inputs`)."""
     inputs: set[str] = set()
     for i, t in enumerate(trials):
         check_env_files(t.config.env)
@@ -401,17 +407,27 @@ def _import_ray_tune() -> tuple[Any, Any]:
     return ray, tune
 
 
-def _start_cluster(
-    ray: Any, reserve: dict[str, TrialResources], inputs: set[str], ray_address: str | None
-) -> None:
-    """Start or join Ray; refuse a trial its nodes can never place, or inputs a node lacks."""
+def _share_inputs(out: Path, trials: list[Trial], inputs: set[str]) -> list[Trial]:
+    """The trials' input files copied once into ``out/inputs/<content>/`` (storage every node
+    mounts, :func:`_check_shared`) at their own absolute paths below it, and the trials'
+    configs pointed at the copies: a node never needs the driver's files, and the sweep folder
+    holds what its runs read. Other content at the same paths is another folder (the plan then
+    differs: another sweep)."""
+    if not inputs:
+        return trials
+    files = read_inputs(inputs)
+    mapping = input_mapping(files, materialize_inputs(files, out / "inputs"))
+    return [dataclasses.replace(t, config=relocate(t.config, mapping)) for t in trials]
+
+
+def _start_cluster(ray: Any, reserve: dict[str, TrialResources], ray_address: str | None) -> None:
+    """Start or join Ray; refuse a trial its nodes can never place."""
     # a local instance holds the largest trial whatever the machine (it then runs alone)
     local_cpus = max(max(math.ceil(r.cpus) for r in reserve.values()), os.cpu_count() or 1)
     start_ray(ray, local_cpus, ray_address)
     nodes = [n.get("Resources", {}) for n in ray.nodes() if n.get("Alive")]
     for name, r in reserve.items():
         check_fits(r, nodes, name)
-    check_inputs_on_nodes(ray, sorted(inputs))
 
 
 def _write_plan(
@@ -420,9 +436,12 @@ def _write_plan(
     reserve: dict[str, TrialResources],
     cfg: SweepConfig,
     grid: Mapping[str, Sequence[Any]],
+    named: list[Trial] | None = None,
 ) -> dict[str, dict[str, Any]]:
     """``sweep.json`` (refused when ``out`` holds another sweep's); returns the plan: trial ->
-    its config, run folder, seed, changes and resources."""
+    its config, run folder, seed, changes and resources. ``named``: the same trials with their
+    inputs at the paths the user gave (a sweep.json written before the inputs were copied into
+    the sweep folder names those; its trials are the same)."""
     plan = {
         t.name: {"config": to_dict(t.config), "run_dir": str((out / t.name).resolve()),
                  "seed": t.seed, "changes": t.changes}
@@ -439,7 +458,8 @@ def _write_plan(
         # a sweep.json written before [env.world]: its configs in the current layout
         before = {k: lift_moved_keys(TrainConfig, v["config"]) for k, v in before.items()}
         before = {k: _absolute(v) for k, v in before.items()}  # ... and relative input paths
-        if before != {k: v["config"] for k, v in plan.items()}:
+        given = {t.name: to_dict(t.config) for t in (named or trials)}
+        if before not in ({k: v["config"] for k, v in plan.items()}, given):
             raise DockError(
                 f"{out} holds another sweep (other trials or configs): use another --out"
             )

@@ -191,6 +191,33 @@ def test_rl_episode_interrupted_in_a_previous_runs_folder(tmp_path):
     assert sorted(p.name for p in out.iterdir() if not p.name.startswith(".")) == ["summary.json"]
 
 
+@pytest.mark.render
+def test_rl_episode_interrupted_while_its_renderer_holds_the_interpreter(tmp_path):
+    """SIGTERM half a second after the folder is claimed: the first frame's shader compile
+    (about 5 s inside SAPIEN, with the interpreter held) is under way. Before, the command
+    stopped when the compile ended (up to 4.5 s); now its supervisor (dockcore.supervise)
+    stops it within 3 s and marks the folder as the command would."""
+    script = Path(sys.executable).with_name("rl")  # the console script: a program, as a user's
+    if not script.exists():
+        pytest.skip("the rl console script is not installed next to this Python")
+    out = tmp_path / "ep"
+    _previous_episode(out)
+    proc = subprocess.Popen(
+        [script, "episode", "--out", out, "--seconds", "30", "--width", "160",
+         "--outside-width", "160", "--quiet"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    _wait_for(lambda: _owner_pid(out) not in (None, 1), 120, "the claim", proc)
+    assert _owner_pid(out) != proc.pid  # the episode runs in the supervised child
+    time.sleep(0.5)
+    took, err, left = _signal_and_time(proc, signal.SIGTERM)
+    _assert_stopped(proc, signal.SIGTERM, took, err, left)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["complete"] is False and summary["interrupted"] == "SIGTERM"
+    assert sorted(p.name for p in out.iterdir() if not p.name.startswith(".")) == ["summary.json"]
+    assert not [p.name for p in out.iterdir() if ".uwtmp" in p.name]
+
+
 # ----------------------------------------------------------------------------- TensorBoard
 
 TB_RUN = """\

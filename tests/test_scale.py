@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -14,6 +15,7 @@ import time
 from pathlib import Path
 
 import pytest
+import tomllib
 
 from uwdock.dockcore.config import replace
 from uwdock.dockcore.errors import DockError
@@ -22,7 +24,7 @@ from uwdock.dockcore.pool import PoolConfig, actor_death, worker_pool
 ray = pytest.importorskip("ray")
 psutil = pytest.importorskip("psutil")
 
-from tests.hostile_runs import SMALL_RUN, run_digest  # noqa: E402
+from tests.hostile_runs import ROOT, SMALL_RUN, run_digest  # noqa: E402
 from uwdock import cli as uwdock_cli  # noqa: E402 - after the skips
 from uwdock.datasets.synth import SynthConfig, generate  # noqa: E402
 from uwdock.rl.config import EnvConfig  # noqa: E402
@@ -359,6 +361,37 @@ def test_a_sweep_runs_each_trial_as_its_own_resumable_run(tmp_path, run_cli):
     res = run_cli(uwdock_cli.rl, *args)
     assert res.code == 0, res.err[-2000:]
     assert stamps and {p: p.stat().st_mtime_ns for p in out.rglob("weights.npz")} == stamps
+
+
+@pytest.mark.slow  # 15 s
+def test_a_sweeps_input_files_travel_in_its_folder(tmp_path, run_cli):
+    """Issue 54: the trials' input files (an error model here) are copied once into the sweep
+    folder, which every node mounts, and the trials read them there: no node needs the
+    driver's paths. The copy is the file's content; the run folders name only the copy."""
+    model = tmp_path / "elsewhere" / "model.json"
+    model.parent.mkdir()
+    shutil.copy(ROOT / "rl/models/error_model_clear_tank_480.json", model)
+    base = tmp_path / "base.toml"
+    base.write_text(SWEEP.replace("[env]\n", f'[env]\nobs_source = "error-model"\n'
+                                  f'error_model_path = "{model}"\n'))  # fmt: skip
+    out = tmp_path / "sweep"
+    args = ["sweep", "--config", base, "--seeds", "0", "--out", out]
+    res = run_cli(uwdock_cli.rl, *args)
+    assert res.code == 0, res.err[-2000:]
+    run_cfg = tomllib.loads((out / "seed0" / "config.toml").read_text())
+    used = Path(run_cfg["train"]["env"]["error_model_path"])
+    assert used.is_relative_to(out / "inputs") and used.name == "model.json"
+    assert used.read_bytes() == model.read_bytes()
+    assert f'"{model}"' not in (out / "sweep.json").read_text()  # only the copy is named
+    # run again: the same plan (the same copy), nothing trained twice
+    stamps = {p: p.stat().st_mtime_ns for p in out.rglob("weights.npz")}
+    res = run_cli(uwdock_cli.rl, *args)
+    assert res.code == 0, res.err[-2000:]
+    assert stamps and {p: p.stat().st_mtime_ns for p in out.rglob("weights.npz")} == stamps
+    # other content at the same path is another sweep
+    model.write_text(model.read_text() + "\n")
+    res = run_cli(uwdock_cli.rl, *args)
+    assert res.code == 2 and "another sweep" in res.err
 
 
 def test_an_unreachable_or_malformed_ray_address_is_refused_before_anything_is_written(

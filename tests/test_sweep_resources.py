@@ -184,11 +184,9 @@ def test_a_batched_trial_runs_through_the_sweep_as_plain_rl_train(tmp_path) -> N
     """A batched-simulator trial (before: refused, "use --backend local") with 2 CPUs: its
     batch over 2 processes, and its run folder equal to ``rl train`` in one process. The
     error model is named by a relative path (before: "not found" in the trial's own folder);
-    the trial's config records it absolute, as the direct run is given it."""
+    the trial's config records the sweep folder's copy of it, as the direct run is given it."""
     cfg = tmp_path / "base.toml"
     cfg.write_text(BATCHED)
-    absolute = tmp_path / "absolute.toml"
-    absolute.write_text(BATCHED.replace(MODEL, str(Path(MODEL).resolve())))
     out = tmp_path / "sweep"
     res = subprocess.run(
         _rl("sweep", "--config", cfg, "--seeds", "3", "--cpus-per-trial", 2, "--out", out),
@@ -198,6 +196,11 @@ def test_a_batched_trial_runs_through_the_sweep_as_plain_rl_train(tmp_path) -> N
     plan = json.loads((out / "sweep.json").read_text())
     assert plan["resources"]["seed3"]["batch_workers"] == 2
     assert plan["resources"]["seed3"]["bundles"] == [{"CPU": 2.0}]
+    copy = plan["trials"]["seed3"]["config"]["env"]["error_model_path"]
+    assert Path(copy).is_relative_to(out / "inputs")
+    assert Path(copy).read_bytes() == Path(MODEL).read_bytes()
+    absolute = tmp_path / "absolute.toml"
+    absolute.write_text(BATCHED.replace(MODEL, copy))
     direct = tmp_path / "direct"
     res = subprocess.run(
         _rl("train", "--config", absolute, "--seed", 3, "--out", direct),

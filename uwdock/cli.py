@@ -5,11 +5,15 @@ run without the simulator or the learning stack installed."""
 
 from __future__ import annotations
 
-import importlib
+from uwdock.dockcore import early_signals
 
-import click
+early_signals.hold()  # first: a signal landing while click loads is held, not fatal
 
-from uwdock.dockcore.cli import CONTEXT, run_group
+import importlib  # noqa: E402
+
+import click  # noqa: E402
+
+from uwdock.dockcore.cli import CONTEXT, run_group  # noqa: E402
 
 #: command group -> the extra that installs what its commands need (None: the base install)
 EXTRAS: dict[str, str | None] = {

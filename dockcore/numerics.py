@@ -1,0 +1,91 @@
+"""Pinned numerics: one training seed, the same weights on any x86-64 CPU.
+
+NumPy, torch (MKL's matrix products, ATen's vector kernels) and numba pick their kernels by the
+CPU they run on, and kernels of different vector widths round differently: the same seed and
+config trained on two CPU kinds part after ~100k steps (``bench/bench_numerics.py``,
+docs/results/docking.md). A *pinned* process holds each library to kernels every x86-64 CPU
+runs the same way:
+
+==============================  ==========================================================
+``NPY_DISABLE_CPU_FEATURES``    NumPy's dispatched SIMD targets off: its baseline loops
+                                (x86-64-v2) only
+``MKL_CBWR=COMPATIBLE``         MKL's CPU-independent code path (conditional numerical
+                                reproducibility)
+``ATEN_CPU_CAPABILITY=default`` torch's ATen without its AVX2/AVX-512 kernels
+``NUMBA_CPU_NAME=generic``      numba compiles for a generic x86-64 CPU, not this one
+``*_NUM_THREADS=1``             no reduction split over a CPU-dependent thread count
+==============================  ==========================================================
+
+The variables are read when the libraries load, so a process pins itself by starting again
+with them (:func:`restart_pinned`, an ``exec`` before any work); worker processes inherit them
+and Ray actors are given them (:func:`pinned_env_vars`). Provenance records them
+(``dockcore.provenance.numerics_env``) with :data:`MARK`.
+
+What stays CPU-dependent: the C library's own ``exp``/``log`` (glibc picks an FMA variant on
+CPUs that have FMA, every x86-64 CPU since 2013/2017) and any library not listed here.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import sys
+from collections.abc import Mapping
+from typing import NoReturn
+
+#: The variable a pinned process carries (value ``"pinned"``), so it is not started again.
+MARK = "UWDOCK_NUMERICS"
+
+#: NumPy 2.x's dispatch targets on x86-64 above its x86-64-v2 baseline.
+_NUMPY_TARGETS = "X86_V3 X86_V4 AVX512_ICL AVX512_SPR"
+
+#: What a pinned process runs with (module docstring).
+PINNED: dict[str, str] = {
+    "NPY_DISABLE_CPU_FEATURES": _NUMPY_TARGETS,
+    "MKL_CBWR": "COMPATIBLE",
+    "ATEN_CPU_CAPABILITY": "default",
+    "NUMBA_CPU_NAME": "generic",
+    "OMP_NUM_THREADS": "1",
+    "MKL_NUM_THREADS": "1",
+    "OPENBLAS_NUM_THREADS": "1",
+    MARK: "pinned",
+}
+
+#: Variables that would pick kernels against the pin (NumPy refuses ENABLE with DISABLE).
+_UNSET = ("NPY_ENABLE_CPU_FEATURES", "MKL_ENABLE_INSTRUCTIONS", "NUMBA_CPU_FEATURES")
+
+
+def applies() -> bool:
+    """Whether pinning applies here: x86-64 (the names above are x86's)."""
+    return platform.machine().lower() in ("x86_64", "amd64")
+
+
+def pinned_env_vars() -> dict[str, str]:
+    """The variables a pinned worker needs (a Ray actor's ``runtime_env``); {} off x86-64."""
+    return dict(PINNED) if applies() else {}
+
+
+def pinned_environ(environ: Mapping[str, str] | None = None) -> dict[str, str]:
+    """``environ`` (default ``os.environ``) with the pin applied."""
+    env = dict(os.environ if environ is None else environ)
+    for key in _UNSET:
+        env.pop(key, None)
+    env.update(pinned_env_vars())
+    return env
+
+
+def is_pinned(environ: Mapping[str, str] | None = None) -> bool:
+    """Whether a process with ``environ`` runs pinned (off x86-64: always, nothing to pin)."""
+    env = os.environ if environ is None else environ
+    if not applies():
+        return True
+    return all(env.get(k) == v for k, v in PINNED.items()) and not any(k in env for k in _UNSET)
+
+
+def restart_pinned() -> NoReturn:
+    """Start this program again, pinned, in place of this process (``exec``: the same process
+    id, arguments, standard streams and working directory); returns only by an OSError."""
+    argv = list(getattr(sys, "orig_argv", None) or [sys.executable, *sys.argv])
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os.execve(sys.executable, [sys.executable, *argv[1:]], pinned_environ())
