@@ -17,7 +17,7 @@ runs the same way:
 ==============================  ==========================================================
 
 The variables are read when the libraries load, so a process pins itself by starting again
-with them (:func:`restart_pinned`, an ``exec`` before any work); worker processes inherit them
+with them (:func:`ensure`, an ``exec`` before any work); worker processes inherit them
 and Ray actors are given them (:func:`pinned_env_vars`). Provenance records them
 (``dockcore.provenance.numerics_env``) with :data:`MARK`.
 
@@ -82,10 +82,41 @@ def is_pinned(environ: Mapping[str, str] | None = None) -> bool:
     return all(env.get(k) == v for k, v in PINNED.items()) and not any(k in env for k in _UNSET)
 
 
-def restart_pinned() -> NoReturn:
-    """Start this program again, pinned, in place of this process (``exec``: the same process
-    id, arguments, standard streams and working directory); returns only by an OSError."""
+def native_environ(environ: Mapping[str, str] | None = None) -> dict[str, str]:
+    """``environ`` without the variables a pin set (those of a process that carries
+    :data:`MARK`; a user's own settings are kept in a process that does not)."""
+    env = dict(os.environ if environ is None else environ)
+    if env.get(MARK) == "pinned":
+        for key, value in PINNED.items():
+            if env.get(key) == value:
+                del env[key]
+    return env
+
+
+def ensure(mode: str) -> None:
+    """Make this process run with numerics ``mode`` (``"pinned"`` or ``"native"``): start it
+    again with the variables changed when they are not already so (before any work: the
+    libraries read them when they load). Off x86-64 nothing is pinned."""
+    if mode not in ("pinned", "native"):
+        raise ValueError(f"numerics mode {mode!r}: pinned or native")
+    if not applies():
+        return
+    if mode == "pinned" and not is_pinned():
+        _restart(pinned_environ())
+    if mode == "native" and os.environ.get(MARK) == "pinned":
+        _restart(native_environ())
+
+
+def recorded_mode(numerics: Mapping[str, object] | None) -> str:
+    """The mode a run was trained with, from its provenance's ``machine.numerics``: pinned
+    when it carries :data:`MARK`, else native (runs from before pinning included)."""
+    return (
+        "pinned" if isinstance(numerics, Mapping) and numerics.get(MARK) == "pinned" else "native"
+    )
+
+
+def _restart(environ: dict[str, str]) -> NoReturn:
     argv = list(getattr(sys, "orig_argv", None) or [sys.executable, *sys.argv])
     sys.stdout.flush()
     sys.stderr.flush()
-    os.execve(sys.executable, [sys.executable, *argv[1:]], pinned_environ())
+    os.execve(sys.executable, [sys.executable, *argv[1:]], environ)

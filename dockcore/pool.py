@@ -63,6 +63,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any
 
+from uwdock.dockcore import numerics
 from uwdock.dockcore.cli import reclaim_signals
 from uwdock.dockcore.domains import Interval
 from uwdock.dockcore.errors import DockError
@@ -543,6 +544,8 @@ def start_ray(ray: Any, cpus: int, address: str | None) -> None:
         "configure_logging": False,
     }
     loopback_local_ray(address)
+    if os.environ.get(numerics.MARK) == "pinned":  # the job's workers run pinned too
+        kwargs["runtime_env"] = {"env_vars": numerics.pinned_env_vars()}
     before = _descendants()
     try:
         # Ray's native client retries a wrong address once a second for ~20 s, each retry a

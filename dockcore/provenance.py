@@ -94,6 +94,7 @@ NUMERICS_ENV = (
     "OMP_NUM_THREADS",
     "MKL_NUM_THREADS",
     "OPENBLAS_NUM_THREADS",
+    "UWDOCK_NUMERICS",  # "pinned": dockcore.numerics
 )
 
 

@@ -22,8 +22,6 @@ Python threads run (a fork would copy their locks), or when ``UWDOCK_NO_SUPERVIS
 from __future__ import annotations
 
 import contextlib
-import ctypes
-import ctypes.util
 import os
 import signal
 import sys
@@ -34,6 +32,7 @@ from collections.abc import Callable
 from uwdock.dockcore import cli as _cli
 from uwdock.dockcore.io import clean_stale_temps
 from uwdock.dockcore.outdir import claimed_by
+from uwdock.dockcore.procs import die_with_parent
 
 #: Seconds the parent gives its child to end by itself after the first signal.
 GRACE_S = 2.0
@@ -66,23 +65,14 @@ def supervise(
         with contextlib.suppress(Exception):
             stream.flush()
     old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, _WATCHED)
+    parent = os.getpid()
     pid = os.fork()
     if pid == 0:
         signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)
-        _die_with_parent()
+        die_with_parent(parent)  # a supervisor killed with SIGKILL leaves no orphan
         _cli.ignore_repeated_signals()  # the parent passes on what it receives: once is enough
         return
     os._exit(_watch(pid, on_killed, grace_s))
-
-
-def _die_with_parent() -> None:
-    """The child gets SIGKILL when the parent dies (Linux ``PR_SET_PDEATHSIG``): a supervisor
-    killed with SIGKILL leaves no orphan."""
-    with contextlib.suppress(Exception):
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
-        libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
-        if os.getppid() == 1:  # the parent died before the call
-            os._exit(128 + signal.SIGKILL)
 
 
 def _watch(pid: int, on_killed: Callable[[str, int], None] | None, grace_s: float) -> int:

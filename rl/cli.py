@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import json
 from pathlib import Path
 from typing import Annotated, get_args
 
@@ -10,6 +11,7 @@ import click
 from tqdm import tqdm
 
 from uwdock.datasets.loaders import write_pose_track_csv
+from uwdock.dockcore import numerics
 from uwdock.dockcore.cli import domain_type, field_type, run_group
 from uwdock.dockcore.config import (
     config_data,
@@ -24,6 +26,7 @@ from uwdock.dockcore.domains import Count, Interval, Seed
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_write_json, check_output_path
 from uwdock.dockcore.library_notes import with_library_notes
+from uwdock.dockcore.numerics import recorded_mode
 from uwdock.dockcore.options import (
     backend_options,
     command_group,
@@ -46,6 +49,7 @@ from uwdock.rl.error_model import ErrorModelConfig, fit_error_model, save_error_
 from uwdock.rl.export import export_onnx
 from uwdock.rl.policy_convert import convert_policy
 from uwdock.rl.policy_io import policy_env_settings
+from uwdock.rl.recipe import recipe_names, run_recipe
 from uwdock.rl.report import evaluate_to_folder
 from uwdock.rl.sweep import SweepConfig, parse_grid, run_sweep
 from uwdock.rl.train import BatchWorkerCount, TrainConfig, run_config
@@ -107,6 +111,34 @@ ENV_FROM_OPTION = click.option(
     help="Take the env settings from this policy folder (policy.zip / run folder / .onnx) "
     "instead of --policy's, e.g. `--policy pid --env-from rl/policies/P` [--policy's].",
 )
+
+
+def _note(message: str) -> None:
+    click.echo(message, err=True)
+
+
+def pin_numerics(requested: str | None, out_dir: Path, may_resume: bool) -> None:
+    """Run this command with the numerics ``requested``, else those the run (or recipe) in
+    ``out_dir`` was trained with, else pinned (:mod:`dockcore.numerics`): this process starts
+    again with them when its variables differ, before any work."""
+    mode = requested
+    if mode is None and may_resume:
+        recorded = _recorded_numerics(Path(out_dir))
+        mode = recorded_mode(recorded) if recorded is not None else None
+    numerics.ensure(mode or "pinned")
+
+
+def _recorded_numerics(out: Path) -> dict | None:
+    """``machine.numerics`` of the run in ``out`` (or of a recipe's first run), or None
+    without a readable record."""
+    for prov in (out / "provenance.json", *sorted(out.glob("runs/*/provenance.json"))[:1]):
+        try:
+            data = json.loads(prov.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            continue
+        found = data.get("machine", {}).get("numerics") if isinstance(data, dict) else None
+        return found if isinstance(found, dict) else {}
+    return None
 
 
 @command_group()
@@ -174,18 +206,49 @@ def cli() -> None:
     help="With --resume: read checkpoints of an older version (SB3's zip and pickles, which "
     "run any code they hold); only for a run folder that is your own.",
 )
-@out_dir_option("Run folder.", required=True)
+@click.option(
+    "--recipe",
+    type=click.Choice(recipe_names()),
+    help="Train a shipped recipe, every stage from scratch, into --out (with --seed; a rerun "
+    "resumes it); the result is a policy folder `rl eval --policy OUT` takes.",
+)
+@click.option(
+    "--numerics",
+    type=click.Choice(["pinned", "native"]),
+    help="pinned: NumPy, MKL, ATen and numba held to kernels every x86-64 CPU runs alike, so "
+    "a seed gives the same weights on any CPU; native: this CPU's fastest [pinned for a new "
+    "run; a resumed run keeps its own].",
+)
+@out_dir_option("Run folder (with --recipe, the recipe's folder).", required=True)
 def train(
     config_path, obs, error_model, usbl, nav, water, algo, steps, envs, simulator, seed,
     init_policy, resume, allow_config_change, backend, ray_address, envs_per_worker,
-    batch_workers, trust_pickle, out_dir,
+    batch_workers, trust_pickle, recipe, numerics, out_dir,
 ) -> None:  # fmt: skip
-    """Train a docking policy (PPO with the paper's hyperparameters by default).
+    """Train a docking policy (PPO with the paper's hyperparameters by default), or a whole
+    recipe of stages (`--recipe shipped --seed N`).
 
     Killed at any moment, `--resume` goes on from the newest complete checkpoint and gives the
     same checkpoints, evaluation history and best/ as a run never stopped.
     """
+    if recipe is not None:
+        given = {"--config": config_path, "--obs": obs, "--error-model": error_model,
+                 "--usbl": usbl, "--nav": nav, "--water": water, "--algo": algo,
+                 "--steps": steps, "--envs": envs, "--simulator": simulator,
+                 "--init-policy": init_policy, "--allow-config-change": allow_config_change,
+                 "--trust-pickle": trust_pickle,
+                 "--envs-per-worker": envs_per_worker > 1}  # fmt: skip
+        clash = [k for k, v in given.items() if v]
+        if clash:
+            raise DockError(f"--recipe sets the configs of its stages: not with {', '.join(clash)}")
+    pin_numerics(numerics, out_dir, resume or recipe is not None)
     supervise(clean_after_kill(out_dir))  # an env rendering in this process stops in time too
+    if recipe is not None:
+        run_recipe(recipe, 0 if seed is None else seed, out_dir, note=_note,
+                   batch_workers=batch_workers if batch_workers != 1 else None,
+                   backend=backend, ray_address=ray_address)  # fmt: skip
+        click.echo(f"policy: {out_dir}")
+        return
     env_over = {
         "obs_source": obs,
         "error_model_path": str(error_model) if error_model else None,

@@ -20,6 +20,7 @@ and gives a run identical to an uninterrupted one (:mod:`rl.session`).
 from __future__ import annotations
 
 import datetime
+import hashlib
 import io
 import json
 import os
@@ -355,7 +356,11 @@ def train(
         changed = _check_config(cfg, run, allow_config_change) if resume else []
         if resume and _is_complete(run, cfg, note):
             return run
-        unit = _prepare_run(cfg, run, resume, changed, note, trust_pickle)
+        if resume and init is None and not list_units(run / "checkpoints"):
+            init = _recorded_init(run, cfg)  # killed before its first checkpoint
+        unit = _prepare_run(
+            cfg, run, resume, changed, note, trust_pickle, _init_record(init_policy)
+        )
         return _run(cfg, run, unit, init, progress, note, pool, envs_per_worker, batch_workers)
 
 
@@ -386,16 +391,39 @@ def _check_request(
     if resume and init_policy:
         raise DockError("--init-policy starts a new run; it cannot be combined with --resume")
     check_env_files(cfg.env)
-    init = None
-    if init_policy:
-        model, vn = load_policy(init_policy)  # refuses damaged or non-finite policies
-        env_dim = observation_size(cfg.env)
-        policy_dim = int(model.observation_space.shape[0])
-        index, why = _widening(init_policy, cfg.env) if policy_dim != env_dim else (None, "")
-        if index is None or index.size != policy_dim:
-            check_obs_dim(policy_dim, env_dim, init_policy, why)
-        init = (model, vn, index)
-    return pool, init
+    return pool, _load_init(init_policy, cfg) if init_policy else None
+
+
+def _load_init(init_policy: str, cfg: TrainConfig) -> tuple[Any, Any, Any]:
+    """The policy a run starts from: (model, normalisation, where its observation entries sit
+    in the run's when the run's widens it, else None)."""
+    model, vn = load_policy(init_policy)  # refuses damaged or non-finite policies
+    env_dim = observation_size(cfg.env)
+    policy_dim = int(model.observation_space.shape[0])
+    index, why = _widening(init_policy, cfg.env) if policy_dim != env_dim else (None, "")
+    if index is None or index.size != policy_dim:
+        check_obs_dim(policy_dim, env_dim, init_policy, why)
+    return model, vn, index
+
+
+def _recorded_init(run: Path, cfg: TrainConfig) -> tuple[Any, Any, Any] | None:
+    """For a run resumed before its first checkpoint: the policy it started from (its
+    provenance's ``init_policy``), checked to be the same files; None if it started from
+    scratch."""
+    try:
+        prov = json.loads((run / "provenance.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    record = prov.get("init_policy") if isinstance(prov, dict) else None
+    if not isinstance(record, dict) or not isinstance(record.get("path"), str):
+        return None
+    now = _init_record(record["path"]) or {}
+    if any(now.get(k) != v for k, v in record.items()):
+        raise DockError(
+            f"{run} started from the policy {record['path']}, which is gone or has changed "
+            "since: start the run again (another --out) with the --init-policy you mean"
+        )
+    return _load_init(record["path"], cfg)
 
 
 def _widening(init_policy: str, env: EnvConfig) -> tuple[Any, str]:
@@ -435,6 +463,24 @@ def _is_complete(run: Path, cfg: TrainConfig, note: Callable[[str], None]) -> bo
     return False
 
 
+def _init_record(init_policy: str | None) -> dict[str, str] | None:
+    """What a run started from (its provenance's ``init_policy``): the policy folder, absolute,
+    and the SHA-256 of its files."""
+    if not init_policy:
+        return None
+    p = Path(init_policy).expanduser().resolve()
+    folder = p if p.is_dir() else p.parent
+    record = {"path": str(folder)}
+    for name in ("model.json", "weights.npz"):
+        try:
+            record[f"{name.split('.')[0]}_sha256"] = hashlib.sha256(
+                (folder / name).read_bytes()
+            ).hexdigest()
+        except OSError:
+            pass
+    return record
+
+
 def _prepare_run(
     cfg: TrainConfig,
     run: Path,
@@ -442,9 +488,11 @@ def _prepare_run(
     changed: list[str],
     note: Callable[[str], None],
     trust_pickle: bool = False,
+    init: dict[str, str] | None = None,
 ) -> Unit | None:
     """The checkpoint unit to start from (None: the beginning), with the resume logged or the
-    provenance written, and ``DONE`` removed."""
+    provenance written (``init``: the policy it starts from, :func:`_init_record`), and
+    ``DONE`` removed."""
     ckpts = run / "checkpoints"
     unit = latest_unit(ckpts, note) if resume else None
     if unit is not None and "model.zip" in unit.files:
@@ -460,7 +508,7 @@ def _prepare_run(
     if resume:
         _log_resume(run, unit, changed, cfg)
     else:
-        write_provenance(run, {"train": cfg})
+        write_provenance(run, {"train": cfg}, extra={"init_policy": init} if init else None)
     (run / "DONE").unlink(missing_ok=True)
     _note_rollout_rounding(cfg, note)
     return unit

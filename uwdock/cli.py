@@ -131,7 +131,8 @@ COMMANDS: dict[str, tuple[str, dict[str, str]]] = {
             "summary.json and a plot.",
             "sweep": "Sweep whole training runs over seeds and config values with Ray Tune, each "
             "trial a run folder that resumes from its own checkpoints.",
-            "train": "Train a docking policy (PPO with the paper's hyperparameters by default).",
+            "train": "Train a docking policy (PPO with the paper's hyperparameters by default), "
+            "or a whole recipe of stages (`--recipe shipped --seed N`).",
             "trajectories": "Record the PID baseline's docking trajectories as a pose CSV with "
             "sequence, step and time columns (`datasets render --poses` renders them): frames "
             "consecutive in time, for fitting the error model's memory.",

@@ -1,0 +1,114 @@
+"""How long the one command takes: ``rl train --recipe NAME --seed N --out DIR``, from scratch.
+
+Usage::
+
+    python bench/bench_recipe_time.py [--recipe shipped] [--seed 0] [--repeats 1]
+        [--work DIR] [--keep] [--name recipe_time]
+
+Runs the command as a user would (the ``rl`` console script, a fresh process, a new folder),
+``--repeats`` times, each from scratch, and times it whole (wall clock, start-up, both stages,
+their periodic evaluations and checkpoints included) and per stage (from the stages' own run
+records: the first and last modification of each stage's run folder). The table gives each
+run, the median against the target (5 minutes on two idle cores, issue 53), and the policy's
+SHA-256 (the same seed on the same machine gives the same bytes). The runs' folders go to a
+temporary folder (``--work`` to keep them elsewhere, ``--keep`` not to remove them).
+
+Writes ``bench/results/<name>.json`` (rows, machine, commit, packages) via
+:func:`uwdock.dockcore.bench.save_results`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from uwdock.dockcore.bench import format_table, save_results
+
+TARGET_MIN = 5.0
+
+
+def _stage_walls(out: Path) -> dict[str, float]:
+    """Each stage's wall time (s): from its run folder's provenance (written first) to its
+    DONE file (written last)."""
+    walls = {}
+    for run in sorted((out / "runs").iterdir()):
+        first, last = run / "provenance.json", run / "DONE"
+        if first.is_file() and last.is_file():
+            walls[run.name] = last.stat().st_mtime - first.stat().st_mtime
+    return walls
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--recipe", default="shipped")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--repeats", type=int, default=1)
+    ap.add_argument("--work", type=Path, default=None, help="where the runs go [a temp folder]")
+    ap.add_argument("--keep", action="store_true", help="keep the runs' folders")
+    ap.add_argument("--name", default="recipe_time")
+    ap.add_argument("--out-dir", type=Path, default=None)
+    a = ap.parse_args()
+    if a.repeats < 1:
+        sys.exit("error: --repeats must be at least 1")
+    rl = Path(sys.executable).with_name("rl")
+    if not rl.exists():
+        sys.exit(f"error: no rl console script next to {sys.executable}: pip install -e .")
+    work = a.work or Path(tempfile.mkdtemp(prefix="bench_recipe_"))
+    rows = []
+    for k in range(a.repeats):
+        out = work / f"{a.recipe}_s{a.seed}_run{k}"
+        if out.exists():
+            sys.exit(f"error: {out} exists: give another --work (each run starts from scratch)")
+        cmd = [str(rl), "train", "--recipe", a.recipe, "--seed", str(a.seed), "--out", str(out)]
+        print(f"run {k + 1}/{a.repeats}: {' '.join(cmd)}", flush=True)
+        t0 = time.perf_counter()
+        res = subprocess.run(cmd)
+        wall_s = time.perf_counter() - t0
+        if res.returncode != 0:
+            sys.exit(f"error: the command failed (exit {res.returncode})")
+        weights = hashlib.sha256((out / "weights.npz").read_bytes()).hexdigest()
+        prov = json.loads((out / "runs" / "stage1" / "provenance.json").read_text())
+        rows.append(
+            {
+                "run": k,
+                "wall_min": wall_s / 60.0,
+                **{f"{s}_min": w / 60.0 for s, w in _stage_walls(out).items()},
+                "weights_sha256": weights[:16],
+                "numerics": prov.get("machine", {}).get("numerics", {}).get("UWDOCK_NUMERICS"),
+            }
+        )
+        print(f"run {k + 1}: {wall_s / 60:.2f} min", flush=True)
+        if not a.keep and a.work is None:
+            shutil.rmtree(out, ignore_errors=True)
+    med = statistics.median(r["wall_min"] for r in rows)
+    print(format_table(rows, list(rows[0])))
+    print(
+        f"median {med:.2f} min for the {a.recipe} recipe from scratch (target {TARGET_MIN:g} min)"
+    )
+    bench_cfg = {
+        "recipe": a.recipe,
+        "seed": a.seed,
+        "repeats": a.repeats,
+        "command": "rl train --recipe RECIPE --seed SEED --out DIR",
+        "wall_min_median": med,
+        "target_min": TARGET_MIN,
+        "meets_target": med <= TARGET_MIN,
+        "same_weights_every_run": len({r["weights_sha256"] for r in rows}) == 1,
+    }
+    print("wrote", save_results(a.name, rows, bench_cfg, a.out_dir))
+    if a.work is None and not a.keep:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()
