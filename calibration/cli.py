@@ -18,7 +18,7 @@ from uwdock.calibration.extrinsics import (
 )
 from uwdock.calibration.formats import (
     IMPORT_FORMATS,
-    import_camera_file,
+    camera_import_bytes,
 )
 from uwdock.calibration.formats_export import (
     EXPORT_FORMATS,
@@ -33,14 +33,14 @@ from uwdock.calibration.stereo import (
     stereo_output_paths,
     write_stereo_outputs,
 )
-from uwdock.calibration.stereo_formats import export_stereo_file, import_stereo_file
+from uwdock.calibration.stereo_formats import export_stereo_file, stereo_import_bytes
 from uwdock.calibration.stereo_rig import is_stereo_file
 from uwdock.dockcore.bags import resolve_image_topic
 from uwdock.dockcore.cli import DomainType, domain_type, field_type, run_group
 from uwdock.dockcore.config import load_config
 from uwdock.dockcore.domains import Interval
 from uwdock.dockcore.errors import DockError
-from uwdock.dockcore.io import check_output_path
+from uwdock.dockcore.io import atomic_write_files, check_output_path
 from uwdock.dockcore.media import display_name, silence_opencv_log
 from uwdock.dockcore.options import (
     command_group,
@@ -525,10 +525,19 @@ def import_(source, fmt, cam_key, out_path, right, stereo_out, no_stereo) -> Non
         check_output_path(stereo_out, "--stereo-out", twin_paths(stereo_out))
     found = None
     if not no_stereo:  # checked first: a pair that cannot be represented writes nothing
-        found = import_stereo_file(source, stereo_path, fmt, cam_key, right)
+        found = stereo_import_bytes(source, stereo_path, fmt, cam_key, right)
         if found is None and stereo_out is not None:
             raise DockError(f"{source} holds no stereo pair for {cam_key}: --stereo-out unused")
-    imported, (yaml_path, json_path), kept_T = import_camera_file(source, out_path, fmt, cam_key)
+    imported, files, kept_T = camera_import_bytes(source, out_path, fmt, cam_key)
+    yaml_path, json_path = files
+    if found is not None:
+        overlap = {p.resolve() for p in files} & {p.resolve() for p in found[2]}
+        if overlap:
+            raise DockError(f"--stereo-out {stereo_path} and --out {out_path} are the same files")
+        files = {**files, **found[2]}
+    # the camera file and the stereo file as one unit: all new, or all as they were (a full
+    # disk or an interrupt between them left a new stereo file beside the old camera file)
+    atomic_write_files(files)
     for note in imported.notes:
         _echo_note(note)
     cam = imported.camera
@@ -546,7 +555,8 @@ def import_(source, fmt, cam_key, out_path, right, stereo_out, no_stereo) -> Non
         click.echo(f"kept T_body_cam from the existing {out_path}")
     click.echo(f"wrote {yaml_path} and {json_path}")
     if found is not None:
-        rig, what, (s_yaml, s_json) = found
+        rig, what, stereo_files = found
+        s_yaml, s_json = stereo_files
         click.echo(
             f"stereo pair {what}: baseline {rig.baseline_m:.5f} m, rotation "
             f"{rig.rotation_deg:.3f} deg; wrote {s_yaml} and {s_json}"

@@ -54,14 +54,14 @@ from ruamel.yaml.events import AliasEvent
 from uwdock.calibration.camera import (
     MAX_IMAGE_PX,
     CameraModel,
+    camera_file_bytes,
     check_camera,
     load_camera,
-    save_camera,
     twin_paths,
 )
 from uwdock.calibration.frames import check_T
 from uwdock.dockcore.errors import DockError
-from uwdock.dockcore.io import read_text
+from uwdock.dockcore.io import atomic_write_files, read_text
 
 __all__ = [
     "IMPORT_FORMATS",
@@ -70,6 +70,7 @@ __all__ = [
     "camera_from_camera_info_msg",
     "camera_from_kalibr",
     "camera_from_ros",
+    "camera_import_bytes",
     "detect_format",
     "import_camera_file",
     "read_camera_yaml",
@@ -598,6 +599,30 @@ def import_camera_file(
     Raises:
         DockError: one line: the source is malformed, or ``out`` would overwrite it.
     """
+    imported, files, kept = camera_import_bytes(source, out, fmt, cam_key, keep_extrinsics)
+    atomic_write_files(files)  # the twins as one unit
+    yaml_path, json_path = files
+    return imported, (yaml_path, json_path), kept
+
+
+def camera_import_bytes(
+    source: str | os.PathLike[str],
+    out: str | os.PathLike[str],
+    fmt: str = "auto",
+    cam_key: str = "cam0",
+    keep_extrinsics: bool = True,
+) -> tuple[ImportedCamera, dict[Path, bytes], bool]:
+    """What :func:`import_camera_file` writes, not written: for a caller that writes the camera
+    file in one unit with other files (``calibration import`` of a stereo pair: the camera and
+    the stereo file, :func:`dockcore.io.atomic_write_files`).
+
+    Returns:
+        (the imported camera, ``{yaml_path: bytes, json_path: bytes}``, whether ``T_body_cam``
+        is carried over from the existing ``out``).
+
+    Raises:
+        DockError: one line: the source is malformed, or ``out`` would overwrite it.
+    """
     source, out = Path(source), Path(out)
     if source.resolve() in {p.resolve() for p in twin_paths(out)}:
         raise DockError(f"--out {out} would overwrite the file being imported, {source}")
@@ -606,4 +631,4 @@ def import_camera_file(
     if keep_extrinsics and out.is_file():
         with contextlib.suppress(DockError):
             T = load_camera(out)[1]
-    return imported, save_camera(out, imported.camera, T), T is not None
+    return imported, camera_file_bytes(out, imported.camera, T), T is not None

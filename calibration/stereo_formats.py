@@ -34,7 +34,7 @@ from uwdock.calibration.formats_export import (
     ros_camera_info_yaml,
     ros_distortion_model,
 )
-from uwdock.calibration.stereo_rig import StereoRig, load_stereo, save_stereo
+from uwdock.calibration.stereo_rig import StereoRig, load_stereo, stereo_file_bytes
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_write_files, atomic_write_text
 
@@ -46,6 +46,7 @@ __all__ = [
     "ros_stereo_camera_info_yaml",
     "stereo_from_kalibr",
     "stereo_from_ros_pair",
+    "stereo_import_bytes",
 ]
 
 
@@ -205,6 +206,33 @@ def import_stereo_file(
         DockError: one line: a pair that cannot be represented, ``right`` with a camchain, or
             ``out`` overwriting an input.
     """
+    found = stereo_import_bytes(source, out, fmt, cam_key, right)
+    if found is None:
+        return None
+    rig, what, files = found
+    atomic_write_files(files)  # the twins as one unit
+    yaml_path, json_path = files
+    return rig, what, (yaml_path, json_path)
+
+
+def stereo_import_bytes(
+    source: str | os.PathLike[str],
+    out: str | os.PathLike[str],
+    fmt: str = "auto",
+    cam_key: str = "cam0",
+    right: str | os.PathLike[str] | None = None,
+) -> tuple[StereoRig, str, dict[Path, bytes]] | None:
+    """What :func:`import_stereo_file` writes, not written: for a caller that writes the stereo
+    file in one unit with other files (``calibration import``: the stereo file and the camera
+    file, :func:`dockcore.io.atomic_write_files`).
+
+    Returns:
+        (the rig, its description, ``{yaml_path: bytes, json_path: bytes}``), or None when
+        ``source`` describes no stereo pair (as :func:`import_stereo_file`).
+
+    Raises:
+        DockError: as :func:`import_stereo_file`.
+    """
     source, out = Path(source), Path(out)
     sources = [source] + ([Path(right)] if right is not None else [])
     _check_not_overwriting(out, sources, "--stereo-out")
@@ -223,7 +251,7 @@ def import_stereo_file(
             return None
         rig = stereo_from_ros_pair(source, right)
         what = f"{source.name} -> {Path(right).name} (R and P as read)"
-    return rig, what, save_stereo(out, rig)
+    return rig, what, stereo_file_bytes(out, rig)
 
 
 # ---------------------------------------------------------------------------- stereo export

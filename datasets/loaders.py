@@ -5,6 +5,8 @@
   with the camera model, ``T_body_cam`` and the marker set.
 * :class:`FootageSource`: an image folder, a single image or a video, iterable any number of
   times; a thin wrapper over :func:`perception.video.open_frames`.
+* :func:`check_dataset_labels` / :func:`load_checked_dataset`: the labels checked against their
+  dataset (defined in :mod:`perception.groundtruth`, which ``perception eval`` shares).
 * :func:`load_poses_csv`: vehicle poses to render (``datasets render --poses``);
   :func:`load_pose_track_csv` / :func:`write_pose_track_csv` with their sequence labels.
 
@@ -18,7 +20,6 @@ Example:
 from __future__ import annotations
 
 import csv
-import json
 import math
 import os
 from collections.abc import Iterator
@@ -38,16 +39,15 @@ from uwdock.datasets.sequences import (
     sequences_from_manifest,
 )
 from uwdock.dockcore.errors import DockError
-from uwdock.dockcore.io import atomic_path, read_text, special_file_kind
+from uwdock.dockcore.io import atomic_path, read_text
 from uwdock.markers.markerset import MarkerSet, load_marker_set
 from uwdock.perception.groundtruth import (
+    MAX_LABEL_TRANSLATION_M,
     FrameTruth,
+    check_dataset_labels,
     csv_number,
-    load_dataset,
-    range_m,
-    view_angle_deg,
+    load_checked_dataset,
 )
-from uwdock.perception.groundtruth import LabelledDataset as RawDataset
 from uwdock.perception.video import FrameSource, open_frames, read_image
 
 __all__ = [
@@ -135,139 +135,6 @@ class LabelledDataset:
 
     def __repr__(self) -> str:
         return f"LabelledDataset({str(self.root)!r}, frames={len(self)})"
-
-
-#: Largest translation (m) of a label's ``T_cam_ds`` and ``T_world_body``. A camera images the
-#: DS board (about a metre across) down to a few pixels at tens of metres, and no water is
-#: clear beyond about 100 m; the worlds the toolkit simulates are tanks and harbour basins
-#: (tens to hundreds of metres), and an error model's bins end at ``range_max_m`` <= 1000 m.
-#: So 1 km leaves an order of magnitude of room over any frame a dataset can mean, while a
-#: label at 1e6 m or more is a unit mix-up, a wrong ``T_body_cam`` (one of 1e6 m put vehicles
-#: 997 km away) or a corrupt file: read as is, it lands in an error model's last range bin.
-MAX_LABEL_TRANSLATION_M = 1000.0
-#: Largest difference (m, deg) between a label's ``range_m`` / ``view_angle_deg`` and the
-#: values its ``T_cam_ds`` gives (the writer derives them from the same numbers: equal to the
-#: bit; the slack is for labels written by other tools in single precision).
-_DERIVED_TOL = 1e-3
-
-
-def _label_line(labels: Path, frame: int) -> str:
-    """``"LABELS line N (frame K)"`` for an error message (the labels are read again: only
-    on the way to an error)."""
-    try:
-        lines = read_text(labels, "labels").splitlines()
-    except DockError:
-        lines = []
-    for lineno, line in enumerate(lines, start=1):
-        if '"frame"' in line:
-            try:
-                obj = json.loads(line)
-            except ValueError:
-                continue
-            if isinstance(obj, dict) and obj.get("frame") == frame:
-                return f"{labels} line {lineno} (frame {frame})"
-    return f"{labels} (frame {frame})"
-
-
-def _inside(path: Path, folders: tuple[Path, ...]) -> bool:
-    return any(path == f or path.is_relative_to(f) for f in folders)
-
-
-def _relative_name(value: str, what: str) -> str | None:
-    """Why ``value`` (a path a dataset file names) is not a plain relative path, or None."""
-    if "\x00" in value:
-        return f"{what} {value!r} holds a NUL character"
-    if not value or os.path.isabs(value) or value.startswith("~"):
-        return f"{what} {value!r} is not a path relative to the dataset folder"
-    if ".." in Path(value).parts:
-        return f"{what} {value!r} leads out of the dataset folder ('..')"
-    return None
-
-
-def check_dataset_labels(ds: RawDataset) -> RawDataset:
-    """Check a labelled dataset's labels against the dataset (``ds`` as
-    :func:`perception.groundtruth.load_dataset` reads it), before anything opens an image:
-
-    * the manifest's paths (camera, marker set, images, labels) and every label's ``image`` are
-      relative paths inside the dataset folder: no absolute path, no ``..``, and, with
-      symbolic links resolved, inside the folder (or inside its images folder, which may be a
-      link to another disk): a label naming ``/etc/passwd`` is refused, not read;
-    * every label names an image, and it is a regular file that exists (a FIFO would block the
-      reader forever, a missing image would silently drop the frame);
-    * its poses (``T_cam_ds``, ``T_world_body``) are within :data:`MAX_LABEL_TRANSLATION_M`
-      and its ``range_m`` and ``view_angle_deg`` are those of ``T_cam_ds`` (the loader has
-      already refused non-finite numbers).
-
-    Returns:
-        ``ds`` unchanged.
-
-    Raises:
-        DockError: one line naming the labels file, the line and frame, and what is wrong.
-    """
-    manifest = ds.root / "dataset.json"
-    root = ds.root.resolve()
-    for key in ("camera", "marker_set", "images", "labels"):
-        value = ds.manifest.get(key)
-        if value is None:  # the default name (load_dataset has checked the type)
-            continue
-        why = _relative_name(str(value), f"'{key}'")
-        # the images folder may be a link to another disk; the small files stay inside
-        if why is None and key != "images" and not _inside((ds.root / value).resolve(), (root,)):
-            why = f"'{key}' {value!r} leads out of the dataset folder (a symbolic link)"
-        if why is not None:
-            raise DockError(f"{manifest}: {why}")
-    labels = ds.root / str(ds.manifest.get("labels") or "labels.jsonl")
-    folders = (root, ds.images_dir.resolve())
-    for k in sorted(ds.frames):
-        ft = ds.frames[k]
-        why = None
-        if ft.image is None:
-            why = "names no image"
-        else:
-            why = _relative_name(ft.image, "image")
-        if why is None:
-            path = ds.root / ft.image
-            kind = special_file_kind(path)
-            if not _inside(path.resolve(), folders):
-                why = f"image {ft.image!r} leads out of the dataset folder (a symbolic link)"
-            elif kind is not None:
-                why = f"image {ft.image} is {kind}, not a regular file"
-            elif path.is_dir():
-                why = f"image {ft.image} is a folder"
-            elif not path.is_file():
-                why = f"image {ft.image} is missing"
-        if why is None:
-            why = _pose_range_problem(ft)
-        if why is not None:
-            raise DockError(f"{_label_line(labels, ft.frame)}: {why}")
-    return ds
-
-
-def _pose_range_problem(ft: FrameTruth) -> str | None:
-    """What is out of range in a label's poses (module constants), or None."""
-    for key, T in (("T_cam_ds", ft.T_cam_ds), ("T_world_body", ft.T_world_body)):
-        if T is None:
-            continue
-        t = float(np.linalg.norm(np.asarray(T, np.float64)[:3, 3]))
-        if not t <= MAX_LABEL_TRANSLATION_M:
-            return (
-                f"{key} translation is {t:.4g} m (at most {MAX_LABEL_TRANSLATION_M:g} m: a "
-                "camera sees the station at tens of metres at most)"
-            )
-    for key, label, derived, unit in (
-        ("range_m", ft.range_m, range_m(ft.T_cam_ds), "m"),
-        ("view_angle_deg", ft.view_angle_deg, view_angle_deg(ft.T_cam_ds), "deg"),
-    ):
-        if not abs(float(label) - derived) <= _DERIVED_TOL:
-            return f"{key} is {float(label):.6g} {unit} but T_cam_ds gives {derived:.6g} {unit}"
-    return None
-
-
-def load_checked_dataset(path: str | os.PathLike[str]) -> RawDataset:
-    """:func:`perception.groundtruth.load_dataset` and :func:`check_dataset_labels`: the
-    labelled dataset every reader of the toolkit (``LabelledDataset``, ``rl
-    fit-error-model``) opens."""
-    return check_dataset_labels(load_dataset(path))
 
 
 class FootageSource:

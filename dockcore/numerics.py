@@ -33,6 +33,8 @@ import sys
 from collections.abc import Mapping
 from typing import NoReturn
 
+from uwdock.dockcore.cli import runs_program_command
+
 #: The variable a pinned process carries (value ``"pinned"``), so it is not started again.
 MARK = "UWDOCK_NUMERICS"
 
@@ -96,11 +98,13 @@ def native_environ(environ: Mapping[str, str] | None = None) -> dict[str, str]:
 def ensure(mode: str) -> None:
     """Make this process run with numerics ``mode`` (``"pinned"`` or ``"native"``): start it
     again with the variables changed when they are not already so (before any work: the
-    libraries read them when they load). Off x86-64 nothing is pinned."""
+    libraries read them when they load). Only a command run as its process's program
+    (``dockcore.cli.runs_program_command``) is started again; an in-process call runs with the
+    numerics its process has (provenance records which). Off x86-64 nothing is pinned."""
     if mode not in ("pinned", "native"):
         raise ValueError(f"numerics mode {mode!r}: pinned or native")
-    if not applies():
-        return
+    if not applies() or not runs_program_command():
+        return  # a library's or a test's call: its process is not ours to start again
     if mode == "pinned" and not is_pinned():
         _restart(pinned_environ())
     if mode == "native" and os.environ.get(MARK) == "pinned":

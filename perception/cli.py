@@ -30,7 +30,7 @@ from uwdock.perception.detector import list_pipelines
 from uwdock.perception.evaluate import PerceptionConfig, resolve_markers, run_detect, run_eval
 from uwdock.perception.groundtruth import (
     is_dataset,
-    load_dataset,
+    load_checked_dataset,
     load_ground_truth,
     truth_from_bag,
 )
@@ -262,7 +262,9 @@ def eval_cmd(
     names = names or [cfg.detector.pipeline]
     frames_path, truth, truth_source = input_path, None, None
     if is_dataset(input_path):
-        ds = load_dataset(input_path)
+        # labels checked against the dataset before any work (image paths inside it and
+        # regular files, poses in range): one line, nothing written
+        ds = load_checked_dataset(input_path)
         frames_path = ds.images_dir
         camera_path = camera_path or ds.camera_path
         if markers_path is None and dictionary is None and marker_size_m is None:

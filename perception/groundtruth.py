@@ -47,7 +47,9 @@ with :func:`write_dataset_json` and :func:`write_labels`; read by :func:`load_da
 
 :func:`load_ground_truth` reads either (a folder, ``labels.jsonl`` or ``.csv``) into
 ``{frame index: FrameTruth}``; every problem is a one-line :class:`DockError` naming the file
-and the line.
+and the line. :func:`load_checked_dataset` (what ``perception eval`` and the readers of
+``datasets.loaders`` open) also checks a dataset's labels against it
+(:func:`check_dataset_labels`: image paths inside the folder and regular files, poses in range).
 """
 
 from __future__ import annotations
@@ -69,20 +71,23 @@ from uwdock.calibration.camera import CameraModel
 from uwdock.calibration.frames import R_from_quat_wxyz, pos_quat_from_T, transform_points
 from uwdock.dockcore.bags import Bag, nearest_in_time
 from uwdock.dockcore.errors import DockError
-from uwdock.dockcore.io import atomic_path, atomic_write_json, read_text
+from uwdock.dockcore.io import atomic_path, atomic_write_json, read_text, special_file_kind
 from uwdock.markers.view import markers_in_view
 
 __all__ = [
     "CSV_COLUMNS",
     "DATASET_FORMAT",
     "DATASET_VERSION",
+    "MAX_LABEL_TRANSLATION_M",
     "QUAT_NORM_TOL",
     "FrameTruth",
     "LabelledDataset",
     "MarkerTruth",
+    "check_dataset_labels",
     "frame_truth_to_json",
     "is_dataset",
     "label_frame",
+    "load_checked_dataset",
     "load_dataset",
     "load_ground_truth",
     "load_labels",
@@ -604,8 +609,158 @@ def load_dataset(root: str | os.PathLike[str]) -> LabelledDataset:
     )
 
 
+#: Largest translation (m) of a label's ``T_cam_ds`` and ``T_world_body``. A camera images the
+#: DS board (about a metre across) down to a few pixels at tens of metres, and no water is
+#: clear beyond about 100 m; the worlds the toolkit simulates are tanks and harbour basins
+#: (tens to hundreds of metres), and an error model's bins end at ``range_max_m`` <= 1000 m.
+#: So 1 km leaves an order of magnitude of room over any frame a dataset can mean, while a
+#: label at 1e6 m or more is a unit mix-up, a wrong ``T_body_cam`` (one of 1e6 m put vehicles
+#: 997 km away) or a corrupt file: read as is, it lands in an error model's last range bin.
+MAX_LABEL_TRANSLATION_M = 1000.0
+#: Largest difference (m, deg) between a label's ``range_m`` / ``view_angle_deg`` and the
+#: values its ``T_cam_ds`` gives (the writer derives them from the same numbers: equal to the
+#: bit; the slack is for labels written by other tools in single precision).
+_DERIVED_TOL = 1e-3
+
+
+def _label_line(labels: Path, frame: int) -> str:
+    """``"LABELS line N (frame K)"`` for an error message (the labels are read again: only
+    on the way to an error)."""
+    try:
+        lines = read_text(labels, "labels").splitlines()
+    except DockError:
+        lines = []
+    for lineno, line in enumerate(lines, start=1):
+        if '"frame"' in line:
+            try:
+                obj = json.loads(line)
+            except ValueError:
+                continue
+            if isinstance(obj, dict) and obj.get("frame") == frame:
+                return f"{labels} line {lineno} (frame {frame})"
+    return f"{labels} (frame {frame})"
+
+
+def _inside(path: Path, folders: tuple[Path, ...]) -> bool:
+    return any(path == f or path.is_relative_to(f) for f in folders)
+
+
+def _relative_name(value: str, what: str) -> str | None:
+    """Why ``value`` (a path a dataset file names) is not a plain relative path, or None."""
+    if "\x00" in value:
+        return f"{what} {value!r} holds a NUL character"
+    if not value or os.path.isabs(value) or value.startswith("~"):
+        return f"{what} {value!r} is not a path relative to the dataset folder"
+    if ".." in Path(value).parts:
+        return f"{what} {value!r} leads out of the dataset folder ('..')"
+    return None
+
+
+def check_dataset_labels(ds: LabelledDataset) -> LabelledDataset:
+    """Check a labelled dataset's labels against the dataset (``ds`` as :func:`load_dataset`
+    reads it), before anything opens an image:
+
+    * the manifest's paths (camera, marker set, images, labels) and every label's ``image`` are
+      relative paths inside the dataset folder: no absolute path, no ``..``, and, with
+      symbolic links resolved, inside the folder (or inside its images folder, which may be a
+      link to another disk): a label naming ``/etc/passwd`` is refused, not read;
+    * every label names an image, and it is a regular file that exists (a FIFO would block the
+      reader forever, a missing image would silently drop the frame);
+    * its poses (``T_cam_ds``, ``T_world_body``) are within :data:`MAX_LABEL_TRANSLATION_M`
+      and its ``range_m`` and ``view_angle_deg`` are those of ``T_cam_ds`` (the loader has
+      already refused non-finite numbers).
+
+    Returns:
+        ``ds`` unchanged.
+
+    Raises:
+        DockError: one line naming the labels file, the line and frame, and what is wrong.
+    """
+    manifest = ds.root / "dataset.json"
+    root = ds.root.resolve()
+    for key in ("camera", "marker_set", "images", "labels"):
+        value = ds.manifest.get(key)
+        if value is None:  # the default name (load_dataset has checked the type)
+            continue
+        why = _relative_name(str(value), f"'{key}'")
+        # the images folder may be a link to another disk; the small files stay inside
+        if why is None and key != "images" and not _inside((ds.root / value).resolve(), (root,)):
+            why = f"'{key}' {value!r} leads out of the dataset folder (a symbolic link)"
+        if why is not None:
+            raise DockError(f"{manifest}: {why}")
+    labels = ds.root / str(ds.manifest.get("labels") or "labels.jsonl")
+    folders = (root, ds.images_dir.resolve())
+    for k in sorted(ds.frames):
+        ft = ds.frames[k]
+        why = None
+        if ft.image is None:
+            why = "names no image"
+        else:
+            why = _relative_name(ft.image, "image")
+        if why is None:
+            path = ds.root / ft.image
+            kind = special_file_kind(path)
+            if not _inside(path.resolve(), folders):
+                why = f"image {ft.image!r} leads out of the dataset folder (a symbolic link)"
+            elif kind is not None:
+                why = f"image {ft.image} is {kind}, not a regular file"
+            elif path.is_dir():
+                why = f"image {ft.image} is a folder"
+            elif not path.is_file():
+                why = f"image {ft.image} is missing"
+        if why is None:
+            why = _pose_range_problem(ft)
+        if why is not None:
+            raise DockError(f"{_label_line(labels, ft.frame)}: {why}")
+    return ds
+
+
+def _pose_range_problem(ft: FrameTruth) -> str | None:
+    """What is out of range in a label's poses (module constants), or None."""
+    for key, T in (("T_cam_ds", ft.T_cam_ds), ("T_world_body", ft.T_world_body)):
+        if T is None:
+            continue
+        t = float(np.linalg.norm(np.asarray(T, np.float64)[:3, 3]))
+        if not t <= MAX_LABEL_TRANSLATION_M:
+            return (
+                f"{key} translation is {t:.4g} m (at most {MAX_LABEL_TRANSLATION_M:g} m: a "
+                "camera sees the station at tens of metres at most)"
+            )
+    for key, label, derived, unit in (
+        ("range_m", ft.range_m, range_m(ft.T_cam_ds), "m"),
+        ("view_angle_deg", ft.view_angle_deg, view_angle_deg(ft.T_cam_ds), "deg"),
+    ):
+        if not abs(float(label) - derived) <= _DERIVED_TOL:
+            return f"{key} is {float(label):.6g} {unit} but T_cam_ds gives {derived:.6g} {unit}"
+    return None
+
+
+def load_checked_dataset(path: str | os.PathLike[str]) -> LabelledDataset:
+    """:func:`load_dataset` and :func:`check_dataset_labels`: the labelled dataset every reader
+    of the toolkit (``perception eval``, ``datasets.loaders.LabelledDataset``, ``rl
+    fit-error-model``) opens."""
+    return check_dataset_labels(load_dataset(path))
+
+
+def _check_label_poses(frames: dict[int, FrameTruth], labels: Path) -> dict[int, FrameTruth]:
+    """``frames`` (a ``labels.jsonl`` read without its dataset) when every label's poses are
+    in range (:func:`check_dataset_labels`' pose checks: no dataset folder, no images to check).
+
+    Raises:
+        DockError: one line naming the labels file, the line and frame, and what is wrong.
+    """
+    for k in sorted(frames):
+        why = _pose_range_problem(frames[k])
+        if why is not None:
+            raise DockError(f"{_label_line(labels, frames[k].frame)}: {why}")
+    return frames
+
+
 def load_ground_truth(path: str | os.PathLike[str]) -> dict[int, FrameTruth]:
     """Frame index -> ground truth from a dataset folder, a ``labels.jsonl`` or a pose ``.csv``.
+
+    A dataset folder's labels are checked against it (:func:`load_checked_dataset`), a
+    ``labels.jsonl``'s poses are checked for range (:data:`MAX_LABEL_TRANSLATION_M`).
 
     Raises:
         DockError: one line naming the file (and line) on any problem, or an unknown kind of
@@ -613,14 +768,14 @@ def load_ground_truth(path: str | os.PathLike[str]) -> dict[int, FrameTruth]:
     """
     path = Path(path)
     if path.is_dir():
-        return load_dataset(path).frames
+        return load_checked_dataset(path).frames
     suffix = path.suffix.lower()
     if path.name == "dataset.json":
-        return load_dataset(path.parent).frames
+        return load_checked_dataset(path.parent).frames
     if suffix == ".csv":
         return load_pose_csv(path)
     if suffix in (".jsonl", ".json"):
-        return load_labels(path)
+        return _check_label_poses(load_labels(path), path)
     if not path.exists():
         raise DockError(f"ground truth not found: {path}")
     raise DockError(

@@ -33,6 +33,14 @@ n_epochs = 1
 """
 
 
+def test_an_in_process_call_is_never_started_again(monkeypatch):
+    """A library's or a test's call (no command run as its process's program) keeps its
+    process: ``ensure`` would otherwise replace the caller (a test runner) by the command."""
+    monkeypatch.setattr(N.os, "execve", lambda *a: pytest.fail("the caller was replaced"))
+    N.ensure("pinned")
+    N.ensure("native")
+
+
 def test_the_pinned_environment_overrides_what_would_pick_other_kernels():
     env = {"NPY_ENABLE_CPU_FEATURES": "X86_V3", "NPY_DISABLE_CPU_FEATURES": "X86_V4",
            "MKL_CBWR": "AVX512", "OMP_NUM_THREADS": "8", "HOME": "/root"}  # fmt: skip
@@ -49,9 +57,13 @@ def test_the_pinned_environment_overrides_what_would_pick_other_kernels():
 
 
 def _train(out: Path, config: Path, *args: object, env: dict | None = None, timeout: int = 600):
-    code = "import sys; sys.argv[0] = 'rl'; from uwdock.rl.cli import main; main()"
+    """``rl train`` through the console script, as a user runs it (a process that is the
+    command's own program: one it may start again pinned)."""
+    script = Path(sys.executable).with_name("rl")
+    if not script.exists():
+        pytest.skip("the rl console script is not installed next to this Python")
     return subprocess.run(
-        [sys.executable, "-c", code, "train", "--config", config, "--out", out, *map(str, args)],
+        [script, "train", "--config", config, "--out", out, *map(str, args)],
         capture_output=True, text=True, timeout=timeout, cwd=ROOT,
         env={**{k: v for k, v in os.environ.items() if k not in N.PINNED}, **(env or {})},
     )  # fmt: skip
