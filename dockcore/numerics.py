@@ -124,3 +124,15 @@ def _restart(environ: dict[str, str]) -> NoReturn:
     sys.stdout.flush()
     sys.stderr.flush()
     os.execve(sys.executable, [sys.executable, *argv[1:]], environ)
+
+
+def pin_before_loading() -> bool:
+    """Pin this process by setting its variables, for a process whose numerical libraries have
+    not loaded yet (a test runner's start, before NumPy, torch or numba is imported); returns
+    whether it could (False once NumPy is imported: the setting would come too late)."""
+    if "numpy" in sys.modules or not applies():
+        return False
+    for key in _UNSET:
+        os.environ.pop(key, None)
+    os.environ.update(pinned_env_vars())
+    return True

@@ -341,6 +341,7 @@ def sweep(
     stopped: finished trials are kept, the others resume. The trials' input files are copied
     into the sweep folder (OUT/inputs), which every Ray node must mount.
     """
+    pin_numerics(None, out_dir, may_resume=False)  # trials train pinned, as rl train does
     try:
         seed_list = tuple(int(s, 10) for s in seeds.split(",") if s.strip())
     except ValueError:

@@ -11,6 +11,14 @@ from types import ModuleType
 
 import pytest
 
+from uwdock.dockcore import numerics
+
+# The suite runs with the numerics `rl train` pins itself to (dockcore.numerics), set before
+# NumPy, torch and numba load: a run trained in this process and one trained by the command in
+# a process of its own are then the same bytes.
+if not numerics.pin_before_loading() and numerics.applies():
+    raise RuntimeError("NumPy was imported before tests/conftest.py could pin the numerics")
+
 
 @dataclass
 class CliResult:

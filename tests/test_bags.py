@@ -184,6 +184,7 @@ _SAME_KEYS = ("frames", "detection_rate", "pose_rate", "markers_detected_total",
 @pytest.mark.render
 @pytest.mark.parametrize("suffix", [".bag", ".db3", ".mcap"])
 @pytest.mark.parametrize("topic", [RAW, COMPRESSED])
+@pytest.mark.slow  # ~18 s on 2 cores: in the slow set (CI runs it)
 def test_bag_evaluates_exactly_as_the_same_frames_in_a_folder(
     rendered, folder_report, tmp_path, suffix, topic
 ):

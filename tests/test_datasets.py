@@ -164,6 +164,7 @@ def tiny(tmp_path_factory) -> Path:
 
 
 @pytest.mark.render
+@pytest.mark.slow  # ~11 s on 2 cores: in the slow set (CI runs it)
 def test_two_workers_write_the_same_bytes(tiny, tmp_path):
     result = generate(tmp_path / "two", TINY, workers=2, progress=False)
     assert result.rendered == tuple(range(6))

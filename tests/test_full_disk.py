@@ -221,6 +221,7 @@ def _moved(args: list, old: Path, new: Path) -> list:
     suppress_health_check=[HealthCheck.function_scoped_fixture],
 )
 @given(data=st.data())
+@pytest.mark.slow  # ~19 s on 2 cores: in the slow set (CI runs it)
 def test_a_full_disk_leaves_existing_files_intact(tmp_path_factory, name, data):
     case = CASES[name]()
     template, template_args, n = _prepared(name, case, tmp_path_factory)

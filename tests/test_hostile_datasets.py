@@ -238,6 +238,7 @@ def _owner_pid(out: Path) -> int | None:
 
 
 @pytest.mark.render
+@pytest.mark.slow  # ~14 s on 2 cores: in the slow set (CI runs it)
 def test_second_run_and_sigkill_leave_nothing_behind(run_cli, small, tmp_path):
     """Two real ``datasets synth`` processes into one folder: the second stops at once with one
     line naming the first. The first (two workers) is then killed with SIGKILL mid-run: its

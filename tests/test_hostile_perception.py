@@ -514,6 +514,7 @@ def _run_quietly(group: str, *args: object) -> subprocess.CompletedProcess:
     )
 
 
+@pytest.mark.slow  # ~23 s on 2 cores: in the slow set (CI runs it)
 def test_native_warnings_do_not_leak_to_stderr(tmp_path, camera_file):
     """FFmpeg's decoder errors on a damaged video and OpenCV's warnings (axes drawn off the
     image, a thin ChArUco border) stay off stderr: what is wrong is reported as corrupt

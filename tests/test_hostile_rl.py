@@ -263,6 +263,7 @@ def test_a_killed_evaluation_leaves_no_worker_processes(tmp_path):
 
 
 @pytest.mark.parametrize("after_s", [0.5, 1.0, 1.5])
+@pytest.mark.slow  # ~14 s on 2 cores: in the slow set (CI runs it)
 def test_sigterm_during_an_episode_film_is_one_line_not_a_crash(tmp_path, after_s):
     """SIGTERM ``after_s`` after `rl episode` has claimed its output folder (building the scene,
     the first frames): "error: interrupted (SIGTERM)", exit 143, no video left. Before, the
@@ -297,6 +298,7 @@ def test_sigterm_during_an_episode_film_is_one_line_not_a_crash(tmp_path, after_
     "sig",
     ["SIGTERM", pytest.param("SIGINT", marks=pytest.mark.slow)],  # 18-21 s each
 )
+@pytest.mark.slow  # ~19 s on 2 cores: in the slow set (CI runs it)
 def test_a_signal_to_rl_sweep_is_one_line(tmp_path, sig):
     """SIGTERM or Ctrl-C to a running `rl sweep` (a local Ray instance, two trials): one line,
     exit 143 / 130. Before, ray.init's native handler turned SIGTERM into a crash dump and an

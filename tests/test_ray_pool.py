@@ -52,6 +52,7 @@ print("finished", len(done))
 """
 
 
+@pytest.mark.slow  # ~16 s on 2 cores: in the slow set (CI runs it)
 def test_a_worker_that_cannot_be_replaced_stops_the_job_in_bounded_time(tmp_path) -> None:
     t0 = time.monotonic()
     res = subprocess.run(
@@ -280,6 +281,7 @@ print("TEXT", json.dumps(sorted({r[2] for r in rows})))
 """
 
 
+@pytest.mark.slow  # ~17 s on 2 cores: in the slow set (CI runs it)
 def test_the_documented_loopback_cluster_and_a_job_on_it_listen_on_127_0_0_1_only(
     cluster, tmp_path
 ) -> None:
@@ -347,6 +349,7 @@ def _rl(*args: str) -> list[str]:
     ["synth-silent-port", "eval-silent-port", "sweep-silent-port", "synth-closed-ray-client",
      "synth-no-token-mode", "synth-token-missing", "synth-wrong-token"],
 )  # fmt: skip
+@pytest.mark.slow  # ~19 s on 2 cores: in the slow set (CI runs it)
 def test_an_address_that_is_not_a_usable_ray_cluster_fails_in_seconds_leaving_no_folder(
     case, cluster, silent_port, tmp_path
 ) -> None:

@@ -111,6 +111,7 @@ def _assert_gone(children: list[psutil.Process]) -> None:
     assert not alive, f"worker processes outlived the command: {[c.pid for c in alive]}"
 
 
+@pytest.mark.slow  # ~41 s on 2 cores: in the slow set (CI runs it)
 def test_killed_and_resumed_training_equals_uninterrupted(reference):
     root = reference["root"]
     run = root / "killed"

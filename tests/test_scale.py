@@ -61,6 +61,7 @@ def _host_pids() -> list[int]:
 
 
 @pytest.mark.render
+@pytest.mark.slow  # ~29 s on 2 cores: in the slow set (CI runs it)
 def test_ray_dataset_equals_the_local_one_file_by_file(local_dataset, tmp_path):
     out = tmp_path / "ray"
     res = generate(out, CFG, workers=2, progress=False, backend="ray")
@@ -74,6 +75,7 @@ def test_ray_dataset_equals_the_local_one_file_by_file(local_dataset, tmp_path):
 
 
 @pytest.mark.render
+@pytest.mark.slow  # ~20 s on 2 cores: in the slow set (CI runs it)
 def test_a_killed_ray_worker_is_replaced_and_nothing_is_lost_or_duplicated(local_dataset, tmp_path):
     # Frames of 160 px render at ~200 per second once the workers are up, so a run of a few
     # dozen frames can finish between two polls (it did on CI): 400 frames leave a window of
@@ -159,6 +161,7 @@ def test_a_killed_driver_resumes_without_redoing_finished_frames(local_dataset, 
 
 
 @pytest.mark.render
+@pytest.mark.slow  # ~8 s on 2 cores: in the slow set (CI runs it)
 def test_ray_evaluation_gives_the_local_rows_and_summary(tmp_path, run_cli):
     env = tmp_path / "env.toml"
     env.write_text("episode_s = 15.0\n")
@@ -194,6 +197,7 @@ def test_without_ray_the_backend_is_a_one_line_error(monkeypatch):
             pass
 
 
+@pytest.mark.slow  # ~11 s on 2 cores: in the slow set (CI runs it)
 def test_a_ray_worker_that_cannot_start_stops_the_job_in_one_line():
     """A worker whose constructor fails on its node (here: an input file missing there) stops
     the job at once, naming the node and the worker's error, instead of being replaced
@@ -224,6 +228,7 @@ def test_a_ray_worker_that_cannot_start_stops_the_job_in_one_line():
     assert time.monotonic() - t0 < 120
 
 
+@pytest.mark.slow  # ~10 s on 2 cores: in the slow set (CI runs it)
 def test_a_local_ray_instance_listens_on_loopback_only():
     """The Ray instance a job starts for itself takes 127.0.0.1 and listens on no other
     interface (in its own process: the choice is made when ``ray`` is imported)."""
@@ -331,7 +336,7 @@ n_epochs = 1
 """
 
 
-@pytest.mark.slow  # 30 s; the sweep's signal test runs a sweep in the default suite
+@pytest.mark.slow  # 30 s
 @pytest.mark.render
 def test_a_sweep_runs_each_trial_as_its_own_resumable_run(tmp_path, run_cli):
     """``rl sweep`` through Ray Tune: 2 seeds x 2 learning rates, each trial a run folder equal

@@ -143,6 +143,7 @@ def _rl(*args) -> list[str]:
     return [sys.executable, "-c", "from uwdock.rl.cli import main; main()", *map(str, args)]
 
 
+@pytest.mark.slow  # ~11 s on 2 cores: in the slow set (CI runs it)
 def test_a_sweep_whose_trial_can_never_fit_is_refused_before_writing(tmp_path) -> None:
     """On a local Ray instance (no GPU asked of this machine's 64), one line, exit 2, no
     folder. A subprocess: Ray's local instance stays out of the test process."""
@@ -180,6 +181,7 @@ n_epochs = 1
 
 
 # ~20-30 s: Ray Tune's start and a second batch process
+@pytest.mark.slow  # ~31 s on 2 cores: in the slow set (CI runs it)
 def test_a_batched_trial_runs_through_the_sweep_as_plain_rl_train(tmp_path) -> None:
     """A batched-simulator trial (before: refused, "use --backend local") with 2 CPUs: its
     batch over 2 processes, and its run folder equal to ``rl train`` in one process. The

@@ -21,6 +21,7 @@ def _bench_rows(width: str) -> dict[str, dict]:
 
 
 @pytest.mark.render
+@pytest.mark.slow  # ~15 s on 2 cores: in the slow set (CI runs it)
 def test_report_ranges_agree_with_the_benchmark_within_one_step(tmp_path, run_cli):
     res = run_cli(datasets_cli.main, "tank-report", "--out", tmp_path / "tr", "--json")
     assert res.code == 0, res.err

@@ -189,6 +189,7 @@ def coastal_folder(renders, tmp_path_factory) -> tuple[Path, Path]:
 
 
 @pytest.mark.render
+@pytest.mark.slow  # ~29 s on 2 cores: in the slow set (CI runs it)
 def test_cli_writes_a_water_file_every_water_option_takes(coastal_folder, tmp_path, run_cli):
     folder, camera = coastal_folder
     out = tmp_path / "fit"
