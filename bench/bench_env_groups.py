@@ -139,6 +139,11 @@ def main() -> None:
     ks = [int(k) for k in a.per_worker.split(",")]
     backends = a.backends.split(",")
     work = Path(tempfile.mkdtemp(prefix="bench-groups-cfg-"))
+    # the documented cluster (docs/guides/scale-out.md): token authentication for the head and
+    # every job run against it (their processes inherit these), the token made if there is none
+    os.environ.update(RAY_AUTH_MODE="token", RAY_USAGE_STATS_ENABLED="0")
+    subprocess.run([str(Path(sys.executable).with_name("ray")), "get-auth-token", "--generate"],
+                   check=True, capture_output=True)  # fmt: skip
     env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0"}
     if "ray" in backends:  # a head on 127.0.0.1 only (docs/guides/scale-out.md)
         subprocess.run([sys.executable, "-m", "uwdock.dockcore.rayloop", "start", "--head",

@@ -152,6 +152,11 @@ def main() -> None:
     train_toml.write_text(TRAIN_TOML)
     port = 6391
     address = f"127.0.0.1:{port}"  # the head started just now, on loopback only
+    # the documented cluster (docs/guides/scale-out.md): token authentication for the head and
+    # every job run against it (their processes inherit these), the token made if there is none
+    os.environ.update(RAY_AUTH_MODE="token", RAY_USAGE_STATS_ENABLED="0")
+    subprocess.run([str(Path(sys.executable).with_name("ray")), "get-auth-token", "--generate"],
+                   check=True, capture_output=True)  # fmt: skip
     env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0"}
     t0 = time.perf_counter()
     subprocess.run([sys.executable, "-m", "uwdock.dockcore.rayloop", "start", "--head", "--port",
