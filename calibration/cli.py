@@ -521,6 +521,8 @@ def import_(source, fmt, cam_key, out_path, right, stereo_out, no_stereo) -> Non
         raise click.UsageError("--no-stereo goes with neither --right nor --stereo-out")
     stereo_path = stereo_out or out_path.with_name(f"{out_path.stem}_stereo.yaml")
     check_output_path(out_path, "--out", twin_paths(out_path))
+    if right is not None and Path(right).resolve() in {p.resolve() for p in twin_paths(out_path)}:
+        raise DockError(f"--out {out_path} would overwrite the file being imported, {right}")
     if stereo_out is not None:  # the default one is checked when SOURCE holds a pair
         check_output_path(stereo_out, "--stereo-out", twin_paths(stereo_out))
     found = None

@@ -100,6 +100,20 @@ def test_a_ros_pair_with_right_is_one_unit_too(run_cli, tmp_path):
     np.testing.assert_allclose(back.T_right_left, rig.T_right_left, atol=1e-9)
 
 
+def test_out_over_the_right_input_is_refused(run_cli, tmp_path):
+    """``--out`` naming the ``--right`` file being imported (or its twin): one line, the
+    input as it was."""
+    assert _import(run_cli, tmp_path, KALIBR).code == 0
+    rig = load_stereo(tmp_path / "cam_stereo.yaml")
+    left_text, right_text = ros_stereo_camera_info_yaml(rig)
+    (tmp_path / "left.yaml").write_text(left_text)
+    (tmp_path / "right.yaml").write_text(right_text)
+    res = run_cli(calibration_cli.main, "import", tmp_path / "left.yaml", "--right",
+                  tmp_path / "right.yaml", "--out", tmp_path / "right.yaml")  # fmt: skip
+    assert res.code == 2 and res.err.count("\n") == 1 and "would overwrite" in res.err, res.err
+    assert (tmp_path / "right.yaml").read_text() == right_text
+
+
 def _failing_rename(fail_on: str, seen: list[str]):
     real = dio.replace_checked
 
