@@ -103,7 +103,7 @@ def numerics_env(environ: Mapping[str, str] | None = None) -> dict[str, Any]:
     ``environ`` (default ``os.environ``), and, when NumPy is already imported, the SIMD targets
     its dispatcher enabled on this CPU (``numpy_simd``; NumPy is not imported for it).
 
-    Measured on one machine (docs/results/docking.md, session 28): the same training run gave
+    Measured on one machine (docs/results/docking.md): the same training run gave
     the same evaluations with numba compiled for a generic x86-64 CPU and with ATen held to
     AVX2, but another run from 102,400 steps on with NumPy's AVX-512 kernels disabled, and
     another from the start with ``MKL_CBWR=COMPATIBLE``."""
