@@ -34,7 +34,8 @@ The output folder ``DIR``::
 Run again with the same arguments after an interruption (SIGINT, SIGTERM, SIGKILL), the recipe
 goes on where it stopped: a finished stage is kept, the running one resumes from its newest
 checkpoint (the same weights as a run never stopped, ``rl.train``). Another recipe or seed in
-the same folder is refused.
+the same folder is refused, and so is the same recipe once its stages, their configs or the
+content of the data files they read have changed (comments and the description may change).
 """
 
 from __future__ import annotations
@@ -49,7 +50,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any
 
-from uwdock.dockcore.config import from_dict, load_config, validated
+from uwdock.dockcore.config import from_dict, load_config, to_dict, validated
 from uwdock.dockcore.domains import Interval
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_write_files, atomic_write_json
@@ -129,7 +130,7 @@ def recipe_names() -> list[str]:
 
 def load_recipe(name: str) -> tuple[Recipe, dict[str, TrainConfig], str]:
     """The recipe ``name``, each stage's config (its data files named from the repository's
-    root) and the SHA-256 of the recipe's files (the recipe and its stage configs).
+    root) and the recipe's content digest (:func:`_content_digest`).
 
     Raises:
         DockError: an unknown recipe (the line lists the shipped ones), a malformed one, a
@@ -139,30 +140,59 @@ def load_recipe(name: str) -> tuple[Recipe, dict[str, TrainConfig], str]:
     if name not in recipe_names():
         known = ", ".join(recipe_names()) or "none"
         raise DockError(f"no recipe {name!r}: the recipes are {known} ({RECIPES})")
-    digest = hashlib.sha256()
     try:
-        raw = path.read_bytes()
-        data = tomllib.loads(raw.decode("utf-8"))
+        data = tomllib.loads(path.read_bytes().decode("utf-8"))
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
         raise DockError(f"recipe {path}: {exc}") from None
-    digest.update(raw)
     data["stages"] = data.pop("stage", [])
     try:
         recipe = from_dict(Recipe, data)
     except (TypeError, ValueError) as exc:
         raise DockError(f"recipe {path}: {exc}") from None
-    configs: dict[str, TrainConfig] = {}
+    loaded: dict[str, TrainConfig] = {}
     for stage in recipe.stages:
         config = ROOT / stage.config
-        try:
-            digest.update(config.read_bytes())
-        except OSError as exc:
-            raise DockError(
-                f"recipe {name}: stage {stage.name}: {config}: {exc.strerror}"
-            ) from None
-        cfg = load_config(TrainConfig, config, section="train")
-        configs[stage.name] = _inputs_from_root(cfg)
-    return recipe, configs, digest.hexdigest()
+        if not config.is_file():
+            raise DockError(f"recipe {name}: stage {stage.name}: {config}: no such file")
+        loaded[stage.name] = load_config(TrainConfig, config, section="train")
+    configs = {k: _inputs_from_root(cfg) for k, cfg in loaded.items()}
+    return recipe, configs, _content_digest(recipe, loaded, configs)
+
+
+def _content_digest(
+    recipe: Recipe, loaded: dict[str, TrainConfig], resolved: dict[str, TrainConfig]
+) -> str:
+    """What makes two trainings of a recipe the same: its stages, their configs as loaded
+    (paths as written), and the content of the data files they read; not the files' comments,
+    the description or ``batch_workers`` (the same rollouts with any count)."""
+    inputs: dict[str, str] = {}
+    for name, cfg in resolved.items():
+        written = env_input_files(loaded[name].env)
+        for key, path in env_input_files(cfg.env).items():
+            try:
+                inputs[written[key]] = hashlib.sha256(Path(path).read_bytes()).hexdigest()
+            except OSError as exc:
+                raise DockError(f"recipe stage {name}: {path}: {exc.strerror or exc}") from None
+    blob = {
+        "stages": [dataclasses.asdict(s) for s in recipe.stages],
+        "configs": {k: to_dict(v) for k, v in loaded.items()},
+        "inputs": inputs,
+    }
+    return hashlib.sha256(json.dumps(blob, sort_keys=True).encode()).hexdigest()
+
+
+def _file_digest(name: str, recipe: Recipe) -> str | None:
+    """The digest recipe folders recorded before :func:`_content_digest`: the recipe's and its
+    stage configs' bytes (None if one cannot be read). A folder started then resumes while
+    those bytes are unchanged."""
+    digest = hashlib.sha256()
+    try:
+        digest.update((RECIPES / f"{name}.toml").read_bytes())
+        for stage in recipe.stages:
+            digest.update((ROOT / stage.config).read_bytes())
+    except OSError:
+        return None
+    return digest.hexdigest()
 
 
 def _inputs_from_root(cfg: TrainConfig) -> TrainConfig:
@@ -192,9 +222,10 @@ def _state(name: str, seed: int, digest: str, recipe: Recipe) -> dict[str, Any]:
     }
 
 
-def _check_folder(out: Path, state: dict[str, Any]) -> dict[str, Any]:
+def _check_folder(out: Path, state: dict[str, Any], legacy: str | None = None) -> dict[str, Any]:
     """The folder's recorded state, or ``state`` for a new folder; another recipe, seed or
-    recipe content there is refused."""
+    recipe content there is refused (``legacy``: the digest an older folder may hold for the
+    same recipe, :func:`_file_digest`)."""
     path = out / STATE
     if not path.is_file():
         if out.is_dir() and any(p for p in out.iterdir() if not p.name.startswith(".")):
@@ -212,12 +243,13 @@ def _check_folder(out: Path, state: dict[str, Any]) -> dict[str, Any]:
             f"recipe {old.get('recipe')}, seed {old.get('seed')}" if isinstance(old, dict) else "?"
         )
         raise DockError(f"{out} holds another recipe run ({was}): use another --out")
-    if old.get("recipe_sha256") != state["recipe_sha256"]:
+    if old.get("recipe_sha256") not in (state["recipe_sha256"], legacy):
         raise DockError(
-            f"{out} was trained with other recipe files (the recipe or its stage configs "
-            "changed since): use another --out"
+            f"{out} was trained with another version of the recipe (its stages, their configs "
+            "or the data files they read changed since): use another --out"
         )
-    return {**state, "done": [d for d in old.get("done", []) if isinstance(d, str)]}
+    done = [d for d in old.get("done", []) if isinstance(d, str)]
+    return {**state, "recipe_sha256": old["recipe_sha256"], "done": done}
 
 
 def run_recipe(
@@ -234,7 +266,7 @@ def run_recipe(
     returns the folder, which then holds the recipe's policy."""
     recipe, configs, digest = load_recipe(name)
     out = Path(out_dir)
-    state = _check_folder(out, _state(name, seed, digest, recipe))
+    state = _check_folder(out, _state(name, seed, digest, recipe), _file_digest(name, recipe))
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_json(out / STATE, state)
     workers = recipe.batch_workers if batch_workers is None else batch_workers

@@ -104,9 +104,33 @@ def test_a_rerun_trains_nothing_twice_and_another_seed_is_refused(small_recipe, 
     assert stamps == {p: p.stat().st_mtime_ns for p in (out / "runs").rglob("weights.npz")}
     with pytest.raises(DockError, match="another recipe run"):
         R.run_recipe("small", 1, out, progress=False)
-    (small_recipe / "configs" / "second.toml").write_text(STAGE.format(steps=96))
-    with pytest.raises(DockError, match="other recipe files"):
+    # a comment is not the recipe: the folder resumes (nothing to do)
+    second = small_recipe / "configs" / "second.toml"
+    second.write_text("# a note on the stage\n" + STAGE.format(steps=64))
+    R.run_recipe("small", 0, out, progress=False)
+    # a value, or the content of a data file the stages read, is
+    second.write_text(STAGE.format(steps=96))
+    with pytest.raises(DockError, match="another version of the recipe"):
         R.run_recipe("small", 0, out, progress=False)
+    second.write_text(STAGE.format(steps=64))
+    model = small_recipe / "rl" / "models" / "error_model_clear_tank_480_ar1.json"
+    model.write_bytes(model.read_bytes() + b"\n")
+    with pytest.raises(DockError, match="another version of the recipe"):
+        R.run_recipe("small", 0, out, progress=False)
+
+
+def test_a_folder_recorded_with_the_files_digest_still_resumes(small_recipe, tmp_path):
+    """A recipe folder whose recipe.json holds the digest of the recipe's files' bytes (as
+    written before the content digest) resumes while those bytes are unchanged."""
+    out = tmp_path / "out"
+    R.run_recipe("small", 0, out, progress=False)
+    recipe, _, digest = R.load_recipe("small")
+    legacy = R._file_digest("small", recipe)
+    assert legacy is not None and legacy != digest
+    state = json.loads((out / "recipe.json").read_text())
+    (out / "recipe.json").write_text(json.dumps({**state, "recipe_sha256": legacy}))
+    R.run_recipe("small", 0, out, progress=False)
+    assert json.loads((out / "recipe.json").read_text())["recipe_sha256"] == legacy
 
 
 def test_a_stage_interrupted_resumes_to_the_same_weights(small_recipe, tmp_path):
