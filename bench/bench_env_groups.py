@@ -146,6 +146,7 @@ def main() -> None:
                    check=True, capture_output=True)  # fmt: skip
     env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0"}
     if "ray" in backends:  # a head on 127.0.0.1 only (docs/guides/scale-out.md)
+        # rayloop: RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0 equivalent (loopback, nodes may join)
         subprocess.run([sys.executable, "-m", "uwdock.dockcore.rayloop", "start", "--head",
                         "--port", str(RAY_PORT), "--num-cpus", str(a.envs),
                         "--include-dashboard=false", "--disable-usage-stats"],

@@ -159,6 +159,7 @@ def main() -> None:
                    check=True, capture_output=True)  # fmt: skip
     env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0"}
     t0 = time.perf_counter()
+    # rayloop: RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0 equivalent (loopback, nodes may join)
     subprocess.run([sys.executable, "-m", "uwdock.dockcore.rayloop", "start", "--head", "--port",
                     str(port), "--num-cpus", str(max(counts)), "--include-dashboard=false",
                     "--disable-usage-stats"],

@@ -161,6 +161,7 @@ def _two_node_cluster(tmp_path: Path, node_env: dict[str, str] | None = None):
     try:
         assert run(ray_bin, "get-auth-token", "--generate").returncode == 0
         assert (tmp_path / ".ray/auth_token").is_file()
+        # rayloop: RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0 equivalent (loopback, nodes may join)
         head = run(*RAYLOOP, "start", "--head", "--port", str(port), "--temp-dir",
                    str(short / "a"), "--include-dashboard", "false", "--num-cpus", "1")  # fmt: skip
         assert head.returncode == 0, head.stderr[-2000:]
