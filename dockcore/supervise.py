@@ -26,7 +26,6 @@ import os
 import signal
 import sys
 import threading
-import time
 from collections.abc import Callable
 
 from uwdock.dockcore import cli as _cli
@@ -38,13 +37,19 @@ from uwdock.dockcore.procs import die_with_parent
 GRACE_S = 2.0
 
 _STOP = (signal.SIGTERM, signal.SIGINT)
-_WATCHED = {*_STOP, signal.SIGCHLD}
+# SIGALRM: the parent's own interval timer (the grace deadline). The parent waits with
+# ``sigwaitinfo``, never ``sigtimedwait``: CPython's ``sigtimedwait`` returns an uninitialised
+# siginfo when the wait was interrupted (the process stopped and continued: Ctrl-Z then ``fg``,
+# a debugger or profiler attaching) and its timeout ran out meanwhile, i.e. a made-up signal
+# number, sometimes SIGINT's.
+_WATCHED = {*_STOP, signal.SIGCHLD, signal.SIGALRM}
 
 
 def _can_supervise() -> bool:
     return (
         hasattr(os, "fork")
-        and hasattr(signal, "sigtimedwait")
+        and hasattr(signal, "sigwaitinfo")
+        and hasattr(signal, "setitimer")
         and threading.current_thread() is threading.main_thread()
         and threading.active_count() == 1
         and _cli.runs_program_command()
@@ -76,30 +81,29 @@ def supervise(
 
 
 def _watch(pid: int, on_killed: Callable[[str, int], None] | None, grace_s: float) -> int:
-    """The parent: wait for ``pid``; its exit status, or 130/143 after killing it."""
-    deadline: float | None = None
+    """The parent: wait for ``pid``; its exit status, or 130/143 after killing it. Every wake-up
+    is a real signal: the child's SIGCHLD, a stop signal, or the timer (after the first stop
+    signal: ``grace_s``, then every 0.2 s until the killed child is reaped)."""
     first: int | None = None
     killed = False
     while True:
         done, status = os.waitpid(pid, os.WNOHANG)
         if done:
             break
-        if deadline is not None and time.monotonic() >= deadline and not killed:
-            _kill_tree(pid)
-            killed = True
+        signo = signal.sigwaitinfo(_WATCHED).si_signo
+        if signo == signal.SIGCHLD or (signo == signal.SIGALRM and (first is None or killed)):
             continue
-        wait_s = 1.0 if deadline is None else max(0.01, deadline - time.monotonic())
-        info = signal.sigtimedwait(_WATCHED, 0.2 if killed else wait_s)
-        if info is None or info.si_signo == signal.SIGCHLD:
+        if signo == signal.SIGALRM or first is not None:  # the grace ran out, or a second signal
+            if not killed:
+                _kill_tree(pid)
+                killed = True
+                signal.setitimer(signal.ITIMER_REAL, 0.2, 0.2)
             continue
-        if first is None:
-            first = info.si_signo
-            deadline = time.monotonic() + grace_s
-            with contextlib.suppress(ProcessLookupError):
-                os.kill(pid, info.si_signo)
-        elif not killed:  # a second signal: now
-            _kill_tree(pid)
-            killed = True
+        first = signo
+        signal.setitimer(signal.ITIMER_REAL, max(grace_s, 1e-3))
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signo)
+    signal.setitimer(signal.ITIMER_REAL, 0)
     if not killed:
         code = os.waitstatus_to_exitcode(status)
         return code if code >= 0 else 128 - code

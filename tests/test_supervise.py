@@ -46,6 +46,8 @@ def work(what, out):
             sum(range(2 * 10**9))
         elif what == "sleep":
             time.sleep(60)
+        elif what == "nap":
+            time.sleep(5)
         elif what == "fail":
             raise DockError("a bad input")
         print("done")
@@ -140,6 +142,22 @@ def test_the_status_and_output_of_the_command_pass_through(tmp_path):
     proc = _start(tmp_path, "fail")
     out, err = proc.communicate(timeout=60)
     assert (proc.returncode, err.decode()) == (2, "error: a bad input\n")
+
+
+def test_a_supervisor_stopped_and_continued_reads_no_signal_into_it(tmp_path):
+    """Ctrl-Z then ``fg``, or a debugger or profiler attaching, stops the waiting parent; after
+    it goes on, the command runs to its end (CPython's ``sigtimedwait`` returns an
+    uninitialised siginfo when stopped past its timeout: a made-up signal, often SIGINT's)."""
+    proc = _start(tmp_path, "nap")
+    _wait_child(tmp_path)
+    for _ in range(2):
+        os.kill(proc.pid, signal.SIGSTOP)  # the supervisor alone, its child runs on
+        time.sleep(1.3)
+        os.kill(proc.pid, signal.SIGCONT)
+        time.sleep(0.2)
+    out, err = proc.communicate(timeout=60)
+    assert (proc.returncode, out.decode(), err.decode()) == (0, "done\n", "")
+    assert not (tmp_path / "killed.txt").exists()
 
 
 def test_a_second_signal_kills_at_once(tmp_path):
