@@ -3,8 +3,8 @@
 Usage::
 
     python bench/bench_numerics.py [--steps 151552] [--seed 2] [--batch-workers 2]
-        [--config configs/realistic_batched_yaw_contact_near_kernel_ppo.toml]
-        [--reference rl/policies/realistic_ppo/stage1_eval_history.jsonl]
+        [--config configs/realistic/stage1.toml]
+        [--reference rl/policies/realistic_ppo/stage1/eval_history.jsonl]
         [--switches default,NUMBA_CPU_NAME=generic,...] [--work DIR] [--name numerics]
 
 Trains the first ``--steps`` of the shipped recipe's stage 1 (the seed the shipped policy was
@@ -56,8 +56,8 @@ SWITCHES = (
     "NPY_DISABLE_CPU_FEATURES=X86_V4 AVX512_ICL",
     "MKL_CBWR=COMPATIBLE",
 )
-CONFIG = ROOT / "configs" / "realistic_batched_yaw_contact_near_kernel_ppo.toml"
-REFERENCE = ROOT / "rl" / "policies" / "realistic_ppo" / "stage1_eval_history.jsonl"
+CONFIG = ROOT / "configs" / "realistic" / "stage1.toml"
+REFERENCE = ROOT / "rl" / "policies" / "realistic_ppo" / "stage1" / "eval_history.jsonl"
 
 
 def read_history(path: Path) -> list[tuple[int, float]]:

@@ -15,6 +15,11 @@ Conventions:
       lists it in ``MOVED_KEYS: ClassVar[Mapping[str, str]]`` (old key -> the table it moved
       into, under the same name), and the loader lifts it there (:func:`lift_moved_keys`), so
       files written before the move load unchanged; a key given at both places is an error.
+    * A file may start from another: ``extends = "configs/realistic/stage2.toml"`` (top level)
+      loads that base first, then merges the file's own values over it (tables merge key by
+      key, other values replace), recursively (:func:`config_layers`). A relative path is looked
+      for beside the file, then in the folders above it, then in the repository's root
+      (:func:`resolve_extends`).
 
 Example:
     >>> cfg = load_config(MarkerConfig, "marker.toml", overrides={"size_mm": 80})
@@ -307,26 +312,134 @@ def _sets_nothing(data: Mapping[str, Any]) -> bool:
     return all(isinstance(v, Mapping) and _sets_nothing(v) for v in data.values())
 
 
-def config_data(path: str | os.PathLike[str], section: str | None = None) -> dict[str, Any]:
-    """The plain data of a TOML config file; with ``section``, a file whose only top-level key
-    is that table (an output's ``config.toml``) is read from inside it.
+#: The repository's root: the last place a relative ``extends`` is looked for.
+ROOT = Path(__file__).resolve().parent.parent
+#: The most files one ``extends`` chain may hold (the file itself included).
+EXTENDS_DEPTH = 8
+
+
+@dataclasses.dataclass(frozen=True)
+class ConfigLayer:
+    """One file of a config's ``extends`` chain (:func:`config_layers`).
+
+    Attributes:
+        path: the file, as given (the first layer) or as resolved (a base).
+        data: the values it sets itself (``extends`` removed, ``section`` unwrapped, in the
+            current layout when the loader was told the class).
+        base: whether it is a base of the file asked for (not that file itself).
+    """
+
+    path: Path
+    data: dict[str, Any]
+    base: bool
+
+
+def resolve_extends(value: str, file: Path) -> Path:
+    """The file an ``extends = value`` in ``file`` names: an absolute path as given; a relative
+    one in ``file``'s folder, else in the nearest folder above it that holds it (a config inside
+    a checkout names its base from the checkout's root, as configs name their data files), else
+    in the repository's root (:data:`ROOT`: a config anywhere can extend a shipped one,
+    ``extends = "configs/realistic/stage2.toml"``).
+
+    Raises:
+        ConfigError: nothing there.
+    """
+    p = Path(value).expanduser()
+    if p.is_absolute():
+        if not os.path.lexists(p):
+            raise ConfigError(f"{file}: extends {value!r}: no such file")
+        return p
+    folder = file.absolute().parent
+    for base in (folder, *folder.parents, ROOT):
+        if os.path.lexists(base / p):
+            return base / p
+    raise ConfigError(
+        f"{file}: extends {value!r}: no such file in {folder}, the folders above it or {ROOT}"
+    )
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        return a.resolve() == b.resolve() or os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def config_layers(
+    path: str | os.PathLike[str], section: str | None = None, cls: type | None = None
+) -> list[ConfigLayer]:
+    """The files of the config at ``path``, its furthest base first and ``path`` last: a file
+    that says ``extends = "BASE"`` (top level, a path resolved by :func:`resolve_extends`) is
+    that base's values with its own merged over them (:func:`merge`: tables merge key by key,
+    other values, arrays included, replace). Each file is read as :func:`config_data` reads one
+    (``section`` unwrapped); with ``cls``, each file's keys are put in the current layout
+    (:func:`lift_moved_keys`) before they merge, so a file in the current layout can extend one
+    written before a key moved.
+
+    Raises:
+        ConfigError: one line: a file missing, unreadable, not UTF-8 or malformed; an
+            ``extends`` that is not a non-empty string or names nothing; a cycle; a chain of
+            more than :data:`EXTENDS_DEPTH` files; a file that sets nothing and extends nothing.
+    """
+    layers: list[ConfigLayer] = []
+    chain: list[Path] = []
+    file: Path | None = Path(path)
+    while file is not None:
+        if any(_same_file(file, seen) for seen in chain):
+            shown = " -> ".join(str(p) for p in (*chain, file))
+            raise ConfigError(f"config {chain[0]}: extends goes round in a cycle: {shown}")
+        if len(chain) == EXTENDS_DEPTH:
+            raise ConfigError(
+                f"config {chain[0]}: its extends chain holds more than {EXTENDS_DEPTH} files "
+                f"(at {file})"
+            )
+        chain.append(file)
+        what = "config file" if len(chain) == 1 else f"base config (extended by {chain[-2]})"
+        data: dict[str, Any] = read_toml(file, what)
+        value = data.pop("extends", None)
+        inner = data.get(section) if section else None
+        if isinstance(inner, Mapping) and "extends" in inner:
+            raise ConfigError(f"{file}: extends goes at the top of the file, not in [{section}]")
+        if value is not None and (not isinstance(value, str) or not value.strip()):
+            raise ConfigError(f"{file}: extends: expected a config file's path, got {value!r}")
+        if value is None and _sets_nothing(data):
+            empty = "0 bytes" if not file.stat().st_size else "only comments or empty tables"
+            table = f" [{section}]" if section else ""
+            if len(chain) > 1:
+                raise ConfigError(
+                    f"base config {file} (extended by {chain[-2]}) is empty ({empty}): it sets "
+                    f"no{table} value"
+                )
+            raise ConfigError(
+                f"config {file} is empty ({empty}): it sets no{table} value; "
+                "leave --config out to run with the defaults"
+            )
+        if section is not None and set(data) == {section} and isinstance(data[section], Mapping):
+            data = dict(data[section])
+        if cls is not None:
+            data = lift_moved_keys(cls, data)
+        layers.append(ConfigLayer(file, data, base=len(chain) > 1))
+        file = resolve_extends(value, file) if value is not None else None
+    return layers[::-1]
+
+
+def config_data(
+    path: str | os.PathLike[str], section: str | None = None, cls: type | None = None
+) -> dict[str, Any]:
+    """The plain data of a TOML config file, merged over the bases it ``extends``
+    (:func:`config_layers`); with ``section``, a file whose only top-level key is that table (an
+    output's ``config.toml``) is read from inside it; with ``cls``, in that class's current
+    layout.
 
     Raises:
         ConfigError: also for a file that sets nothing (0 bytes, only comments, blank lines or
-            empty tables): a ``--config`` given is meant to change something, and an empty one
-            (a truncated copy, the wrong file) would otherwise run with every default, e.g.
-            ``rl train`` for two million steps, without a word.
+            empty tables) and extends nothing: a ``--config`` given is meant to change
+            something, and an empty one (a truncated copy, the wrong file) would otherwise run
+            with every default, e.g. ``rl train`` for two million steps, without a word.
     """
-    data: dict[str, Any] = read_toml(path)
-    if _sets_nothing(data):
-        empty = "0 bytes" if not Path(path).stat().st_size else "only comments or empty tables"
-        table = f" [{section}]" if section else ""
-        raise ConfigError(
-            f"config {path} is empty ({empty}): it sets no{table} value; "
-            "leave --config out to run with the defaults"
-        )
-    if section is not None and set(data) == {section} and isinstance(data[section], Mapping):
-        data = dict(data[section])
+    data: dict[str, Any] = {}
+    for layer in config_layers(path, section, cls):
+        data = merge(data, layer.data)
     return data
 
 
@@ -336,13 +449,14 @@ def load_config(
     overrides: Mapping[str, Any] | None = None,
     section: str | None = None,
 ) -> C:
-    """Defaults of ``cls``, then the TOML file at ``path``, then ``overrides`` (e.g. CLI flags).
+    """Defaults of ``cls``, then the TOML file at ``path`` (over the bases it ``extends``,
+    :func:`config_layers`), then ``overrides`` (e.g. CLI flags).
 
     ``None`` values in ``overrides`` are skipped, so unset CLI options leave the file's values.
     With ``section``, a file whose only top-level key is that table (as in the ``config.toml``
     written next to every output) is read from inside it, so an output's config can be reused.
     """
-    data = lift_moved_keys(cls, config_data(path, section)) if path is not None else {}
+    data = config_data(path, section, cls) if path is not None else {}
     if overrides:
         data = merge(data, {k: v for k, v in overrides.items() if v is not None})
     return _build(cls, data)

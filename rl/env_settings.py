@@ -8,7 +8,8 @@ before it,
 2. the policy's training env (the ``[train.env]`` table of its run folder's ``config.toml``, or
    the ``env`` of the ``.json`` beside an exported ``.onnx``; ``--env-from`` names another
    policy folder whose settings to take, e.g. to run the PID under a policy's settings),
-3. the ``--config`` file,
+3. the ``--config`` file (over the bases it ``extends``, each its own layer:
+   ``dockcore.config.config_layers``),
 4. the command's flags,
 
 and the command prints one line naming the settings that decide a result (USBL and navigation
@@ -24,7 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from uwdock.dockcore.config import config_data, from_dict, lift_moved_keys, merge
+from uwdock.dockcore.config import config_layers, from_dict, lift_moved_keys, merge
 from uwdock.rl.config import EnvConfig
 from uwdock.rl.policy_io import policy_train_env, policy_train_settings
 
@@ -53,7 +54,8 @@ class ResolvedEnv:
     Attributes:
         cfg: the env config the command runs.
         sources: dotted key (:data:`REPORTED`) -> the label of the layer that set it
-            (``"default"``, ``"policy <path>"``, ``"--config"``, ``"flag"``).
+            (``"default"``, ``"policy config"``, ``"--config"``, ``"--config base <path>"``
+            for a value set by a file the ``--config`` file extends, ``"flag"``).
         policy_config: the file the ``"policy"`` layer was read from (a run's ``config.toml``
             or an exported policy's ``.json``); None without one.
     """
@@ -164,6 +166,19 @@ def command_env(
     for model in ("usbl", "nav"):  # --usbl/--nav name a whole model: the policy's own fields
         if model in given:  # of it do not apply
             layer.pop(model, None)
-    file = config_data(config_path, section="env") if config_path is not None else {}
-    layers = [("default", defaults), ("policy config", layer), ("--config", file), ("flag", given)]
+    layers = [("default", defaults), ("policy config", layer)]
+    if config_path is not None:
+        for file in config_layers(config_path, section="env"):
+            label = f"--config base {_shown(file.path)}" if file.base else "--config"
+            layers.append((label, file.data))
+    layers.append(("flag", given))
     return resolve_env(layers, policy_config=origin)
+
+
+def _shown(path: Path) -> str:
+    """``path`` relative to the current folder when inside it, else absolute."""
+    full = path.absolute()
+    try:
+        return str(full.relative_to(Path.cwd()))
+    except ValueError:
+        return str(full)

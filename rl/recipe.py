@@ -162,9 +162,10 @@ def load_recipe(name: str) -> tuple[Recipe, dict[str, TrainConfig], str]:
 def _content_digest(
     recipe: Recipe, loaded: dict[str, TrainConfig], resolved: dict[str, TrainConfig]
 ) -> str:
-    """What makes two trainings of a recipe the same: its stages, their configs as loaded
-    (paths as written), and the content of the data files they read; not the files' comments,
-    the description or ``batch_workers`` (the same rollouts with any count)."""
+    """What makes two trainings of a recipe the same: its stages (names, order, what each starts
+    from), their configs as loaded (paths as written), and the content of the data files they
+    read; not where the stage configs live, how they are split into files (``extends``), their
+    comments, the description or ``batch_workers`` (the same rollouts with any count)."""
     inputs: dict[str, str] = {}
     for name, cfg in resolved.items():
         written = env_input_files(loaded[name].env)
@@ -174,25 +175,14 @@ def _content_digest(
             except OSError as exc:
                 raise DockError(f"recipe stage {name}: {path}: {exc.strerror or exc}") from None
     blob = {
-        "stages": [dataclasses.asdict(s) for s in recipe.stages],
+        "stages": [
+            {k: v for k, v in dataclasses.asdict(s).items() if k != "config"}
+            for s in recipe.stages
+        ],
         "configs": {k: to_dict(v) for k, v in loaded.items()},
         "inputs": inputs,
     }
     return hashlib.sha256(json.dumps(blob, sort_keys=True).encode()).hexdigest()
-
-
-def _file_digest(name: str, recipe: Recipe) -> str | None:
-    """The digest recipe folders recorded before :func:`_content_digest`: the recipe's and its
-    stage configs' bytes (None if one cannot be read). A folder started then resumes while
-    those bytes are unchanged."""
-    digest = hashlib.sha256()
-    try:
-        digest.update((RECIPES / f"{name}.toml").read_bytes())
-        for stage in recipe.stages:
-            digest.update((ROOT / stage.config).read_bytes())
-    except OSError:
-        return None
-    return digest.hexdigest()
 
 
 def _inputs_from_root(cfg: TrainConfig) -> TrainConfig:
@@ -217,15 +207,17 @@ def _state(name: str, seed: int, digest: str, recipe: Recipe) -> dict[str, Any]:
         "recipe": name,
         "seed": seed,
         "recipe_sha256": digest,
-        "stages": [dataclasses.asdict(s) for s in recipe.stages],
+        "stages": [
+            {k: v for k, v in dataclasses.asdict(s).items() if k != "config"}
+            for s in recipe.stages
+        ],
         "done": [],
     }
 
 
-def _check_folder(out: Path, state: dict[str, Any], legacy: str | None = None) -> dict[str, Any]:
+def _check_folder(out: Path, state: dict[str, Any]) -> dict[str, Any]:
     """The folder's recorded state, or ``state`` for a new folder; another recipe, seed or
-    recipe content there is refused (``legacy``: the digest an older folder may hold for the
-    same recipe, :func:`_file_digest`)."""
+    recipe content there is refused."""
     path = out / STATE
     if not path.is_file():
         if out.is_dir() and any(p for p in out.iterdir() if not p.name.startswith(".")):
@@ -243,7 +235,7 @@ def _check_folder(out: Path, state: dict[str, Any], legacy: str | None = None) -
             f"recipe {old.get('recipe')}, seed {old.get('seed')}" if isinstance(old, dict) else "?"
         )
         raise DockError(f"{out} holds another recipe run ({was}): use another --out")
-    if old.get("recipe_sha256") not in (state["recipe_sha256"], legacy):
+    if old.get("recipe_sha256") != state["recipe_sha256"]:
         raise DockError(
             f"{out} was trained with another version of the recipe (its stages, their configs "
             "or the data files they read changed since): use another --out"
@@ -266,7 +258,7 @@ def run_recipe(
     returns the folder, which then holds the recipe's policy."""
     recipe, configs, digest = load_recipe(name)
     out = Path(out_dir)
-    state = _check_folder(out, _state(name, seed, digest, recipe), _file_digest(name, recipe))
+    state = _check_folder(out, _state(name, seed, digest, recipe))
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_json(out / STATE, state)
     workers = recipe.batch_workers if batch_workers is None else batch_workers

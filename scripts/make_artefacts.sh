@@ -21,13 +21,11 @@
 # Seeds and data: datasets `datasets synth --n 2500 --water clear_tank --seed 0` at 480 and 640 px
 # (their SHA-256 is recorded in each error model); the error model with memory from the PID's
 # docking sequences `rl trajectories --episodes 30 --seed 0` rendered at 480 px, clear tank;
-# training `configs/train_error_model_ppo.toml`
-# (seed 0); training `configs/scratch_error_model_precision_ppo.toml` then
-# `configs/scratch_error_model_precision_soft_ppo.toml` from its best/ (seed SEED, default 1: the
-# seed shipped, recorded in bench/results/scratch_runs/error_model_precision{,_soft}_s1);
-# the shipped stage 1 kept in rl/policies/realistic_ppo/stage1 (STAGE1_RUN; set
-# it empty to train `configs/realistic_batched_yaw_contact_near_kernel_ppo.toml` instead) then
-# `configs/realistic_batched_yaw_contact_gentle_return_kernel_fine_collision70_ppo.toml` from its
+# training `configs/dagger.toml` (seed 0); training `configs/scratch/stage1.toml` then
+# `configs/scratch/stage2.toml` from its best/ (seed SEED, default 1: the
+# seed shipped, recorded in rl/policies/scratch_error_model_ppo/provenance.json);
+# the shipped stage 1 kept in rl/policies/realistic_ppo/stage1 (STAGE1_RUN; set it empty to
+# train `configs/realistic/stage1.toml` instead) then `configs/realistic/stage2.toml` from its
 # best/ (seed SEED, default 0: the seed shipped, recorded in rl/policies/realistic_ppo/ and in the
 # docking page);
 # evaluations on episode seeds 1000-1099.
@@ -112,7 +110,7 @@ ship() {
 }
 
 policy() {
-  train configs/train_error_model_ppo.toml "$WORK/run_error_model_ppo"
+  train configs/dagger.toml "$WORK/run_error_model_ppo"
   ship "$WORK/run_error_model_ppo" "$DAGGER" training_curve.png
 }
 
@@ -152,8 +150,8 @@ two_stages() {
 
 scratch() {  # the true-pose recipe: PPO from scratch, then its best/ at collision penalty 30
   local seed=${SEED:-1}
-  two_stages "$seed" configs/scratch_error_model_precision_ppo.toml \
-    configs/scratch_error_model_precision_soft_ppo.toml \
+  two_stages "$seed" configs/scratch/stage1.toml \
+    configs/scratch/stage2.toml \
     "$WORK/run_scratch_error_model_precision_ppo_s$seed" soft "$SCRATCH" training_curve_scratch.png
 }
 
@@ -161,8 +159,8 @@ scratch() {  # the true-pose recipe: PPO from scratch, then its best/ at collisi
 # its contact sensing in the observation (obs_contact), the error model with memory fitted with
 # the current detector, the docking station's contact in the numba kernel (batch_contact =
 # "kernel": no PhysX in training). Stage 1 from scratch with near-seat starts (30 % of the early
-# episodes start just above the seat); stage 2 from its best/, collision penalty 70 (session
-# 28), keeping the evaluation of highest return, with the fine error in the observation
+# episodes start just above the seat); stage 2 from its best/, collision penalty 70, keeping the
+# evaluation of highest return, with the fine error in the observation
 # (obs_fine_error: stage 1's policy is widened for it, uwdock.rl.widen). The batch over
 # BATCH_WORKERS processes (default 2, the count the shipped policy trained with). A run repeats
 # bit for bit on the same kind of CPU only (NumPy and MKL pick their kernels by CPU:
@@ -173,8 +171,8 @@ scratch() {  # the true-pose recipe: PPO from scratch, then its best/ at collisi
 realistic() {
   local seed=${SEED:-0}
   local STAGE1_RUN=${STAGE1_RUN-$POLICY/stage1}
-  two_stages "$seed" configs/realistic_batched_yaw_contact_near_kernel_ppo.toml \
-    configs/realistic_batched_yaw_contact_gentle_return_kernel_fine_collision70_ppo.toml \
+  two_stages "$seed" configs/realistic/stage1.toml \
+    configs/realistic/stage2.toml \
     "$WORK/run_realistic_kernel_s$seed" fine70 "$POLICY" training_curve_realistic.png \
     --batch-workers "${BATCH_WORKERS:-2}"
 }

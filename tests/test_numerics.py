@@ -102,7 +102,7 @@ def test_two_cpu_feature_sets_train_the_same_weights_when_pinned(tmp_path):
     otherwise); MKL's code path did not change here (``MKL_ENABLE_INSTRUCTIONS``). On a Zen 4,
     with and without NumPy's AVX-512 kernels, the runs part after 102,400 steps
     (docs/results/docking.md)."""
-    config = ROOT / "configs" / "realistic_batched_yaw_contact_near_kernel_ppo.toml"
+    config = ROOT / "configs" / "realistic" / "stage1.toml"
     args = ("--steps", 151552, "--seed", 2, "--batch-workers", 2)
     no_avx2 = {"NPY_DISABLE_CPU_FEATURES": N.PINNED["NPY_DISABLE_CPU_FEATURES"],
                "ATEN_CPU_CAPABILITY": "default"}  # fmt: skip

@@ -374,7 +374,7 @@ def test_an_address_that_is_not_a_usable_ray_cluster_fails_in_seconds_leaving_no
                    "--error-model", "rl/models/error_model_clear_tank_480_ar1_refit.json",
                    "--videos", "", "--workers", "2")  # fmt: skip
     elif case.startswith("sweep"):
-        argv = _rl("sweep", "--config", "configs/train_error_model_ppo.toml", "--seeds", "0")
+        argv = _rl("sweep", "--config", "configs/dagger.toml", "--seeds", "0")
     else:
         argv = _datasets("synth", "--n", "2", "--width", "64", "--workers", "2", "--quiet")
     if not case.startswith("sweep"):

@@ -119,18 +119,22 @@ def test_a_rerun_trains_nothing_twice_and_another_seed_is_refused(small_recipe, 
         R.run_recipe("small", 0, out, progress=False)
 
 
-def test_a_folder_recorded_with_the_files_digest_still_resumes(small_recipe, tmp_path):
-    """A recipe folder whose recipe.json holds the digest of the recipe's files' bytes (as
-    written before the content digest) resumes while those bytes are unchanged."""
+def test_stage_configs_moved_or_split_with_extends_are_the_same_recipe(small_recipe, tmp_path):
+    """Where a stage's config lives and how it is split into files is not the recipe: the
+    second stage moved into a folder of its own and written as the first plus its one
+    difference (``extends``) resumes the folder; another value there does not."""
     out = tmp_path / "out"
     R.run_recipe("small", 0, out, progress=False)
-    recipe, _, digest = R.load_recipe("small")
-    legacy = R._file_digest("small", recipe)
-    assert legacy is not None and legacy != digest
-    state = json.loads((out / "recipe.json").read_text())
-    (out / "recipe.json").write_text(json.dumps({**state, "recipe_sha256": legacy}))
-    R.run_recipe("small", 0, out, progress=False)
-    assert json.loads((out / "recipe.json").read_text())["recipe_sha256"] == legacy
+    (small_recipe / "configs" / "second.toml").unlink()
+    moved = small_recipe / "configs" / "small" / "stage2.toml"
+    moved.parent.mkdir()
+    moved.write_text('extends = "configs/first.toml"\ntotal_steps = 64\n')
+    recipe = small_recipe / "configs" / "recipes" / "small.toml"
+    recipe.write_text(RECIPE.replace("configs/second.toml", "configs/small/stage2.toml"))
+    R.run_recipe("small", 0, out, progress=False)  # nothing to train: both stages are done
+    moved.write_text('extends = "configs/first.toml"\ntotal_steps = 96\n')
+    with pytest.raises(DockError, match="another version of the recipe"):
+        R.run_recipe("small", 0, out, progress=False)
 
 
 def test_a_stage_interrupted_resumes_to_the_same_weights(small_recipe, tmp_path):

@@ -556,7 +556,7 @@ def test_an_episode_does_not_depend_on_the_episodes_before_it():
     from uwdock.rl.train import TrainConfig
 
     cfg = load_config(
-        TrainConfig, ROOT / "configs/scratch_error_model_precision_ppo.toml", section="train"
+        TrainConfig, ROOT / "configs/scratch/stage1.toml", section="train"
     ).env
     cfg = replace(cfg, error_model_path=str(ROOT / cfg.error_model_path))
     pid = PIDController.for_env(cfg)

@@ -1,23 +1,79 @@
-"""Every training config shipped in configs/ loads, and the files it names are in the tree."""
+"""The training configs in configs/: each loads and the files it names are in the tree; each
+shipped stage config is the config its policy in rl/policies/ records, and resolves (over the
+bases it extends) to pinned values, so an edit to a base cannot silently change a shipped policy's
+recipe."""
 
+import hashlib
 import json
 from pathlib import Path
 
 import pytest
 
-from uwdock.dockcore.config import load_config, read_toml, replace
+from uwdock.dockcore.config import config_data, from_dict, load_config, read_toml, replace
 from uwdock.rl.config import LEGACY_WORLD_KEYS, check_env_files
 from uwdock.rl.train import TrainConfig
 
 ROOT = Path(__file__).resolve().parents[1]
-CONFIGS = sorted((ROOT / "configs").glob("*.toml"))
+CONFIGS = sorted(p for p in (ROOT / "configs").rglob("*.toml") if "recipes" not in p.parts)
+
+#: Each stage config, the policy folder (and the file in it) whose run config it is, and the
+#: SHA-256 of its values as the loader resolves them (:func:`_resolved_digest`).
+SHIPPED = {
+    "realistic/stage1.toml": (
+        "realistic_ppo/stage1/config.toml",
+        "d4975594a68171fe120a67647009adb0de5c92b724c15090a21ecd605d0e0f71",
+    ),
+    "realistic/stage2.toml": (
+        "realistic_ppo/config.toml",
+        "c8f911a0796a165b8e1f98ea05e911ecafd3efaac1dfaa5ddd898fcd61792909",
+    ),
+    "scratch/stage1.toml": (
+        "scratch_error_model_ppo/stage1_provenance.json",
+        "345fcc6c0804f82e1c2fb79aa7f98cd7971d5c4498c52c6f1d0ca6e9e4bfeb4e",
+    ),
+    "scratch/stage2.toml": (
+        "scratch_error_model_ppo/config.toml",
+        "3b53fd383e67b94e668e34e656144d3c5b84ab11904bdbc484b4b259ea87086c",
+    ),
+    "dagger.toml": (
+        "error_model_ppo/config.toml",
+        "f0fdbd9871ed44138439b503a0c243e95ca8757826ad2d5f15c1004348fcf17e",
+    ),
+}
+
+#: The names the configs had when the shipped policies were trained (their provenance records
+#: the command with them; the files are in the git tag lab-notebook-2026-12).
+TRAINED_AS = {
+    "realistic/stage1.toml": "configs/realistic_batched_yaw_contact_near_kernel_ppo.toml",
+    "realistic/stage2.toml": (
+        "configs/realistic_batched_yaw_contact_gentle_return_kernel_fine_collision70_ppo.toml"
+    ),
+    "scratch/stage1.toml": "configs/scratch_error_model_precision_ppo.toml",
+    "scratch/stage2.toml": "configs/scratch_error_model_precision_soft_ppo.toml",
+    "dagger.toml": "configs/train_error_model_ppo.toml",
+}
 
 
-def test_configs_are_shipped():
-    assert len(CONFIGS) >= 5
+def _load(name: str) -> TrainConfig:
+    return load_config(TrainConfig, ROOT / "configs" / name, section="train")
 
 
-@pytest.mark.parametrize("path", CONFIGS, ids=lambda p: p.name)
+def _resolved_digest(name: str) -> str:
+    """SHA-256 of the values the config at ``configs/<name>`` sets, its bases' included (not the
+    code's defaults, so a new field in TrainConfig does not change it; not comments)."""
+    data = config_data(ROOT / "configs" / name, section="train", cls=TrainConfig)
+    return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
+
+
+def test_configs_holds_the_shipped_recipes_only():
+    """configs/ is the shipped recipes and the bases they name, no experiment records."""
+    files = sorted(str(p.relative_to(ROOT / "configs")) for p in (ROOT / "configs").rglob("*"))
+    files = [f for f in files if (ROOT / "configs" / f).is_file()]
+    assert len(files) <= 8, files
+    assert sorted(str(p.relative_to(ROOT / "configs")) for p in CONFIGS) == sorted(SHIPPED)
+
+
+@pytest.mark.parametrize("path", CONFIGS, ids=lambda p: str(p.relative_to(ROOT / "configs")))
 def test_shipped_config_loads_and_its_files_exist(path, monkeypatch):
     monkeypatch.chdir(ROOT)  # the configs name files relative to the repository root
     cfg = load_config(TrainConfig, path, section="train")
@@ -25,7 +81,7 @@ def test_shipped_config_loads_and_its_files_exist(path, monkeypatch):
     assert cfg.total_steps > 0
 
 
-@pytest.mark.parametrize("path", CONFIGS, ids=lambda p: p.name)
+@pytest.mark.parametrize("path", CONFIGS, ids=lambda p: str(p.relative_to(ROOT / "configs")))
 def test_shipped_config_sets_the_world_in_env_world(path):
     """The recipes are written in the current layout: world keys in [env.world], none flat in
     [env] (the loader still reads the flat layout of run folders, tests/test_env_config.py)."""
@@ -33,36 +89,56 @@ def test_shipped_config_sets_the_world_in_env_world(path):
     assert sorted(set(env) & set(LEGACY_WORLD_KEYS)) == []
 
 
+@pytest.mark.parametrize("name", sorted(SHIPPED))
+def test_each_stage_config_is_the_run_config_its_policy_records(name):
+    """Ground truth: the config each shipped policy (or its stage 1) was trained with, as its
+    run folder recorded it, equals the stage config as it loads now (the seed aside)."""
+    record = ROOT / "rl" / "policies" / SHIPPED[name][0]
+    prov_path = record if record.suffix == ".json" else record.parent / "provenance.json"
+    prov = json.loads(prov_path.read_text(encoding="utf-8"))
+    if record.suffix == ".json":
+        recorded = from_dict(TrainConfig, prov["config"]["train"])
+    else:
+        recorded = load_config(TrainConfig, record, section="train")
+    assert replace(_load(name), seed=recorded.seed) == recorded
+    assert f"--config {TRAINED_AS[name]} " in prov["command"]  # trained under its older name
+
+
+@pytest.mark.parametrize("name", sorted(SHIPPED))
+def test_each_stage_config_resolves_to_its_pinned_values(name):
+    """An edit to a stage config or to a base it extends that changes a value changes the
+    digest: a change to a shipped policy's recipe is then a deliberate edit of this test."""
+    data = config_data(ROOT / "configs" / name, section="train", cls=TrainConfig)
+    assert _resolved_digest(name) == SHIPPED[name][1], json.dumps(data, sort_keys=True)
+
+
 def test_stage_two_only_raises_the_collision_penalty():
-    """The soft fine-tune differs from the precision recipe in the collision penalty, the step
+    """The true-pose stage 2 differs from its stage 1 in the collision penalty, the step
     budget, the evaluation cadence and the curriculum (a fine-tune starts at full spawn range)."""
-    load = lambda n: load_config(TrainConfig, ROOT / "configs" / n, section="train")  # noqa: E731
-    one = load("scratch_error_model_precision_ppo.toml")
-    two = load("scratch_error_model_precision_soft_ppo.toml")
+    one = _load("scratch/stage1.toml")
+    two = _load("scratch/stage2.toml")
     assert one.env.reward.collision_penalty == 10.0
     assert two.env.reward.collision_penalty == 30.0
     assert two.curriculum.steps == 0
+    assert (one.total_steps, two.total_steps, one.eval_every, two.eval_every) == (
+        1_000_000,
+        200_000,
+        50_000,
+        25_000,
+    )
     reward_one = replace(two.env.reward, collision_penalty=one.env.reward.collision_penalty)
     assert replace(two.env, reward=reward_one) == one.env
     assert one.ppo == two.ppo
-
-
-def test_proxy_precision_recipe_only_adds_r_precision():
-    """The proxy recipe that reaches the paper's figure in three seeds is the large-batch one
-    plus r_precision (the error-model recipe's values); nothing else differs."""
-    load = lambda n: load_config(TrainConfig, ROOT / "configs" / n, section="train")  # noqa: E731
-    batch = load("scratch_proxy_batch_ppo.toml")
-    precise = load("scratch_proxy_precision_ppo.toml")
-    em = load("scratch_error_model_precision_ppo.toml")
-    assert batch.env.reward.precision_gain == 0.0
-    assert precise.env.reward.precision_gain == em.env.reward.precision_gain == 1.0
-    assert precise.env.reward.precision_scale_m == em.env.reward.precision_scale_m
-    reward = replace(
-        precise.env.reward,
-        precision_gain=batch.env.reward.precision_gain,
-        precision_scale_m=batch.env.reward.precision_scale_m,
+    assert (
+        replace(
+            two,
+            env=one.env,
+            total_steps=one.total_steps,
+            eval_every=one.eval_every,
+            curriculum=one.curriculum,
+        )
+        == one
     )
-    assert replace(precise, env=replace(precise.env, reward=reward)) == batch
 
 
 def _shipped_stage2(name: str, recipe: str):
@@ -74,8 +150,7 @@ def _shipped_stage2(name: str, recipe: str):
 
     shipped = ROOT / "rl" / "policies" / name
     cfg = load_config(TrainConfig, shipped / "config.toml", section="train")
-    recipe_cfg = load_config(TrainConfig, ROOT / "configs" / recipe, section="train")
-    assert cfg == replace(recipe_cfg, seed=cfg.seed)
+    assert cfg == replace(_load(recipe), seed=cfg.seed)
     assert cfg.imitation.teacher == "none" and not (shipped / "imitation.json").exists()
     prov = json.loads((shipped / "provenance.json").read_text(encoding="utf-8"))
     assert prov["git"]["dirty"] is False and len(prov["git"]["commit"]) == 40
@@ -89,9 +164,7 @@ def _shipped_stage2(name: str, recipe: str):
 
 def test_the_true_pose_policy_is_the_from_scratch_recipe():
     """The policy shipped before realistic_ppo: stage 2 of the true-pose recipe."""
-    _shipped, _cfg, model = _shipped_stage2(
-        "scratch_error_model_ppo", "scratch_error_model_precision_soft_ppo.toml"
-    )
+    _shipped, _cfg, model = _shipped_stage2("scratch_error_model_ppo", "scratch/stage2.toml")
     assert model.observation_space.shape[0] > 0
 
 
@@ -108,22 +181,18 @@ def test_shipped_policy_is_the_realistic_recipe():
     from uwdock.rl.observation import observation_size
     from uwdock.rl.policy_io import load_policy
 
-    shipped, cfg, model = _shipped_stage2(
-        "realistic_ppo",
-        "realistic_batched_yaw_contact_gentle_return_kernel_fine_collision70_ppo.toml",
-    )
+    shipped, cfg, model = _shipped_stage2("realistic_ppo", "realistic/stage2.toml")
     assert cfg.env.nav.preset == "mems-ahrs-dvl" and cfg.env.usbl.preset == "evologics-s2cr"
     assert cfg.env.obs_contact and cfg.env.error_model_path.endswith("_ar1_refit.json")
     assert cfg.env.world.batch_contact == "kernel"
-    stage1_path = ROOT / "configs" / "realistic_batched_yaw_contact_near_kernel_ppo.toml"
-    stage1 = load_config(TrainConfig, stage1_path, section="train")
+    stage1 = _load("realistic/stage1.toml")
     assert cfg.env.obs_fine_error and not stage1.env.obs_fine_error
     # only the reward and the fine error differ
     assert replace(stage1.env, reward=cfg.env.reward, obs_fine_error=True) == cfg.env
     kept = shipped / "stage1"  # stage 1 ships beside stage 2, in the same format
     stage1_prov = json.loads((kept / "provenance.json").read_text(encoding="utf-8"))
     assert stage1_prov["git"]["dirty"] is False and len(stage1_prov["git"]["commit"]) == 40
-    assert "realistic_batched_yaw_contact_near_kernel_ppo.toml" in stage1_prov["command"]
+    assert TRAINED_AS["realistic/stage1.toml"] in stage1_prov["command"]
     assert load_config(TrainConfig, kept / "config.toml", section="train") == replace(
         stage1, seed=stage1_prov["config"]["train"]["seed"]
     )
