@@ -9,8 +9,8 @@ detection probabilities ``p_detect`` of ``DETECTION``: the whole table, or with 
 the cells named, ``R:N`` = range bin R (0.5 m bins from 0) and N markers in view (0, 1, 2, 3+),
 e.g. ``1:1,2:1`` for one marker at 0.5-1.5 m. Every water table of the file is changed alike. The
 output records both inputs' sha256 and the cells taken, under ``hybrid``. Used to separate which
-part of a refitted model changed how fast a recipe learns
-(``bench/results/scratch_runs/error_model_hybrids/``).
+part of a refitted model changed how fast a recipe learns (its records:
+``bench/results/scratch_runs/error_model_hybrids/`` in the tag ``lab-notebook-2026-12``).
 """
 
 from __future__ import annotations

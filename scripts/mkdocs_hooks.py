@@ -1,15 +1,10 @@
 """MkDocs hooks of the uwdock handbook (``hooks:`` in mkdocs.yml; run by ``mkdocs build``).
 
-1. **Benchmark figures.** The results pages show figures that the benchmark scripts write under
-   ``bench/results/``, outside ``docs/``. Rather than keep a second copy in the repository,
-   :func:`on_files` adds every image found there to the site at the same relative path
-   (``bench/results/<name>.png``), so the pages link them as ``../bench/results/<name>.png`` and
-   ``mkdocs build --strict`` checks those links like any other.
-2. **API sources.** The packages live in top-level folders (``markers/``) but are imported as
-   ``uwdock.markers`` (``pyproject.toml`` maps them). mkdocstrings reads the sources statically
-   (griffe), which looks for ``uwdock/markers/``; :func:`on_startup` stages that layout, a copy of
-   the ``.py`` files, under ``build/api-src/`` (git-ignored), which mkdocs.yml names as the
-   handler's search path.
+**API sources.** The packages live in top-level folders (``markers/``) but are imported as
+``uwdock.markers`` (``pyproject.toml`` maps them). mkdocstrings reads the sources statically
+(griffe), which looks for ``uwdock/markers/``; :func:`on_startup` stages that layout, a copy of
+the ``.py`` files, under ``build/api-src/`` (git-ignored), which mkdocs.yml names as the
+handler's search path. The pages' figures live in ``docs/results/`` beside them.
 """
 
 from __future__ import annotations
@@ -17,10 +12,6 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
-from mkdocs.structure.files import File, Files
-
-#: Image types served from the benchmark results.
-_SUFFIXES = (".png", ".jpg", ".jpeg", ".svg")
 #: The package folders, in rank order (``uwdock.LAYERS``).
 _PACKAGES = ("dockcore", "calibration", "markers", "ros", "perception", "sim", "datasets", "rl")
 
@@ -47,13 +38,3 @@ def on_startup(*, command: str, dirty: bool) -> None:
             dst = stage / pkg / src.relative_to(root / pkg)
             dst.parent.mkdir(parents=True, exist_ok=True)
             shutil.copy2(src, dst)
-
-
-def on_files(files: Files, config) -> Files:
-    """Add the images under ``bench/results`` (repository root) to the site's files."""
-    root = _ROOT
-    for path in sorted((root / "bench" / "results").rglob("*")):
-        if path.suffix.lower() in _SUFFIXES and path.is_file():
-            uri = path.relative_to(root).as_posix()
-            files.append(File.generated(config, uri, abs_src_path=str(path)))
-    return files

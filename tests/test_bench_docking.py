@@ -76,18 +76,6 @@ def test_two_policies_compared_on_their_common_rows():
     assert vs_pid["time_change_s"] == pytest.approx(-9.0)  # 12 - 20 and 10 - 20
 
 
-def test_summary_figure_collects_every_committed_source_once():
-    summary = load_bench("plot_docking_summary")
-    rows = summary.collect()
-    keys = [(r["condition"], r["series"]) for r in rows]
-    assert len(keys) == len(set(keys))  # one row per condition and series
-    assert {r["file"] for r in rows} == {name for _, name in summary.SOURCES}  # all used
-    for r in rows:
-        lo, hi = r["strict_ci95"]
-        assert 0 <= lo <= r["strict"] <= hi <= 1 and r["episodes"] >= 30
-        assert r["seed"] == 50000  # the held-out episodes, every row
-
-
 def test_comparison_pools_a_side_over_files_and_refuses_a_row_twice(tmp_path):
     import json
 

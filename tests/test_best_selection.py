@@ -15,9 +15,9 @@ from uwdock.rl.sweep import _trial_summary
 from uwdock.rl.train import TrainConfig
 
 # The eight 30-episode evaluations of a gentle-landing stage 2 (near-seat recipe, seed 2:
-# bench/results/scratch_runs/realistic_near_gentle_s2): (step, strict, paper, mean return,
-# collisions per episode). One more episode docked at the first evaluation; the collisions fall
-# to 0.97 by the last.
+# bench/results/scratch_runs/realistic_near_gentle_s2 in the tag lab-notebook-2026-12): (step,
+# strict, paper, mean return, collisions per episode). One more episode docked at the first
+# evaluation; the collisions fall to 0.97 by the last.
 STAGE2 = [
     (28672, 1.0, 1.0, 100.2, 2.47),
     (53248, 0.9667, 0.9667, 56.1, 2.43),

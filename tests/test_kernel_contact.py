@@ -323,7 +323,7 @@ def test_the_shipped_policy_trained_on_the_kernels_contact_docks_on_physx():
     """Across the seam (policy -> batched env -> contact model -> strict docking): the shipped
     policy, trained with the kernel's contact, docks in 16 episodes with PhysX's contact (one
     shared scene) about as it does on the kernel's (held out on the per-env PhysX env with the
-    camera: bench/results/docking_kernel_ship_s2.json)."""
+    camera: docs/results/shipped_heldout_policy.json)."""
     from uwdock.rl.batch_env import batched_episodes
     from uwdock.rl.policy_io import load_policy
 

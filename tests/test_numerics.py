@@ -101,7 +101,7 @@ def test_two_cpu_feature_sets_train_the_same_weights_when_pinned(tmp_path):
     NumPy's kernels alone do not change this run's weights, ATen's do (its tanh and exp round
     otherwise); MKL's code path did not change here (``MKL_ENABLE_INSTRUCTIONS``). On a Zen 4,
     with and without NumPy's AVX-512 kernels, the runs part after 102,400 steps
-    (docs/results/docking.md)."""
+    (docs/changelog.md)."""
     config = ROOT / "configs" / "realistic" / "stage1.toml"
     args = ("--steps", 151552, "--seed", 2, "--batch-workers", 2)
     no_avx2 = {"NPY_DISABLE_CPU_FEATURES": N.PINNED["NPY_DISABLE_CPU_FEATURES"],
