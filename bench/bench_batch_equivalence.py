@@ -25,9 +25,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
 from bench_docking import wilson_ci
 
 from uwdock.dockcore.bench import format_table, save_results

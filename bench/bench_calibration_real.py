@@ -33,8 +33,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
 from uwdock.calibration.intrinsics import IntrinsicsConfig, calibrate_intrinsics, iter_views
 from uwdock.dockcore.bench import format_table, save_results
 

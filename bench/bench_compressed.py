@@ -46,8 +46,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
 from uwdock.dockcore.bench import format_table, save_results
 from uwdock.markers.config import MarkerConfig
 from uwdock.markers.markerset import marker_set_from_config

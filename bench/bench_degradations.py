@@ -39,10 +39,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
 from bench_perception import MARKER_SET, random_view, render
 
 from uwdock.calibration.camera import reference_camera

@@ -48,8 +48,6 @@ from dataclasses import dataclass, field, is_dataclass
 from pathlib import Path
 from typing import Any
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
 from uwdock.dockcore.bench import format_table, save_results
 from uwdock.dockcore.config import merge, replace, to_dict
 from uwdock.rl.config import EnvConfig

@@ -29,8 +29,6 @@ from pathlib import Path
 import numpy as np
 from scipy.stats import binomtest
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
 from uwdock.dockcore.bench import format_table, save_results
 from uwdock.dockcore.config import from_dict, replace
 from uwdock.rl.batch_env import batched_episodes

@@ -26,7 +26,6 @@ from pathlib import Path
 import cv2
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
 from uwdock.datasets import cli as datasets_cli  # noqa: E402
 from uwdock.dockcore.io import atomic_write_json  # noqa: E402

@@ -34,8 +34,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
 from uwdock.dockcore.bench import format_table, save_results, time_call
 from uwdock.dockcore.media import H264_CRF, H264_PRESET, AtomicVideoWriter
 from uwdock.markers.config import MarkerConfig

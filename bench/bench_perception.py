@@ -37,12 +37,9 @@ import argparse
 import math
 import sys
 import time
-from pathlib import Path
 
 import cv2
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from uwdock.calibration.camera import CameraModel, reference_camera
 from uwdock.calibration.frames import inv_T, make_T, rotation_angle_deg, transform_points

@@ -83,13 +83,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from compare_docking import bench_docking_module  # bench/, beside this file
 
 from uwdock.dockcore.bench import format_table, save_results
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from compare_docking import bench_docking_module  # bench/, beside this file
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"

@@ -30,7 +30,6 @@ Prints a table and writes ``bench/results/render_vs_real.json`` and ``render_vs_
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
@@ -38,7 +37,6 @@ import cv2
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
 from uwdock.calibration.camera import load_camera  # noqa: E402
 from uwdock.datasets.water_fit import FitWaterConfig, PatchSamples, sample_frames  # noqa: E402

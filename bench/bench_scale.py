@@ -40,8 +40,6 @@ import tempfile
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
 from uwdock.dockcore.bench import format_table, save_results
 
 BIN = Path(sys.executable).parent

@@ -19,13 +19,10 @@ Writes ``bench/results/seam.json`` (rows + machine, commit, packages).
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import cv2
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from uwdock.dockcore.bench import format_table, save_results
 

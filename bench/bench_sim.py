@@ -55,8 +55,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
 from uwdock.calibration.camera import reference_camera, scaled_to_width
 from uwdock.calibration.frames import make_T
 from uwdock.dockcore.bench import format_table, save_results, time_call

@@ -30,8 +30,6 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
 from uwdock.dockcore.bench import format_table, save_results
 
 if sys.version_info >= (3, 11):

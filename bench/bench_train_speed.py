@@ -62,8 +62,6 @@ import tempfile
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
 from uwdock.dockcore.bench import format_table, save_results
 from uwdock.dockcore.config import load_config, replace
 from uwdock.rl.recipe import load_recipe

@@ -20,11 +20,8 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import sys
 import time
 from pathlib import Path
-
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from uwdock.dockcore.bench import format_table, save_results
 from uwdock.dockcore.config import replace

@@ -29,17 +29,15 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import sys
 import time
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
 from uwdock.calibration.frames import make_T
-from uwdock.datasets.water_fit import FitWaterConfig, fit_water, plot_fit, sample_frames
+from uwdock.datasets.water_fit import FitWaterConfig, fit_water, sample_frames
+from uwdock.datasets.water_fit_report import plot_fit
 from uwdock.dockcore.bench import format_table, save_results
 from uwdock.dockcore.config import to_dict
 from uwdock.dockcore.errors import DockError

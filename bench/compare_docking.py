@@ -25,8 +25,6 @@ import sys
 from pathlib import Path
 from typing import Any
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
 from uwdock.dockcore.bench import format_table, save_results
 
 HERE = Path(__file__).resolve().parent

@@ -19,14 +19,10 @@ DS frame, impulse over the physics step). Prints one line per moment and writes
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_docking
 
 from uwdock.dockcore.bench import save_results
 

@@ -20,16 +20,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 from typing import Any
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from compare_docking import bench_docking_module  # bench/, beside this file
 
 from uwdock.dockcore.bench import format_table, save_results
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from compare_docking import bench_docking_module  # bench/, beside this file
 
 HERE = Path(__file__).resolve().parent
 

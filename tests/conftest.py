@@ -49,14 +49,18 @@ BENCH_DIR = Path(__file__).resolve().parent.parent / "bench"
 
 
 def load_bench(name: str, register: bool = False) -> ModuleType:
-    """``bench/<name>.py`` imported as a module (the bench scripts are not a package);
-    ``register``: also as ``sys.modules[name]`` (a bench script that imports its sibling by
-    name finds it)."""
+    """``bench/<name>.py`` imported as a module (the bench scripts are not a package), with
+    ``bench/`` first on the import path while it loads, as when the script runs (it may import
+    a sibling by name); ``register``: also as ``sys.modules[name]``."""
     spec = importlib.util.spec_from_file_location(name, BENCH_DIR / f"{name}.py")
     mod = importlib.util.module_from_spec(spec)
     if register:
         sys.modules[name] = mod
-    spec.loader.exec_module(mod)
+    sys.path.insert(0, str(BENCH_DIR))
+    try:
+        spec.loader.exec_module(mod)
+    finally:
+        sys.path.remove(str(BENCH_DIR))
     return mod
 
 
