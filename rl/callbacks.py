@@ -74,7 +74,8 @@ def drop_tensorboard_events_after(tb_dir: str | os.PathLike[str], step: int) -> 
 
 class TrainingCallback(BaseCallback):
     """The run's Stable-Baselines3 callback: calls ``session.boundary()`` before every rollout;
-    freezes the actor while the critic warms up; logs rollouts.
+    freezes the actor while the critic warms up; logs rollouts; gives PPO's update
+    ``ppo.update_threads`` torch threads and the rollouts one.
 
     Args:
         session: the run's :class:`rl.session.TrainingSession`.
@@ -111,10 +112,21 @@ class TrainingCallback(BaseCallback):
                 smoothing=0.05,
             )
 
+    def _update_threads(self) -> int:
+        cfg = getattr(self.session, "cfg", None)
+        return cfg.ppo.update_threads if cfg is not None and cfg.algo == "ppo" else 1
+
     def _on_rollout_start(self) -> None:
+        import torch
+
+        torch.set_num_threads(1)
         self.session.boundary()
 
     def _on_rollout_end(self) -> None:
+        if self._update_threads() > 1:
+            import torch
+
+            torch.set_num_threads(self._update_threads())
         freeze = self.model.num_timesteps < self.session.critic_warmup_until
         for p in self._actor_params():
             p.requires_grad_(not freeze)

@@ -87,6 +87,9 @@ class PPOConfig:
         use_sde: generalised state-dependent exploration (gSDE) instead of independent noise.
         target_kl: stop an update's epochs early when the approximate KL divergence exceeds
             this (None: never).
+        update_threads: torch's threads while PPO updates its networks (1 while the envs
+            step). The env workers wait during the update, so their cores are free; the count
+            is the config's, never the machine's, so a run trains the same weights anywhere.
     """
 
     learning_rate: _LearningRate = 5e-4
@@ -102,6 +105,7 @@ class PPOConfig:
     log_std_init: Annotated[float, Interval(ge=-10, le=2)] = 0.0
     use_sde: bool = False
     target_kl: Annotated[float, Interval(gt=0, le=10)] | None = None
+    update_threads: Annotated[int, Interval(ge=1, le=64)] = 1
 
 
 @dataclass(frozen=True)
