@@ -11,7 +11,7 @@ seeded episodes (episode k: seed + k; seeds 50000... were never used in training
 episodes draw from the run's own seed), ``terminate_on = "strict"`` so that the strict
 success (pegs seated and held) and the paper's one-instant condition are measured on the same
 episodes, the USBL preset ``--usbl`` and the vehicle's navigation ``--nav`` (dead reckoning
-that drifts, by default; ``ideal``: the true pose, as every run before issue 30) in every row:
+that drifts, by default; ``ideal``: the true pose) in every row:
 
 headline rows (``--episodes``):
     camera            the camera in the loop: render -> 3DBM detector -> PnP -> filter

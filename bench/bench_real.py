@@ -14,7 +14,7 @@ videos included, are skipped) is read frame by frame (``dockcore.media.read_imag
   image (``cv2.COLOR_BGR2GRAY``), the reference;
 * ``default``: the toolkit's ``default`` pipeline (``perception detect --pipeline default``);
 * ``default_own``: ``default`` without its OpenCV pass (``DetectorConfig(opencv_pass=False)``,
-  the ``default`` of before issue 29), to show what each part finds;
+  the toolkit's own passes alone), to show what each part finds;
 * the published pipelines (:func:`perception.detector.list_pipelines`): ``reference_3dbm``,
   ``threshold_sweep``, ``normalise_invert`` (they look for inverted 3DBMs) and ``plain``.
 

@@ -9,7 +9,7 @@ Runs the command as a user would (the ``rl`` console script, a fresh process, a 
 ``--repeats`` times, each from scratch, and times it whole (wall clock, start-up, both stages,
 their periodic evaluations and checkpoints included) and per stage (from the stages' own run
 records: the first and last modification of each stage's run folder). The table gives each
-run, the median against the target (5 minutes on two idle cores, issue 53), and the policy's
+run, the median against the target (5 minutes on two idle cores), and the policy's
 SHA-256 (the same seed on the same machine gives the same bytes). The runs' folders go to a
 temporary folder (``--work`` to keep them elsewhere, ``--keep`` not to remove them).
 

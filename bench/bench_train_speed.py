@@ -67,7 +67,7 @@ from uwdock.dockcore.config import load_config, replace
 from uwdock.rl.recipe import load_recipe
 from uwdock.rl.train import TrainConfig, train
 
-#: The recipe's wall time to aim for (issue 53): both stages in 5 minutes on 2 idle cores.
+#: The recipe's wall time to aim for: both stages in 5 minutes on 2 idle cores.
 TARGET_MIN = 5.0
 
 OFF = 10**9  # an evaluation / checkpoint interval no run reaches

@@ -15,7 +15,7 @@ before it,
 and the command prints one line naming the settings that decide a result (USBL and navigation
 presets, water, camera width, termination, observation source) and the layer each came from
 (:meth:`ResolvedEnv.line`), so an evaluation can not silently run another sensor model than the
-policy was trained with (issue 30: ``rl eval --policy P`` used to run the ``ideal`` USBL).
+policy was trained with.
 """
 
 from __future__ import annotations
