@@ -5,14 +5,14 @@ Usage::
     python bench/bench_batch_equivalence.py [--policy rl/policies/scratch_error_model_ppo]
         [--episodes 100] [--seed 81000] [--name batch_equivalence]
 
-Episode ``k`` of the per-env simulator (``rl.evaluate.run_episodes``: a ``DockingEnv`` reset
-with ``seed + k``) and env ``k`` of one :class:`rl.batch_env.BatchDockingEnv` of ``episodes``
-envs (first reset with ``seed + k``: the same draws, so the same spawn, vehicle, current and
-prior) run the policy deterministically in the policy's own training env (its ``config.toml``);
-only the per-step noise differs (each simulator draws its own). The table gives per simulator the
-strict and paper success with Wilson 95 % intervals, the mean time to dock and collisions, and
-the paired discordant counts (docked on one, not the other); the first episode of each batch env
-is the one counted.
+Episode ``k`` of the per-env simulator (``rl.evaluate.episodes.run_episodes``: a ``DockingEnv``
+reset with ``seed + k``) and env ``k`` of one :class:`rl.env.batch_env.BatchDockingEnv` of
+``episodes`` envs (first reset with ``seed + k``: the same draws, so the same spawn, vehicle,
+current and prior) run the policy deterministically in the policy's own training env (its
+``config.toml``); only the per-step noise differs (each simulator draws its own). The table gives
+per simulator the strict and paper success with Wilson 95 % intervals, the mean time to dock and
+collisions, and the paired discordant counts (docked on one, not the other); the first episode of
+each batch env is the one counted.
 
 Writes ``bench/results/<name>.json`` (rows + machine, commit, packages).
 """
@@ -29,10 +29,10 @@ from bench_docking import wilson_ci
 
 from uwdock.dockcore.bench import format_table, save_results
 from uwdock.dockcore.config import replace
-from uwdock.rl.batch_env import batched_episodes
-from uwdock.rl.evaluate import SB3Controller, run_episodes
-from uwdock.rl.policy_io import load_controller
-from uwdock.rl.train import run_config
+from uwdock.rl.evaluate.batched import batched_episodes
+from uwdock.rl.evaluate.episodes import SB3Controller, run_episodes
+from uwdock.rl.policy.policy_io import load_controller
+from uwdock.rl.train.training import run_config
 
 
 def summary(name: str, rows: list[dict], wall_s: float) -> dict:

@@ -32,8 +32,8 @@ Success rates carry Wilson 95 % intervals (scipy). Each row keeps its episodes' 
 controller on the episodes both flew (the same seeds): the change in strict success with an
 exact McNemar test on the discordant episodes, and the paired change in time to dock over the
 episodes both docked, with a bootstrap 95 % interval (``paired_vs_camera`` in the JSON). Each
-row counts its failure modes (:mod:`uwdock.rl.failures`: wedged against the DS frame, landed
-off the seat, other; ``failure_modes``, and ``failure_mode`` per episode).
+row counts its failure modes (:mod:`uwdock.rl.evaluate.failures`: wedged against the DS frame,
+landed off the seat, other; ``failure_modes``, and ``failure_mode`` per episode).
 Writes ``bench/results/<name>.json`` (rows, config, machine, commit; rewritten after every
 cell, ``complete`` false until the last) and ``<name>.png`` (strict success per condition,
 policy beside PID).
@@ -50,8 +50,8 @@ from typing import Any
 
 from uwdock.dockcore.bench import format_table, save_results
 from uwdock.dockcore.config import merge, replace, to_dict
-from uwdock.rl.config import EnvConfig
-from uwdock.rl.policy_io import policy_env_settings, policy_error_model
+from uwdock.rl.env.config import EnvConfig
+from uwdock.rl.policy.policy_io import policy_env_settings, policy_error_model
 from uwdock.sim.navigation import NAV_PRESETS
 from uwdock.sim.thrusters import ThrusterRandomisation
 from uwdock.sim.usbl import USBL_PRESETS
@@ -140,7 +140,7 @@ def run_row(row: Row, controller: str, cfg: EnvConfig, episodes: int, seed: int,
     """One (condition, controller) cell: the eval summary plus intervals and wall time."""
     from tqdm import tqdm
 
-    from uwdock.rl.evaluate import run_episodes_parallel
+    from uwdock.rl.evaluate.episodes import run_episodes_parallel
 
     t0 = time.perf_counter()
     label = "policy" if controller != "pid" else "pid"

@@ -7,7 +7,7 @@ Usage::
 
 The same held-out episodes (seeds ``seed .. seed + episodes - 1``, the policy's training env:
 its USBL, navigation, error model, termination) are flown by the policy (deterministic) on
-:func:`rl.batch_env.batched_episodes` once per contact model: ``shared`` (PhysX, one shared
+:func:`rl.evaluate.batched.batched_episodes` once per contact model: ``shared`` (PhysX, one shared
 scene, what the shipped policy trained on), ``kernel`` (:mod:`uwdock.sim.kernel_contact`, no
 PhysX) and/or ``own`` (PhysX per vehicle, bit-equal to the per-env env). Per contact model: strict
 success with its Wilson 95 % interval, mean time to dock, IMU-detected collisions per episode,
@@ -31,9 +31,9 @@ from scipy.stats import binomtest
 
 from uwdock.dockcore.bench import format_table, save_results
 from uwdock.dockcore.config import from_dict, replace
-from uwdock.rl.batch_env import batched_episodes
-from uwdock.rl.policy_io import load_policy, policy_train_settings
-from uwdock.rl.train import TrainConfig
+from uwdock.rl.evaluate.batched import batched_episodes
+from uwdock.rl.policy.policy_io import load_policy, policy_train_settings
+from uwdock.rl.train.training import TrainConfig
 
 CONTACTS = ("shared", "kernel", "own")
 

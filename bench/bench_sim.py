@@ -5,13 +5,13 @@ Usage::
     python bench/bench_sim.py [--quick] [--seed 0] [--out-dir DIR --name sim_gpu]
     python bench/bench_sim.py --baseline 248412c [--quick] [--baseline-repeats 3]
 
-(a) Physics without camera, one process: control steps per second of ``rl.env.DockingEnv``
-    (proxy observation source, 300 Hz physics, 5 Hz control, uniform random actions, resets
-    when an episode ends) and of the bare ``sim.physics.VehicleBody.step`` (60 substeps per
-    control step; in the tank with the DS, random wrenches up to half the env limits, a new
-    random pose every 50 steps), with the free-flight fast path on and off where the vehicle
-    has one (``fast_share`` = steps that took it). Median and spread over ``runs`` runs of
-    ``steps`` steps after a warm-up.
+(a) Physics without camera, one process: control steps per second of
+    ``rl.env.docking_env.DockingEnv`` (proxy observation source, 300 Hz physics, 5 Hz control,
+    uniform random actions, resets when an episode ends) and of the bare
+    ``sim.physics.VehicleBody.step`` (60 substeps per control step; in the tank with the DS, random
+    wrenches up to half the env limits, a new random pose every 50 steps), with the free-flight fast
+    path on and off where the vehicle has one (``fast_share`` = steps that took it). Median and
+    spread over ``runs`` runs of ``steps`` steps after a warm-up.
 (b) Render time per frame on the CPU (SAPIEN rasteriser on lavapipe, its default thread count),
     reference camera scaled to 320x240, 640x480 and 968x732, over aimed poses of the synth
     sampler (DS at 1-6 m); also ``render + water`` (coastal preset).
@@ -79,8 +79,8 @@ def _rate(fn, steps: int, runs: int) -> dict[str, float]:
 def bench_physics(steps: int, runs: int, seed: int) -> list[dict]:
     import inspect
 
-    from uwdock.rl.config import EnvConfig
-    from uwdock.rl.env import DockingEnv
+    from uwdock.rl.env.config import EnvConfig
+    from uwdock.rl.env.docking_env import DockingEnv
     from uwdock.sim.docking_station import build_docking_station, build_tank
     from uwdock.sim.physics import VehicleBody, make_physics_scene
 

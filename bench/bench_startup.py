@@ -7,9 +7,10 @@ Usage::
 Each row is one command run in a fresh Python subprocess (the interpreter running this script,
 ``-c`` code that calls the function the console script runs, as ``[project.scripts]`` of the
 tree's ``pyproject.toml`` names it, with ``--help``; output discarded): ``uwdock --help``,
-``<group> --help`` for the six groups, and ``import uwdock.rl.env`` (what every training worker
-pays). The wall time of the whole subprocess is taken ``repeats`` times after one untimed warm-up
-run (which also compiles the bytecode); the table gives the median and the spread in seconds.
+``<group> --help`` for the six groups, and ``import uwdock.rl.env.docking_env`` (what every training
+worker pays). The wall time of the whole subprocess is taken ``repeats`` times after one untimed
+warm-up run (which also compiles the bytecode); the table gives the median and the spread in
+seconds.
 
 ``--before DIR`` also times a checkout of the old layout (top-level packages ``perception``,
 ``rl``, ... instead of ``uwdock.perception``, run with ``DIR`` as working directory and on
@@ -44,8 +45,10 @@ COMMANDS = (
     ("uwdock --help", "uwdock", None),
     *((f"{g} --help", g, None) for g in ("markers", "calibration", "perception")),
     *((f"{g} --help", g, None) for g in ("sim", "datasets", "rl")),
-    ("import uwdock.rl.env", None, "rl.env"),
+    ("import uwdock.rl.env.docking_env", None, "rl.env.docking_env"),
 )
+#: Modules by another name in the old layout (``--before``): the env was ``rl.env``.
+OLD_MODULES = {"rl.env.docking_env": "rl.env"}
 
 
 def console_scripts(tree: Path) -> dict[str, str]:
@@ -66,7 +69,7 @@ def _spec(script: str | None, module: str | None, tree: Path, old: bool) -> dict
         mod, func = target.split(":")
         code = f"import sys; sys.argv = [{script!r}, '--help']; from {mod} import {func}; {func}()"
     else:
-        code = f"import {module if old else 'uwdock.' + module}"
+        code = f"import {OLD_MODULES.get(module, module) if old else 'uwdock.' + module}"
     if not old:
         return {"argv": [sys.executable, "-c", code], "cwd": str(tree)}
     env = {**os.environ, "PYTHONPATH": str(tree)}

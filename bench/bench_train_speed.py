@@ -11,7 +11,7 @@ Usage::
 
 The configuration measured is the first stage of ``--recipe`` (``configs/recipes/``, default
 ``shipped``: what ``rl train --recipe shipped`` trains first), or ``--config``. Each
-measurement trains it (``rl.train.train``, no progress bar) from scratch in a temporary run
+measurement trains it (``rl.train.training.train``, no progress bar) from scratch in a temporary run
 folder, in a fresh process (a process that has started SAPIEN cannot fork working env workers
 on a GPU's Vulkan driver), with the periodic evaluation and checkpoints switched off, for
 ``rollouts`` PPO rollouts of ``n_steps x n_envs`` steps, after one uncounted warm-up run (numba
@@ -26,11 +26,11 @@ evaluations included, is timed by ``bench/bench_recipe_time.py``.
 Simulators, side by side in one run on the same machine (``--simulators``, default the first
 two):
 
-* ``per-env``: the recipe as written, one :class:`rl.env.DockingEnv` per worker process
+* ``per-env``: the recipe as written, one :class:`rl.env.docking_env.DockingEnv` per worker process
   (``--envs`` env counts; more than the recipe's change its batches: those rows measure the
   machine, not a validated recipe); a batched recipe (``simulator = "batched"``, the shipped
   realistic one) runs on 2 per-env workers (``--envs``) with rollouts as long as its own;
-* ``batched``: :class:`rl.batch_env.BatchDockingEnv`, ``--batch-envs`` envs stepped as arrays,
+* ``batched``: :class:`rl.env.batch_env.BatchDockingEnv`, ``--batch-envs`` envs stepped as arrays,
   split over ``--batch-workers`` processes (1: the trainer's own), ``n_steps`` scaled so that a
   rollout holds as many steps as the recipe's (``n_steps x n_envs``); the update (batch size,
   epochs) is the recipe's; its vehicles in contact with the DS stepped as the recipe says
@@ -64,8 +64,8 @@ from pathlib import Path
 
 from uwdock.dockcore.bench import format_table, save_results
 from uwdock.dockcore.config import load_config, replace
-from uwdock.rl.recipe import load_recipe
-from uwdock.rl.train import TrainConfig, train
+from uwdock.rl.train.recipe import load_recipe
+from uwdock.rl.train.training import TrainConfig, train
 
 #: The recipe's wall time to aim for: both stages in 5 minutes on 2 idle cores.
 TARGET_MIN = 5.0

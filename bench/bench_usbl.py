@@ -25,8 +25,8 @@ from pathlib import Path
 
 from uwdock.dockcore.bench import format_table, save_results
 from uwdock.dockcore.config import replace
-from uwdock.rl.config import EnvConfig
-from uwdock.rl.evaluate import run_episodes_parallel
+from uwdock.rl.env.config import EnvConfig
+from uwdock.rl.evaluate.episodes import run_episodes_parallel
 from uwdock.sim.usbl import USBL_PRESETS
 
 ERROR_MODEL = "rl/models/error_model_clear_tank_480.json"

@@ -9,7 +9,7 @@ Runs the exported shipped policy (``rl/policies/realistic_ppo/policy.onnx``) two
 held-out episode seeds ``seed ... seed + episodes - 1`` (camera in the loop, the policy's
 training env: mems-ahrs-dvl navigation, EvoLogics USBL):
 
-* in process: ``rl eval``'s episode loop (:func:`uwdock.rl.evaluate.run_episodes`);
+* in process: ``rl eval``'s episode loop (:func:`uwdock.rl.evaluate.episodes.run_episodes`);
 * over the wire: ``rl node`` and ``sim vehicle`` as two processes on a loopback DDS domain,
   lock-step on simulated time (``--clock sim``, ``rl/deploy/profiles/sim.toml``).
 
@@ -39,9 +39,9 @@ import numpy as np
 
 from uwdock.dockcore.bench import format_table, save_results
 from uwdock.dockcore.config import replace
-from uwdock.rl.env_settings import command_env
-from uwdock.rl.evaluate import run_episodes
-from uwdock.rl.policy_io import OnnxPolicy, policy_env_settings
+from uwdock.rl.evaluate.episodes import run_episodes
+from uwdock.rl.policy.env_settings import command_env
+from uwdock.rl.policy.policy_io import OnnxPolicy, policy_env_settings
 
 ROOT = Path(__file__).resolve().parent.parent
 POLICY = ROOT / "rl" / "policies" / "realistic_ppo" / "policy.onnx"

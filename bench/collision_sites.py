@@ -61,12 +61,13 @@ def run(
     policy: str, controller: str, episodes: int, seed: int, seat_xy_m: float, bounce_s: float
 ) -> list[dict[str, Any]]:
     """Every collision of ``episodes`` seeded episodes of ``controller`` ("policy" or "pid") in
-    ``policy``'s training env (``rl.evaluate.run_episodes``' traces), classed (:func:`classify`)."""
+    ``policy``'s training env (``rl.evaluate.episodes.run_episodes``' traces), classed
+    (:func:`classify`)."""
     from tqdm import tqdm
 
-    from uwdock.rl.env_settings import policy_training_env
-    from uwdock.rl.evaluate import run_episodes
-    from uwdock.rl.policy_io import load_controller
+    from uwdock.rl.evaluate.episodes import run_episodes
+    from uwdock.rl.policy.env_settings import policy_training_env
+    from uwdock.rl.policy.policy_io import load_controller
 
     resolved = policy_training_env(policy)
     if resolved is None:

@@ -11,7 +11,7 @@ Controllers: Gaussian actions with std 1 (PPO's initial policy: ``log_std_init``
 runs the same seeded episodes; a PPO policy acts with its Gaussian's mean before clipping (the
 env clips), so means beyond +-1 show in the saturation columns. ``--config`` takes the
 ``[env]`` table of a training config (the reward and task of that recipe). See
-:mod:`uwdock.rl.diagnose` for the figures.
+:mod:`uwdock.rl.evaluate.diagnose` for the figures.
 
 Writes ``bench/results/<name>.json`` (default ``reward_diagnosis``).
 """
@@ -45,14 +45,14 @@ def main() -> None:
     args = parser.parse_args()
 
     from uwdock.dockcore.config import load_config, replace, to_dict
-    from uwdock.rl.baselines import PIDController
-    from uwdock.rl.config import EnvConfig
-    from uwdock.rl.diagnose import GaussianController, diagnose
-    from uwdock.rl.evaluate import SB3Controller
-    from uwdock.rl.policy_io import load_controller
+    from uwdock.rl.env.config import EnvConfig
+    from uwdock.rl.evaluate.diagnose import GaussianController, diagnose
+    from uwdock.rl.evaluate.episodes import SB3Controller
+    from uwdock.rl.policy.baselines import PIDController
+    from uwdock.rl.policy.policy_io import load_controller
 
     if args.config:
-        from uwdock.rl.train import TrainConfig
+        from uwdock.rl.train.training import TrainConfig
 
         env_cfg = load_config(TrainConfig, args.config, section="train").env
     else:

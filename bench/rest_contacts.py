@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from bench_docking import ROWS, env_for  # a sibling: the script's folder is on the path
 
 from uwdock.dockcore.bench import save_results
 
@@ -48,12 +49,10 @@ def contacts_in_ds_frame(scene, vehicle: str = "auv", ds: str = "docking_station
 
 def trace(policy: str, row_name: str, seed: int, episode: int, at_s: list[float]) -> list:
     """The episode's records at each moment of ``at_s`` it lives to (module docstring)."""
-    from bench_docking import ROWS, env_for
-
     from uwdock.calibration.frames import inv_T
-    from uwdock.rl.env import DockingEnv
-    from uwdock.rl.evaluate import as_controller
-    from uwdock.rl.policy_io import load_controller
+    from uwdock.rl.env.docking_env import DockingEnv
+    from uwdock.rl.evaluate.episodes import as_controller
+    from uwdock.rl.policy.policy_io import load_controller
 
     row = next(r for r in ROWS if r.name == row_name)
     cfg = env_for(row, policy, "evologics-s2cr", "mems-ahrs-dvl")
@@ -104,8 +103,6 @@ def main(argv: list[str] | None = None) -> None:
         ap.error(f"--episodes takes integers, --at-s numbers, each comma-separated ({exc})")
     if min(episodes) < 0 or not all(0 < t < 1e6 for t in at_s):
         ap.error("--episodes must be >= 0 and --at-s moments finite and > 0 s")
-    from bench_docking import ROWS
-
     if a.row not in {r.name for r in ROWS}:
         ap.error(f"--row {a.row!r} is not a condition of bench_docking.py")
     rows = []

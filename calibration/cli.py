@@ -24,8 +24,9 @@ from uwdock.calibration.formats_export import (
     EXPORT_FORMATS,
     export_camera_file,
 )
-from uwdock.calibration.intrinsics import IntrinsicsConfig, calibrate_intrinsics, write_outputs
+from uwdock.calibration.intrinsics import IntrinsicsConfig, calibrate_intrinsics
 from uwdock.calibration.intrinsics_report import output_paths as intrinsics_output_paths
+from uwdock.calibration.intrinsics_report import write_outputs
 from uwdock.calibration.stereo import (
     StereoConfig,
     StereoResult,
@@ -62,7 +63,7 @@ ImageSidePx = Annotated[int, Interval(ge=16, le=20000)]
 
 def _stereo_cfg(name: str) -> DomainType:
     """The type of an option overriding ``StereoConfig.<name>``."""
-    return field_type("uwdock.calibration.stereo:StereoConfig", name)
+    return field_type("uwdock.calibration.stereo_config:StereoConfig", name)
 
 
 def _cfg(name: str) -> DomainType:

@@ -36,7 +36,6 @@ from uwdock.calibration.crossval import (
     fit_views,
 )
 from uwdock.calibration.intrinsics_inputs import iter_views, to_grey
-from uwdock.calibration.intrinsics_report import write_outputs
 from uwdock.calibration.patterns import (
     PATTERNS,
     Detection,
@@ -63,7 +62,6 @@ __all__ = [
     "calibrate_intrinsics",
     "iter_views",
     "to_grey",
-    "write_outputs",
 ]
 
 #: Fewest calibration views a calibration accepts.

@@ -18,7 +18,7 @@ from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_write_files
 from uwdock.dockcore.provenance import provenance
 
-if TYPE_CHECKING:  # the result's class; that module imports this one
+if TYPE_CHECKING:
     from uwdock.calibration.intrinsics import IntrinsicsResult
 
 __all__ = ["output_paths", "write_outputs"]

@@ -29,7 +29,7 @@ from uwdock.dockcore.media import (
 )
 
 if TYPE_CHECKING:
-    from uwdock.calibration.stereo import StereoConfig
+    from uwdock.calibration.stereo_config import StereoConfig
 
 __all__ = ["View", "stereo_pairs"]
 

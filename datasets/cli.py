@@ -13,13 +13,9 @@ from uwdock.calibration.camera import resolve_camera
 from uwdock.datasets.loaders import load_pose_track_csv
 from uwdock.datasets.synth import SynthConfig, generate
 from uwdock.datasets.tank_report import TankReportConfig, detection_ranges, plot_ranges
-from uwdock.datasets.water_fit import (
-    FitWaterConfig,
-    fit_water,
-    plot_fit,
-    sample_frames,
-    write_water_file,
-)
+from uwdock.datasets.water_fit import fit_water, sample_frames
+from uwdock.datasets.water_fit_config import FitWaterConfig
+from uwdock.datasets.water_fit_report import plot_fit, write_water_file
 from uwdock.dockcore.bags import resolve_image_topic
 from uwdock.dockcore.cli import domain_type, field_type, run_group
 from uwdock.dockcore.config import load_config
@@ -51,9 +47,9 @@ from uwdock.sim.water import (
 )
 
 #: Configs whose fields the options override (imported when an option is first used).
-_SYNTH = "uwdock.datasets.synth:SynthConfig"
+_SYNTH = "uwdock.datasets.synth_config:SynthConfig"
 _TANK = "uwdock.datasets.tank_report:TankReportConfig"
-_FIT = "uwdock.datasets.water_fit:FitWaterConfig"
+_FIT = "uwdock.datasets.water_fit_config:FitWaterConfig"
 
 
 @command_group()

@@ -26,8 +26,8 @@ from uwdock.dockcore.io import atomic_path, special_file_kind
 from uwdock.dockcore.provenance import write_provenance
 from uwdock.markers.markerset import MarkerSet, save_marker_set
 
-if TYPE_CHECKING:  # the run's config; that module imports this one
-    from uwdock.datasets.synth import SynthConfig
+if TYPE_CHECKING:
+    from uwdock.datasets.synth_config import SynthConfig
 
 __all__ = [
     "IMAGE_NAME",

@@ -24,8 +24,8 @@ from uwdock.markers.markerset import MarkerSet
 from uwdock.perception.ds_pose import DSPoseEstimator
 from uwdock.sim.water import decode_lut
 
-if TYPE_CHECKING:  # the fit's settings; that module imports this one
-    from uwdock.datasets.water_fit import FitWaterConfig
+if TYPE_CHECKING:
+    from uwdock.datasets.water_fit_config import FitWaterConfig
 
 __all__ = ["PatchSamples", "estimate_noise", "sample_frames"]
 

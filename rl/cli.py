@@ -40,32 +40,32 @@ from uwdock.dockcore.options import (
 from uwdock.dockcore.outdir import claim_output_dir
 from uwdock.dockcore.provenance import write_provenance
 from uwdock.dockcore.supervise import clean_after_kill, supervise
-from uwdock.rl.baselines import PIDController
-from uwdock.rl.config import EnvConfig, ObsSourceName, check_env_files
-from uwdock.rl.env import DockingEnv
-from uwdock.rl.env_settings import command_env, policy_training_env
-from uwdock.rl.episode import EpisodeVideoConfig, mark_killed, record_episode
-from uwdock.rl.error_model import ErrorModelConfig, fit_error_model, save_error_model
-from uwdock.rl.export import export_onnx
-from uwdock.rl.policy_convert import convert_policy
-from uwdock.rl.policy_io import policy_env_settings
-from uwdock.rl.recipe import recipe_names, run_recipe
-from uwdock.rl.report import evaluate_to_folder
-from uwdock.rl.sweep import SweepConfig, parse_grid, run_sweep
-from uwdock.rl.train import BatchWorkerCount, TrainConfig, run_config
-from uwdock.rl.train import train as run
-from uwdock.rl.trajectories import record_pid_trajectories
-from uwdock.rl.vec_envs import EnvsPerWorker
+from uwdock.rl.env.config import EnvConfig, ObsSourceName, check_env_files
+from uwdock.rl.env.docking_env import DockingEnv
+from uwdock.rl.env.error_model import ErrorModelConfig, fit_error_model, save_error_model
+from uwdock.rl.evaluate.episode_video import EpisodeVideoConfig, mark_killed, record_episode
+from uwdock.rl.evaluate.report import evaluate_to_folder
+from uwdock.rl.evaluate.trajectories import record_pid_trajectories
+from uwdock.rl.policy.baselines import PIDController
+from uwdock.rl.policy.env_settings import command_env, policy_training_env
+from uwdock.rl.policy.export import export_onnx
+from uwdock.rl.policy.policy_convert import convert_policy
+from uwdock.rl.policy.policy_io import policy_env_settings
+from uwdock.rl.train.recipe import recipe_names, run_recipe
+from uwdock.rl.train.sweep import SweepConfig, parse_grid, run_sweep
+from uwdock.rl.train.training import BatchWorkerCount, TrainConfig, run_config
+from uwdock.rl.train.training import train as run
+from uwdock.rl.train.vec_envs import EnvsPerWorker
 from uwdock.sim.navigation import NAV_PRESETS
 from uwdock.sim.usbl import USBL_PRESETS
 from uwdock.sim.water import resolve_water, water_choice
 from uwdock.sim.world_config import WorldConfig
 
 #: The config whose fields the options override (imported when an option is first used).
-_TRAIN = "uwdock.rl.train:TrainConfig"
-_ENV = "uwdock.rl.config:EnvConfig"
+_TRAIN = "uwdock.rl.train.training:TrainConfig"
+_ENV = "uwdock.rl.env.config:EnvConfig"
 _WORLD = "uwdock.sim.world_config:WorldConfig"
-_VIDEO = "uwdock.rl.episode:EpisodeVideoConfig"
+_VIDEO = "uwdock.rl.evaluate.episode_video:EpisodeVideoConfig"
 
 #: ``rl episode``'s values of EnvConfig fields that neither a flag nor ``--config`` sets (the
 #: camera's render width is the env's own, ``WorldConfig.camera_width_px``).
@@ -563,7 +563,7 @@ def convert_policy_cmd(source, trust_pickle, out_dir) -> None:
 @out_file_option("Error model file (JSON) to write.", required=True)
 @click.option(
     "--range-bin-m",
-    type=field_type("uwdock.rl.error_model:ErrorModelConfig", "range_bin_m"),
+    type=field_type("uwdock.rl.env.error_model:ErrorModelConfig", "range_bin_m"),
     help="Range bin width [0.5].",
 )
 def fit_error_model_cmd(dataset, out_path, range_bin_m) -> None:
@@ -622,7 +622,7 @@ def _fmt_rho(rho: list[float]) -> str:
     show_default=True,
     help="Outside view width (px; 4:3).",
 )
-@config_option("TOML overriding rl.config.EnvConfig (obs_source defaults to 'proxy').")
+@config_option("TOML overriding rl.env.config.EnvConfig (obs_source defaults to 'proxy').")
 @quiet_option("No progress bar; print only the video path.")
 def episode(
     out_dir, controller, seed, water, seconds, width_px, env_from, outside_width_px, config_path,
@@ -708,7 +708,7 @@ def episode(
     help="Fitted error model file (for --obs error-model), e.g. "
     "rl/models/error_model_clear_tank_480.json.",
 )
-@config_option("TOML overriding rl.config.EnvConfig (terminate_on defaults to 'strict').")
+@config_option("TOML overriding rl.env.config.EnvConfig (terminate_on defaults to 'strict').")
 @quiet_option("No progress bar; print only the CSV path.")
 def trajectories(out_dir, episodes, seed, obs, error_model, config_path, quiet) -> None:
     """Record the PID baseline's docking trajectories as a pose CSV with sequence, step and

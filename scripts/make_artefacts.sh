@@ -161,7 +161,7 @@ scratch() {  # the true-pose recipe: PPO from scratch, then its best/ at collisi
 # "kernel": no PhysX in training). Stage 1 from scratch with near-seat starts (30 % of the early
 # episodes start just above the seat); stage 2 from its best/, collision penalty 70, keeping the
 # evaluation of highest return, with the fine error in the observation
-# (obs_fine_error: stage 1's policy is widened for it, uwdock.rl.widen). The batch over
+# (obs_fine_error: stage 1's policy is widened for it, uwdock.rl.train.widen). The batch over
 # BATCH_WORKERS processes (default 2, the count the shipped policy trained with). A run repeats
 # bit for bit on the same kind of CPU only (NumPy and MKL pick their kernels by CPU:
 # bench/bench_numerics.py), and a stage 1 trained on another CPU than the shipped one's is another

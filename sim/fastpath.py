@@ -3,7 +3,7 @@
 One implementation of the model serves both ways of stepping :class:`sim.physics.VehicleBody`:
 
 * :func:`hydro_accel` is the scalar Fossen model (``Hydrodynamics.acceleration``, NumPy, is the
-  readable reference it is tested against); ``Hydrodynamics.make_accel_fn`` wraps it.
+  readable reference it is tested against); :func:`accel_fn` binds a vehicle's constants to it.
 * :func:`physx_wrench` turns the PhysX state of one substep into the world force and torque that
   make PhysX's body reach that acceleration (the PhysX path calls it before every
   ``scene.step()``).
@@ -42,25 +42,24 @@ works in body FRD, so FLU <-> FRD negates y and z.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
-from typing import TYPE_CHECKING
+from collections.abc import Callable, Sequence
 
 import numpy as np
 import sapien
 from numba import njit
 
 from uwdock.calibration.frames import T_from_pos_quat
-
-if TYPE_CHECKING:  # pragma: no cover
-    from uwdock.sim.vehicle import Hydrodynamics
+from uwdock.sim.vehicle import Hydrodynamics
 
 __all__ = [
     "HYDRO_PARAMS",
     "OBSTACLE_COLS",
     "PRISM_COLS",
     "PRISM_MAX_VERTICES",
+    "AccelFn",
     "StaticObstacles",
     "StaticsWatch",
+    "accel_fn",
     "body_params",
     "free_flight",
     "free_flight_all",
@@ -112,6 +111,28 @@ CHUNK_SUBSTEPS = 6
 
 
 # --------------------------------------------------------------------------- parameters
+
+
+#: A vehicle's scalar ``nu_dot`` (:func:`accel_fn`).
+AccelFn = Callable[..., tuple[float, float, float, float, float, float]]
+
+
+def accel_fn(hydro: Hydrodynamics) -> AccelFn:
+    """Scalar version of :meth:`sim.vehicle.Hydrodynamics.acceleration`: the compiled kernel the
+    300 Hz loop runs (:func:`hydro_accel`) with this vehicle's constants bound.
+
+    Returns:
+        ``f(dx, dy, dz, u, v, w, p, q, r, cu, cv, cw, X, Y, Z, K, M, N, depth_cb) -> nu_dot``
+        (6-tuple) where (dx, dy, dz) is the NED down direction in body FRD (row 2 of
+        ``R_ned_frd``), (u..r) the body velocity, (cu, cv, cw) the current in body FRD, (X..N)
+        the applied wrench and ``depth_cb`` the CB's depth (m, ``inf``: deep); all floats.
+    """
+    params = hydro_params(hydro)
+
+    def accel(*args: float) -> tuple[float, float, float, float, float, float]:
+        return hydro_accel(params, *args)
+
+    return accel
 
 
 def hydro_params(hydro: Hydrodynamics) -> np.ndarray:

@@ -22,7 +22,6 @@ current (below 1e-3 m/s^2 for the default drift) is not modelled.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Annotated, Literal
 
@@ -274,16 +273,14 @@ class VehicleRandomisation:
 
 # --------------------------------------------------------------------------- hydrodynamics
 
-AccelFn = Callable[..., tuple[float, float, float, float, float, float]]
-
 
 class Hydrodynamics:
     """Fossen rigid-body + hydrodynamic model of one vehicle (body FRD, moments about O).
 
     The component methods (NumPy, readable) document the model and serve as the reference;
-    :meth:`make_accel_fn` returns the same ``nu_dot`` from the compiled scalar kernel that the
-    300 Hz loop runs (``sim.fastpath``, numba), where NumPy's per-call overhead on 3-vectors
-    would dominate (tested equal).
+    :func:`sim.fastpath.accel_fn` gives the same ``nu_dot`` from the compiled scalar kernel that
+    the 300 Hz loop runs (numba), where NumPy's per-call overhead on 3-vectors would dominate
+    (tested equal).
 
     Attributes:
         config: the vehicle parameters.
@@ -396,28 +393,6 @@ class Hydrodynamics:
             + self.M_A @ nu_c_dot
         )
         return self.M_inv @ rhs
-
-    # ----------------------------------------------------------------- hot path (scalars)
-
-    def make_accel_fn(self) -> AccelFn:
-        """Scalar version of :meth:`acceleration`: the compiled kernel the 300 Hz loop runs
-        (:func:`sim.fastpath.hydro_accel`) with this vehicle's constants bound.
-
-        Returns:
-            ``f(dx, dy, dz, u, v, w, p, q, r, cu, cv, cw, X, Y, Z, K, M, N, depth_cb) -> nu_dot``
-            (6-tuple) where (dx, dy, dz) is the NED down direction in body FRD (row 2 of
-            ``R_ned_frd``), (u..r) the body velocity, (cu, cv, cw) the current in body FRD,
-            (X..N) the applied wrench and ``depth_cb`` the CB's depth (m, ``inf``: deep); all
-            floats.
-        """
-        from uwdock.sim.fastpath import hydro_accel, hydro_params  # numba (+ SAPIEN)
-
-        params = hydro_params(self)
-
-        def accel(*args: float) -> tuple[float, float, float, float, float, float]:
-            return hydro_accel(params, *args)
-
-        return accel
 
 
 # --------------------------------------------------------------------------- ocean current

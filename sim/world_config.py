@@ -1,7 +1,7 @@
 """Configuration of the simulated world of one docking env (tank, DS, vehicle, currents, camera).
 
 Kept apart from :mod:`uwdock.sim.world` (which needs SAPIEN) so that configs can be built,
-loaded and checked without the simulator. The env's config (:class:`uwdock.rl.config.EnvConfig`)
+loaded and checked without the simulator. The env's config (:class:`uwdock.rl.env.config.EnvConfig`)
 nests it as ``EnvConfig.world`` (the TOML table ``[env.world]``). It owns the rules of a world
 camera's render width (:func:`camera_width_error`, which ``datasets synth`` applies too).
 """

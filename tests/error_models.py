@@ -10,8 +10,8 @@ from uwdock.calibration.frames import make_T
 from uwdock.dockcore.config import to_dict
 from uwdock.markers.config import MarkerConfig
 from uwdock.markers.markerset import marker_set_from_config
-from uwdock.rl.error_model import FORMAT, VERSION, ErrorModelConfig
-from uwdock.rl.task import DockingTaskConfig
+from uwdock.rl.env.error_model import FORMAT, VERSION, ErrorModelConfig
+from uwdock.rl.env.task import DockingTaskConfig
 
 N_BINS = 16
 STEP_S = 0.2

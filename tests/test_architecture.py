@@ -3,14 +3,17 @@
 (a) no import from a package to one of the same or a higher rank (``uwdock.LAYERS``; perception
     and sim are peers and never import each other); the scripts of ``bench/`` (and ``scripts/``)
     rank above everything: they may import any package, and nothing imports them;
-(b) no import cycle between modules (module-level and function-level imports both count);
+(b) no import cycle between modules: module-level, function-level and ``if TYPE_CHECKING:``
+    imports all count (a type shared by two modules lives below both);
 (c) no function-local import of a ``uwdock`` module other than a heavy one (e), and
     function-local imports otherwise only of a short list of heavy optional third-party modules
     (those an extra installs, or that take seconds to import);
 (d) the bare folder names (``import datasets`` ...) never give the project;
 (e) a *heavy module of the tree* (one that imports torch, Stable-Baselines3 ... at module level,
     to subclass their classes at module level) is itself imported only inside functions (or
-    under ``if TYPE_CHECKING:``), so importing a light module never imports it.
+    under ``if TYPE_CHECKING:``), so importing a light module never imports it;
+(f) inside a package split into rooms (sub-packages, ``uwdock.ROOMS``), no import from a room to
+    one of the same or a higher rank, and every room of the folder is ranked.
 
 An import is an ``import`` / ``from ... import`` statement, or a call of
 ``importlib.import_module`` or ``__import__`` with literal arguments, however the function is
@@ -33,7 +36,7 @@ from pathlib import Path
 
 import pytest
 
-from uwdock import LAYERS
+from uwdock import LAYERS, ROOMS
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -329,12 +332,13 @@ def upward_imports(root: Path, layers: dict[str, int]) -> list[str]:
 
 def import_cycles(root: Path, layers: dict[str, int]) -> list[list[str]]:
     """The module sets that import each other in a ring (strongly connected components of the
-    import graph with more than one module, or a module importing itself). Imports under
-    ``if TYPE_CHECKING:`` (annotations only, never run) are not edges."""
+    import graph with more than one module, or a module importing itself). Every import is an
+    edge: at module level, inside a function, and under ``if TYPE_CHECKING:`` (a ring of
+    annotations is still two modules that cannot be read one without the other)."""
     files = module_files(root, layers)
     graph: dict[str, set[str]] = {m: set() for m in files}
     for imp in imports_in(files):
-        if imp.target in files and not imp.typing_only:
+        if imp.target in files:
             graph[imp.importer].add(imp.target)
     index: dict[str, int] = {}
     low: dict[str, int] = {}
@@ -367,6 +371,57 @@ def import_cycles(root: Path, layers: dict[str, int]) -> list[list[str]]:
         if v not in index:
             visit(v)
     return rings
+
+
+def _room(module: str, rooms: dict[str, dict[str, int]]) -> tuple[str, str, int] | None:
+    """(package, room, rank) of a module of a package split into rooms; the package's own
+    ``__init__`` is the room ``""`` below every other; None outside such a package."""
+    parts = module.split(".")
+    if parts[0] != "uwdock" or len(parts) < 2 or parts[1] not in rooms:
+        return None
+    pkg = parts[1]
+    if len(parts) == 2:
+        return pkg, "", -1
+    return pkg, parts[2], rooms[pkg].get(parts[2], -1)
+
+
+def room_table_errors(
+    root: Path, layers: dict[str, int], rooms: dict[str, dict[str, int]]
+) -> list[str]:
+    """What the room table misses: a package folder in ``rooms`` whose rooms (its modules and
+    sub-packages) are not exactly the table's, a table naming a package that is not one, and a
+    sub-package in a package that ``rooms`` does not split."""
+    errors = []
+    for pkg in sorted(set(rooms) - set(layers)):
+        errors.append(f"ROOMS names {pkg}, which is not a package of LAYERS")
+    for pkg in sorted(layers):
+        folder = root / pkg
+        found = {p.stem for p in folder.glob("*.py") if p.stem != "__init__"}
+        subs = sorted(p.parent.name for p in folder.glob("*/__init__.py"))
+        if pkg not in rooms:
+            errors += [f"{pkg}/{s}/: a sub-package of a package without rooms" for s in subs]
+            continue
+        table = set(rooms[pkg])
+        missing, extra = sorted((found | set(subs)) - table), sorted(table - found - set(subs))
+        errors += [f"{pkg}/{r}: a room missing from ROOMS" for r in missing]
+        errors += [f"ROOMS[{pkg!r}] names {r}, which {pkg}/ does not hold" for r in extra]
+    return errors
+
+
+def room_imports(root: Path, layers: dict[str, int], rooms: dict[str, dict[str, int]]) -> list[str]:
+    """Imports from a room of a package to another room of the same package of the same rank (a
+    peer) or a higher one; an import inside one room is free (cycles are (b)'s)."""
+    files = module_files(root, layers)
+    bad = []
+    for imp in imports_in(files):
+        if imp.target not in files:
+            continue
+        a, b = _room(imp.importer, rooms), _room(imp.target, rooms)
+        if a is None or b is None or a[0] != b[0] or a[1] == b[1]:
+            continue
+        if b[2] >= a[2]:
+            bad.append(f"{imp.where(files)} (room {a[1] or '__init__'} {a[2]}, {b[1]} {b[2]})")
+    return bad
 
 
 def heavy_modules(root: Path, layers: dict[str, int]) -> set[str]:
@@ -566,6 +621,16 @@ def test_no_import_cycles():
     assert import_cycles(ROOT, LAYERS) == []
 
 
+def test_rooms_are_the_table():
+    """Every room of a split package is ranked (none escapes the check below), and rl is split."""
+    assert room_table_errors(ROOT, LAYERS, ROOMS) == []
+    assert {"env", "policy", "evaluate", "train", "deploy", "cli"} <= set(ROOMS["rl"])
+
+
+def test_no_room_imports_a_room_of_its_rank_or_above():
+    assert room_imports(ROOT, LAYERS, ROOMS) == []
+
+
 def test_function_local_imports_only_for_heavy_optional_modules():
     assert local_import_violations(ROOT, LAYERS) == []
 
@@ -611,9 +676,10 @@ def test_clean_planted_tree_passes(tmp_path):
             "mid/c.py": "def f():\n    import torch\n",
             "top/d.py": "from uwdock.mid import b\nfrom uwdock.peer_a import e\n",
             "peer_a/e.py": "from uwdock.mid.b import y\n",
-            # a back-reference for annotations only is not a ring
+            # an import for annotations only that no import answers is no ring
             "low/t.py": "from uwdock.low import u\n",
-            "low/u.py": "import typing\nif typing.TYPE_CHECKING:\n    from . import t\n",
+            "low/u.py": "import typing\nif typing.TYPE_CHECKING:\n    from . import v\n",
+            "low/v.py": "",
         },
     )
     assert upward_imports(root, _PLANT_LAYERS) == []
@@ -647,6 +713,91 @@ def test_import_cycle_is_found_through_a_function_level_import(tmp_path):
     assert import_cycles(root, _PLANT_LAYERS) == [["uwdock.top.a", "uwdock.top.b", "uwdock.top.c"]]
     _plant(root, {"low/s.py": "from uwdock.low import s\n"})  # a module importing itself
     assert ["uwdock.low.s"] in import_cycles(root, _PLANT_LAYERS)
+
+
+def test_import_cycle_is_found_through_a_type_checking_import(tmp_path):
+    """A helper split from its parent that imports the parent's types for its annotations is a
+    ring, however the guard is spelled."""
+    root = _plant(
+        tmp_path,
+        {
+            "mid/parent.py": "from uwdock.mid.helper import f\n",
+            "mid/helper.py": """
+                from typing import TYPE_CHECKING
+
+                if TYPE_CHECKING:
+                    from uwdock.mid.parent import Config
+                """,
+            "low/a.py": "import typing\nif typing.TYPE_CHECKING:\n    from uwdock.low import b\n",
+            "low/b.py": "def f():\n    from uwdock.low import a\n",
+        },
+    )
+    assert import_cycles(root, _PLANT_LAYERS) == [
+        ["uwdock.low.a", "uwdock.low.b"],
+        ["uwdock.mid.helper", "uwdock.mid.parent"],
+    ]
+
+
+_PLANT_ROOMS = {"top": {"base": 0, "up": 1, "side_a": 2, "side_b": 2, "cli": 3}}
+
+
+def _plant_rooms(root: Path, files: dict[str, str] | None = None) -> Path:
+    rooms = {f"top/{r}/__init__.py": "" for r in ("base", "up", "side_a", "side_b")}
+    return _plant(root, {**rooms, "top/cli.py": "", **(files or {})})
+
+
+def test_clean_rooms_pass(tmp_path):
+    root = _plant_rooms(
+        tmp_path,
+        {
+            "top/base/m.py": "from uwdock.top.base import n\nfrom uwdock.low import a\n",
+            "top/base/n.py": "",
+            "top/up/p.py": "from uwdock.top.base.m import x\nfrom uwdock.top import base\n",
+            "top/side_a/q.py": "from uwdock.top.up import p\nimport uwdock.top\n",
+            "top/cli.py": "from uwdock.top.side_a import q\nfrom uwdock.top.side_b import r\n",
+            "top/side_b/r.py": "",
+            "low/a.py": "",
+        },
+    )
+    assert room_table_errors(root, _PLANT_LAYERS, _PLANT_ROOMS) == []
+    assert room_imports(root, _PLANT_LAYERS, _PLANT_ROOMS) == []
+
+
+def test_room_imports_up_or_sideways_are_found(tmp_path):
+    root = _plant_rooms(
+        tmp_path,
+        {
+            "top/base/m.py": (
+                "import typing\nif typing.TYPE_CHECKING:\n    from uwdock.top.up import p\n"
+            ),
+            "top/up/p.py": "def f():\n    from uwdock.top import cli\n",
+            "top/side_a/q.py": "from uwdock.top.side_b.r import x\n",
+            "top/side_b/r.py": "",
+            "top/__init__.py": "from uwdock.top.base import m\n",
+        },
+    )
+    hits = [h.split(": ", 1)[1] for h in room_imports(root, _PLANT_LAYERS, _PLANT_ROOMS)]
+    assert hits == [
+        "uwdock.top imports uwdock.top.base.m (room __init__ -1, base 0)",
+        "uwdock.top.base.m imports uwdock.top.up.p (room base 0, up 1)",
+        "uwdock.top.side_a.q imports uwdock.top.side_b.r (room side_a 2, side_b 2)",
+        "uwdock.top.up.p imports uwdock.top.cli (room up 1, cli 3)",
+    ]
+
+
+def test_unranked_rooms_are_found(tmp_path):
+    root = _plant_rooms(
+        tmp_path,
+        {"top/extra/__init__.py": "", "top/loose.py": "", "mid/sub/__init__.py": ""},
+    )
+    rooms = {"top": {**_PLANT_ROOMS["top"], "gone": 4}, "nowhere": {}}
+    assert room_table_errors(root, _PLANT_LAYERS, rooms) == [
+        "ROOMS names nowhere, which is not a package of LAYERS",
+        "mid/sub/: a sub-package of a package without rooms",
+        "top/extra: a room missing from ROOMS",
+        "top/loose: a room missing from ROOMS",
+        "ROOMS['top'] names gone, which top/ does not hold",
+    ]
 
 
 def test_local_imports_of_the_project_or_light_modules_are_found(tmp_path):

@@ -12,10 +12,10 @@ import pytest
 import torch
 
 from uwdock.dockcore.config import replace
-from uwdock.rl.config import EnvConfig
-from uwdock.rl.env import DockingEnv
-from uwdock.rl.observation import PRIVILEGED_DIM, actor_observation_size, observation_size
-from uwdock.rl.train import TrainConfig
+from uwdock.rl.env.config import EnvConfig
+from uwdock.rl.env.docking_env import DockingEnv
+from uwdock.rl.env.observation import PRIVILEGED_DIM, actor_observation_size, observation_size
+from uwdock.rl.train.training import TrainConfig
 
 ENV = replace(EnvConfig(), episode_s=4.0, obs_privileged=True)
 
@@ -23,7 +23,7 @@ ENV = replace(EnvConfig(), episode_s=4.0, obs_privileged=True)
 def _model(env_cfg: EnvConfig = ENV):
     from stable_baselines3.common.vec_env import DummyVecEnv
 
-    from uwdock.rl.train import build_model
+    from uwdock.rl.train.training import build_model
 
     cfg = replace(TrainConfig(), env=env_cfg)
     venv = DummyVecEnv([lambda: DockingEnv(env_cfg, privileged=True)])
@@ -59,7 +59,7 @@ def test_layout_and_only_training_envs_fill_the_block():
 def test_actor_ignores_the_block_the_critic_reads_it_and_it_survives_save_and_export(tmp_path):
     from stable_baselines3 import PPO
 
-    from uwdock.rl.asymmetric import AsymmetricPolicy
+    from uwdock.rl.policy.asymmetric import AsymmetricPolicy
 
     model = _model()
     pol = model.policy
@@ -82,7 +82,7 @@ def test_actor_ignores_the_block_the_critic_reads_it_and_it_survives_save_and_ex
     assert isinstance(loaded.policy, AsymmetricPolicy)
     assert loaded.policy.actor_obs_dim == n_actor
 
-    from uwdock.rl.export import _actor_module
+    from uwdock.rl.policy.export import _actor_module
 
     actor = _actor_module(loaded, None)
     with torch.no_grad():
@@ -91,9 +91,9 @@ def test_actor_ignores_the_block_the_critic_reads_it_and_it_survives_save_and_ex
 
 
 def test_rl_eval_and_the_runner_never_see_privileged_state(monkeypatch):
-    from uwdock.rl import evaluate
-    from uwdock.rl.baselines import PIDController
-    from uwdock.rl.runner import DockingRunner, Odometry
+    from uwdock.rl.deploy.runner import DockingRunner, Odometry
+    from uwdock.rl.evaluate import episodes as evaluate
+    from uwdock.rl.policy.baselines import PIDController
 
     seen = []
 

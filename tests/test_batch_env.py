@@ -1,202 +1,30 @@
-"""The batched docking env (rl.batch_env, rl.batch_parts) against the scalar DockingEnv: each
-batched piece equals its scalar twin on the same inputs, and whole episodes agree where no
-per-step noise is drawn."""
+"""The batched docking env (rl.env.batch_env) against the per-env DockingEnv: whole episodes
+agree where no per-step noise is drawn, evaluations and worker splits give the per-env rows.
+Each batched piece against its scalar twin (rl.env.batch_parts) is tests/test_batch_twins.py."""
 
 from __future__ import annotations
 
 import json
-import math
 
 import numpy as np
 import pytest
 
-from uwdock.calibration.frames import R_from_rpy, make_T
 from uwdock.dockcore.config import replace
-from uwdock.rl.batch_env import BatchDockingEnv, batched_episodes
-from uwdock.rl.batch_parts import (
-    BatchErrorModel,
-    BatchFilter,
-    docking_errors_b,
-    ds_visible_b,
-    inv_T_b,
-    observation_frames_b,
-    paper_success_b,
-    pegs_seated_b,
-    reward_terms_b,
-    rotvec_to_R_b,
+from uwdock.rl.env.batch_env import BatchDockingEnv
+from uwdock.rl.env.config import EnvConfig
+from uwdock.rl.env.docking_env import DockingEnv
+from uwdock.rl.env.estimator import EstimatorConfig
+from uwdock.rl.env.task import (
+    DockingTaskConfig,
 )
-from uwdock.rl.config import EnvConfig
-from uwdock.rl.env import DockingEnv
-from uwdock.rl.error_model import apply_error, count_in_view, load_error_model, pose_error
-from uwdock.rl.estimator import DSPoseFilter, EstimatorConfig
-from uwdock.rl.evaluate import run_episodes
-from uwdock.rl.observation import observation_frame
-from uwdock.rl.rewards import DockingReward, RewardConfig
-from uwdock.rl.task import DockingTaskConfig, docking_errors, ds_visible, paper_success, pegs_seated
+from uwdock.rl.evaluate.batched import batched_episodes
+from uwdock.rl.evaluate.episodes import run_episodes
 from uwdock.sim.usbl import UsblConfig
 from uwdock.sim.vehicle import ImuConfig, VehicleConfig
 from uwdock.sim.world_config import WorldConfig
 
 MODEL = "rl/models/error_model_clear_tank_480_ar1.json"
 TASK = DockingTaskConfig()
-
-
-def _poses(n: int, seed: int, near_dock: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """Random DS poses on a floor and vehicle poses above them (half of them nearly docked)."""
-    rng = np.random.default_rng(seed)
-    T_ds = np.stack(
-        [
-            make_T(R_from_rpy(0, 0, rng.uniform(-3, 3)), [*rng.uniform(-2, 2, 2), 4.9])
-            for _ in range(n)
-        ]
-    )
-    T_body = []
-    for i in range(n):
-        if near_dock or i % 2:
-            dT = make_T(R_from_rpy(*rng.normal(0, 0.02, 3)), rng.normal(0, 0.03, 3))
-            T_body.append(T_ds[i] @ TASK.T_ds_target @ dT)
-        else:
-            rpy = rng.normal(0, 0.1, 3) + np.array([0.0, 0.0, rng.uniform(-3, 3)])
-            T_body.append(make_T(R_from_rpy(*rpy), [*rng.uniform(-4, 4, 2), rng.uniform(1, 4.5)]))
-    return np.stack(T_body), T_ds
-
-
-def test_task_tests_equal_the_scalar_ones():
-    T_body, T_ds = _poses(200, 0)
-    e, psi = docking_errors_b(T_body, T_ds, TASK)
-    vis = ds_visible_b(inv_T_b(T_body) @ T_ds, TASK)
-    paper = paper_success_b(e, psi, vis, TASK)
-    seated = pegs_seated_b(T_body, T_ds, TASK)
-    assert 0 < seated.sum() < 200 and 0 < vis.sum() < 200 and paper.sum() > 0
-    for i in range(200):
-        e_s, psi_s = docking_errors(T_body[i], T_ds[i], TASK)
-        np.testing.assert_allclose(e[i], e_s, atol=1e-12)
-        assert psi[i] == pytest.approx(psi_s, abs=1e-12)
-        v = ds_visible(np.linalg.inv(T_body[i]) @ T_ds[i], TASK)
-        assert vis[i] == v
-        assert paper[i] == paper_success(e_s, psi_s, v, TASK)
-        assert seated[i] == pegs_seated(T_body[i], T_ds[i], TASK)
-
-
-def test_rotvec_and_error_application_match_scipy():
-    rng = np.random.default_rng(4)
-    rv = np.concatenate([rng.normal(0, 0.5, (50, 3)), np.zeros((1, 3))])
-    T = make_T(R_from_rpy(0.1, 0.2, 0.3), [0.1, 0.2, 1.5])
-    for i, R in enumerate(rotvec_to_R_b(rv)):
-        np.testing.assert_allclose(
-            R, apply_error(T, np.r_[0, 0, 0, rv[i]])[:3, :3] @ T[:3, :3].T, atol=1e-12
-        )
-
-
-def test_filter_equals_the_scalar_filter():
-    cfg = EstimatorConfig(gate_sigma=3.0)
-    rng = np.random.default_rng(2)
-    n = 6
-    scalars = [DSPoseFilter(cfg) for _ in range(n)]
-    T0 = [make_T(R_from_rpy(0, 0, rng.uniform(-3, 3)), rng.normal(0, 2, 3)) for _ in range(n)]
-    for f, T in zip(scalars, T0, strict=True):
-        f.reset(T, rng)
-    q = np.array([cfg.drift_xyz_m_per_sqrt_s] * 3 + [math.radians(cfg.drift_yaw_deg_per_sqrt_s)])
-    batch = BatchFilter(n, cfg.fuse, cfg.gate_sigma, q**2)
-    batch.x[:] = [f.x for f in scalars]
-    batch.P[:] = [f.P for f in scalars]
-    for step in range(40):
-        batch.predict(0.2)
-        for f in scalars:
-            f.predict(0.2)
-        if step % 5 == 0:  # a position fix for some
-            mask = rng.random(n) < 0.6
-            p = np.stack(T0)[:, :3, 3] + rng.normal(0, 0.3, (n, 3))
-            sig = rng.uniform(0.1, 0.5, n)
-            batch.update_position(mask, p, sig)
-            for i in np.flatnonzero(mask):
-                scalars[i].update_position(p[i], sig[i])
-        mask = rng.random(n) < 0.5
-        z = np.concatenate([np.stack(T0)[:, :3, 3], np.zeros((n, 1))], axis=1)
-        z += rng.normal(0, 0.2, (n, 4)) * (1 + 20 * (rng.random((n, 1)) < 0.1))  # outliers
-        z[:, 3] += [math.atan2(T[1, 0], T[0, 0]) for T in T0]
-        R = np.stack([np.diag(rng.uniform(0.01, 0.1, 4)) for _ in range(n)])
-        acc = batch.update(mask, z, R)
-        for i in np.flatnonzero(mask):
-            Tm = make_T(R_from_rpy(0, 0, z[i, 3]), z[i, :3])
-            assert acc[i] == scalars[i].update(Tm, R[i])
-        np.testing.assert_allclose(batch.x, [f.x for f in scalars], atol=1e-9)
-        np.testing.assert_allclose(batch.P, [f.P for f in scalars], atol=1e-9)
-    np.testing.assert_allclose(batch.T_world_ds(), [f.T_world_ds for f in scalars], atol=1e-9)
-
-
-def test_reward_terms_equal_the_scalar_reward():
-    cfg = RewardConfig(precision_gain=2.0, precision_yaw_scale_rad=0.5, angle_linear=1.0)
-    actuated = np.array([1, 1, 1, 0, 1, 1], dtype=bool)
-    scalar = DockingReward(cfg, actuated)
-    rng = np.random.default_rng(3)
-    n = 50
-    e, psi = rng.normal(0, 1, (n, 3)), rng.uniform(-3, 3, n)
-    a, prev = rng.uniform(-1, 1, (n, 6)), rng.uniform(-1, 1, (n, 6))
-    col, docked, trunc = rng.random(n) < 0.3, rng.random(n) < 0.2, rng.random(n) < 0.2
-    docked &= ~trunc
-    terms = reward_terms_b(
-        cfg, scalar.weights, scalar.smooth_mask, e, psi, a, prev, col, docked, trunc
-    )
-    for i in range(n):
-        ref = scalar(e[i], psi[i], a[i], prev[i], col[i], docked[i], trunc[i])
-        for k, v in ref.items():
-            assert terms[k][i] == pytest.approx(v, rel=1e-12, abs=1e-12), k
-
-
-def test_observation_frames_equal_the_scalar_frames():
-    cfg = EnvConfig(obs_last_action=True)
-    T_body, T_ds = _poses(20, 5)
-    rng = np.random.default_rng(6)
-    f = DSPoseFilter(cfg.estimator)
-    vel, acc = rng.normal(0, 0.3, (20, 3)), rng.normal(0, 2, (20, 3))
-    w, prev, det = rng.normal(0, 0.1, 20), rng.uniform(-1, 1, (20, 6)), rng.random(20) < 0.5
-    ests, sig = [], []
-    for i in range(20):
-        f.reset(T_ds[i], rng)
-        ests.append(f.T_world_ds)
-        sig.append(math.sqrt(0.5 * (f.P[0, 0] + f.P[1, 1])))
-        ref = observation_frame(cfg, T_body[i], f, vel[i], w[i], acc[i], prev[i], bool(det[i]))
-        out = observation_frames_b(
-            cfg, T_body[i : i + 1], np.stack(ests[-1:]), np.array(sig[-1:]),
-            vel[i : i + 1], w[i : i + 1], acc[i : i + 1], prev[i : i + 1], det[i : i + 1],
-        )  # fmt: skip
-        np.testing.assert_allclose(out[0], ref, atol=1e-6)
-
-
-def test_error_model_counts_and_samples_as_the_table_says():
-    model = load_error_model(MODEL)
-    T_body, T_ds = _poses(60, 7)
-    rng = np.random.default_rng(9)
-    for i in range(0, 60, 3):  # a third of them 1.5-3 m above the DS, looking at it
-        up = make_T(
-            R_from_rpy(0, 0, rng.uniform(-3, 3)), [*rng.normal(0, 0.3, 2), -rng.uniform(1.5, 3)]
-        )
-        T_body[i] = T_ds[i] @ up
-    b = BatchErrorModel(model, "clear_tank", temporal=False, n=60)
-    T_world_cam = T_body @ model.T_body_cam
-    T_cam_ds = inv_T_b(T_world_cam) @ T_ds
-    counts = b.count_in_view(T_cam_ds)
-    for i in range(60):
-        assert counts[i] == count_in_view(model.camera, T_cam_ds[i], model.corners_ds)
-    # one pose, many draws: the detection rate and the error's moments (no gross outliers)
-    n = 4000
-    i = int(np.flatnonzero(counts >= 3)[0])
-    b = BatchErrorModel(model, "clear_tank", temporal=False, n=n)
-    t = b.table = dict(b.table, p_out=np.zeros_like(b.table["p_out"]))
-    rng = np.random.default_rng(8)
-    body, ds = np.repeat(T_body[i : i + 1], n, 0), np.repeat(T_ds[i : i + 1], n, 0)
-    det, T_meas, _ = b.measure(
-        body, ds, np.full(n, 1.0), rng.random((n, 3)), rng.standard_normal((n, 6))
-    )
-    k = model.range_bin(np.linalg.norm(T_cam_ds[i, :3, 3]))
-    p = t["p"][k, 3]
-    assert abs(det.mean() - p) < 4 * math.sqrt(p * (1 - p) / n) + 1e-9
-    cam_inv = np.linalg.inv(T_world_cam[i])
-    errs = np.array([pose_error(cam_inv @ T_meas[j], T_cam_ds[i]) for j in np.flatnonzero(det)])
-    sem = np.sqrt(np.diag(t["cov"][k]) / len(errs))
-    assert np.all(np.abs(errs.mean(0) - t["bias"][k]) < 4 * sem + 1e-9)
-    np.testing.assert_allclose(np.cov(errs.T), t["cov"][k], atol=0.1 * np.abs(t["cov"][k]).max())
 
 
 def _quiet_cfg(**kw) -> EnvConfig:
@@ -325,10 +153,11 @@ def test_training_evaluations_run_in_the_batch_workers():
     policy's matrix products differently)."""
     from stable_baselines3 import PPO
 
-    from uwdock.rl.batch_env import BatchGroup, BatchGroupsVecEnv
-    from uwdock.rl.policy_format import policy_files
-    from uwdock.rl.vec_envs import EnvWorkers
-    from uwdock.rl.workers import EvalJob
+    from uwdock.rl.policy.policy_format import policy_files
+    from uwdock.rl.train.batch_workers import BatchGroup
+    from uwdock.rl.train.grouped_vec_env import BatchGroupsVecEnv
+    from uwdock.rl.train.vec_envs import EnvWorkers
+    from uwdock.rl.train.workers import EvalJob
 
     cfg = _quiet_cfg(terminate_on="paper", episode_s=4.0, obs_frames=2)
     workers = EnvWorkers(cfg, 4, 7, 2, group_cls=BatchGroup, venv_cls=BatchGroupsVecEnv)
@@ -420,7 +249,7 @@ def _assert_same_infos(a, b) -> None:
 
 
 def test_step_columns_make_the_per_env_infos_sb3_reads():
-    from uwdock.rl.batch_env import StepColumns, info_rows
+    from uwdock.rl.env.batch_env import StepColumns, info_rows
 
     def part(n, off, done):
         return StepColumns(
@@ -450,11 +279,11 @@ def test_step_columns_make_the_per_env_infos_sb3_reads():
 
 def test_batched_workers_send_arrays_and_give_the_per_env_calls_results():
     """The columnar step of :class:`BatchGroupsVecEnv` gives what the generic per-env pipe
-    protocol (:class:`rl.grouped_vec_env.GroupedVecEnv` over the same groups) gives: the same
+    protocol (:class:`rl.train.grouped_vec_env.GroupedVecEnv` over the same groups) gives: the same
     observations, float32 rewards, dones and infos, through an auto-reset."""
-    from uwdock.rl.batch_env import BatchGroup, BatchGroupsVecEnv
-    from uwdock.rl.grouped_vec_env import GroupedVecEnv
-    from uwdock.rl.vec_envs import EnvWorkers
+    from uwdock.rl.train.batch_workers import BatchGroup
+    from uwdock.rl.train.grouped_vec_env import BatchGroupsVecEnv, GroupedVecEnv
+    from uwdock.rl.train.vec_envs import EnvWorkers
 
     cfg = EnvConfig(obs_source="error-model", error_model_path=MODEL, episode_s=2.0)
     fast = EnvWorkers(cfg, 3, 7, 2, group_cls=BatchGroup, venv_cls=BatchGroupsVecEnv)
@@ -497,7 +326,7 @@ def test_batch_split_over_worker_processes_gives_the_same_rollouts(
     (sim.contact_scene), so there the same batch run twice is compared (runs are
     deterministic), and the split of two worker processes against the same split with its
     first half here (``(2, True)`` beside 2 worker processes)."""
-    from uwdock.rl.batch_env import BatchWorkers
+    from uwdock.rl.train.batch_workers import BatchWorkers
 
     world = replace(WorldConfig(), batch_contact=contact)
     cfg = EnvConfig(obs_source="error-model", error_model_path=MODEL, episode_s=3.0, world=world)
@@ -542,11 +371,11 @@ def test_a_batched_run_over_two_processes_keeps_the_evaluation_its_workers_ran(
     (returns to round-off)."""
     import os
 
-    from uwdock.rl.batch_env import BatchGroup
-    from uwdock.rl.evaluate import summarise
-    from uwdock.rl.policy_io import load_policy
-    from uwdock.rl.session import EVAL_SEED
-    from uwdock.rl.train import PPOConfig, TrainConfig, train
+    from uwdock.rl.evaluate.episodes import summarise
+    from uwdock.rl.policy.policy_io import load_policy
+    from uwdock.rl.train.batch_workers import BatchGroup
+    from uwdock.rl.train.session import EVAL_SEED
+    from uwdock.rl.train.training import PPOConfig, TrainConfig, train
 
     world = replace(WorldConfig(), batch_contact="own")
     env = EnvConfig(obs_source="error-model", error_model_path=MODEL, episode_s=2.0, world=world)
@@ -588,8 +417,8 @@ def test_loading_an_evaluation_snapshot_leaves_the_global_generators_alone():
     import torch
     from stable_baselines3 import PPO
 
-    from uwdock.rl.policy_format import policy_files
-    from uwdock.rl.workers import EvalJob
+    from uwdock.rl.policy.policy_format import policy_files
+    from uwdock.rl.train.workers import EvalJob
 
     cfg = _quiet_cfg(episode_s=2.0)
     model = PPO("MlpPolicy", BatchDockingEnv(cfg, 2), n_steps=8, batch_size=16, seed=3)

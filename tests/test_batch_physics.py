@@ -10,7 +10,7 @@ import pytest
 
 from uwdock.calibration.frames import R_from_rpy, make_T
 from uwdock.dockcore.config import replace
-from uwdock.rl.task import DockingTaskConfig
+from uwdock.rl.env.task import DockingTaskConfig
 from uwdock.sim.batch import BatchVehicles
 from uwdock.sim.vehicle import CurrentConfig, ImuConfig, VehicleConfig
 from uwdock.sim.world import DockingWorld

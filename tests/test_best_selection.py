@@ -7,12 +7,12 @@ import json
 
 import pytest
 
-import uwdock.rl.session as session_mod
+import uwdock.rl.train.session as session_mod
 from uwdock.dockcore.config import ConfigError, from_dict, replace
-from uwdock.rl.policy_format import policy_files
-from uwdock.rl.session import TrainingSession, eval_score
-from uwdock.rl.sweep import _trial_summary
-from uwdock.rl.train import TrainConfig
+from uwdock.rl.policy.policy_format import policy_files
+from uwdock.rl.train.session import TrainingSession, eval_score
+from uwdock.rl.train.sweep import _trial_summary
+from uwdock.rl.train.training import TrainConfig
 
 # The eight 30-episode evaluations of a gentle-landing stage 2 (near-seat recipe, seed 2:
 # bench/results/scratch_runs/realistic_near_gentle_s2 in the tag lab-notebook-2026-12): (step,

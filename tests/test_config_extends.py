@@ -17,7 +17,7 @@ from uwdock.dockcore.config import (
     replace,
 )
 from uwdock.dockcore.errors import ConfigError, DockError
-from uwdock.rl.train import TrainConfig
+from uwdock.rl.train.training import TrainConfig
 
 BASE = """\
 total_steps = 5000
@@ -238,7 +238,7 @@ def test_a_bad_value_in_a_base_names_its_key(tmp_path):
 def test_the_env_line_names_the_base_a_value_came_from(tmp_path, monkeypatch):
     """`rl eval --config FILE` prints which layer set each setting: a value FILE takes from its
     base is labelled with the base's path, one FILE sets itself with "--config"."""
-    from uwdock.rl.env_settings import command_env
+    from uwdock.rl.policy.env_settings import command_env
 
     monkeypatch.chdir(tmp_path)
     _write(

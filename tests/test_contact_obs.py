@@ -1,5 +1,5 @@
 """``obs_contact``: what a vehicle can tell of its own contacts, in the env, the batch and the
-deployment runner (rl.observation.ContactMemory)."""
+deployment runner (rl.env.observation.ContactMemory)."""
 
 from __future__ import annotations
 
@@ -9,19 +9,18 @@ import numpy as np
 import pytest
 
 from uwdock.calibration.frames import make_T
-from uwdock.rl.batch_env import BatchDockingEnv
-from uwdock.rl.batch_parts import observation_frames_b
-from uwdock.rl.config import EnvConfig
-from uwdock.rl.env import DockingEnv
-from uwdock.rl.estimator import DSPoseFilter
-from uwdock.rl.observation import (
+from uwdock.rl.env.batch_env import BatchDockingEnv
+from uwdock.rl.env.config import EnvConfig
+from uwdock.rl.env.docking_env import DockingEnv
+from uwdock.rl.env.estimator import DSPoseFilter
+from uwdock.rl.env.observation import (
     CONTACT_TAU_S,
     REST_FULL_S,
     ContactMemory,
     frame_dim,
     observation_frame,
 )
-from uwdock.rl.task import docking_errors
+from uwdock.rl.env.task import docking_errors
 
 
 def test_contact_memory_traces_collisions_and_counts_rest():
@@ -43,23 +42,17 @@ def test_contact_memory_traces_collisions_and_counts_rest():
     assert m.features()[0, 0] > 0
 
 
-def test_contact_values_end_every_frame_and_batch_frames_equal_scalar_ones():
+def test_contact_values_end_every_frame():
     cfg = EnvConfig(obs_contact=True)
     assert frame_dim(cfg) == frame_dim(EnvConfig()) + 2
     rng = np.random.default_rng(2)
     f = DSPoseFilter(cfg.estimator)
     T_body = make_T(np.eye(3), [0.3, -0.2, 3.0])
     f.reset(make_T(np.eye(3), [0.0, 0.0, 5.0]), rng)
-    sigma = math.sqrt(0.5 * (f.P[0, 0] + f.P[1, 1]))
     contact = np.array([0.7, 0.25])
     vel, acc, prev = rng.normal(0, 0.3, 3), rng.normal(0, 2, 3), rng.uniform(-1, 1, 6)
     ref = observation_frame(cfg, T_body, f, vel, 0.05, acc, prev, True, contact)
     np.testing.assert_allclose(ref[-2:], contact, atol=1e-7)
-    out = observation_frames_b(
-        cfg, T_body[None], f.T_world_ds[None], np.array([sigma]), vel[None], np.array([0.05]),
-        acc[None], prev[None], np.array([True]), contact[None],
-    )  # fmt: skip
-    np.testing.assert_allclose(out[0], ref, atol=1e-6)
     with pytest.raises(ValueError, match="contact"):
         observation_frame(cfg, T_body, f, vel, 0.05, acc, prev, True)
 
@@ -97,7 +90,7 @@ def test_a_vehicle_pushed_onto_the_station_sees_its_landing():
 
 
 def test_the_runner_senses_contacts_from_its_odometry():
-    from uwdock.rl.runner import DockingRunner, Odometry
+    from uwdock.rl.deploy.runner import DockingRunner, Odometry
 
     cfg = EnvConfig(obs_contact=True)
 
@@ -121,10 +114,9 @@ def test_the_runner_senses_contacts_from_its_odometry():
     np.testing.assert_allclose(obs[-2:], [0.0, 0.0])
 
 
-def test_fine_error_ends_the_frame_resolves_centimetres_and_batch_frames_equal_scalar_ones():
+def test_fine_error_ends_the_frame_and_resolves_centimetres():
     """obs_fine_error appends tanh(e / 0.1 m) of the estimated error to the docking point: 5 cm
-    off reads 0.46 there against 0.01 in the frame's first entries; the batched frames equal
-    the scalar ones."""
+    off reads 0.46 there against 0.01 in the frame's first entries."""
     cfg = EnvConfig(obs_contact=True, obs_fine_error=True)
     assert frame_dim(cfg) == frame_dim(EnvConfig(obs_contact=True)) + 3
     rng = np.random.default_rng(3)
@@ -140,9 +132,3 @@ def test_fine_error_ends_the_frame_resolves_centimetres_and_batch_frames_equal_s
     np.testing.assert_allclose(ref[-3:], np.tanh(np.array([0.5, -0.2, 3.0])), atol=1e-6)
     np.testing.assert_allclose(ref[:3], [0.01, -0.004, 0.06], atol=1e-6)
     np.testing.assert_allclose(ref[-5:-3], contact, atol=1e-7)
-    sigma = math.sqrt(0.5 * (f.P[0, 0] + f.P[1, 1]))
-    out = observation_frames_b(
-        cfg, T_body[None], f.T_world_ds[None], np.array([sigma]), vel[None], np.array([0.0]),
-        acc[None], prev[None], np.array([True]), contact[None],
-    )  # fmt: skip
-    np.testing.assert_allclose(out[0], ref, atol=1e-6)

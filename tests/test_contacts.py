@@ -7,7 +7,7 @@ import pytest
 
 from uwdock.calibration.frames import R_from_rpy, make_T
 from uwdock.dockcore.config import replace
-from uwdock.rl.task import DockingTaskConfig, pegs_seated
+from uwdock.rl.env.task import DockingTaskConfig, pegs_seated
 from uwdock.sim.docking_station import DockingStationConfig, build_docking_station, build_tank
 from uwdock.sim.physics import VehicleBody, make_physics_scene
 from uwdock.sim.vehicle import VehicleConfig

@@ -7,11 +7,11 @@ import pytest
 
 from uwdock.calibration.frames import inv_T, make_T
 from uwdock.dockcore.config import ConfigError, from_dict, replace
-from uwdock.rl.config import EnvConfig
-from uwdock.rl.curriculum import CurriculumConfig, curriculum_level, near_start_share
-from uwdock.rl.env import DockingEnv
-from uwdock.rl.session import TrainingSession
-from uwdock.rl.train import TrainConfig
+from uwdock.rl.env.config import EnvConfig
+from uwdock.rl.env.curriculum import CurriculumConfig, curriculum_level, near_start_share
+from uwdock.rl.env.docking_env import DockingEnv
+from uwdock.rl.train.session import TrainingSession
+from uwdock.rl.train.training import TrainConfig
 
 CUR = CurriculumConfig(steps=1000, z_tolerance_start_m=1.0, spawn_scale_start=0.3)
 

@@ -11,6 +11,7 @@ import sapien
 
 from uwdock.calibration.frames import R_from_rpy, make_T, rotation_angle_deg, rpy_from_R
 from uwdock.dockcore.config import ConfigError, from_dict, to_dict
+from uwdock.sim.fastpath import accel_fn
 from uwdock.sim.physics import VehicleBody, make_physics_scene
 from uwdock.sim.thrusters import ThrusterArrayConfig
 from uwdock.sim.vehicle import (
@@ -53,7 +54,7 @@ def test_scalar_accel_matches_numpy_reference():
     rng = np.random.default_rng(3)
     cfg = VehicleRandomisation().sample(VehicleConfig(), rng)
     hydro = Hydrodynamics(cfg)
-    fast = hydro.make_accel_fn()
+    fast = accel_fn(hydro)
     for _ in range(20):
         R = R_from_rpy(*rng.uniform(-1.5, 1.5, 3))
         nu, v_c, tau = rng.normal(size=6), rng.normal(size=3) * 0.3, rng.normal(size=6) * 100

@@ -24,8 +24,8 @@ from uwdock.dockcore.config import (
     to_dict,
 )
 from uwdock.rl import cli
-from uwdock.rl.config import LEGACY_WORLD_KEYS, EnvConfig
-from uwdock.rl.train import TrainConfig, run_config
+from uwdock.rl.env.config import LEGACY_WORLD_KEYS, EnvConfig
+from uwdock.rl.train.training import TrainConfig, run_config
 from uwdock.sim.world_config import WorldConfig
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -275,7 +275,7 @@ def test_dumped_env_configs_use_the_world_table():
 
 
 def test_a_sweep_grid_sets_a_world_field_by_either_name():
-    from uwdock.rl.sweep import SweepConfig, parse_grid, plan_trials
+    from uwdock.rl.train.sweep import SweepConfig, parse_grid, plan_trials
 
     grid = parse_grid(["env.water_preset=coastal,turbid", "env.world.physics_hz=600.0"])
     trials = plan_trials(TrainConfig(), SweepConfig(seeds=(0,)), grid)

@@ -1,7 +1,7 @@
-"""Several training envs per worker process (``rl train --envs-per-worker K``, :mod:`rl.vec_envs`):
-the same run file by file as one env per worker (checkpoints, evaluation history, best/, the
-final policy), with the proxy source and with the camera (the envs of a worker sharing its
-SAPIEN renderer); a failing env in a group is one line naming it."""
+"""Several training envs per worker process (``rl train --envs-per-worker K``,
+:mod:`rl.train.vec_envs`): the same run file by file as one env per worker (checkpoints, evaluation
+history, best/, the final policy), with the proxy source and with the camera (the envs of a worker
+sharing its SAPIEN renderer); a failing env in a group is one line naming it."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ import pytest
 
 from tests.hostile_runs import SMALL_RUN, run_digest
 from uwdock.rl import cli
-from uwdock.rl.vec_envs import env_groups
+from uwdock.rl.train.vec_envs import env_groups
 
 # 4 envs, periodic evaluations (their shares run in the workers) and a checkpoint in between
 CONFIG = SMALL_RUN.format(n_envs=4, eval_episodes=3)
@@ -66,8 +66,8 @@ def test_several_envs_per_worker_train_the_same_run(run_cli, tmp_path):
 
 def test_worker_processes_hold_their_share_of_the_envs(tmp_path):
     """``K`` envs per worker: ``n_envs / K`` worker processes, all gone after close."""
-    from uwdock.rl.config import EnvConfig
-    from uwdock.rl.vec_envs import EnvWorkers
+    from uwdock.rl.env.config import EnvConfig
+    from uwdock.rl.train.vec_envs import EnvWorkers
 
     workers = EnvWorkers(EnvConfig(episode_s=2.0), 4, seed=0, envs_per_worker=2)
     try:
@@ -116,12 +116,12 @@ def test_camera_envs_sharing_a_renderer_train_the_same_run(tmp_path):
 def test_a_failing_env_in_a_group_is_one_line_naming_it(run_cli, tmp_path, monkeypatch):
     """An env that fails while stepping, 4 envs in 2 workers: one line with each worker's
     reason, naming the env that failed (the first of each group)."""
-    import uwdock.rl.env
+    import uwdock.rl.env.docking_env
 
     def broken_step(self, action):
-        raise uwdock.rl.env.SimulationError("simulator blew up at t=0.10 s (test)")
+        raise uwdock.rl.env.docking_env.SimulationError("simulator blew up at t=0.10 s (test)")
 
-    monkeypatch.setattr(uwdock.rl.env.DockingEnv, "step", broken_step)
+    monkeypatch.setattr(uwdock.rl.env.docking_env.DockingEnv, "step", broken_step)
     res = run_cli(cli.main, "train", "--envs", "4", "--envs-per-worker", "2", "--steps", "64",
                   "--out", tmp_path / "r")  # fmt: skip
     assert res.code == 2, res.err

@@ -14,7 +14,7 @@ from uwdock.calibration.frames import R_from_rpy, inv_T, make_T
 from uwdock.datasets.loaders import load_pose_track_csv, write_pose_track_csv
 from uwdock.datasets.sequences import check_sequences, sequences_from_manifest
 from uwdock.dockcore.errors import DockError
-from uwdock.rl.error_model import (
+from uwdock.rl.env.error_model import (
     N_VISIBLE_BINS,
     VERSION,
     ErrorModel,
@@ -30,8 +30,8 @@ from uwdock.rl.error_model import (
     pose_error,
     standardise,
 )
-from uwdock.rl.obs_sources import StepContext
-from uwdock.rl.task import DockingTaskConfig
+from uwdock.rl.env.obs_sources import StepContext
+from uwdock.rl.env.task import DockingTaskConfig
 
 
 def _cov(sd: np.ndarray, corr: float = 0.3) -> np.ndarray:
@@ -327,7 +327,7 @@ def test_pose_track_csv_round_trip(tmp_path):
 
 
 def test_render_world_pose_keeps_the_view_of_the_ds():
-    from uwdock.rl.trajectories import render_world_pose
+    from uwdock.rl.evaluate.trajectories import render_world_pose
 
     T_world_ds = make_T(R_from_rpy(0, 0, 2.0), [0.7, -1.5, 4.98])
     T_world_body = make_T(R_from_rpy(0.05, -0.02, -1.0), [2.0, 1.0, 2.5])

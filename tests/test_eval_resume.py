@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 
 from uwdock.dockcore.config import replace
-from uwdock.rl.config import EnvConfig
-from uwdock.rl.evaluate import (
+from uwdock.rl.env.config import EnvConfig
+from uwdock.rl.evaluate.episodes import (
     PARTIAL_EVAL_DIR,
     EpisodeStore,
     EpisodeTrace,

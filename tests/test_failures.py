@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from uwdock.rl.failures import FailureThresholds, FailureTracker, failure_counts
+from uwdock.rl.evaluate.failures import FailureThresholds, FailureTracker, failure_counts
 
 DT = 0.2
 FULL = np.array([1.0, 0, 0, 0, 0, 0])
@@ -81,9 +81,9 @@ def test_counts_name_recoveries():
 
 
 def test_eval_rows_and_summary_carry_the_failure_modes():
-    from uwdock.rl.baselines import PIDController
-    from uwdock.rl.config import EnvConfig
-    from uwdock.rl.evaluate import run_episodes
+    from uwdock.rl.env.config import EnvConfig
+    from uwdock.rl.evaluate.episodes import run_episodes
+    from uwdock.rl.policy.baselines import PIDController
 
     cfg = EnvConfig(obs_source="proxy", episode_s=6.0)
     res = run_episodes(PIDController(cfg.action_limits), cfg, 2, seed=3, record=False)

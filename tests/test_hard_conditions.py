@@ -10,8 +10,8 @@ import pytest
 
 from uwdock.calibration.frames import R_from_rpy, make_T, rpy_from_R
 from uwdock.dockcore.config import replace
-from uwdock.rl.config import EnvConfig
-from uwdock.rl.env import DockingEnv
+from uwdock.rl.env.config import EnvConfig
+from uwdock.rl.env.docking_env import DockingEnv
 
 FAR = replace(
     EnvConfig(),
@@ -93,8 +93,8 @@ def test_a_mounting_error_renders_from_the_true_camera_and_biases_the_estimate()
     """Above the DS at 2 m, a 2 deg pitch of the true camera against its calibration moves the
     camera's DS estimate by about altitude x tan(2 deg) (7 cm); without it the estimate is
     within 2 cm. The frame records the true camera pose."""
-    from uwdock.rl.camera_source import CameraSource
-    from uwdock.rl.obs_sources import StepContext
+    from uwdock.rl.env.camera_source import CameraSource
+    from uwdock.rl.env.obs_sources import StepContext
     from uwdock.sim.world import DockingWorld
 
     cfg = EnvConfig()

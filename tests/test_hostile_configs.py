@@ -32,12 +32,12 @@ def _roots() -> list[type]:
     from uwdock.dockcore.pool import PoolConfig
     from uwdock.markers.config import MarkerConfig
     from uwdock.perception.evaluate import PerceptionConfig
-    from uwdock.rl.baselines import PIDConfig
     from uwdock.rl.deploy.config import NodeConfig
-    from uwdock.rl.episode import EpisodeVideoConfig
-    from uwdock.rl.error_model import ErrorModelConfig
-    from uwdock.rl.sweep import SweepConfig
-    from uwdock.rl.train import TrainConfig
+    from uwdock.rl.env.error_model import ErrorModelConfig
+    from uwdock.rl.evaluate.episode_video import EpisodeVideoConfig
+    from uwdock.rl.policy.baselines import PIDConfig
+    from uwdock.rl.train.sweep import SweepConfig
+    from uwdock.rl.train.training import TrainConfig
     from uwdock.sim.docking_station import DockingStationConfig
     from uwdock.sim.water import WaterConfig
     from uwdock.sim.world_config import WorldConfig

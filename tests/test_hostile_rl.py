@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from uwdock.rl import cli
-from uwdock.rl.policy_format import npz_bytes
+from uwdock.rl.policy.policy_format import npz_bytes
 
 SHIPPED = Path(__file__).resolve().parent.parent / "rl" / "policies" / "error_model_ppo"
 

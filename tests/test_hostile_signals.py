@@ -140,7 +140,7 @@ def test_an_interrupted_episode_marks_its_summary_and_keeps_no_older_film(tmp_pa
     as incomplete and removes the previous run's film (before, an interrupted rerun left the
     previous run's film and summary, looking like its own)."""
     from uwdock.dockcore import cli as dock_cli
-    from uwdock.rl import episode as E
+    from uwdock.rl.evaluate import episode_video as E
 
     out = tmp_path / "ep"
     _previous_episode(out)
@@ -261,7 +261,7 @@ def test_a_resumed_run_logs_each_step_once(tmp_path):
     killed long after a checkpoint: its later checkpoints and DONE removed), the run's event
     files hold each (tag, step) once. Before, every point after step 256 was there twice."""
     from uwdock.dockcore.config import load_config
-    from uwdock.rl.train import TrainConfig, train
+    from uwdock.rl.train.training import TrainConfig, train
 
     (tmp_path / "t.toml").write_text(TB_RUN)
     cfg = load_config(TrainConfig, tmp_path / "t.toml")

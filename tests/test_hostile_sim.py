@@ -16,7 +16,7 @@ import pytest
 from tests.hostile_runs import assert_refused, dead_pid, tree
 from uwdock.datasets import cli as datasets_cli
 from uwdock.rl import cli as rl_cli
-from uwdock.rl.episode import EpisodeVideoConfig, record_episode
+from uwdock.rl.evaluate.episode_video import EpisodeVideoConfig, record_episode
 from uwdock.sim.docking_station import DockingStationConfig, build_docking_station, build_tank
 from uwdock.sim.render import CameraRig, RenderConfig, make_render_scene
 from uwdock.sim.thrusters import ThrusterArray, ThrusterArrayConfig, ThrusterRandomisation

@@ -24,7 +24,7 @@ from tests.error_models import synthetic_model
 from tests.hostile_runs import ROOT, assert_refused
 from uwdock.dockcore.errors import DockError
 from uwdock.rl import cli as rl_cli
-from uwdock.rl.error_model import load_error_model
+from uwdock.rl.env.error_model import load_error_model
 
 BIAS = np.zeros(6)
 #: 5 mm and 0.01 rad standard deviations, a little correlation between x and y

@@ -178,7 +178,7 @@ def test_the_pairs_a_step_tests_hold_every_sphere_within_the_margin_of_a_prism()
     margin of a prism (brute force over every sphere and prism) at hull poses around the docking
     station's shapes, so a pair it drops cannot touch while the hull moves less than the
     margin."""
-    from uwdock.rl.batch_env import BatchDockingEnv
+    from uwdock.rl.env.batch_env import BatchDockingEnv
 
     spheres, chunks, shapes = hull_contact_spheres(DEFAULT_COLLISION)
     env = BatchDockingEnv(_env_cfg("kernel"), 1, seed=5)
@@ -265,7 +265,7 @@ def test_a_capsule_lying_on_a_face_is_as_stiff_as_its_end_alone():
 
 
 def _env_cfg(contact: str):
-    from uwdock.rl.train import TrainConfig
+    from uwdock.rl.train.training import TrainConfig
 
     cfg = from_dict(TrainConfig, read_toml(POLICY / "config.toml")["train"])
     return replace(cfg.env, world=replace(cfg.env.world, batch_contact=contact))
@@ -275,7 +275,7 @@ def test_the_station_reads_as_prisms_where_physx_has_its_shapes():
     """Every static collision shape of a docking world becomes a prism at its PhysX pose (the
     prisms' world boxes span the station's tight PhysX box), and the rows follow the station
     when a reset moves it."""
-    from uwdock.rl.batch_env import BatchDockingEnv
+    from uwdock.rl.env.batch_env import BatchDockingEnv
 
     env = BatchDockingEnv(_env_cfg("kernel"), 1, seed=5)
     try:
@@ -301,7 +301,7 @@ def test_the_station_reads_as_prisms_where_physx_has_its_shapes():
 def test_free_flight_is_the_same_with_and_without_physx_contact():
     """Far from the station both contact models leave the kernel's free flight alone: the
     states of a kernel batch equal a shared-scene batch's bit for bit."""
-    from uwdock.rl.batch_env import BatchDockingEnv
+    from uwdock.rl.env.batch_env import BatchDockingEnv
 
     rng = np.random.default_rng(3)
     envs = {m: BatchDockingEnv(_env_cfg(m), 3, seed=11) for m in ("shared", "kernel")}
@@ -324,8 +324,8 @@ def test_the_shipped_policy_trained_on_the_kernels_contact_docks_on_physx():
     policy, trained with the kernel's contact, docks in 16 episodes with PhysX's contact (one
     shared scene) about as it does on the kernel's (held out on the per-env PhysX env with the
     camera: docs/results/shipped_heldout_policy.json)."""
-    from uwdock.rl.batch_env import batched_episodes
-    from uwdock.rl.policy_io import load_policy
+    from uwdock.rl.evaluate.batched import batched_episodes
+    from uwdock.rl.policy.policy_io import load_policy
 
     model, vn = load_policy(POLICY)
     rows = batched_episodes(model, _env_cfg("shared"), 16, 91000, vecnorm=vn)

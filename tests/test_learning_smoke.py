@@ -10,13 +10,13 @@ import math
 import numpy as np
 
 from uwdock.dockcore.config import replace
-from uwdock.rl.config import EnvConfig
-from uwdock.rl.diagnose import GaussianController
-from uwdock.rl.evaluate import run_episodes
-from uwdock.rl.policy_io import load_policy
-from uwdock.rl.rewards import RewardConfig
-from uwdock.rl.task import DockingTaskConfig
-from uwdock.rl.train import PPOConfig, TrainConfig, train
+from uwdock.rl.env.config import EnvConfig
+from uwdock.rl.env.rewards import RewardConfig
+from uwdock.rl.env.task import DockingTaskConfig
+from uwdock.rl.evaluate.diagnose import GaussianController
+from uwdock.rl.evaluate.episodes import run_episodes
+from uwdock.rl.policy.policy_io import load_policy
+from uwdock.rl.train.training import PPOConfig, TrainConfig, train
 
 LOG_STD_INIT = -1.0
 EASY = replace(

@@ -11,8 +11,8 @@ import pytest
 
 from uwdock.calibration.frames import R_from_rpy, inv_T, make_T, rpy_from_R
 from uwdock.dockcore.config import ConfigError, from_dict
-from uwdock.rl.config import EnvConfig
-from uwdock.rl.task import docking_errors
+from uwdock.rl.env.config import EnvConfig
+from uwdock.rl.env.task import docking_errors
 from uwdock.sim.navigation import (
     NAV_PRESETS,
     RESET_DRAWS,
@@ -110,7 +110,7 @@ def test_a_fresh_relative_measurement_is_exact_in_the_drifted_frame():
     assert np.allclose(C @ T_true, T_nav)
     T_meas = C @ T_world_ds
     assert np.allclose(inv_T(T_nav) @ T_meas, inv_T(T_true) @ T_world_ds)
-    from uwdock.rl.task import DockingTaskConfig
+    from uwdock.rl.env.task import DockingTaskConfig
 
     task = DockingTaskConfig()
     e_nav, psi_nav = docking_errors(T_nav, T_meas, task)
@@ -190,7 +190,7 @@ def _run(env, steps: int, action) -> dict:
 
 
 def test_the_env_navigates_with_drift_and_starts_from_the_usbl_fix():
-    from uwdock.rl.env import DockingEnv
+    from uwdock.rl.env.docking_env import DockingEnv
     from uwdock.sim.usbl import UsblConfig
 
     base = {"obs_source": "acoustic", "episode_s": 30.0}
@@ -222,7 +222,7 @@ def test_the_env_navigates_with_drift_and_starts_from_the_usbl_fix():
 def test_the_batched_env_navigates_as_the_scalar_one():
     """Both simulators carry the same navigation: the per-episode errors drawn at reset (the
     batch takes the slot env's), a drift of the same size, zero when ideal."""
-    from uwdock.rl.batch_env import BatchDockingEnv
+    from uwdock.rl.env.batch_env import BatchDockingEnv
 
     cfg = from_dict(
         EnvConfig,

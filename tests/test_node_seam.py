@@ -13,10 +13,10 @@ from uwdock.dockcore.config import replace
 from uwdock.rl.deploy.cli import SHIPPED_POLICY, build_chain
 from uwdock.rl.deploy.config import load_node_config
 from uwdock.rl.deploy.wire import Dispatcher
-from uwdock.rl.env import DockingEnv
-from uwdock.rl.env_settings import command_env
-from uwdock.rl.evaluate import run_episodes
-from uwdock.rl.policy_io import OnnxPolicy, policy_env_settings
+from uwdock.rl.env.docking_env import DockingEnv
+from uwdock.rl.evaluate.episodes import run_episodes
+from uwdock.rl.policy.env_settings import command_env
+from uwdock.rl.policy.policy_io import OnnxPolicy, policy_env_settings
 from uwdock.ros import messages as rm
 
 pytestmark = pytest.mark.render

@@ -712,8 +712,8 @@ def test_training_env_actors_read_their_inputs_from_the_content_sent(tmp_path) -
     """``rl train --backend ray``'s env actor (built here without Ray): the error model named at
     a driver path that does not exist on its node comes as content; the env and the periodic
     evaluation's share (whose config names the file as the driver's config did) read the copy."""
-    from uwdock.rl.config import EnvConfig
-    from uwdock.rl.ray_envs import _RayGroup
+    from uwdock.rl.env.config import EnvConfig
+    from uwdock.rl.train.ray_envs import _RayGroup
 
     shipped = Path(__file__).resolve().parent.parent / "rl" / "models"
     shipped = shipped / "error_model_clear_tank_480.json"

@@ -14,7 +14,7 @@ import pytest
 
 from tests.hostile_runs import ROOT, run_digest
 from uwdock.dockcore.errors import DockError
-from uwdock.rl import recipe as R
+from uwdock.rl.train import recipe as R
 
 STAGE = """\
 n_envs = 4
@@ -84,7 +84,7 @@ def test_a_recipe_trains_its_stages_into_a_policy_folder(small_recipe, tmp_path,
         assert sums == {n: _sha(folder / n) for n in ("model.json", "weights.npz")}
         run_config = (out / "runs" / stage / "config.toml").read_bytes()
         assert (folder / "config.toml").read_bytes() == run_config
-    from uwdock.rl.policy_io import load_policy
+    from uwdock.rl.policy.policy_io import load_policy
 
     model, _ = load_policy(out)  # `rl eval --policy OUT` reads it
     assert model.algorithm == "ppo"

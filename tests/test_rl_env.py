@@ -11,10 +11,10 @@ import pytest
 
 from uwdock.dockcore.config import replace
 from uwdock.rl import cli
-from uwdock.rl.baselines import PIDController
-from uwdock.rl.config import EnvConfig
-from uwdock.rl.env import DockingEnv
-from uwdock.rl.evaluate import run_episodes
+from uwdock.rl.env.config import EnvConfig
+from uwdock.rl.env.docking_env import DockingEnv
+from uwdock.rl.evaluate.episodes import run_episodes
+from uwdock.rl.policy.baselines import PIDController
 
 ROOT = Path(__file__).resolve().parents[1]
 SHORT = replace(EnvConfig(), episode_s=3.0)
@@ -89,8 +89,8 @@ def test_bad_actions_raise_a_clear_error(env, bad):
 def test_proxy_noise_follows_the_paper(offset_m, visible):
     """sigma = |e|/6; N(0, (sigma/2)^2) always, plus N(0, sigma^2) when not visible."""
     from uwdock.calibration.frames import make_T
-    from uwdock.rl.obs_sources import ProxySource, StepContext
-    from uwdock.rl.task import DockingTaskConfig, docking_errors
+    from uwdock.rl.env.obs_sources import ProxySource, StepContext
+    from uwdock.rl.env.task import DockingTaskConfig, docking_errors
 
     task = DockingTaskConfig()
     T_world_ds = np.eye(4)
@@ -197,13 +197,13 @@ def test_train_resume_eval_export_through_the_cli(run_cli, tmp_path):
     onnx_path = tmp_path / "policy.onnx"
     res = run_cli(cli.main, "export", "--policy", run, "--out", onnx_path)
     assert res.code == 0, res.err
-    from uwdock.rl.evaluate import SB3Controller
-    from uwdock.rl.policy_io import OnnxPolicy, load_policy
+    from uwdock.rl.evaluate.episodes import SB3Controller
+    from uwdock.rl.policy.policy_io import OnnxPolicy, load_policy
 
     model, vecnorm = load_policy(run)
     sb3, onnx = SB3Controller(model, vecnorm), OnnxPolicy(onnx_path)
     # the exported policy carries its interface (observation layout, limits) for eval and runner
-    from uwdock.rl.policy_io import policy_env_settings
+    from uwdock.rl.policy.policy_io import policy_env_settings
 
     carried = policy_env_settings(str(onnx_path))
     assert carried == policy_env_settings(str(run)) and carried["obs_last_action"] is False
@@ -290,8 +290,8 @@ def test_dagger_warm_start_imitates_the_teacher(tmp_path):
     import torch
     from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
-    from uwdock.rl.imitation import ImitationConfig, warm_start
-    from uwdock.rl.train import PPOConfig, TrainConfig, build_model
+    from uwdock.rl.train.imitation import ImitationConfig, warm_start
+    from uwdock.rl.train.training import PPOConfig, TrainConfig, build_model
 
     cfg = replace(
         TrainConfig(),
@@ -326,7 +326,7 @@ def test_dagger_warm_start_imitates_the_teacher(tmp_path):
 def test_camera_frames_sheet_picks_evenly_spaced_captioned_frames(tmp_path):
     import cv2
 
-    from uwdock.rl.episode_media import write_frames_sheet
+    from uwdock.rl.evaluate.episode_media import write_frames_sheet
 
     frames = [np.full((48, 64, 3), 10 * k, np.uint8) for k in range(20)]
     path = write_frames_sheet(frames, tmp_path / "sheet.png", dt_s=0.2, n=8)
@@ -347,7 +347,7 @@ def test_unknown_water_preset_is_refused_naming_the_key():
 
 
 def test_eval_history_plot(tmp_path):
-    from uwdock.rl.report import plot_eval_history
+    from uwdock.rl.evaluate.report import plot_eval_history
 
     hist = tmp_path / "eval_history.jsonl"
     rows = [
@@ -369,9 +369,9 @@ def test_dagger_restores_the_normalisation_of_the_student_it_keeps(tmp_path, mon
     """When an earlier student scores best, it comes back with the statistics it was fitted on."""
     from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
-    import uwdock.rl.imitation
-    from uwdock.rl.imitation import ImitationConfig, warm_start
-    from uwdock.rl.train import PPOConfig, TrainConfig, build_model
+    import uwdock.rl.train.imitation
+    from uwdock.rl.train.imitation import ImitationConfig, warm_start
+    from uwdock.rl.train.training import PPOConfig, TrainConfig, build_model
 
     class ScriptedSuccess(DockingEnv):
         """Only the rollouts that score the iteration-0 student (episodes 2 and 3) 'dock'."""
@@ -395,7 +395,7 @@ def test_dagger_restores_the_normalisation_of_the_student_it_keeps(tmp_path, mon
     )
     venv = VecNormalize(DummyVecEnv([lambda: DockingEnv(cfg.env)]))
     model = build_model(cfg, venv, tmp_path / "tb")
-    monkeypatch.setattr(uwdock.rl.imitation, "DockingEnv", ScriptedSuccess)
+    monkeypatch.setattr(uwdock.rl.train.imitation, "DockingEnv", ScriptedSuccess)
     icfg = ImitationConfig(iterations=3, episodes_per_iteration=2, epochs=2)
     hist = warm_start(model, venv, cfg.env, icfg, seed=0, gamma=0.99, progress=False)
     assert hist["selected_iteration"] == [0]
@@ -427,7 +427,7 @@ def test_sac_option_trains_and_resumes_through_the_cli(run_cli, tmp_path):
     assert (run / "weights.npz").read_bytes() == (straight / "weights.npz").read_bytes()
     from stable_baselines3.sac.policies import SACPolicy
 
-    from uwdock.rl.policy_io import load_policy
+    from uwdock.rl.policy.policy_io import load_policy
 
     model, _ = load_policy(run)
     assert model.algorithm == "sac" and isinstance(model.policy, SACPolicy)
@@ -445,7 +445,7 @@ def test_filming_an_episode_does_not_change_it():
 
 
 def test_parallel_evaluation_equals_one_process():
-    from uwdock.rl.evaluate import run_episodes_parallel
+    from uwdock.rl.evaluate.episodes import run_episodes_parallel
 
     cfg = replace(EnvConfig(), episode_s=2.0)
     ticks = []
@@ -458,8 +458,12 @@ def test_parallel_evaluation_equals_one_process():
 
 
 def test_stress_tables_rows_progress_and_seeds(capsys):
-    from uwdock.rl.evaluate import run_episodes_parallel
-    from uwdock.rl.report import STRESS_CURRENTS_MPS, STRESS_THRUSTER_ERRORS_M, stress_tables
+    from uwdock.rl.evaluate.episodes import run_episodes_parallel
+    from uwdock.rl.evaluate.report import (
+        STRESS_CURRENTS_MPS,
+        STRESS_THRUSTER_ERRORS_M,
+        stress_tables,
+    )
 
     cfg = replace(EnvConfig(), episode_s=2.0)  # proxy source: no water rows
     tables = stress_tables("pid", cfg, 2, seed=5, workers=1)
@@ -483,7 +487,7 @@ def test_stress_tables_rows_progress_and_seeds(capsys):
 def test_eval_error_model_defaults_to_the_one_the_policy_trained_on(run_cli, tmp_path):
     import shutil
 
-    from uwdock.rl.policy_io import policy_error_model
+    from uwdock.rl.policy.policy_io import policy_error_model
 
     shipped = "rl/policies/error_model_ppo"
     # named from the checkout's root in its config, found from the policy's folder
@@ -515,9 +519,9 @@ def test_eval_error_model_defaults_to_the_one_the_policy_trained_on(run_cli, tmp
 def test_env_reads_what_a_source_needs_not_its_name(monkeypatch):
     """The filter's fusion and the acoustic fixes follow the source class's ``needs``: the same
     ``proxy`` config gets both once its class declares them."""
-    from uwdock.rl.camera_source import CameraSource
-    from uwdock.rl.error_model import ErrorModelSource
-    from uwdock.rl.obs_sources import ProxySource, SourceNeeds
+    from uwdock.rl.env.camera_source import CameraSource
+    from uwdock.rl.env.error_model import ErrorModelSource
+    from uwdock.rl.env.obs_sources import ProxySource, SourceNeeds
 
     assert ProxySource.needs == SourceNeeds(camera=False, fusion=False, acoustic_fixes=False)
     assert ErrorModelSource.needs == SourceNeeds(camera=False, fusion=True, acoustic_fixes=True)
@@ -553,11 +557,9 @@ def test_an_episode_does_not_depend_on_the_episodes_before_it():
     # recipe's episode 10 (seed 1010) ran after episode 2 (seed 1002, which ends seated with the
     # pegs in the guides) differed from the same episode run first (its return by -0.019).
     from uwdock.dockcore.config import load_config
-    from uwdock.rl.train import TrainConfig
+    from uwdock.rl.train.training import TrainConfig
 
-    cfg = load_config(
-        TrainConfig, ROOT / "configs/scratch/stage1.toml", section="train"
-    ).env
+    cfg = load_config(TrainConfig, ROOT / "configs/scratch/stage1.toml", section="train").env
     cfg = replace(cfg, error_model_path=str(ROOT / cfg.error_model_path))
     pid = PIDController.for_env(cfg)
     after = run_episodes(pid, cfg, 11, seed=1000, episodes=[2, 10])
@@ -573,9 +575,9 @@ def test_training_evaluation_on_the_env_workers_equals_one_process(tmp_path):
     from stable_baselines3 import PPO
     from stable_baselines3.common.vec_env import VecNormalize
 
-    from uwdock.rl.session import EVAL_SEED, TrainingSession
-    from uwdock.rl.train import TrainConfig
-    from uwdock.rl.vec_envs import EnvWorkers
+    from uwdock.rl.train.session import EVAL_SEED, TrainingSession
+    from uwdock.rl.train.training import TrainConfig
+    from uwdock.rl.train.vec_envs import EnvWorkers
 
     cfg = TrainConfig(env=replace(SHORT, terminate_on="strict"), eval_episodes=5, n_envs=2)
     workers = EnvWorkers(cfg.env, 2, seed=0)

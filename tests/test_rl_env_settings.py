@@ -127,7 +127,7 @@ def test_export_carries_the_training_env_to_eval_and_the_runner(run_cli, tmp_pat
     assert "rl export env" in res.out and "usbl cerulean-rovl (policy config)" in res.out
     env = json.loads(onnx.with_suffix(".json").read_text())["env"]
     assert env["usbl"]["preset"] == "cerulean-rovl" and env["world"]["camera_width_px"] == 320
-    from uwdock.rl.runner import DockingRunner
+    from uwdock.rl.deploy.runner import DockingRunner
 
     runner = DockingRunner(str(onnx))
     assert runner.cfg.usbl.preset == "cerulean-rovl" and runner.cfg.world.camera_width_px == 320

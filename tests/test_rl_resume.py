@@ -21,7 +21,7 @@ import pytest
 from tests.hostile_runs import run_digest
 from uwdock.dockcore.config import load_config
 from uwdock.rl import cli
-from uwdock.rl.train import TrainConfig, train
+from uwdock.rl.train.training import TrainConfig, train
 
 # Two envs in worker processes, a DAgger warm start, a critic warm-up that spans a checkpoint,
 # evaluations between checkpoints, a curriculum and an asymmetric critic: everything a resume
@@ -201,12 +201,12 @@ def test_resume_keeps_the_runs_config(run_cli, tmp_path):
 
 def test_a_failing_worker_is_one_line(run_cli, tmp_path, monkeypatch):
     """An env that fails in a worker process (2 envs): one line with the worker's reason."""
-    import uwdock.rl.env
+    import uwdock.rl.env.docking_env
 
     def broken_init(self, *a, **kw):
-        raise uwdock.rl.env.SimulationError("simulator blew up at t=0.00 s (test)")
+        raise uwdock.rl.env.docking_env.SimulationError("simulator blew up at t=0.00 s (test)")
 
-    monkeypatch.setattr(uwdock.rl.env.DockingEnv, "__init__", broken_init)
+    monkeypatch.setattr(uwdock.rl.env.docking_env.DockingEnv, "__init__", broken_init)
     res = run_cli(cli.main, "train", "--envs", "2", "--steps", "64", "--out", tmp_path / "r")
     assert res.code == 2, res.err
     errors = [line for line in res.err.splitlines(keepends=True) if line.startswith("error")]

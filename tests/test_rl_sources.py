@@ -10,8 +10,8 @@ import pytest
 from tests.error_models import above_ds, synthetic_model
 from uwdock.calibration.frames import inv_T, make_T
 from uwdock.dockcore.config import replace
-from uwdock.rl.config import EnvConfig
-from uwdock.rl.error_model import (
+from uwdock.rl.env.config import EnvConfig
+from uwdock.rl.env.error_model import (
     ErrorModel,
     ErrorModelSource,
     apply_error,
@@ -19,8 +19,8 @@ from uwdock.rl.error_model import (
     load_error_model,
     pose_error,
 )
-from uwdock.rl.obs_sources import StepContext
-from uwdock.rl.task import DockingTaskConfig
+from uwdock.rl.env.obs_sources import StepContext
+from uwdock.rl.env.task import DockingTaskConfig
 
 
 def test_pose_error_round_trip():
@@ -103,7 +103,7 @@ def test_fit_error_model_from_rendered_frames(tmp_path):
 
 @pytest.fixture(scope="module")
 def camera_env():
-    from uwdock.rl.env import DockingEnv
+    from uwdock.rl.env.docking_env import DockingEnv
 
     est = replace(EnvConfig().estimator, usbl_period_s=0.0)
     cfg = replace(
@@ -138,8 +138,8 @@ def test_camera_source_measures_the_ds_from_its_render(camera_env):
 @pytest.mark.render
 def test_runner_reproduces_the_env_observation(camera_env):
     """Deployment path: the same frames and odometry give the env's observation exactly."""
-    from uwdock.rl.baselines import PIDController
-    from uwdock.rl.runner import DockingRunner, Odometry
+    from uwdock.rl.deploy.runner import DockingRunner, Odometry
+    from uwdock.rl.policy.baselines import PIDController
 
     env = camera_env
     obs, _ = env.reset(seed=4)

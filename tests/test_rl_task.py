@@ -8,9 +8,15 @@ import numpy as np
 import pytest
 
 from uwdock.calibration.frames import R_from_rpy, inv_T, make_T
-from uwdock.rl.estimator import DSPoseFilter, EstimatorConfig
-from uwdock.rl.rewards import DockingReward, RewardConfig
-from uwdock.rl.task import DockingTaskConfig, docking_errors, ds_visible, paper_success, pegs_seated
+from uwdock.rl.env.estimator import DSPoseFilter, EstimatorConfig
+from uwdock.rl.env.rewards import DockingReward, RewardConfig
+from uwdock.rl.env.task import (
+    DockingTaskConfig,
+    docking_errors,
+    ds_visible,
+    paper_success,
+    pegs_seated,
+)
 
 CFG = DockingTaskConfig()
 
@@ -164,7 +170,7 @@ def test_yaw_of_is_rpy_from_R_yaw_to_one_ulp():
     # math.atan2 (libm) and NumPy's arctan2 agree bit for bit on some CPUs; where NumPy takes
     # its AVX-512 kernels (seen on an AMD EPYC) they differ by at most one unit in the last place
     from uwdock.calibration.frames import rpy_from_R
-    from uwdock.rl.task import yaw_of
+    from uwdock.rl.env.task import yaw_of
 
     rng = np.random.default_rng(1)
     for rpy in rng.uniform(-3.2, 3.2, (2000, 3)) * [0.5, 0.45, 1.0]:
@@ -179,9 +185,8 @@ def test_yaw_of_is_rpy_from_R_yaw_to_one_ulp():
 def test_stall_is_paid_for_pushing_outside_the_guides_without_getting_closer():
     """r_stall (ours, off by default): saturated thrust beyond the guides' clearance with less
     than stall_progress_m of approach since the step before; not on the first step, not when
-    approaching, not inside the clearance, not below saturation; the batched twin agrees."""
-    from uwdock.rl.batch_parts import reward_terms_b
-
+    approaching, not inside the clearance, not below saturation (the batched twin:
+    tests/test_batch_twins.py)."""
     cfg = RewardConfig(stall_penalty=2.0)
     r = DockingReward(cfg)
     full = np.array([1.0, 0, 0, 0, 0, 0])
@@ -204,16 +209,3 @@ def test_stall_is_paid_for_pushing_outside_the_guides_without_getting_closer():
     assert got == [s for *_, s in steps]
     r.reset()
     assert r(e_far, 0.0, full, full, False, False, False)["stall"] == 0.0  # a new episode
-    # the batched twin, the same sequence in one env
-    w = DockingReward(cfg)
-    prev = np.full(1, np.nan)
-    batched = []
-    for x, a, _ in steps:
-        e = e_far.copy()
-        e[0] = x
-        terms = reward_terms_b(
-            cfg, w.weights, w.smooth_mask, e[None], np.zeros(1), a[None], a[None],
-            np.zeros(1, bool), np.zeros(1, bool), np.zeros(1, bool), prev,
-        )  # fmt: skip
-        batched.append(float(terms["stall"][0]))
-    assert batched == got

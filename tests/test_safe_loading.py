@@ -1,5 +1,5 @@
-"""Loading a policy never runs code from its folder (``rl.policy_format``): crafted payloads in
-every file of a policy folder, through every command that loads one; the shipped policies load
+"""Loading a policy never runs code from its folder (``rl.policy.policy_format``): crafted payloads
+in every file of a policy folder, through every command that loads one; the shipped policies load
 from the data format with the actions they had."""
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import pytest
 
 from uwdock.dockcore.errors import DockError
 from uwdock.rl import cli
-from uwdock.rl.policy_format import npz_bytes
+from uwdock.rl.policy.policy_format import npz_bytes
 
 ROOT = Path(__file__).resolve().parent.parent
 SHIPPED = ROOT / "rl" / "policies" / "realistic_ppo"
@@ -125,8 +125,8 @@ def test_no_command_runs_a_pickled_folder(run_cli, tmp_path, legacy_zip):
 def test_pickles_beside_the_data_format_are_never_read(run_cli, tmp_path, legacy_zip):
     """A folder holding both formats loads from the data: the payloads stay unread and the
     actions are the shipped policy's."""
-    from uwdock.rl.evaluate import SB3Controller
-    from uwdock.rl.policy_io import load_policy
+    from uwdock.rl.evaluate.episodes import SB3Controller
+    from uwdock.rl.policy.policy_io import load_policy
 
     marker = tmp_path / "ran"
     folder = _crafted_folder(tmp_path, legacy_zip, marker, safe=True)
@@ -173,7 +173,7 @@ def test_a_crafted_model_file_is_refused_in_one_line(run_cli, tmp_path, change, 
     folder = _copy_shipped(tmp_path)
     _rewrite_model(folder, change)
     with pytest.raises(DockError, match=fragment):
-        from uwdock.rl.policy_io import load_policy
+        from uwdock.rl.policy.policy_io import load_policy
 
         load_policy(folder)
     out = tmp_path / "e"
@@ -185,7 +185,7 @@ def test_a_crafted_model_file_is_refused_in_one_line(run_cli, tmp_path, change, 
 def test_an_object_array_in_the_weights_is_refused(tmp_path):
     """A .npy entry holding pickled objects is refused by NumPy's reader (allow_pickle=False),
     its payload unread, though model.json records the file's digest."""
-    from uwdock.rl.policy_io import load_policy
+    from uwdock.rl.policy.policy_io import load_policy
 
     marker = tmp_path / "ran"
     folder = _copy_shipped(tmp_path)
@@ -209,7 +209,7 @@ def test_an_object_array_in_the_weights_is_refused(tmp_path):
 
 
 def test_the_folders_checksums_are_checked(tmp_path):
-    from uwdock.rl.policy_io import load_policy
+    from uwdock.rl.policy.policy_io import load_policy
 
     folder = _copy_shipped(tmp_path)
     shutil.copy(SHIPPED / "checksums.sha256", folder / "checksums.sha256")
@@ -223,7 +223,7 @@ def test_the_folders_checksums_are_checked(tmp_path):
 
 
 def test_weights_that_do_not_fit_the_network_are_refused(tmp_path):
-    from uwdock.rl.policy_io import load_policy
+    from uwdock.rl.policy.policy_io import load_policy
 
     folder = _copy_shipped(tmp_path)
     arrays = dict(np.load(folder / "weights.npz", allow_pickle=False))
@@ -239,8 +239,8 @@ def test_the_shipped_policy_acts_as_its_onnx_export_of_the_pickled_original():
     """policy.onnx was exported from the pickled policy before the conversion: the data
     format's policy gives its actions (to float32 rounding), and exporting it again gives the
     same ONNX bytes."""
-    from uwdock.rl.evaluate import SB3Controller
-    from uwdock.rl.policy_io import OnnxPolicy, load_policy
+    from uwdock.rl.evaluate.episodes import SB3Controller
+    from uwdock.rl.policy.policy_io import OnnxPolicy, load_policy
 
     obs = np.random.default_rng(1).normal(scale=2.0, size=(500, 18)).astype(np.float32)
     sb3 = SB3Controller(*load_policy(SHIPPED)).act_batch(obs)
@@ -250,7 +250,7 @@ def test_the_shipped_policy_acts_as_its_onnx_export_of_the_pickled_original():
 
 
 def test_exporting_the_shipped_policy_again_gives_the_shipped_onnx(tmp_path):
-    from uwdock.rl.export import export_onnx
+    from uwdock.rl.policy.export import export_onnx
 
     written = export_onnx(SHIPPED, tmp_path / "policy.onnx")
     assert written.read_bytes() == (SHIPPED / "policy.onnx").read_bytes()
@@ -258,7 +258,7 @@ def test_exporting_the_shipped_policy_again_gives_the_shipped_onnx(tmp_path):
 
 def test_writing_is_deterministic_and_reads_back_bit_for_bit(tmp_path):
     """The same weights give the same bytes; a read policy written again is the same file."""
-    from uwdock.rl.policy_format import policy_files, read_policy
+    from uwdock.rl.policy.policy_format import policy_files, read_policy
 
     model, vecnorm = read_policy(SHIPPED)
     files = policy_files(model, vecnorm)
@@ -286,7 +286,7 @@ def test_resuming_a_checkpoint_of_the_pickled_format_needs_the_users_word(
 ):
     """Checkpoints are data too: a unit of format version 1 (SB3's zip, pickles) with a
     payload is refused in one line, unread, unless ``--trust-pickle``."""
-    from uwdock.rl.checkpoint import FORMAT, MANIFEST
+    from uwdock.rl.train.checkpoint import FORMAT, MANIFEST
 
     cfg = tmp_path / "tiny.toml"
     cfg.write_text(
@@ -316,3 +316,41 @@ def test_resuming_a_checkpoint_of_the_pickled_format_needs_the_users_word(
     line = _one_error(res)
     assert "older version" in line and "--trust-pickle" in line, line
     assert not marker.exists()
+
+
+def test_a_pickled_folder_from_before_the_rooms_converts(run_cli, tmp_path):
+    """SB3's pickled ``data`` names the policy class by its module path: a folder saved while the
+    asymmetric actor-critic was ``uwdock.rl.asymmetric`` (before ``rl`` had rooms) converts with
+    the user's word, and the old path names nothing before or after."""
+    import importlib
+    import sys
+
+    import gymnasium as gym
+    from stable_baselines3 import PPO
+
+    from uwdock.rl.policy.asymmetric import AsymmetricPolicy
+
+    class _Env(gym.Env):
+        observation_space = gym.spaces.Box(-5.0, 5.0, (18,), np.float32)
+        action_space = gym.spaces.Box(-1.0, 1.0, (6,), np.float32)
+
+    kw = {"policy_kwargs": {"actor_obs_dim": 13}, "n_steps": 8, "batch_size": 8, "seed": 0}
+    buf = io.BytesIO()
+    PPO(AsymmetricPolicy, _Env(), device="cpu", **kw).save(buf)
+    src = zipfile.ZipFile(io.BytesIO(buf.getvalue()))
+    data = json.loads(src.read("data"))
+    old_ref = b"cuwdock.rl.asymmetric\nAsymmetricPolicy\n."  # pickle's GLOBAL, as SB3 wrote it
+    data["policy_class"][":serialized:"] = base64.b64encode(old_ref).decode()
+    folder = tmp_path / "old"
+    folder.mkdir()
+    with zipfile.ZipFile(folder / "policy.zip", "w") as dst:
+        for info in src.infolist():
+            body = json.dumps(data).encode() if info.filename == "data" else src.read(info)
+            dst.writestr(info, body)
+    with pytest.raises(ModuleNotFoundError):
+        importlib.import_module("uwdock.rl.asymmetric")
+    out = tmp_path / "converted"
+    res = run_cli(cli.main, "convert-policy", str(folder), "--out", str(out), "--trust-pickle")
+    assert res.code == 0, res.err
+    assert json.loads((out / "model.json").read_text())["policy_class"] == "AsymmetricPolicy"
+    assert "uwdock.rl.asymmetric" not in sys.modules

@@ -27,8 +27,8 @@ psutil = pytest.importorskip("psutil")
 from tests.hostile_runs import ROOT, SMALL_RUN, run_digest  # noqa: E402
 from uwdock import cli as uwdock_cli  # noqa: E402 - after the skips
 from uwdock.datasets.synth import SynthConfig, generate  # noqa: E402
-from uwdock.rl.config import EnvConfig  # noqa: E402
-from uwdock.rl.evaluate import run_episodes_parallel  # noqa: E402
+from uwdock.rl.env.config import EnvConfig  # noqa: E402
+from uwdock.rl.evaluate.episodes import run_episodes_parallel  # noqa: E402
 
 #: Files a run writes about itself (its owner's pid, its own timing): not part of the data.
 RUN_FILES = {".uwdock-owner.json", "provenance.json"}
@@ -261,7 +261,7 @@ def test_actor_death_reads_node_and_cause_from_rays_message():
     msg = (
         "The actor died because of an error raised in its creation task, "
         "ray::_Host.__init__() (pid=16122, ip=192.0.2.2, actor_id=803f, repr=<_Host>)\n"
-        '  File "/work/main/rl/env.py", line 109, in __init__\n'
+        '  File "/work/main/rl/env/docking_env.py", line 109, in __init__\n'
         "    self.nav = NavErrors(c.nav, 1)\n"
         "AttributeError: 'EnvConfig' object has no attribute 'nav'"
     )

@@ -25,9 +25,9 @@ from uwdock.markers.config import MarkerConfig
 from uwdock.markers.markerset import marker_set_from_config
 from uwdock.markers.view import markers_in_view
 from uwdock.perception.detector import Detector
-from uwdock.rl.config import EnvConfig
-from uwdock.rl.error_model import count_in_view
-from uwdock.rl.obs_sources import StepContext
+from uwdock.rl.env.config import EnvConfig
+from uwdock.rl.env.error_model import count_in_view
+from uwdock.rl.env.obs_sources import StepContext
 
 ROOT = Path(__file__).resolve().parent.parent
 MARKERS = marker_set_from_config(MarkerConfig())
@@ -133,7 +133,7 @@ def _fake_world(rgb: np.ndarray, camera: CameraModel):
 def test_camera_source_hands_the_detector_bgr(monkeypatch):
     """RGB must not reach the detector's BGR contract: a red-dominant rendered frame arrives
     with red in the last channel. (Before the fix the env passed the rendered RGB frame on.)"""
-    from uwdock.rl.camera_source import CameraSource
+    from uwdock.rl.env.camera_source import CameraSource
 
     cam = reference_camera().scaled(96, 73)
     rgb = np.zeros((73, 96, 3), np.uint8)
@@ -172,7 +172,7 @@ def test_frame_names_its_channel_order():
 def test_world_and_runner_resolve_the_same_camera(tmp_path):
     """A camera file at 968 px with camera_width_px 484: the env's world renders at 484 and the
     runner estimates at 484 (it resizes the file-sized frames), with the same model."""
-    from uwdock.rl.runner import DockingRunner
+    from uwdock.rl.deploy.runner import DockingRunner
     from uwdock.sim.world import DockingWorld
 
     T_file = make_T(R_from_rpy(0.0, 0.0, np.pi / 2), [0.5, 0.0, 0.45])
@@ -200,7 +200,7 @@ def test_perception_eval_and_the_camera_source_give_the_same_ds_pose(tmp_path):
     from uwdock.datasets.synth import SynthConfig, generate
     from uwdock.perception.evaluate import resolve_markers, run_eval
     from uwdock.perception.groundtruth import load_dataset
-    from uwdock.rl.camera_source import CameraSource
+    from uwdock.rl.env.camera_source import CameraSource
     from uwdock.sim.camera import Frame
     from uwdock.sim.world import DockingWorld
 

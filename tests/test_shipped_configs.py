@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 
 from uwdock.dockcore.config import config_data, from_dict, load_config, read_toml, replace
-from uwdock.rl.config import LEGACY_WORLD_KEYS, check_env_files
-from uwdock.rl.train import TrainConfig
+from uwdock.rl.env.config import LEGACY_WORLD_KEYS, check_env_files
+from uwdock.rl.train.training import TrainConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = sorted(p for p in (ROOT / "configs").rglob("*.toml") if "recipes" not in p.parts)
@@ -146,7 +146,7 @@ def _shipped_stage2(name: str, recipe: str):
     seed aside), trained from a clean tree from a stage 1's best/, without imitation, and its kept
     checkpoint docked >= 90 % strict on its 30 evaluation episodes. Returns (folder, config,
     model)."""
-    from uwdock.rl.policy_io import load_policy
+    from uwdock.rl.policy.policy_io import load_policy
 
     shipped = ROOT / "rl" / "policies" / name
     cfg = load_config(TrainConfig, shipped / "config.toml", section="train")
@@ -178,8 +178,8 @@ def test_shipped_policy_is_the_realistic_recipe():
     stage 1's."""
     import hashlib
 
-    from uwdock.rl.observation import observation_size
-    from uwdock.rl.policy_io import load_policy
+    from uwdock.rl.env.observation import observation_size
+    from uwdock.rl.policy.policy_io import load_policy
 
     shipped, cfg, model = _shipped_stage2("realistic_ppo", "realistic/stage2.toml")
     assert cfg.env.nav.preset == "mems-ahrs-dvl" and cfg.env.usbl.preset == "evologics-s2cr"

@@ -142,7 +142,7 @@ def test_lazy_group_runs_the_command_and_refuses_an_unknown_one(run_cli):
         "uwdock.perception.cli",
         "uwdock.sim.cli",
         "uwdock.datasets.cli",
-        "uwdock.rl.env",
+        "uwdock.rl.env.docking_env",
     ],
 )
 def test_importing_a_module_does_not_import_the_heavy_libraries(module):

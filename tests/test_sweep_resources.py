@@ -15,8 +15,8 @@ import pytest
 from tests.hostile_runs import run_digest
 from uwdock.dockcore.config import from_dict
 from uwdock.dockcore.errors import DockError
-from uwdock.rl.sweep import check_fits, trial_resources
-from uwdock.rl.train import TrainConfig
+from uwdock.rl.train.sweep import check_fits, trial_resources
+from uwdock.rl.train.training import TrainConfig
 
 MODEL = "rl/models/error_model_clear_tank_480_ar1.json"
 
@@ -125,7 +125,7 @@ def test_inputs_are_checked_on_every_node_before_work_starts(tmp_path) -> None:
 def test_relative_input_paths_become_absolute_from_the_working_directory(
     tmp_path, monkeypatch
 ) -> None:
-    from uwdock.rl.config import env_input_files, with_absolute_inputs
+    from uwdock.rl.env.config import env_input_files, with_absolute_inputs
 
     (tmp_path / "my_water.toml").write_text("[water]\nbeta_D_rgb = [0.1, 0.05, 0.2]\n")
     monkeypatch.chdir(tmp_path)
@@ -217,7 +217,7 @@ def test_a_batched_trial_runs_through_the_sweep_as_plain_rl_train(tmp_path) -> N
 def test_policy_input_files_are_what_loading_the_policy_reads(tmp_path) -> None:
     """The files a Ray job checks on every node for ``--policy``: a policy folder's model.json,
     weights.npz and run config; an .onnx and its sidecar; nothing for the PID."""
-    from uwdock.rl.policy_io import policy_input_files
+    from uwdock.rl.policy.policy_io import policy_input_files
 
     assert policy_input_files("pid") == []
     shipped = Path(__file__).resolve().parents[1] / "rl/policies/scratch_error_model_ppo"
@@ -233,7 +233,7 @@ def test_policy_input_files_are_what_loading_the_policy_reads(tmp_path) -> None:
 def test_a_sweep_folder_every_node_cannot_see_is_refused_and_removed(tmp_path) -> None:
     """Trials write their run folders on the node that runs them: ``--out`` must be storage
     every node mounts; a folder one node cannot see is one line, and removed again."""
-    from uwdock.rl.sweep import _check_shared
+    from uwdock.rl.train.sweep import _check_shared
 
     out = tmp_path / "sw"
     out.mkdir()

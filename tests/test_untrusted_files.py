@@ -23,7 +23,7 @@ from uwdock.calibration.camera import (
 )
 from uwdock.dockcore.errors import DockError
 from uwdock.rl import cli as rl_cli
-from uwdock.rl.error_model import load_error_model
+from uwdock.rl.env.error_model import load_error_model
 
 ROOT = Path(__file__).resolve().parent.parent
 SHIPPED_POLICY = ROOT / "rl" / "policies" / "error_model_ppo"
@@ -136,8 +136,8 @@ def test_nan_error_model_stops_rl_train_with_one_line(run_cli, tmp_path):
 def _policy_without_normalisation(tmp_path: Path) -> Path:
     """The shipped policy written again without its normalisation (its config says
     normalize_obs = true)."""
-    from uwdock.rl.policy_format import write_policy
-    from uwdock.rl.policy_io import load_policy
+    from uwdock.rl.policy.policy_format import write_policy
+    from uwdock.rl.policy.policy_io import load_policy
 
     folder = tmp_path / "policy"
     model, _ = load_policy(SHIPPED_POLICY)
@@ -149,7 +149,7 @@ def _policy_without_normalisation(tmp_path: Path) -> Path:
 def test_policy_folder_missing_its_normalisation_is_refused(run_cli, tmp_path):
     """``rl eval`` gave 0 % strict success instead of 100 %; ``rl export`` wrote an ONNX
     without the normalisation."""
-    from uwdock.rl.policy_io import load_policy
+    from uwdock.rl.policy.policy_io import load_policy
 
     assert "normalize_obs = true" in (SHIPPED_POLICY / "config.toml").read_text()
     folder = _policy_without_normalisation(tmp_path)

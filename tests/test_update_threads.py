@@ -12,9 +12,9 @@ import torch
 from stable_baselines3 import PPO
 
 from uwdock.dockcore.config import replace
-from uwdock.rl.callbacks import TrainingCallback
-from uwdock.rl.config import EnvConfig
-from uwdock.rl.train import PPOConfig, TrainConfig, train
+from uwdock.rl.env.config import EnvConfig
+from uwdock.rl.train.callbacks import TrainingCallback
+from uwdock.rl.train.training import PPOConfig, TrainConfig, train
 from uwdock.sim.world_config import WorldConfig
 
 MODEL = str(Path(__file__).resolve().parents[1] / "rl/models/error_model_clear_tank_480_ar1.json")

@@ -13,7 +13,7 @@ import pytest
 from uwdock.calibration.frames import R_from_rpy, make_T
 from uwdock.dockcore.config import dumps_toml, from_dict, load_config, replace
 from uwdock.dockcore.errors import ConfigError
-from uwdock.rl.config import EnvConfig
+from uwdock.rl.env.config import EnvConfig
 from uwdock.sim.usbl import MODEL_FIELDS, USBL_PRESETS, UsblConfig, UsblSensor
 
 #: Every effect off: a noiseless, unbiased, on-time fix every 0.2 s (one control step).
@@ -56,7 +56,7 @@ def test_ideal_preset_is_the_old_formula_draw_for_draw():
 
 
 def test_old_run_configs_load_and_keep_the_ideal_model():
-    from uwdock.rl.train import TrainConfig
+    from uwdock.rl.train.training import TrainConfig
 
     cfg = load_config(TrainConfig, "rl/policies/error_model_ppo/config.toml", section="train")
     assert cfg.env.usbl == UsblConfig()
@@ -230,8 +230,8 @@ SHORT = replace(EnvConfig(), episode_s=4.0, randomise_vehicle=False)
 
 
 def _run(cfg: EnvConfig, seed: int, steps: int = 20):
-    from uwdock.rl.baselines import PIDController
-    from uwdock.rl.env import DockingEnv
+    from uwdock.rl.env.docking_env import DockingEnv
+    from uwdock.rl.policy.baselines import PIDController
 
     env = DockingEnv(cfg)
     pid = PIDController.for_env(cfg)
@@ -251,7 +251,7 @@ def _run(cfg: EnvConfig, seed: int, steps: int = 20):
 
 def test_acoustic_source_never_detects_and_lives_on_the_fixes():
     from uwdock.rl.cli import OBS_CHOICES
-    from uwdock.rl.env import SOURCE_CLASSES
+    from uwdock.rl.env.docking_env import SOURCE_CLASSES
 
     assert "acoustic" in SOURCE_CLASSES and "acoustic" in OBS_CHOICES.choices
     cfg = replace(SHORT, obs_source="acoustic")

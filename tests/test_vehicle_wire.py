@@ -111,9 +111,9 @@ def lockstep(tmp_path_factory):
 def test_lockstep_episode_equals_in_process_eval(lockstep):
     tmp, _ = lockstep
     from uwdock.dockcore.config import replace
-    from uwdock.rl.env_settings import command_env
-    from uwdock.rl.evaluate import run_episodes
-    from uwdock.rl.policy_io import OnnxPolicy, policy_env_settings
+    from uwdock.rl.evaluate.episodes import run_episodes
+    from uwdock.rl.policy.env_settings import command_env
+    from uwdock.rl.policy.policy_io import OnnxPolicy, policy_env_settings
 
     resolved = command_env(str(POLICY), None, None, {}, {"terminate_on": "strict"})
     cfg = replace(resolved.cfg, obs_source="camera", **policy_env_settings(str(POLICY)))

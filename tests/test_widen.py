@@ -1,4 +1,4 @@
-"""Fine-tuning on a wider observation (rl.widen): a policy trained without ``obs_fine_error``
+"""Fine-tuning on a wider observation (rl.train.widen): a policy trained without ``obs_fine_error``
 starts a run with it as exactly itself, and layouts that are not a widening are refused."""
 
 from __future__ import annotations
@@ -9,9 +9,9 @@ import torch
 
 from uwdock.dockcore.config import replace
 from uwdock.dockcore.errors import DockError
-from uwdock.rl.config import EnvConfig
-from uwdock.rl.observation import frame_dim, observation_size
-from uwdock.rl.widen import widen_obs_rms, widen_state_dict, widening_index
+from uwdock.rl.env.config import EnvConfig
+from uwdock.rl.env.observation import frame_dim, observation_size
+from uwdock.rl.train.widen import widen_obs_rms, widen_state_dict, widening_index
 from uwdock.sim.world_config import WorldConfig
 
 MODEL = "rl/models/error_model_clear_tank_480_ar1.json"
@@ -48,7 +48,7 @@ def test_the_widened_model_acts_and_values_as_the_old_one_whatever_the_new_input
     from stable_baselines3 import PPO
     from stable_baselines3.common.running_mean_std import RunningMeanStd
 
-    from uwdock.rl.batch_env import BatchDockingEnv
+    from uwdock.rl.env.batch_env import BatchDockingEnv
 
     old_env, new_env = _env(), _env(obs_fine_error=True)
     kw = {"n_steps": 8, "batch_size": 16, "seed": 3, "device": "cpu"}
@@ -97,7 +97,7 @@ def test_the_widened_model_acts_and_values_as_the_old_one_whatever_the_new_input
 def test_a_run_with_the_fine_error_starts_from_a_policy_trained_without_it(tmp_path):
     """rl train --init-policy: a policy of the narrower layout is widened (the run says so); one
     whose layout differs otherwise is refused with the one-line dimension error."""
-    from uwdock.rl.train import PPOConfig, TrainConfig, train
+    from uwdock.rl.train.training import PPOConfig, TrainConfig, train
 
     ppo = PPOConfig(n_steps=8, batch_size=16, n_epochs=1)
     base = {"total_steps": 32, "n_envs": 2, "seed": 3, "checkpoint_every": 32, "eval_every": 32}

@@ -38,3 +38,12 @@ LAYERS = {
     "datasets": 4,
     "rl": 5,
 }
+
+#: The rooms of a package split into sub-packages (the package's own modules count as rooms
+#: too): each room's rank inside its package. A module may import only rooms of a lower rank
+#: (two rooms of one rank are peers and never import each other); the package's ``__init__``
+#: sits below every room. A package not named here is one room (no sub-packages).
+#: ``tests/test_architecture.py`` checks it.
+ROOMS = {
+    "rl": {"env": 0, "policy": 1, "evaluate": 2, "train": 3, "deploy": 3, "cli": 4},
+}

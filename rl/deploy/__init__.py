@@ -2,6 +2,7 @@
 simulator as the vehicle over the same middleware.
 
 Modules:
+    runner:  camera frames and odometry in, the policy's wrench out (no ROS, no simulator).
     config:  the node's settings (topics, frames, QoS, axes, safety), ``profiles/*.toml``.
     inputs:  messages read and checked into the toolkit's frames.
     chain:   the docking chain without a transport: inputs by stamp, a tick at the policy's
@@ -14,4 +15,6 @@ Modules:
 
 ``rl node`` and ``rl replay`` need ``uwdock[vehicle]`` only: no torch, no SAPIEN, no Gymnasium
 (the policy runs as ONNX through onnxruntime, and loading it runs no code from its folder).
+A room of ``rl`` above ``rl.env``, ``rl.policy`` and ``rl.evaluate`` (the simulated vehicle
+counts its episodes as an evaluation does); ``rl.train`` is its peer.
 """

@@ -14,7 +14,7 @@ with their header stamps (ns); :meth:`DockingChain.tick` runs one control step a
    refused) and measured (detector, board PnP, level re-solve: the simulator's camera source,
    the same code); older frames not yet used are dropped (counted);
 4. the observation is built from the newest navigation solution, and the policy's action is
-   scaled to the body wrench (:class:`uwdock.rl.runner.DockingRunner`, shared with the
+   scaled to the body wrench (:class:`uwdock.rl.deploy.runner.DockingRunner`, shared with the
    simulator's env);
 5. the safety checks decide what is published: nothing while disarmed, the wrench when armed
    and every check passes, a zero wrench with the reasons otherwise (camera or navigation
@@ -41,8 +41,8 @@ from uwdock.calibration.camera import CameraModel, scaled_to_width
 from uwdock.calibration.frames import R_from_quat_wxyz, quat_wxyz_from_R
 from uwdock.rl.deploy.config import NodeConfig
 from uwdock.rl.deploy.inputs import NavSample
-from uwdock.rl.obs_sources import Measurement
-from uwdock.rl.runner import DockingRunner, Odometry
+from uwdock.rl.deploy.runner import DockingRunner, Odometry
+from uwdock.rl.env.obs_sources import Measurement
 
 __all__ = ["DockingChain", "NavBuffer", "Tick"]
 
@@ -160,7 +160,7 @@ class DockingChain:
 
     Args:
         runner: the policy with its estimator, filter and observation
-            (:class:`uwdock.rl.runner.DockingRunner`).
+            (:class:`uwdock.rl.deploy.runner.DockingRunner`).
         cfg: the node's settings (safety limits, axes).
         armed: start armed (simulation and tests); a vehicle starts disarmed.
         log: called with one line for each refused input (rate-limited per input kind).

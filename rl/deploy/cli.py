@@ -34,9 +34,9 @@ from uwdock.rl.deploy.chain import DockingChain
 from uwdock.rl.deploy.config import NodeConfig, load_node_config
 from uwdock.rl.deploy.node import VehicleNode
 from uwdock.rl.deploy.replay import replay_bag
-from uwdock.rl.env_settings import command_env
-from uwdock.rl.policy_io import policy_env_settings
-from uwdock.rl.runner import DockingRunner
+from uwdock.rl.deploy.runner import DockingRunner
+from uwdock.rl.policy.env_settings import command_env
+from uwdock.rl.policy.policy_io import policy_env_settings
 from uwdock.ros.mcap import McapRecorder
 
 #: The shipped policy, exported (``rl export``): what ``rl node`` and ``rl replay`` run unless
@@ -309,7 +309,7 @@ def vehicle_cmd(
     in-process `rl eval` on the same seeds."""
     try:  # the simulator (SAPIEN, through the env): uwdock[rl]
         from uwdock.rl.deploy.vehicle import SimVehicle, VehicleTimeout
-        from uwdock.rl.report import csv_text
+        from uwdock.rl.evaluate.report import csv_text
     except ModuleNotFoundError as exc:
         raise DockError(
             f"sim vehicle needs the simulator ({exc.name} is not installed): "

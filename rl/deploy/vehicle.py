@@ -1,8 +1,8 @@
 """``sim vehicle``: the simulator as the vehicle, over the same middleware as a real one.
 
-:class:`SimVehicle` runs the docking env (:class:`uwdock.rl.env.DockingEnv`: SAPIEN physics,
-the rendered underwater camera, the drifting navigation and the USBL of the policy's training
-env) and speaks to the node only through ROS 2 topics (:class:`uwdock.ros.dds.DdsGraph`):
+:class:`SimVehicle` runs the docking env (:class:`uwdock.rl.env.docking_env.DockingEnv`: SAPIEN
+physics, the rendered underwater camera, the drifting navigation and the USBL of the policy's
+training env) and speaks to the node only through ROS 2 topics (:class:`uwdock.ros.dds.DdsGraph`):
 
 * it publishes, each control step, the downward camera (``Image`` bgr8 or JPEG
   ``CompressedImage``, as the node's config says), the navigation solution (``Odometry``: the
@@ -35,12 +35,12 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from uwdock.rl.config import EnvConfig
 from uwdock.rl.deploy.config import NodeConfig
 from uwdock.rl.deploy.wire import input_topics, output_types
-from uwdock.rl.env import DockingEnv
-from uwdock.rl.evaluate import episode_row, summarise
-from uwdock.rl.failures import FailureTracker
+from uwdock.rl.env.config import EnvConfig
+from uwdock.rl.env.docking_env import DockingEnv
+from uwdock.rl.evaluate.episodes import episode_row, summarise
+from uwdock.rl.evaluate.failures import FailureTracker
 from uwdock.ros import conventions as conv
 from uwdock.ros import messages as rm
 from uwdock.ros.mcap import McapRecorder

@@ -1,0 +1,237 @@
+"""Warm start: DAgger from the classical baseline into the PPO policy, before PPO fine-tuning.
+
+The teacher (:class:`rl.policy.baselines.PIDController`) reads the *same* observation as the student
+(the filtered estimate, whatever the observation source), so imitation needs no privileged
+information. Iteration 0 rolls out the teacher; later iterations roll out the student (its mean
+action) while the teacher labels every visited observation (DAgger), so the student learns to
+recover from its own mistakes. The policy mean is fitted by mean-squared error, its log standard
+deviation is set to ``log_std``; the value network is fitted to the normalised discounted
+returns of the rollouts, so PPO starts with a critic that matches its actor.
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from tqdm import tqdm
+
+from uwdock.dockcore.domains import Interval
+from uwdock.rl.env.config import EnvConfig
+from uwdock.rl.env.docking_env import DockingEnv
+from uwdock.rl.policy.baselines import PIDController
+
+
+@dataclass(frozen=True)
+class ImitationConfig:
+    """Teacher-guided warm start.
+
+    Attributes:
+        teacher: "pid" (the classical baseline) or "none" (pure PPO).
+        iterations: DAgger iterations (the first rolls out the teacher).
+        episodes_per_iteration: episodes collected per iteration.
+        epochs: passes over the aggregated data per iteration.
+        batch_size: minibatch size (transitions).
+        learning_rate: Adam step size of the supervised fit.
+        log_std: the policy's log standard deviation after the warm start (PPO explores from it).
+        critic_warmup_steps: after the warm start, PPO first trains only its value function for
+            this many environment steps (the actor frozen), so the first policy updates use
+            advantages from a critic that matches the imitated policy.
+    """
+
+    teacher: Literal["pid", "none"] = "pid"
+    iterations: Annotated[int, Interval(ge=1, le=1000)] = 4
+    episodes_per_iteration: Annotated[int, Interval(ge=1, le=100_000)] = 16
+    epochs: Annotated[int, Interval(ge=1, le=100_000)] = 30
+    batch_size: Annotated[int, Interval(ge=1, le=1_000_000)] = 512
+    learning_rate: Annotated[float, Interval(gt=0, le=1)] = 1e-3
+    log_std: Annotated[float, Interval(ge=-20, le=2)] = -1.0
+    critic_warmup_steps: Annotated[int, Interval(ge=0, le=10**9)] = 30_000
+
+
+def _discounted(rewards: np.ndarray, gamma: float) -> np.ndarray:
+    out = np.zeros_like(rewards)
+    acc = 0.0
+    for k in range(len(rewards) - 1, -1, -1):
+        acc = rewards[k] + gamma * acc
+        out[k] = acc
+    return out
+
+
+def warm_start(
+    model,
+    vecnorm,
+    env_cfg: EnvConfig,
+    cfg: ImitationConfig,
+    seed: int,
+    gamma: float,
+    progress: bool = True,
+) -> dict[str, list[float]]:
+    """Fit ``model``'s policy (and value) to the teacher by DAgger; updates ``vecnorm``'s stats.
+
+    The student of every iteration is scored by the docked fraction of the next iteration's
+    rollouts (the last one by an extra batch); the best-scoring student is kept, since the
+    imitation of a controller with sharp decisions does not improve monotonically.
+
+    Returns:
+        Per iteration: the imitation loss, the docked fraction of the rollouts (iteration 0:
+        the teacher; k > 0: the student fitted at k - 1) and the number of transitions; the
+        selected iteration and the environment steps.
+    """
+    import torch
+
+    env = DockingEnv(env_cfg)
+    success_key = f"success_{env_cfg.terminate_on}"  # the condition that ends an episode
+    teacher = PIDController.for_env(env_cfg)
+    policy = model.policy
+    total = (cfg.iterations + 1) * cfg.episodes_per_iteration
+    bar = tqdm(total=total, desc="imitation", unit="ep", disable=not progress)
+    rollouts = _Rollouts(env, success_key, teacher, policy, vecnorm, cfg, gamma, bar,
+                         ep_seed=seed + 500_000)  # fmt: skip
+    history, states = _dagger(model, vecnorm, rollouts, cfg, bar)
+    final_frac, *_ = rollouts.collect(student=True)
+    history["docked"].append(final_frac)
+    best = _keep_best_student(policy, vecnorm, history["docked"][1:], states)
+    history["selected_iteration"] = [best]
+    history["env_steps"] = [rollouts.steps]
+    bar.close()
+    env.close()
+    with torch.no_grad():
+        policy.log_std.fill_(cfg.log_std)
+    return history
+
+
+@dataclass
+class _Rollouts:
+    """The episodes of a warm start: the teacher (or the student's mean action) acting, the
+    teacher labelling every observation; the episode seeds run on, the env steps counted."""
+
+    env: DockingEnv
+    success_key: str
+    teacher: PIDController
+    policy: Any
+    vecnorm: Any
+    cfg: ImitationConfig
+    gamma: float
+    bar: tqdm
+    ep_seed: int
+    steps: int = 0
+
+    def collect(self, student: bool) -> tuple[float, list, list, list]:
+        """One iteration's episodes: the docked fraction and, per episode, its observations,
+        the teacher's labels and the discounted returns."""
+        docked, O, A, G = 0, [], [], []
+        for _ in range(self.cfg.episodes_per_iteration):
+            ep_obs, ep_act, ep_rew, info = self._episode(student)
+            docked += int(info[self.success_key])
+            O.append(np.asarray(ep_obs))
+            A.append(np.asarray(ep_act))
+            G.append(_discounted(np.asarray(ep_rew), self.gamma))
+            self.bar.update(1)
+        return docked / self.cfg.episodes_per_iteration, O, A, G
+
+    def _episode(self, student: bool) -> tuple[list, list, list, dict]:
+        """One episode: (observations, teacher labels, rewards, the last step's info)."""
+        obs, _ = self.env.reset(seed=self.ep_seed)
+        self.ep_seed += 1
+        self.teacher.reset()
+        ep_obs, ep_act, ep_rew = [], [], []
+        done = False
+        while not done:
+            label = self.teacher.act(obs)
+            action = self._student_action(obs) if student else label
+            ep_obs.append(obs)
+            ep_act.append(label)
+            obs, r, term, trunc, info = self.env.step(action)
+            self.steps += 1
+            ep_rew.append(r)
+            done = term or trunc
+        return ep_obs, ep_act, ep_rew, info
+
+    def _student_action(self, obs: np.ndarray) -> np.ndarray:
+        """The student's mean action for an observation, clipped to [-1, 1]."""
+        import torch
+
+        vecnorm = self.vecnorm
+        o = vecnorm.normalize_obs(obs[None]) if vecnorm is not None else obs[None]
+        with torch.no_grad():
+            dist = self.policy.get_distribution(torch.as_tensor(o, dtype=torch.float32))
+            return np.clip(dist.distribution.mean.numpy()[0], -1, 1)
+
+
+def _dagger(
+    model, vecnorm, rollouts: _Rollouts, cfg: ImitationConfig, bar: tqdm
+) -> tuple[dict[str, list[float]], list[tuple[dict, Any]]]:
+    """The DAgger iterations: roll out (the teacher first, then the student), aggregate, refit;
+    returns the history and each iteration's student with its normalisation."""
+    policy = model.policy
+    rms = vecnorm.obs_rms if vecnorm is not None else None
+    obs_all, act_all, ret_all = [], [], []
+    history: dict[str, list[float]] = {"loss": [], "docked": [], "samples": []}
+    states: list[tuple[dict, Any]] = []
+    for it in range(cfg.iterations):
+        frac, O, A, G = rollouts.collect(student=it > 0)
+        obs_all += O
+        act_all += A
+        ret_all += G
+        X = np.concatenate(obs_all).astype(np.float64)
+        if rms is not None:
+            rms.update(np.concatenate(O).astype(np.float64))
+        loss = _fit(model, vecnorm, X, np.concatenate(act_all), np.concatenate(ret_all), cfg)
+        # the student is only valid with the normalisation it was fitted under: keep both
+        norm = copy.deepcopy((vecnorm.obs_rms, vecnorm.ret_rms)) if vecnorm is not None else None
+        states.append((copy.deepcopy(policy.state_dict()), norm))
+        history["loss"].append(loss)
+        history["docked"].append(frac)
+        history["samples"].append(sum(len(o) for o in O))
+        bar.set_postfix(loss=f"{loss:.4f}", docked=f"{frac:.2f}")
+    return history, states
+
+
+def _keep_best_student(policy, vecnorm, scores: list[float], states: list[tuple[dict, Any]]) -> int:
+    """Load the best-scoring student (``scores[k]``: the student fitted at iteration k) and its
+    normalisation; returns its iteration."""
+    best = len(scores) - 1 - int(np.argmax(scores[::-1]))  # ties: the later, better-fed student
+    weights, norm = states[best]
+    policy.load_state_dict(weights)
+    if vecnorm is not None:
+        vecnorm.obs_rms, vecnorm.ret_rms = norm
+    return best
+
+
+def _fit(
+    model, vecnorm, X: np.ndarray, A: np.ndarray, G: np.ndarray, cfg: ImitationConfig
+) -> float:
+    import torch
+
+    policy = model.policy
+    Xn = vecnorm.normalize_obs(X) if vecnorm is not None else X
+    if vecnorm is not None and vecnorm.norm_reward:
+        # PPO sees rewards divided by the running return std: fit the critic on that scale
+        scale = float(np.std(G)) + 1e-8
+        vecnorm.ret_rms.mean = np.zeros(())
+        vecnorm.ret_rms.var = np.array(scale**2)
+        vecnorm.ret_rms.count = float(len(G))
+        G = G / scale
+    x = torch.as_tensor(Xn, dtype=torch.float32)
+    a = torch.as_tensor(np.clip(A, -1, 1), dtype=torch.float32)
+    g = torch.as_tensor(G, dtype=torch.float32)
+    opt = torch.optim.Adam(policy.parameters(), lr=cfg.learning_rate)
+    n = len(x)
+    gen = torch.Generator().manual_seed(0)
+    last = 0.0
+    for _ in range(cfg.epochs):
+        perm = torch.randperm(n, generator=gen)
+        for k in range(0, n, cfg.batch_size):
+            idx = perm[k : k + cfg.batch_size]
+            dist = policy.get_distribution(x[idx])
+            pi_loss = torch.mean((dist.distribution.mean - a[idx]) ** 2)
+            v_loss = torch.mean((policy.predict_values(x[idx]).squeeze(-1) - g[idx]) ** 2)
+            loss = pi_loss + 0.5 * v_loss
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            last = pi_loss.item()
+    return last
