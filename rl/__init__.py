@@ -9,7 +9,7 @@ room               what it holds                                                
 ``rl.env``         the task, observation sources, filter, reward, the env, batched  0
 ``rl.policy``      policy files, controllers, the PID baseline, the policy's env     1
 ``rl.evaluate``    seeded episodes, their rows, failures, reports, videos            2
-``rl.train``       ``rl train``: workers, checkpoints, sessions, recipes, sweeps     3
+``rl.train``       ``rl train``: workers, checkpoints, resume, recipes, sweeps       3
 ``rl.deploy``      the runner, the docking node, replay, the simulated vehicle       3
 ``rl.cli``         the ``rl`` command                                                4
 =================  ===============================================================  ====
