@@ -41,7 +41,7 @@ from uwdock.dockcore.bench import format_table, save_results
 from uwdock.dockcore.config import replace
 from uwdock.rl.evaluate.episodes import run_episodes
 from uwdock.rl.policy.env_settings import command_env
-from uwdock.rl.policy.policy_io import OnnxPolicy, policy_env_settings
+from uwdock.rl.policy.policy_io import OnnxPolicy
 
 ROOT = Path(__file__).resolve().parent.parent
 POLICY = ROOT / "rl" / "policies" / "realistic_ppo" / "policy.onnx"
@@ -58,8 +58,8 @@ def wilson(k: int, n: int) -> tuple[float, float]:
 
 
 def in_process(episodes: int, seed: int) -> tuple[list[dict], float]:
-    resolved = command_env(str(POLICY), None, None, {}, {"terminate_on": "strict"})
-    cfg = replace(resolved.cfg, obs_source="camera", **policy_env_settings(str(POLICY)))
+    resolved = command_env(str(POLICY), defaults={"terminate_on": "strict"})
+    cfg = replace(resolved.cfg, obs_source="camera")
     t0 = time.perf_counter()
     res = run_episodes(
         OnnxPolicy(POLICY), cfg, episodes, seed=seed, record=False,

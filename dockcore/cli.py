@@ -27,6 +27,7 @@ import threading
 import traceback
 import types
 import typing
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
@@ -122,6 +123,39 @@ def field_type(cls: type | str, name: str) -> DomainType:
         return tp
 
     return DomainType(resolve)
+
+
+class PresetType(click.Choice):
+    """A click choice among named presets whose value is the preset's object, ``make(name)``
+    (a config object, not a name that travels on as a string); an unknown name is click's
+    one-line usage error listing the names."""
+
+    def __init__(self, names: Iterable[str], make: Callable[[str], Any]) -> None:
+        super().__init__(list(names))
+        self._make = make
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
+        if not isinstance(value, str):
+            return value  # already the object (a default given as one)
+        return self._make(super().convert(value, param, ctx))
+
+
+class ParsedType(click.ParamType):
+    """A click type whose value is ``parse(text)``: the object an argument names, built (and
+    any file it names read) where the command line is parsed; a :class:`DockError` or
+    ``ValueError`` from ``parse`` is click's one-line usage error naming the option."""
+
+    def __init__(self, name: str, parse: Callable[[str], Any]) -> None:
+        self.name = name
+        self._parse = parse
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
+        if not isinstance(value, str):
+            return value
+        try:
+            return self._parse(value)
+        except (DockError, ValueError) as exc:
+            self.fail(str(exc), param, ctx)
 
 
 class _Interrupted(KeyboardInterrupt):

@@ -11,10 +11,15 @@ Conventions:
       finite (NaN and infinity are refused everywhere), an int is an int.
     * A dataclass may define ``validate(self) -> None`` that raises ``ValueError``; it is called
       after every load and on :func:`replace`.
-    * A field that moved into a nested table stays readable at its old place: the dataclass
-      lists it in ``MOVED_KEYS: ClassVar[Mapping[str, str]]`` (old key -> the table it moved
-      into, under the same name), and the loader lifts it there (:func:`lift_moved_keys`), so
-      files written before the move load unchanged; a key given at both places is an error.
+    * Files written in an older layout load unchanged; the loader puts them in the current one
+      (:func:`current_layout`) before anything reads them. A field that moved into a nested
+      table is listed in ``MOVED_KEYS: ClassVar[Mapping[str, str]]`` (old key -> the table it
+      moved into, under the same name) and lifted there (a key given at both places is an
+      error); a dataclass whose old layout needs more than a move defines a classmethod
+      ``upgrade_layout(data) -> data`` that rewrites its level of plain data.
+    * Code names a field by a typed selector, not a dotted string: :func:`field_path` turns
+      ``lambda c: c.world.camera_width_px`` into ``("world", "camera_width_px")``, checked
+      against the dataclass (an editor follows and renames the attributes).
     * A file may start from another: ``extends = "configs/realistic/stage2.toml"`` (top level)
       loads that base first, then merges the file's own values over it (tables merge key by
       key, other values replace), recursively (:func:`config_layers`). A relative path is looked
@@ -144,7 +149,11 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
 
 
 def _lift_here(cls: type, data: Mapping[str, Any], prefix: str) -> Mapping[str, Any]:
-    """``data`` with the old keys of ``cls.MOVED_KEYS`` moved into their tables (this level)."""
+    """``data`` in ``cls``'s current layout at this level: the old keys of ``cls.MOVED_KEYS``
+    moved into their tables, then ``cls.upgrade_layout`` where the class has one."""
+    upgrade = getattr(cls, "upgrade_layout", None)
+    if callable(upgrade):
+        data = upgrade(data)
     moved: Mapping[str, str] = getattr(cls, "MOVED_KEYS", None) or {}
     if not any(k in moved for k in data):
         return data
@@ -164,12 +173,15 @@ def _lift_here(cls: type, data: Mapping[str, Any], prefix: str) -> Mapping[str, 
     return out
 
 
-def lift_moved_keys(cls: type, data: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
-    """Plain config data of ``cls`` in its current layout: every key of a dataclass's
-    ``MOVED_KEYS`` (here and in nested tables) moved into the table it moved to.
+def current_layout(cls: type, data: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Plain config data of ``cls`` in its current layout, here and in nested tables: the keys
+    of each dataclass's ``MOVED_KEYS`` moved into their tables and its ``upgrade_layout``
+    applied (module docstring).
 
-    The loader does this on every load; call it on file data before merging it with data in the
-    current layout (:func:`merge`), or a moved key would be seen at both places.
+    The loader does this on every load. Readers of stored configs (a run folder's
+    ``config.toml``, an exported policy's ``.json``) call it at their edge, before merging the
+    data with data in the current layout (:func:`merge`), or an old key would be seen at both
+    places.
 
     Raises:
         ConfigError: a key given both at its old place and in its table, or a moved-into key
@@ -181,8 +193,53 @@ def lift_moved_keys(cls: type, data: Mapping[str, Any], prefix: str = "") -> dic
         value = out.get(f.name)
         tp = split_annotated(hints[f.name])[0]
         if isinstance(value, Mapping) and isinstance(tp, type) and dataclasses.is_dataclass(tp):
-            out[f.name] = lift_moved_keys(tp, value, f"{prefix}{f.name}.")
+            out[f.name] = current_layout(tp, value, f"{prefix}{f.name}.")
     return out
+
+
+class _FieldRecorder:
+    """Stands in for a config dataclass in :func:`field_path`: records the fields read."""
+
+    def __init__(self, cls: type, path: tuple[str, ...]) -> None:
+        self._cls = cls
+        self._path = path
+
+    def __getattr__(self, name: str) -> _FieldRecorder:
+        cls = self.__dict__["_cls"]
+        path = self.__dict__["_path"]
+        if cls is None or not dataclasses.is_dataclass(cls):
+            raise AttributeError(f"{'.'.join(path)} is not a table: no field {name!r}")
+        hints = typing.get_type_hints(cls, include_extras=True)
+        if name not in {f.name for f in dataclasses.fields(cls)}:
+            raise AttributeError(f"{cls.__name__} has no field {name!r}")
+        tp = split_annotated(hints[name])[0]
+        inner = tp if isinstance(tp, type) and dataclasses.is_dataclass(tp) else None
+        return _FieldRecorder(inner, (*path, name))
+
+
+def field_path(cls: type, select: typing.Callable[[Any], Any]) -> tuple[str, ...]:
+    """The field a selector reads: ``field_path(EnvConfig, lambda c: c.world.camera_width_px)``
+    is ``("world", "camera_width_px")``.
+
+    Raises:
+        AttributeError: the selector reads a field ``cls`` does not have (checked through the
+            nested dataclasses), or reads nothing.
+    """
+    got = select(_FieldRecorder(cls, ()))
+    path = got.__dict__.get("_path") if isinstance(got, _FieldRecorder) else None
+    if not path:
+        raise AttributeError(f"the selector reads no field of {cls.__name__}")
+    return path
+
+
+def has_path(data: Mapping[str, Any], path: tuple[str, ...]) -> bool:
+    """Whether plain config data sets the field at ``path`` (:func:`field_path`)."""
+    obj: Any = data
+    for part in path:
+        if not isinstance(obj, Mapping) or part not in obj:
+            return False
+        obj = obj[part]
+    return True
 
 
 def _build(cls: type[C], data: Mapping[str, Any], prefix: str = "") -> C:
@@ -373,7 +430,7 @@ def config_layers(
     that base's values with its own merged over them (:func:`merge`: tables merge key by key,
     other values, arrays included, replace). Each file is read as :func:`config_data` reads one
     (``section`` unwrapped); with ``cls``, each file's keys are put in the current layout
-    (:func:`lift_moved_keys`) before they merge, so a file in the current layout can extend one
+    (:func:`current_layout`) before they merge, so a file in the current layout can extend one
     written before a key moved.
 
     Raises:
@@ -417,7 +474,7 @@ def config_layers(
         if section is not None and set(data) == {section} and isinstance(data[section], Mapping):
             data = dict(data[section])
         if cls is not None:
-            data = lift_moved_keys(cls, data)
+            data = current_layout(cls, data)
         layers.append(ConfigLayer(file, data, base=len(chain) > 1))
         file = resolve_extends(value, file) if value is not None else None
     return layers[::-1]
@@ -467,10 +524,10 @@ def replace(cfg: C, **changes: Any) -> C:
 
     Values may be plain data or config dataclasses (which replace that table whole); a partial
     mapping changes those keys of a table (``replace(env, world={"water_preset": "turbid"})``).
-    A key of the class's ``MOVED_KEYS`` changes the field it moved to.
+    A key in an older layout (:func:`current_layout`) changes the field it became.
     """
     plain = {k: to_dict(v) if dataclasses.is_dataclass(v) else v for k, v in changes.items()}
-    return from_dict(type(cfg), merge(to_dict(cfg), lift_moved_keys(type(cfg), plain)))
+    return from_dict(type(cfg), merge(to_dict(cfg), current_layout(type(cfg), plain)))
 
 
 def to_dict(cfg: Any) -> dict[str, Any]:

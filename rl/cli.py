@@ -12,14 +12,12 @@ from tqdm import tqdm
 
 from uwdock.datasets.loaders import write_pose_track_csv
 from uwdock.dockcore import numerics
-from uwdock.dockcore.cli import domain_type, field_type, run_group
+from uwdock.dockcore.cli import ParsedType, PresetType, domain_type, field_type, run_group
 from uwdock.dockcore.config import (
     config_data,
     from_dict,
-    lift_moved_keys,
     load_config,
     merge,
-    replace,
     to_dict,
 )
 from uwdock.dockcore.domains import Count, Interval, Seed
@@ -47,18 +45,17 @@ from uwdock.rl.evaluate.episode_video import EpisodeVideoConfig, mark_killed, re
 from uwdock.rl.evaluate.report import evaluate_to_folder
 from uwdock.rl.evaluate.trajectories import record_pid_trajectories
 from uwdock.rl.policy.baselines import PIDController
-from uwdock.rl.policy.env_settings import command_env, policy_training_env
+from uwdock.rl.policy.env_settings import EnvFlags, command_env, policy_training_env
 from uwdock.rl.policy.export import export_onnx
 from uwdock.rl.policy.policy_convert import convert_policy
-from uwdock.rl.policy.policy_io import policy_env_settings
 from uwdock.rl.train.recipe import recipe_names, run_recipe
 from uwdock.rl.train.sweep import SweepConfig, parse_grid, run_sweep
 from uwdock.rl.train.training import BatchWorkerCount, TrainConfig, run_config
 from uwdock.rl.train.training import train as run
 from uwdock.rl.train.vec_envs import EnvsPerWorker
-from uwdock.sim.navigation import NAV_PRESETS
-from uwdock.sim.usbl import USBL_PRESETS
-from uwdock.sim.water import resolve_water, water_choice
+from uwdock.sim.navigation import NAV_PRESETS, NavConfig
+from uwdock.sim.usbl import USBL_PRESETS, UsblConfig
+from uwdock.sim.water import Water
 from uwdock.sim.world_config import WorldConfig
 
 #: The config whose fields the options override (imported when an option is first used).
@@ -76,10 +73,17 @@ _EPISODE_OLD = ("provenance.json", "config.toml")
 #: training env sets: the camera in the loop, both success rates on the same episodes.
 _EVAL_DEFAULTS = {"terminate_on": "strict", "obs_source": "camera"}
 OBS_CHOICES = click.Choice(list(get_args(ObsSourceName)))
+#: ``--usbl NAME``: the preset as a config object (``EnvConfig.usbl``).
+USBL_TYPE = PresetType(USBL_PRESETS, lambda name: UsblConfig(preset=name))
+#: ``--nav NAME``: the preset as a config object (``EnvConfig.nav``).
+NAV_TYPE = PresetType(NAV_PRESETS, lambda name: NavConfig(preset=name))
+#: ``--water SPEC``: a :class:`Water` (a water file read and checked as the line is parsed).
+WATER_TYPE = ParsedType("water", Water.named)
 #: ``--water``: the water of the camera sources (``EnvConfig.world.water_preset``).
 WATER_OPTION = click.option(
     "--water",
     "water",
+    type=WATER_TYPE,
     help="Water of the downward camera (obs camera / error-model): a preset or a water file "
     "(.toml, `sim fit-water`) [the config's, clear_tank].",
 )
@@ -87,7 +91,7 @@ WATER_OPTION = click.option(
 USBL_OPTION = click.option(
     "--usbl",
     "usbl",
-    type=click.Choice(list(USBL_PRESETS)),
+    type=USBL_TYPE,
     help="Acoustic (USBL) positioning model, a preset of uwdock.sim.usbl; fields of the "
     "--config's [usbl] table still override it [ideal].",
 )
@@ -96,7 +100,7 @@ USBL_OPTION = click.option(
 NAV_OPTION = click.option(
     "--nav",
     "nav",
-    type=click.Choice(list(NAV_PRESETS)),
+    type=NAV_TYPE,
     help="The vehicle's navigation, a preset of uwdock.sim.navigation ('ideal': its true pose; "
     "'mems-ahrs-dvl': dead reckoning that drifts); fields of the --config's [env.nav] table "
     "still override it [ideal].",
@@ -249,27 +253,21 @@ def train(
                    backend=backend, ray_address=ray_address)  # fmt: skip
         click.echo(f"policy: {out_dir}")
         return
-    env_over = {
-        "obs_source": obs,
-        "error_model_path": str(error_model) if error_model else None,
-        "usbl": {"preset": usbl} if usbl else None,
-        "nav": {"preset": nav} if nav else None,
-        "world": {"water_preset": water_choice(water)} if water else None,
-    }
+    flags = EnvFlags(obs_source=obs, error_model_path=error_model, usbl=usbl, nav=nav,
+                     water=water)  # fmt: skip
     overrides = {
         "algo": algo,
         "total_steps": steps,
         "n_envs": envs,
         "simulator": simulator,
         "seed": seed,
-        "env": {k: v for k, v in env_over.items() if v is not None},
+        "env": flags.layer(),
     }
     if allow_config_change and not resume:
         raise DockError("--allow-config-change goes with --resume")
     if resume:
         base = to_dict(run_config(out_dir))
-        extra = config_data(config_path, section="train") if config_path else {}
-        extra = lift_moved_keys(TrainConfig, extra)  # a file of the old flat [env] layout
+        extra = config_data(config_path, section="train", cls=TrainConfig) if config_path else {}
         overrides = {k: v for k, v in overrides.items() if v is not None and v != {}}
         cfg = from_dict(TrainConfig, merge(merge(base, extra), overrides))
     else:
@@ -389,26 +387,28 @@ def sweep(
 @click.option(
     "--usbl",
     "usbl",
-    type=click.Choice(list(USBL_PRESETS)),
+    type=USBL_TYPE,
     help="Acoustic (USBL) positioning model, a preset of uwdock.sim.usbl [the policy's "
     "training preset; ideal without one].",
 )
 @click.option(
     "--nav",
     "nav",
-    type=click.Choice(list(NAV_PRESETS)),
+    type=NAV_TYPE,
     help="The vehicle's navigation, a preset of uwdock.sim.navigation [the policy's training "
     "preset; ideal without one].",
 )
 @click.option(
     "--water",
     "water",
+    type=WATER_TYPE,
     help="Water of the downward camera: a preset or a water file (.toml, `sim fit-water`) "
     "[the policy's training water; clear_tank without one].",
 )
 @click.option(
+    "--camera-width-px",
     "--width",
-    "width_px",
+    "camera_width_px",
     type=field_type(_WORLD, "camera_width_px"),
     help="Downward camera render width (px) [the policy's training width; "
     f"{WorldConfig.camera_width_px} without one].",
@@ -446,7 +446,7 @@ def eval_cmd(
     usbl,
     nav,
     water,
-    width_px,
+    camera_width_px,
     env_from,
     config_path,
     seed,
@@ -466,24 +466,17 @@ def eval_cmd(
     the flags; one line names the settings used and where each came from.
     """
     supervise(clean_after_kill(out_dir))  # an env rendering in this process stops in time too
-    flags = {
-        "obs_source": obs,
-        "error_model_path": str(error_model) if error_model else None,
-        "terminate_on": terminate_on,
-        "usbl": {"preset": usbl} if usbl else None,
-        "nav": {"preset": nav} if nav else None,
-        "world": {
-            k: v
-            for k, v in {
-                "water_preset": water_choice(water) if water else None,
-                "camera_width_px": width_px,
-            }.items()
-            if v is not None
-        },
-    }
+    flags = EnvFlags(
+        obs_source=obs,
+        error_model_path=error_model,
+        terminate_on=terminate_on,
+        usbl=usbl,
+        nav=nav,
+        water=water,
+        camera_width_px=camera_width_px,
+    )
     resolved = command_env(str(policy), env_from, config_path, flags, _EVAL_DEFAULTS)
-    # the policy's observation layout and action scaling come from its own run config
-    env_cfg = replace(resolved.cfg, **policy_env_settings(str(policy)))
+    env_cfg = resolved.cfg
     click.echo(resolved.line("rl eval"))
     try:
         vids = tuple(int(v, 10) for v in videos.split(",") if v.strip())
@@ -597,6 +590,7 @@ def _fmt_rho(rho: list[float]) -> str:
 @seed_option(domain_type(Seed), "Env reset seed.", default=0, show_default=True)
 @click.option(
     "--water",
+    type=WATER_TYPE,
     help="Water of the downward view: a preset, a water file (.toml, `sim fit-water`) or 'none' "
     "[the --config's, else the --env-from policy's training water, else coastal].",
 )
@@ -607,8 +601,9 @@ def _fmt_rho(rho: list[float]) -> str:
     f"else {_EPISODE_DEFAULTS['episode_s']:g}].",
 )
 @click.option(
+    "--camera-width-px",
     "--width",
-    "width_px",
+    "camera_width_px",
     type=field_type(_WORLD, "camera_width_px"),
     help="Downward camera render width (px) [default: the --config's world.camera_width_px, "
     f"else the --env-from policy's, else the env's, {WorldConfig.camera_width_px}].",
@@ -625,7 +620,8 @@ def _fmt_rho(rho: list[float]) -> str:
 @config_option("TOML overriding rl.env.config.EnvConfig (obs_source defaults to 'proxy').")
 @quiet_option("No progress bar; print only the video path.")
 def episode(
-    out_dir, controller, seed, water, seconds, width_px, env_from, outside_width_px, config_path,
+    out_dir, controller, seed, water, seconds, camera_width_px, env_from, outside_width_px,
+    config_path,
     quiet,
 ) -> None:  # fmt: skip
     """Run the scripted PID controller in the docking env and write a side-by-side MP4 of the
@@ -638,14 +634,14 @@ def episode(
     # the first frame's shaders compile for seconds inside SAPIEN, deaf to signals: run in a
     # child this process can stop in time, and mark the folder as the child would
     supervise(functools.partial(mark_killed, out_dir, outputs=("episode.mp4", *_EPISODE_OLD)))
-    film_water = water_choice(water, allow_random=False) if water else None
-    world = {"camera_width_px": width_px} if width_px is not None else {}
-    if film_water not in (None, "none"):
-        world["water_preset"] = film_water
-    flags = {"episode_s": seconds, "world": world}
+    flags = EnvFlags(
+        episode_s=seconds,
+        camera_width_px=camera_width_px,
+        water=water if water is not None and water.config is not None else None,
+    )  # "none" films without water and leaves the env's (a world always has one)
     resolved = command_env("pid", env_from, config_path, flags, _EPISODE_DEFAULTS)
     env_cfg = resolved.cfg  # a flag, else the file's value, else the policy's, else our default
-    water_name = film_water or env_cfg.world.water_preset
+    film = water if water is not None else env_cfg.world.water
     outside_height_px = max(16, round(outside_width_px * 3 / 4))
     video_cfg = from_dict(
         EpisodeVideoConfig,
@@ -668,8 +664,8 @@ def episode(
                     policy,
                     out,
                     seed=seed,
-                    water=resolve_water(water_name),
-                    water_name=water_name,
+                    water=film.config,
+                    water_name=film.spec,
                     cfg=video_cfg,
                     on_step=lambda _k: bar.update(1),
                     # an interrupt writes it as {"complete": false, "interrupted": ...}
@@ -719,8 +715,8 @@ def trajectories(out_dir, episodes, seed, obs, error_model, config_path, quiet) 
     poses whose camera then falls outside the tank are left out (a gap in the steps).
     """
     em = str(error_model) if error_model else None
-    given = config_data(config_path, section="env") if config_path is not None else {}
-    base = merge({"terminate_on": "strict"}, lift_moved_keys(EnvConfig, given))
+    given = config_data(config_path, section="env", cls=EnvConfig) if config_path else {}
+    base = merge({"terminate_on": "strict"}, given)
     env_cfg = from_dict(
         EnvConfig,
         merge(base, {k: v for k, v in {"obs_source": obs, "error_model_path": em}.items() if v}),

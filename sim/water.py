@@ -71,6 +71,7 @@ __all__ = [
     "PRESETS",
     "PRESET_ORDER",
     "WATER_FILE_NOTES",
+    "Water",
     "WaterConfig",
     "WaterRandomisation",
     "apply_water",
@@ -289,6 +290,31 @@ def water_spec_error(spec: str, allow_random: bool = False, allow_none: bool = T
     if spec in known:
         return None
     return f"unknown {str(spec)[:100]!r} (known: {', '.join(known)} or a water file, *.toml)"
+
+
+@dataclasses.dataclass(frozen=True)
+class Water:
+    """A water as a command or a config names it, read once: ``spec`` (a preset of
+    :data:`PRESETS`, a water file ``*.toml`` or "none") and the :class:`WaterConfig` it names
+    (None for "none"). Commands turn their ``--water`` argument into one at their edge
+    (:meth:`named`); a config keeps the spec (``WorldConfig.water_preset``) and gives the
+    object (``WorldConfig.water``)."""
+
+    spec: str
+    config: WaterConfig | None
+
+    @classmethod
+    def named(cls, spec: str, allow_none: bool = True) -> Water:
+        """The water ``spec`` names (a water file is read and validated here).
+
+        Raises:
+            DockError: one line, what is wrong (an unknown name, a file that is missing or
+                holds no valid water).
+        """
+        why = water_spec_error(spec, allow_none=allow_none)
+        if why is not None:
+            raise DockError(f"water: {why}")
+        return cls(spec, resolve_water(spec))
 
 
 def water_choice(name: str | None, allow_random: bool = False) -> str:

@@ -26,7 +26,6 @@ from uwdock.sim.physics import VehicleBody, make_physics_scene, tank_planes
 from uwdock.sim.render import make_render_scene
 from uwdock.sim.scene import new_scene
 from uwdock.sim.vehicle import Current
-from uwdock.sim.water import resolve_water
 from uwdock.sim.world_config import WorldConfig
 
 __all__ = ["DockingWorld", "WorldConfig"]
@@ -63,9 +62,7 @@ class DockingWorld:
                 scene=scene,
                 tank_collision=False,  # the vehicle's own plane contact (below)
             )
-            self.camera = SimCamera(
-                self.render_scene.rig, resolve_water(cfg.water_preset), cfg.water_device
-            )
+            self.camera = SimCamera(self.render_scene.rig, cfg.water.config, cfg.water_device)
             self.scene = scene
             self.ds = self.render_scene.ds
         else:

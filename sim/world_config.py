@@ -15,7 +15,7 @@ from typing import Annotated, Literal
 from uwdock.dockcore.domains import Interval
 from uwdock.sim.domains import TANK_SIZE_M, TankSide_m
 from uwdock.sim.vehicle import CurrentConfig, Hydrodynamics, VehicleConfig, VehicleRandomisation
-from uwdock.sim.water import water_spec_error
+from uwdock.sim.water import Water, water_spec_error
 
 __all__ = ["MIN_CAMERA_WIDTH_PX", "WorldConfig", "camera_width_error"]
 
@@ -86,6 +86,11 @@ class WorldConfig:
     vehicle: VehicleConfig = field(default_factory=VehicleConfig)
     vehicle_randomisation: VehicleRandomisation = field(default_factory=VehicleRandomisation)
     batch_contact: Literal["shared", "own", "kernel"] = "shared"
+
+    @property
+    def water(self) -> Water:
+        """The water :attr:`water_preset` names, as an object (a water file read)."""
+        return Water.named(self.water_preset, allow_none=False)
 
     def validate(self) -> None:
         """Raise ValueError naming the first field that breaks a rule across fields or a name

@@ -13,7 +13,6 @@ from uwdock.dockcore.config import replace
 from uwdock.rl.env.batch_env import BatchDockingEnv
 from uwdock.rl.env.config import EnvConfig
 from uwdock.rl.env.docking_env import DockingEnv
-from uwdock.rl.env.estimator import EstimatorConfig
 from uwdock.rl.env.task import (
     DockingTaskConfig,
 )
@@ -36,8 +35,8 @@ def _quiet_cfg(**kw) -> EnvConfig:
     contact = kw.pop("batch_contact", "own")
     vehicle = replace(VehicleConfig(), imu=ImuConfig(0.0, 0.02, 0.0, 0.001, 0.0, 0.0))
     world = replace(WorldConfig(), vehicle=vehicle, randomise_vehicle=True, batch_contact=contact)
-    est = EstimatorConfig(usbl_sigma_floor_m=0.0, usbl_sigma_per_m=0.0)
-    base = {"obs_source": "acoustic", "world": world, "estimator": est, "usbl": UsblConfig()}
+    usbl = UsblConfig(sigma_floor_m=0.0, sigma_per_m=0.0)
+    base = {"obs_source": "acoustic", "world": world, "usbl": usbl}
     return EnvConfig(**(base | kw))
 
 

@@ -249,7 +249,7 @@ def test_the_env_line_names_the_base_a_value_came_from(tmp_path, monkeypatch):
     mine = _write(
         tmp_path / "mine.toml", 'extends = "bases/water.toml"\n[env.usbl]\npreset = "ideal"\n'
     )
-    resolved = command_env("pid", None, mine, {}, {"terminate_on": "strict"})
+    resolved = command_env("pid", config_path=mine, defaults={"terminate_on": "strict"})
     settings = resolved.settings()
     base = "--config base bases/water.toml"
     assert settings["water"] == {"value": "turbid", "from": base}

@@ -16,7 +16,7 @@ from uwdock.rl.deploy.wire import Dispatcher
 from uwdock.rl.env.docking_env import DockingEnv
 from uwdock.rl.evaluate.episodes import run_episodes
 from uwdock.rl.policy.env_settings import command_env
-from uwdock.rl.policy.policy_io import OnnxPolicy, policy_env_settings
+from uwdock.rl.policy.policy_io import OnnxPolicy
 from uwdock.ros import messages as rm
 
 pytestmark = pytest.mark.render
@@ -30,8 +30,8 @@ def _wire(msg, typename):
 
 
 def test_node_observation_equals_the_envs_at_every_step():
-    resolved = command_env(str(SHIPPED_POLICY), None, None, {}, {"terminate_on": "strict"})
-    cfg = replace(resolved.cfg, obs_source="camera", **policy_env_settings(str(SHIPPED_POLICY)))
+    resolved = command_env(str(SHIPPED_POLICY), defaults={"terminate_on": "strict"})
+    cfg = replace(resolved.cfg, obs_source="camera")
     env = DockingEnv(cfg)
     ncfg = load_node_config(str(PROFILE))
     chain = build_chain(None, None, None, ncfg, armed=True)

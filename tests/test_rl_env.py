@@ -528,8 +528,8 @@ def test_env_reads_what_a_source_needs_not_its_name(monkeypatch):
     assert CameraSource.needs == SourceNeeds(
         camera=True, fusion=True, acoustic_fixes=True, nav_frame=True
     )
-    est = replace(EnvConfig().estimator, fuse=True, usbl_period_s=1.0)
-    cfg = replace(SHORT, obs_source="proxy", estimator=est)
+    est = replace(EnvConfig().estimator, fuse=True)
+    cfg = replace(SHORT, obs_source="proxy", estimator=est, usbl={"period_s": 1.0})
 
     def run(env: DockingEnv) -> list[float]:
         sigmas: list[float] = []

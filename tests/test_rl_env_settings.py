@@ -71,7 +71,7 @@ def test_eval_runs_the_policys_training_env_unless_a_flag_overrides_it(
         "usbl cerulean-rovl (policy config)",
         "nav mems-ahrs-dvl (policy config)",
         "water coastal (policy config)",
-        "width_px 320 (policy config)",
+        "camera_width_px 320 (policy config)",
         "terminate_on paper (policy config)",
         "obs acoustic (flag)",
         "episode_s 2 (--config)",
@@ -91,7 +91,7 @@ def test_eval_runs_the_policys_training_env_unless_a_flag_overrides_it(
     )  # fmt: skip
     assert "usbl ideal (flag)" in line2 and "terminate_on strict (flag)" in line2
     assert "nav ideal (flag)" in line2 and summary2["nav_preset"] == "ideal"
-    assert "width_px 480 (flag)" in line2 and "water coastal (policy config)" in line2
+    assert "camera_width_px 480 (flag)" in line2 and "water coastal (policy config)" in line2
     assert summary2["usbl_preset"] == "ideal" and summary2["config"]["terminate_on"] == "strict"
     assert summary2["env_settings"]["usbl"]["from"] == "flag"
     assert row["seed"] == row2["seed"]
@@ -105,7 +105,7 @@ def test_pid_runs_under_a_policys_settings_with_env_from(run_cli, tmp_path, poli
     line, summary, _ = _eval(
         run_cli, tmp_path / "from", short, "--policy", "pid", "--env-from", policy_dir
     )
-    assert "usbl cerulean-rovl (policy config)" in line and "width_px 320 (policy config)" in line
+    assert "usbl cerulean-rovl (policy config)" in line and "camera_width_px 320 (policy config)" in line
     assert summary["policy"] == "pid" and summary["usbl_preset"] == "cerulean-rovl"
     assert summary["config"]["world"]["water_preset"] == "coastal"
     # the film of a PID episode takes the same settings
@@ -115,7 +115,7 @@ def test_pid_runs_under_a_policys_settings_with_env_from(run_cli, tmp_path, poli
         "--outside-width", "96", "--env-from", policy_dir, "--quiet",
     )  # fmt: skip
     assert res.code == 0, res.err
-    assert "usbl cerulean-rovl (policy config)" in res.err and "width_px 96 (flag)" in res.err
+    assert "usbl cerulean-rovl (policy config)" in res.err and "camera_width_px 96 (flag)" in res.err
     film = json.loads((out / "summary.json").read_text())
     assert film["water"] == "coastal"
 

@@ -105,13 +105,12 @@ def test_fit_error_model_from_rendered_frames(tmp_path):
 def camera_env():
     from uwdock.rl.env.docking_env import DockingEnv
 
-    est = replace(EnvConfig().estimator, usbl_period_s=0.0)
     cfg = replace(
         EnvConfig(),
+        usbl={"period_s": 0.0},
         obs_source="camera",
         camera_width_px=640,
         episode_s=4.0,
-        estimator=est,
         randomise_vehicle=False,
     )
     env = DockingEnv(cfg)

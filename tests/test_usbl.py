@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from uwdock.calibration.frames import R_from_rpy, make_T
-from uwdock.dockcore.config import dumps_toml, from_dict, load_config, replace
+from uwdock.dockcore.config import dumps_toml, from_dict, load_config, replace, to_dict
 from uwdock.dockcore.errors import ConfigError
 from uwdock.rl.env.config import EnvConfig
 from uwdock.sim.usbl import MODEL_FIELDS, USBL_PRESETS, UsblConfig, UsblSensor
@@ -61,10 +61,20 @@ def test_old_run_configs_load_and_keep_the_ideal_model():
     cfg = load_config(TrainConfig, "rl/policies/error_model_ppo/config.toml", section="train")
     assert cfg.env.usbl == UsblConfig()
     assert cfg.env.usbl_model == USBL_PRESETS["ideal"]
-    # the ideal model keeps reading the estimator's fields of those files
-    est = replace(cfg.env.estimator, usbl_period_s=0.0, usbl_sigma_floor_m=0.3)
-    model = replace(cfg.env, estimator=est).usbl_model
+    # the ideal model's numbers those files held in [estimator] become [usbl] fields
+    data = to_dict(cfg.env)
+    assert "usbl_period_s" not in data["estimator"]
+    data["estimator"] |= {"usbl_period_s": 0.0, "usbl_sigma_floor_m": 0.3, "usbl_sigma_per_m": 0.03}
+    old = from_dict(EnvConfig, data)
+    assert old.usbl == UsblConfig(period_s=0.0, sigma_floor_m=0.3)  # 0.03 is the preset's
+    model = old.usbl_model
     assert (model.period_s, model.sigma_floor_m, model.sigma_per_m) == (0.0, 0.3, 0.03)
+    # under another preset they described nothing the env simulated: dropped
+    data["usbl"] = {"preset": "evologics-s2cr"}
+    assert from_dict(EnvConfig, data).usbl == UsblConfig(preset="evologics-s2cr")
+    # a field the [usbl] table sets itself wins, as it did over the estimator's
+    data["usbl"] = {"period_s": 2.0}
+    assert from_dict(EnvConfig, data).usbl_model.period_s == 2.0
 
 
 def test_a_preset_plus_overrides_round_trips_through_toml(tmp_path):

@@ -113,10 +113,10 @@ def test_lockstep_episode_equals_in_process_eval(lockstep):
     from uwdock.dockcore.config import replace
     from uwdock.rl.evaluate.episodes import run_episodes
     from uwdock.rl.policy.env_settings import command_env
-    from uwdock.rl.policy.policy_io import OnnxPolicy, policy_env_settings
+    from uwdock.rl.policy.policy_io import OnnxPolicy
 
-    resolved = command_env(str(POLICY), None, None, {}, {"terminate_on": "strict"})
-    cfg = replace(resolved.cfg, obs_source="camera", **policy_env_settings(str(POLICY)))
+    resolved = command_env(str(POLICY), defaults={"terminate_on": "strict"})
+    cfg = replace(resolved.cfg, obs_source="camera")
     in_process = run_episodes(OnnxPolicy(POLICY), cfg, 1, seed=SEED, record=False).episodes[0]
     with open(tmp / "vehicle" / "episodes.csv") as fh:
         wire = next(csv.DictReader(fh))

@@ -16,7 +16,7 @@ from typing import Annotated
 import click
 
 from uwdock.dockcore.cli import domain_type
-from uwdock.dockcore.config import replace, to_dict
+from uwdock.dockcore.config import to_dict
 from uwdock.dockcore.domains import Count, Interval, Seed
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_write_json, atomic_write_text, check_regular_file
@@ -36,7 +36,6 @@ from uwdock.rl.deploy.node import VehicleNode
 from uwdock.rl.deploy.replay import replay_bag
 from uwdock.rl.deploy.runner import DockingRunner
 from uwdock.rl.policy.env_settings import command_env
-from uwdock.rl.policy.policy_io import policy_env_settings
 from uwdock.ros.mcap import McapRecorder
 
 #: The shipped policy, exported (``rl export``): what ``rl node`` and ``rl replay`` run unless
@@ -321,10 +320,8 @@ def vehicle_cmd(
     if not Path(source).exists():
         raise DockError(f"--policy {source}: not found")
     cfg = load_node_config(str(config_path) if config_path else None)
-    resolved = command_env(
-        source, None, None, {}, {"terminate_on": "strict", "obs_source": "camera"}
-    )
-    env_cfg = replace(resolved.cfg, **policy_env_settings(source))
+    resolved = command_env(source, defaults={"terminate_on": "strict", "obs_source": "camera"})
+    env_cfg = resolved.cfg
     click.echo(resolved.line("sim vehicle"), err=True)
 
     def run(out: Path | None) -> dict:

@@ -8,7 +8,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
-from typing import Annotated, ClassVar, Literal
+from typing import Annotated, Any, ClassVar, Literal
 
 import numpy as np
 
@@ -20,7 +20,7 @@ from uwdock.rl.env.estimator import EstimatorConfig
 from uwdock.rl.env.rewards import RewardConfig
 from uwdock.rl.env.task import DockingTaskConfig
 from uwdock.sim.navigation import NavConfig
-from uwdock.sim.usbl import UsblConfig
+from uwdock.sim.usbl import USBL_PRESETS, UsblConfig
 from uwdock.sim.water import is_water_file
 from uwdock.sim.world_config import WorldConfig
 
@@ -47,6 +47,16 @@ LEGACY_WORLD_KEYS = (
     "current",
     "vehicle",
     "vehicle_randomisation",
+)
+
+#: ``[estimator]`` keys of configs written before ``[usbl]`` existed, where they held the "ideal"
+#: acoustic model's numbers, and the :class:`UsblConfig` field each one is.
+LEGACY_IDEAL_USBL_KEYS: Mapping[str, str] = MappingProxyType(
+    {
+        "usbl_period_s": "period_s",
+        "usbl_sigma_floor_m": "sigma_floor_m",
+        "usbl_sigma_per_m": "sigma_per_m",
+    }
 )
 
 
@@ -110,12 +120,14 @@ class EnvConfig:
             drawn independently. Models without memory (version 1) are memoryless either way.
         task: success criteria and docking geometry.
         reward: reward constants.
-        estimator: DS pose filter. Its ``usbl_*`` fields are the period and noise of the
-            "ideal" acoustic model (kept there so run folders written before :attr:`usbl`
-            existed load and run unchanged); other presets carry their own.
+        estimator: DS pose filter.
         usbl: the acoustic (USBL) positioning of the DS that sources with
-            ``needs.acoustic_fixes`` receive (:mod:`uwdock.sim.usbl`): a preset name plus any
-            field overriding it; :attr:`usbl_model` is the model the env simulates.
+            ``needs.acoustic_fixes`` receive (:mod:`uwdock.sim.usbl`; the approach is
+            acoustic, the final servoing visual; the paper's proxy takes none): a preset name
+            plus any field overriding it; :attr:`usbl_model` is the model the env simulates.
+            Configs written before this table held the "ideal" model's numbers in
+            ``[estimator]`` (:data:`LEGACY_IDEAL_USBL_KEYS`); the loader moves them here
+            (:meth:`upgrade_layout`).
         nav: the vehicle's navigation (:mod:`uwdock.sim.navigation`): a preset name ("ideal":
             the vehicle knows its true pose; "mems-ahrs-dvl": dead reckoning over a DVL, an AHRS
             and a depth sensor that drifts) plus any field overriding it. Measurements of the
@@ -126,7 +138,7 @@ class EnvConfig:
     """
 
     #: Keys of :attr:`world` that an ``[env]`` table written before it existed holds flat; the
-    #: loader lifts them into ``world`` (:func:`uwdock.dockcore.config.lift_moved_keys`).
+    #: loader lifts them into ``world`` (:func:`uwdock.dockcore.config.current_layout`).
     MOVED_KEYS: ClassVar[Mapping[str, str]] = MappingProxyType(
         dict.fromkeys(LEGACY_WORLD_KEYS, "world")
     )
@@ -165,20 +177,33 @@ class EnvConfig:
     nav: NavConfig = field(default_factory=NavConfig)
     world: WorldConfig = field(default_factory=WorldConfig)
 
+    @classmethod
+    def upgrade_layout(cls, data: Mapping[str, Any]) -> Mapping[str, Any]:
+        """Plain ``[env]`` data with the "ideal" USBL numbers of an older ``[estimator]``
+        (:data:`LEGACY_IDEAL_USBL_KEYS`) moved into ``[usbl]``: where its ``[usbl]`` names no
+        other preset, each one that differs from the ideal preset's and that ``[usbl]`` does
+        not set itself becomes that ``[usbl]`` field (the model such a file ran); the others
+        described nothing the env simulated and are dropped."""
+        est = data.get("estimator")
+        if not isinstance(est, Mapping) or not any(k in est for k in LEGACY_IDEAL_USBL_KEYS):
+            return data
+        out = dict(data)
+        est = dict(est)
+        moved = {new: est.pop(old) for old, new in LEGACY_IDEAL_USBL_KEYS.items() if old in est}
+        out["estimator"] = est
+        usbl = out.get("usbl", {})
+        if isinstance(usbl, Mapping) and usbl.get("preset", "ideal") == "ideal":
+            ideal = USBL_PRESETS["ideal"]
+            own = {k: v for k, v in moved.items() if usbl.get(k) is None and v != getattr(ideal, k)}
+            if own:
+                out["usbl"] = {**usbl, **own}
+        return out
+
     @property
     def usbl_model(self) -> UsblConfig:
-        """The acoustic model the env simulates, every field set: :attr:`usbl`'s preset, for
-        "ideal" with the period and noise of ``estimator.usbl_*``, then :attr:`usbl`'s own
-        fields."""
-        base: dict[str, float] = {}
-        if self.usbl.preset == "ideal":
-            e = self.estimator
-            base = {
-                "period_s": e.usbl_period_s,
-                "sigma_floor_m": e.usbl_sigma_floor_m,
-                "sigma_per_m": e.usbl_sigma_per_m,
-            }
-        return self.usbl.resolved(**base)
+        """The acoustic model the env simulates, every field set: :attr:`usbl`'s preset, then
+        its own fields."""
+        return self.usbl.resolved()
 
     @property
     def action_limits(self) -> np.ndarray:

@@ -20,11 +20,8 @@ import numpy as np
 
 from uwdock.calibration.frames import R_from_rpy, make_T, rpy_from_R, wrap_angle_rad
 from uwdock.dockcore.domains import Interval
-from uwdock.sim.usbl import USBL_PRESETS
 
 _Sigma = Annotated[float, Interval(ge=0, le=100)]  # m
-#: the "ideal" acoustic model, whose numbers the ``usbl_*`` fields default to
-_IDEAL = USBL_PRESETS["ideal"]
 
 
 @dataclass(frozen=True)
@@ -42,13 +39,11 @@ class EstimatorConfig:
             proxy observation, which is memoryless).
         gate_sigma: measurements further than this many standard deviations (Mahalanobis) from
             the estimate are rejected as outliers (0 disables gating).
-        usbl_period_s: the "ideal" acoustic model (``EnvConfig.usbl.preset = "ideal"``, the
-            default; :mod:`uwdock.sim.usbl`): a fix of the DS position arrives this often (s);
-            0 disables it. Sources that declare ``needs.acoustic_fixes`` receive them (the
-            approach is acoustic, the final servoing visual), the paper's proxy does not.
-            Other presets carry their own period and noise in ``EnvConfig.usbl``.
-        usbl_sigma_floor_m: "ideal" model: standard deviation on each axis at short range (m).
-        usbl_sigma_per_m: "ideal" model: its growth with slant range (m per m).
+
+    The acoustic fixes the filter fuses are ``EnvConfig.usbl``'s (:mod:`uwdock.sim.usbl`);
+    configs written before that table existed held the "ideal" model's period and noise here
+    (``usbl_period_s``, ``usbl_sigma_floor_m``, ``usbl_sigma_per_m``): the loader moves them
+    into ``[usbl]`` (``EnvConfig.upgrade_layout``).
     """
 
     prior_sigma_xy_m: _Sigma = 1.0
@@ -58,9 +53,6 @@ class EstimatorConfig:
     drift_yaw_deg_per_sqrt_s: Annotated[float, Interval(ge=0, le=180)] = 0.2
     fuse: bool = True
     gate_sigma: Annotated[float, Interval(ge=0, le=1000)] = 0.0
-    usbl_period_s: Annotated[float, Interval(ge=0, le=3600)] = _IDEAL.period_s
-    usbl_sigma_floor_m: _Sigma = _IDEAL.sigma_floor_m
-    usbl_sigma_per_m: Annotated[float, Interval(ge=0, le=1)] = _IDEAL.sigma_per_m
 
 
 class DSPoseFilter:

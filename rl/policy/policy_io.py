@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from uwdock.dockcore.config import read_toml
+from uwdock.dockcore.config import current_layout, read_toml
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import check_regular_file
 from uwdock.rl.env.config import EnvConfig
@@ -77,26 +77,40 @@ def _files_beside(env: dict[str, Any], folder: Path) -> dict[str, Any]:
 
 
 def policy_train_env(policy: str) -> dict[str, Any]:
-    """The ``[train.env]`` table of the run a policy comes from: the ``config.toml`` of its run
+    """The ``[train.env]`` table of the run a policy comes from (:func:`policy_train_source`)."""
+    return policy_train_source(policy)[0]
+
+
+def policy_train_source(policy: str) -> tuple[dict[str, Any], Path | None]:
+    """The ``[train.env]`` table of the run a policy comes from, in the current layout
+    (:func:`uwdock.dockcore.config.current_layout`: a run folder written before a key moved
+    reads as if written today), and the file it was read from: the ``config.toml`` of its run
     folder (the policy folder or one level up, as for ``best/``) or, for an exported ``.onnx``,
-    the ``.json`` written beside it; {} if none. The files it names are resolved where the
-    policy is (:func:`_beside`), so a policy folder works from any current folder."""
+    the ``.json`` written beside it; ``({}, None)`` if none (or "pid"). The files it names are
+    resolved where the policy is (:func:`_beside`), so a policy folder works from any current
+    folder."""
     if policy == "pid":
-        return {}
+        return {}, None
     p = Path(policy)
     if p.suffix == ".onnx":
         meta = p.with_suffix(".json")
+        if not meta.is_file():
+            return {}, None
         try:
-            data = json.loads(meta.read_text(encoding="utf-8")) if meta.is_file() else {}
+            data = json.loads(meta.read_text(encoding="utf-8"))
         except (OSError, ValueError) as exc:
             raise DockError(f"cannot read {meta}: {exc}") from None
         env = data.get("env", {}) if isinstance(data, dict) else {}
-        return _files_beside(env, p.parent) if isinstance(env, dict) else {}
+        if not isinstance(env, dict):
+            return {}, meta
+        return _files_beside(current_layout(EnvConfig, env), p.parent), meta
     train, cand = policy_train_settings(p)
+    if cand is None:
+        return {}, None
     env = train.get("env", {})
     if not isinstance(env, dict):
         raise DockError(f"{cand}: [train.env] is not a table")
-    return _files_beside(env, cand.parent) if cand is not None else env
+    return _files_beside(current_layout(EnvConfig, env), cand.parent), cand
 
 
 def policy_train_settings(policy: str | os.PathLike[str]) -> tuple[dict[str, Any], Path | None]:

@@ -36,7 +36,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any
 
-from uwdock.dockcore.config import from_dict, lift_moved_keys, merge, to_dict
+from uwdock.dockcore.config import from_dict, merge, replace, to_dict
 from uwdock.dockcore.domains import Interval
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_write_json, atomic_write_text
@@ -248,14 +248,13 @@ def plan_trials(
     for values in itertools.product(*(grid[k] for k in keys)):
         changes = dict(zip(keys, values, strict=True))
         point = "".join(f"_{k.split('.')[-1]}={_slug(v)}" for k, v in changes.items())
+        given: dict[str, Any] = {}
+        for k, v in changes.items():
+            given = merge(given, _nested(k, v))
         for seed in cfg.seeds:
-            data = to_dict(base)
-            for k, v in changes.items():  # a key that moved (env.water_preset): to its table
-                data = merge(data, lift_moved_keys(TrainConfig, _nested(k, v)))
-            data["seed"] = int(seed)
-            trials.append(
-                Trial(f"seed{seed}{point}", int(seed), changes, from_dict(TrainConfig, data))
-            )
+            # replace() reads the keys in any layout (env.water_preset: env.world's)
+            config = replace(base, **{**given, "seed": int(seed)})
+            trials.append(Trial(f"seed{seed}{point}", int(seed), changes, config))
     names = [t.name for t in trials]
     if len(set(names)) != len(names):
         raise DockError("--set: two grid values give the same trial name; make them differ")
@@ -455,9 +454,8 @@ def _write_plan(
     old = out / "sweep.json"
     if old.is_file():
         before = json.loads(old.read_text(encoding="utf-8")).get("trials", {})
-        # a sweep.json written before [env.world]: its configs in the current layout
-        before = {k: lift_moved_keys(TrainConfig, v["config"]) for k, v in before.items()}
-        before = {k: _absolute(v) for k, v in before.items()}  # ... and relative input paths
+        # a sweep.json of an older layout or with relative input paths: read as today's
+        before = {k: _absolute(v["config"]) for k, v in before.items()}
         given = {t.name: to_dict(t.config) for t in (named or trials)}
         if before not in ({k: v["config"] for k, v in plan.items()}, given):
             raise DockError(
