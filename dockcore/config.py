@@ -232,6 +232,21 @@ def field_path(cls: type, select: typing.Callable[[Any], Any]) -> tuple[str, ...
     return path
 
 
+def value_at(cfg: Any, path: tuple[str, ...]) -> Any:
+    """The value of the field at ``path`` (:func:`field_path`) of a config dataclass."""
+    for part in path:
+        cfg = getattr(cfg, part)
+    return cfg
+
+
+def replace_at(cfg: C, path: tuple[str, ...], value: Any) -> C:
+    """``cfg`` with the field at ``path`` (:func:`field_path`) set to ``value``, the dataclasses
+    above it copied (``dataclasses.replace``: not re-validated)."""
+    head, *rest = path
+    inner = replace_at(getattr(cfg, head), tuple(rest), value) if rest else value
+    return dataclasses.replace(cfg, **{head: inner})  # type: ignore[type-var]
+
+
 def has_path(data: Mapping[str, Any], path: tuple[str, ...]) -> bool:
     """Whether plain config data sets the field at ``path`` (:func:`field_path`)."""
     obj: Any = data

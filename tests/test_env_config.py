@@ -25,8 +25,8 @@ from uwdock.dockcore.config import (
 )
 from uwdock.rl import cli
 from uwdock.rl.env.config import LEGACY_IDEAL_USBL_KEYS, LEGACY_WORLD_KEYS, EnvConfig
-from uwdock.sim.usbl import USBL_PRESETS
 from uwdock.rl.train.training import TrainConfig, run_config
+from uwdock.sim.usbl import USBL_PRESETS
 from uwdock.sim.world_config import WorldConfig
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -105,7 +105,10 @@ def test_pid_runs_under_a_policys_settings_with_env_from(run_cli, tmp_path, poli
     line, summary, _ = _eval(
         run_cli, tmp_path / "from", short, "--policy", "pid", "--env-from", policy_dir
     )
-    assert "usbl cerulean-rovl (policy config)" in line and "camera_width_px 320 (policy config)" in line
+    assert (
+        "usbl cerulean-rovl (policy config)" in line
+        and "camera_width_px 320 (policy config)" in line
+    )
     assert summary["policy"] == "pid" and summary["usbl_preset"] == "cerulean-rovl"
     assert summary["config"]["world"]["water_preset"] == "coastal"
     # the film of a PID episode takes the same settings
@@ -115,7 +118,9 @@ def test_pid_runs_under_a_policys_settings_with_env_from(run_cli, tmp_path, poli
         "--outside-width", "96", "--env-from", policy_dir, "--quiet",
     )  # fmt: skip
     assert res.code == 0, res.err
-    assert "usbl cerulean-rovl (policy config)" in res.err and "camera_width_px 96 (flag)" in res.err
+    assert (
+        "usbl cerulean-rovl (policy config)" in res.err and "camera_width_px 96 (flag)" in res.err
+    )
     film = json.loads((out / "summary.json").read_text())
     assert film["water"] == "coastal"
 

@@ -134,8 +134,8 @@ def test_relative_input_paths_become_absolute_from_the_working_directory(
     env = _cfg(n_envs=1, env={"obs_source": "error-model", "error_model_path": model,
                               "world": {"water_preset": "my_water.toml"}}).env  # fmt: skip
     got = env_input_files(with_absolute_inputs(env))
-    assert got == {"error_model_path": model,
-                   "world.water_preset": str(tmp_path.resolve() / "my_water.toml")}  # fmt: skip
+    water = str(tmp_path.resolve() / "my_water.toml")
+    assert got == {("error_model_path",): model, ("world", "water_preset"): water}
     assert with_absolute_inputs(with_absolute_inputs(env)) == with_absolute_inputs(env)
 
 

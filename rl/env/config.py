@@ -2,9 +2,8 @@
 
 from __future__ import annotations
 
-import dataclasses
 import re
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
@@ -13,6 +12,7 @@ from typing import Annotated, Any, ClassVar, Literal
 import numpy as np
 
 from uwdock.calibration.camera import load_camera
+from uwdock.dockcore.config import field_path, replace_at, value_at
 from uwdock.dockcore.domains import Interval
 from uwdock.markers.markerset import load_marker_set, marker_set_files
 from uwdock.rl.env.error_model import load_error_model
@@ -254,34 +254,44 @@ class EnvConfig:
             )
 
 
-def env_input_files(cfg: EnvConfig) -> dict[str, str]:
-    """The files an env of ``cfg`` reads, by config field (``"world.camera_file"``, ...): the
-    error model (for the error-model source), the camera, the marker set and a water file."""
-    out = {}
-    if cfg.obs_source == "error-model" and cfg.error_model_path:
-        out["error_model_path"] = cfg.error_model_path
-    for name in ("camera_file", "marker_set_path"):
-        if getattr(cfg.world, name):
-            out[f"world.{name}"] = getattr(cfg.world, name)
-    if is_water_file(cfg.world.water_preset):
-        out["world.water_preset"] = cfg.world.water_preset
+#: The fields of an env config that may name an input file, as typed selectors' paths.
+INPUT_FILE_FIELDS: tuple[tuple[str, ...], ...] = (
+    field_path(EnvConfig, lambda c: c.error_model_path),
+    field_path(EnvConfig, lambda c: c.world.camera_file),
+    field_path(EnvConfig, lambda c: c.world.marker_set_path),
+    field_path(EnvConfig, lambda c: c.world.water_preset),
+)
+
+
+def env_input_files(cfg: EnvConfig) -> dict[tuple[str, ...], str]:
+    """The files an env of ``cfg`` reads, by config field path (``("world", "camera_file")``,
+    ...; :data:`INPUT_FILE_FIELDS`): the error model (for the error-model source), the camera,
+    the marker set and a water file."""
+    out: dict[tuple[str, ...], str] = {}
+    for path in INPUT_FILE_FIELDS:
+        value = value_at(cfg, path)
+        if not value:
+            continue
+        if path == ("error_model_path",) and cfg.obs_source != "error-model":
+            continue
+        if path == ("world", "water_preset") and not is_water_file(value):
+            continue  # a preset's name
+        out[path] = value
     return out
+
+
+def with_input_files(cfg: EnvConfig, where: Callable[[str], str]) -> EnvConfig:
+    """``cfg`` with each input file (:func:`env_input_files`) replaced by ``where(file)``."""
+    for path, value in env_input_files(cfg).items():
+        cfg = replace_at(cfg, path, where(value))
+    return cfg
 
 
 def with_absolute_inputs(cfg: EnvConfig) -> EnvConfig:
     """``cfg`` with its input files (:func:`env_input_files`) as absolute paths from this
     process's working directory: what a worker elsewhere (another folder, another node that
     mounts the same storage) opens is then what this process meant."""
-    world_changes, env_changes = {}, {}
-    for key, path in env_input_files(cfg).items():
-        absolute = str(Path(path).expanduser().resolve())
-        if key.startswith("world."):
-            world_changes[key.removeprefix("world.")] = absolute
-        else:
-            env_changes[key] = absolute
-    return dataclasses.replace(
-        cfg, world=dataclasses.replace(cfg.world, **world_changes), **env_changes
-    )
+    return with_input_files(cfg, lambda p: str(Path(p).expanduser().resolve()))
 
 
 def absolute_inputs(cfg: EnvConfig) -> tuple[EnvConfig, list[str]]:

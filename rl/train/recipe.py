@@ -54,7 +54,7 @@ from uwdock.dockcore.config import from_dict, load_config, to_dict, validated
 from uwdock.dockcore.domains import Interval
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_write_files, atomic_write_json
-from uwdock.rl.env.config import env_input_files
+from uwdock.rl.env.config import env_input_files, with_input_files
 from uwdock.rl.train.training import TrainConfig, train
 
 if sys.version_info >= (3, 11):
@@ -187,18 +187,8 @@ def _content_digest(
 def _inputs_from_root(cfg: TrainConfig) -> TrainConfig:
     """``cfg`` with its env's relative input paths taken from the repository's root (where a
     recipe's configs name them from), so the recipe runs from any working directory."""
-    env = cfg.env
-    world_changes, env_changes = {}, {}
-    for key, value in env_input_files(env).items():
-        if Path(value).is_absolute():
-            continue
-        absolute = str(ROOT / value)
-        if key.startswith("world."):
-            world_changes[key.removeprefix("world.")] = absolute
-        else:
-            env_changes[key] = absolute
-    env = dataclasses.replace(env, world=dataclasses.replace(env.world, **world_changes))
-    return validated(dataclasses.replace(cfg, env=dataclasses.replace(env, **env_changes)))
+    env = with_input_files(cfg.env, lambda p: p if Path(p).is_absolute() else str(ROOT / p))
+    return validated(dataclasses.replace(cfg, env=env))
 
 
 def _state(name: str, seed: int, digest: str, recipe: Recipe) -> dict[str, Any]:
