@@ -311,6 +311,11 @@ class Water:
             DockError: one line, what is wrong (an unknown name, a file that is missing or
                 holds no valid water).
         """
+        if is_water_file(spec):  # read once
+            try:
+                return cls(spec, load_water_file(spec))
+            except DockError as exc:
+                raise DockError(f"water: {exc}") from None
         why = water_spec_error(spec, allow_none=allow_none)
         if why is not None:
             raise DockError(f"water: {why}")
