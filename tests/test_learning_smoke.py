@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from uwdock.dockcore.config import replace
 from uwdock.rl.env.config import EnvConfig
@@ -41,6 +42,7 @@ EASY = replace(
 )
 
 
+@pytest.mark.slow  # PPO from scratch (~20 s): in the slow set, run in CI
 def test_ppo_from_scratch_beats_its_random_start(tmp_path):
     cfg = replace(
         TrainConfig(),

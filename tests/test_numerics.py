@@ -73,6 +73,7 @@ def _numerics(run: Path) -> dict:
     return json.loads((run / "provenance.json").read_text())["machine"]["numerics"]
 
 
+@pytest.mark.slow  # a real training run (~15 s): in the slow set, run in CI
 def test_a_training_run_pins_itself_and_records_it(tmp_path):
     cfg = tmp_path / "tiny.toml"
     cfg.write_text(TINY)
