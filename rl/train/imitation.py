@@ -7,6 +7,11 @@ action) while the teacher labels every visited observation (DAgger), so the stud
 recover from its own mistakes. The policy mean is fitted by mean-squared error, its log standard
 deviation is set to ``log_std``; the value network is fitted to the normalised discounted
 returns of the rollouts, so PPO starts with a critic that matches its actor.
+
+An iteration's episodes run on the simulator the policy trains on: one at a time in a
+:class:`rl.env.docking_env.DockingEnv`, or all at once in a
+:class:`rl.env.batch_env.BatchDockingEnv` (episode ``k`` is env ``k``, reset with the same
+seed; the per-step noise is the batch's own).
 """
 
 from __future__ import annotations
@@ -68,12 +73,16 @@ def warm_start(
     seed: int,
     gamma: float,
     progress: bool = True,
+    batched: bool = False,
 ) -> dict[str, list[float]]:
     """Fit ``model``'s policy (and value) to the teacher by DAgger; updates ``vecnorm``'s stats.
 
     The student of every iteration is scored by the docked fraction of the next iteration's
     rollouts (the last one by an extra batch); the best-scoring student is kept, since the
     imitation of a controller with sharp decisions does not improve monotonically.
+
+    ``batched``: each iteration's episodes at once on the batched simulator (the training
+    simulator ``"batched"``), else one at a time.
 
     Returns:
         Per iteration: the imitation loss, the docked fraction of the rollouts (iteration 0:
@@ -82,14 +91,12 @@ def warm_start(
     """
     import torch
 
-    env = DockingEnv(env_cfg)
     success_key = f"success_{env_cfg.terminate_on}"  # the condition that ends an episode
-    teacher = PIDController.for_env(env_cfg)
     policy = model.policy
     total = (cfg.iterations + 1) * cfg.episodes_per_iteration
     bar = tqdm(total=total, desc="imitation", unit="ep", disable=not progress)
-    rollouts = _Rollouts(env, success_key, teacher, policy, vecnorm, cfg, gamma, bar,
-                         ep_seed=seed + 500_000)  # fmt: skip
+    kind = _BatchRollouts if batched else _Rollouts
+    rollouts = kind(env_cfg, success_key, policy, vecnorm, cfg, gamma, bar, ep_seed=seed + 500_000)
     history, states = _dagger(model, vecnorm, rollouts, cfg, bar)
     final_frac, *_ = rollouts.collect(student=True)
     history["docked"].append(final_frac)
@@ -97,68 +104,121 @@ def warm_start(
     history["selected_iteration"] = [best]
     history["env_steps"] = [rollouts.steps]
     bar.close()
-    env.close()
+    rollouts.close()
     with torch.no_grad():
         policy.log_std.fill_(cfg.log_std)
     return history
 
 
-@dataclass
 class _Rollouts:
-    """The episodes of a warm start: the teacher (or the student's mean action) acting, the
-    teacher labelling every observation; the episode seeds run on, the env steps counted."""
+    """The episodes of a warm start, one at a time: the teacher (or the student's mean action)
+    acting, the teacher labelling every observation; the episode seeds run on, the env steps
+    counted."""
 
-    env: DockingEnv
-    success_key: str
-    teacher: PIDController
-    policy: Any
-    vecnorm: Any
-    cfg: ImitationConfig
-    gamma: float
-    bar: tqdm
-    ep_seed: int
-    steps: int = 0
+    def __init__(
+        self,
+        env_cfg: EnvConfig,
+        success_key: str,
+        policy: Any,
+        vecnorm: Any,
+        cfg: ImitationConfig,
+        gamma: float,
+        bar: tqdm,
+        ep_seed: int,
+    ) -> None:
+        self.env_cfg, self.success_key = env_cfg, success_key
+        self.policy, self.vecnorm, self.cfg, self.gamma, self.bar = policy, vecnorm, cfg, gamma, bar
+        self.ep_seed = ep_seed
+        self.steps = 0
+        self.env = self._open()
+
+    def _open(self) -> Any:
+        return DockingEnv(self.env_cfg)
+
+    def close(self) -> None:
+        self.env.close()
 
     def collect(self, student: bool) -> tuple[float, list, list, list]:
         """One iteration's episodes: the docked fraction and, per episode, its observations,
         the teacher's labels and the discounted returns."""
         docked, O, A, G = 0, [], [], []
-        for _ in range(self.cfg.episodes_per_iteration):
-            ep_obs, ep_act, ep_rew, info = self._episode(student)
-            docked += int(info[self.success_key])
+        for ep_obs, ep_act, ep_rew, success in self._episodes(student):
+            docked += int(success)
             O.append(np.asarray(ep_obs))
             A.append(np.asarray(ep_act))
             G.append(_discounted(np.asarray(ep_rew), self.gamma))
-            self.bar.update(1)
         return docked / self.cfg.episodes_per_iteration, O, A, G
 
-    def _episode(self, student: bool) -> tuple[list, list, list, dict]:
-        """One episode: (observations, teacher labels, rewards, the last step's info)."""
-        obs, _ = self.env.reset(seed=self.ep_seed)
-        self.ep_seed += 1
-        self.teacher.reset()
-        ep_obs, ep_act, ep_rew = [], [], []
-        done = False
-        while not done:
-            label = self.teacher.act(obs)
-            action = self._student_action(obs) if student else label
-            ep_obs.append(obs)
-            ep_act.append(label)
-            obs, r, term, trunc, info = self.env.step(action)
-            self.steps += 1
-            ep_rew.append(r)
-            done = term or trunc
-        return ep_obs, ep_act, ep_rew, info
+    def _episodes(self, student: bool):
+        """Each episode of an iteration: (observations, teacher labels, rewards, docked)."""
+        teacher = PIDController.for_env(self.env_cfg)
+        for _ in range(self.cfg.episodes_per_iteration):
+            obs, _ = self.env.reset(seed=self.ep_seed)
+            self.ep_seed += 1
+            teacher.reset()
+            ep_obs, ep_act, ep_rew = [], [], []
+            done = False
+            while not done:
+                label = teacher.act(obs)
+                action = self._student_actions(obs[None])[0] if student else label
+                ep_obs.append(obs)
+                ep_act.append(label)
+                obs, r, term, trunc, info = self.env.step(action)
+                self.steps += 1
+                ep_rew.append(r)
+                done = term or trunc
+            self.bar.update(1)
+            yield ep_obs, ep_act, ep_rew, bool(info[self.success_key])
 
-    def _student_action(self, obs: np.ndarray) -> np.ndarray:
-        """The student's mean action for an observation, clipped to [-1, 1]."""
+    def _student_actions(self, obs: np.ndarray) -> np.ndarray:
+        """The student's mean actions for a batch of observations, clipped to [-1, 1]."""
         import torch
 
         vecnorm = self.vecnorm
-        o = vecnorm.normalize_obs(obs[None]) if vecnorm is not None else obs[None]
+        o = vecnorm.normalize_obs(obs) if vecnorm is not None else obs
         with torch.no_grad():
             dist = self.policy.get_distribution(torch.as_tensor(o, dtype=torch.float32))
-            return np.clip(dist.distribution.mean.numpy()[0], -1, 1)
+            return np.clip(dist.distribution.mean.numpy(), -1, 1)
+
+
+class _BatchRollouts(_Rollouts):
+    """The episodes of a warm start all at once on the batched simulator: episode ``k`` of an
+    iteration is env ``k``, reset with the seed the one-at-a-time episodes use; an env whose
+    episode ended flies on with zero thrust (its steps neither kept nor counted) until the last
+    one ends."""
+
+    def _open(self) -> Any:
+        from uwdock.rl.env.batch_env import BatchDockingEnv  # SB3 at module level
+
+        return BatchDockingEnv(self.env_cfg, self.cfg.episodes_per_iteration, seed=self.ep_seed)
+
+    def _episodes(self, student: bool):
+        n = self.cfg.episodes_per_iteration
+        self.env.seed(self.ep_seed)  # env k resets with ep_seed + k, as a new batch
+        self.ep_seed += n
+        teachers = [PIDController.for_env(self.env_cfg) for _ in range(n)]
+        eps: list[tuple[list, list, list]] = [([], [], []) for _ in range(n)]
+        success = [False] * n
+        live = np.ones(n, dtype=bool)
+        obs = self.env.reset()
+        while live.any():
+            labels = np.stack([t.act(o) for t, o in zip(teachers, obs, strict=True)])
+            actions = self._student_actions(obs) if student else labels.copy()
+            actions[~live] = 0.0
+            next_obs, rew, done, infos = self.env.step(actions)
+            for i in np.flatnonzero(live):
+                ep_obs, ep_act, ep_rew = eps[i]
+                ep_obs.append(obs[i])
+                ep_act.append(labels[i])
+                ep_rew.append(float(rew[i]))
+                self.steps += 1
+                if done[i]:
+                    success[i] = bool(infos[i][self.success_key])
+                    live[i] = False
+                    self.bar.update(1)
+            obs = next_obs
+        for i in range(n):
+            yield (*eps[i], success[i])
 
 
 def _dagger(

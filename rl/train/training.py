@@ -640,8 +640,9 @@ def _new_model(
     warm = cfg.imitation.teacher != "none" and init is None
     if warm:
         hist = warm_start(
-            model, vecnorm, cfg.env, cfg.imitation, cfg.seed, gamma, progress=progress
-        )
+            model, vecnorm, cfg.env, cfg.imitation, cfg.seed, gamma, progress=progress,
+            batched=cfg.simulator == "batched",
+        )  # fmt: skip
         atomic_write_json(run / "imitation.json", hist)
         if vecnorm is not None:
             # the imitated policy was fitted on these statistics: freeze them, or PPO's
