@@ -1,19 +1,23 @@
-"""Pinned numerics: one training seed, the same weights on any x86-64 CPU.
+"""Pinned numerics: one training seed, the same weights on any x86-64 CPU with AVX2 and FMA.
 
 NumPy, torch (MKL's matrix products, ATen's vector kernels) and numba pick their kernels by the
 CPU they run on, and kernels of different vector widths round differently: the same seed and
 config trained on two CPU kinds part after ~100k steps (``bench/bench_numerics.py``,
-docs/results/docking.md). A *pinned* process holds each library to kernels every x86-64 CPU
+docs/results/docking.md). A *pinned* process holds each library to kernels every such CPU
 runs the same way:
 
 ==============================  ==========================================================
 ``NPY_DISABLE_CPU_FEATURES``    NumPy's dispatched SIMD targets off: its baseline loops
                                 (x86-64-v2) only
-``MKL_CBWR=COMPATIBLE``         MKL's CPU-independent code path (conditional numerical
-                                reproducibility)
+``MKL_CBWR=AVX2,STRICT``        MKL's AVX2 code path on every CPU that has AVX2, in strict
+                                conditional numerical reproducibility: its matrix products
+                                give the same bits with any thread count (oneMKL developer
+                                guide, "Reproducibility Conditions"); ``COMPATIBLE`` (SSE2)
+                                on a CPU without AVX2
 ``ATEN_CPU_CAPABILITY=default`` torch's ATen without its AVX2/AVX-512 kernels
 ``NUMBA_CPU_NAME=generic``      numba compiles for a generic x86-64 CPU, not this one
-``*_NUM_THREADS=1``             no reduction split over a CPU-dependent thread count
+``*_NUM_THREADS=1``             no reduction split over a CPU-dependent thread count (a
+``*_DYNAMIC=FALSE``             run sets torch's threads itself: ``ppo.update_threads``)
 ==============================  ==========================================================
 
 The variables are read when the libraries load, so a process pins itself by starting again
@@ -21,8 +25,11 @@ with them (:func:`ensure`, an ``exec`` before any work); worker processes inheri
 and Ray actors are given them (:func:`pinned_env_vars`). Provenance records them
 (``dockcore.provenance.numerics_env``) with :data:`MARK`.
 
-What stays CPU-dependent: the C library's own ``exp``/``log`` (glibc picks an FMA variant on
-CPUs that have FMA, every x86-64 CPU since 2013/2017) and any library not listed here.
+Why AVX2 and not MKL's SSE2 path on every CPU: the SSE2 path makes PPO's update of two
+256-unit layers 2.0x slower here (``bench/bench_numerics.py``), and the pin already holds only
+among CPUs with FMA, since the C library's own ``exp``/``log`` (glibc picks an FMA variant on
+CPUs that have it) are not pinned; every x86-64 CPU with FMA has AVX2 (Intel since 2013, AMD
+since 2015). A CPU without them trains its own weights; its provenance says so.
 """
 
 from __future__ import annotations
@@ -41,15 +48,37 @@ MARK = "UWDOCK_NUMERICS"
 #: NumPy 2.x's dispatch targets on x86-64 above its x86-64-v2 baseline.
 _NUMPY_TARGETS = "X86_V3 X86_V4 AVX512_ICL AVX512_SPR"
 
+
+def cpu_flags(cpuinfo: str = "/proc/cpuinfo") -> frozenset[str]:
+    """The first CPU's feature flags in ``cpuinfo`` (Linux's format); empty where it cannot be
+    read."""
+    try:
+        with open(cpuinfo, encoding="utf-8", errors="replace") as f:
+            for line in f:
+                key, _, value = line.partition(":")
+                if key.strip() == "flags":
+                    return frozenset(value.split())
+    except OSError:
+        pass
+    return frozenset()
+
+
+def mkl_branch(flags: frozenset[str]) -> str:
+    """MKL's reproducible code path for a CPU with ``flags`` (module docstring)."""
+    return "AVX2,STRICT" if {"avx2", "fma"} <= flags else "COMPATIBLE"
+
+
 #: What a pinned process runs with (module docstring).
 PINNED: dict[str, str] = {
     "NPY_DISABLE_CPU_FEATURES": _NUMPY_TARGETS,
-    "MKL_CBWR": "COMPATIBLE",
+    "MKL_CBWR": mkl_branch(cpu_flags()),
     "ATEN_CPU_CAPABILITY": "default",
     "NUMBA_CPU_NAME": "generic",
     "OMP_NUM_THREADS": "1",
     "MKL_NUM_THREADS": "1",
     "OPENBLAS_NUM_THREADS": "1",
+    "MKL_DYNAMIC": "FALSE",
+    "OMP_DYNAMIC": "FALSE",
     MARK: "pinned",
 }
 

@@ -94,6 +94,8 @@ NUMERICS_ENV = (
     "OMP_NUM_THREADS",
     "MKL_NUM_THREADS",
     "OPENBLAS_NUM_THREADS",
+    "MKL_DYNAMIC",
+    "OMP_DYNAMIC",
     "UWDOCK_NUMERICS",  # "pinned": dockcore.numerics
 )
 

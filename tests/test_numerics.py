@@ -56,6 +56,23 @@ def test_the_pinned_environment_overrides_what_would_pick_other_kernels():
     assert N.recorded_mode({}) == N.recorded_mode(None) == "native"
 
 
+def test_mkl_runs_its_avx2_path_where_the_cpu_has_avx2_and_fma(tmp_path):
+    """MKL's code path follows the CPU's flags: AVX2 in strict reproducibility where AVX2 and
+    FMA are there (the same bits with any thread count), its SSE2 path elsewhere."""
+    info = tmp_path / "cpuinfo"
+    info.write_text("processor\t: 0\nflags\t\t: fpu sse2 avx avx2 fma bmi2\n\nflags : x\n")
+    assert N.cpu_flags(str(info)) >= {"avx2", "fma", "sse2"}
+    assert N.mkl_branch(N.cpu_flags(str(info))) == "AVX2,STRICT"
+    info.write_text("processor\t: 0\nflags\t\t: fpu sse2 sse4_2 avx\n")
+    assert N.mkl_branch(N.cpu_flags(str(info))) == "COMPATIBLE"
+    assert N.mkl_branch(frozenset({"avx2"})) == "COMPATIBLE"  # AVX2 without FMA: not pinned to it
+    assert N.cpu_flags(str(tmp_path / "absent")) == frozenset()
+    info.write_bytes(b"flags : avx2 fma \xff\n")  # not UTF-8: read, not refused
+    assert N.mkl_branch(N.cpu_flags(str(info))) == "AVX2,STRICT"
+    assert N.PINNED["MKL_CBWR"] == N.mkl_branch(N.cpu_flags())
+    assert N.PINNED["MKL_DYNAMIC"] == N.PINNED["OMP_DYNAMIC"] == "FALSE"
+
+
 def _train(out: Path, config: Path, *args: object, env: dict | None = None, timeout: int = 600):
     """``rl train`` through the console script, as a user runs it (a process that is the
     command's own program: one it may start again pinned)."""

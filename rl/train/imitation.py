@@ -74,6 +74,7 @@ def warm_start(
     gamma: float,
     progress: bool = True,
     batched: bool = False,
+    threads: int = 1,
 ) -> dict[str, list[float]]:
     """Fit ``model``'s policy (and value) to the teacher by DAgger; updates ``vecnorm``'s stats.
 
@@ -82,7 +83,8 @@ def warm_start(
     imitation of a controller with sharp decisions does not improve monotonically.
 
     ``batched``: each iteration's episodes at once on the batched simulator (the training
-    simulator ``"batched"``), else one at a time.
+    simulator ``"batched"``), else one at a time. ``threads``: torch's threads while fitting
+    (PPO's ``update_threads``: the simulator waits meanwhile); the rollouts run on one.
 
     Returns:
         Per iteration: the imitation loss, the docked fraction of the rollouts (iteration 0:
@@ -97,7 +99,7 @@ def warm_start(
     bar = tqdm(total=total, desc="imitation", unit="ep", disable=not progress)
     kind = _BatchRollouts if batched else _Rollouts
     rollouts = kind(env_cfg, success_key, policy, vecnorm, cfg, gamma, bar, ep_seed=seed + 500_000)
-    history, states = _dagger(model, vecnorm, rollouts, cfg, bar)
+    history, states = _dagger(model, vecnorm, rollouts, cfg, bar, threads)
     final_frac, *_ = rollouts.collect(student=True)
     history["docked"].append(final_frac)
     best = _keep_best_student(policy, vecnorm, history["docked"][1:], states)
@@ -222,7 +224,7 @@ class _BatchRollouts(_Rollouts):
 
 
 def _dagger(
-    model, vecnorm, rollouts: _Rollouts, cfg: ImitationConfig, bar: tqdm
+    model, vecnorm, rollouts: _Rollouts, cfg: ImitationConfig, bar: tqdm, threads: int = 1
 ) -> tuple[dict[str, list[float]], list[tuple[dict, Any]]]:
     """The DAgger iterations: roll out (the teacher first, then the student), aggregate, refit;
     returns the history and each iteration's student with its normalisation."""
@@ -239,7 +241,9 @@ def _dagger(
         X = np.concatenate(obs_all).astype(np.float64)
         if rms is not None:
             rms.update(np.concatenate(O).astype(np.float64))
-        loss = _fit(model, vecnorm, X, np.concatenate(act_all), np.concatenate(ret_all), cfg)
+        loss = _fit(
+            model, vecnorm, X, np.concatenate(act_all), np.concatenate(ret_all), cfg, threads
+        )
         # the student is only valid with the normalisation it was fitted under: keep both
         norm = copy.deepcopy((vecnorm.obs_rms, vecnorm.ret_rms)) if vecnorm is not None else None
         states.append((copy.deepcopy(policy.state_dict()), norm))
@@ -262,6 +266,25 @@ def _keep_best_student(policy, vecnorm, scores: list[float], states: list[tuple[
 
 
 def _fit(
+    model,
+    vecnorm,
+    X: np.ndarray,
+    A: np.ndarray,
+    G: np.ndarray,
+    cfg: ImitationConfig,
+    threads: int = 1,
+) -> float:
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        return _fit_epochs(model, vecnorm, X, A, G, cfg)
+    finally:
+        torch.set_num_threads(before)
+
+
+def _fit_epochs(
     model, vecnorm, X: np.ndarray, A: np.ndarray, G: np.ndarray, cfg: ImitationConfig
 ) -> float:
     import torch

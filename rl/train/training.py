@@ -642,6 +642,7 @@ def _new_model(
         hist = warm_start(
             model, vecnorm, cfg.env, cfg.imitation, cfg.seed, gamma, progress=progress,
             batched=cfg.simulator == "batched",
+            threads=cfg.ppo.update_threads if cfg.algo == "ppo" else 1,
         )  # fmt: skip
         atomic_write_json(run / "imitation.json", hist)
         if vecnorm is not None:
