@@ -36,12 +36,15 @@ row counts its failure modes (:mod:`uwdock.rl.evaluate.failures`: wedged against
 landed off the seat, other; ``failure_modes``, and ``failure_mode`` per episode).
 Writes ``bench/results/<name>.json`` (rows, config, machine, commit; rewritten after every
 cell, ``complete`` false until the last) and ``<name>.png`` (strict success per condition,
-policy beside PID).
+policy beside PID). An interrupted run resumes: run the same command again and the cells its
+unfinished output holds, flown with the same settings, are kept (each marked
+``resumed_from``: the commit that flew it), the others flown.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from dataclasses import dataclass, field, is_dataclass
@@ -134,6 +137,28 @@ def env_for(row: Row, policy: str, usbl: str, nav: str = "mems-ahrs-dvl") -> Env
         **row.overrides,
     )
     return replace(cfg, **policy_env_settings(policy))
+
+
+def finished_cells(path: Path, config: dict[str, Any]) -> dict[tuple[str, str], dict[str, Any]]:
+    """The cells of an unfinished output at ``path`` flown with ``config`` (a resumed run keeps
+    them), by (condition, controller), each marked with the commit that flew it; none when
+    there is no such output, it is finished (the command runs again from the start) or its
+    settings differ."""
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+    if not isinstance(data, dict) or not isinstance(data.get("bench_config"), dict):
+        return {}
+    old = dict(data["bench_config"])
+    if old.pop("complete", True) or old != json.loads(json.dumps(config)):
+        return {}
+    made = data.get("git") or {}
+    cells = {}
+    for r in data.get("rows", []):
+        if isinstance(r, dict) and {"condition", "controller"} <= r.keys():
+            cells[r["condition"], r["controller"]] = {"resumed_from": made, **r}
+    return cells
 
 
 def run_row(row: Row, controller: str, cfg: EnvConfig, episodes: int, seed: int, workers: int):
@@ -320,11 +345,15 @@ def main() -> None:
         "env": {name: to_dict(cfg) for name, cfg in envs.items()},
     }
     results: list[dict[str, Any]] = []
+    kept = finished_cells(a.out_dir / f"{a.name}.json", config)
+    if kept:
+        print(f"resuming: {len(kept)} cells of {a.out_dir / a.name}.json kept", flush=True)
     for row in chosen:
         n = a.episodes if row.headline else a.stress_episodes
         for ctrl in controllers:
             spec = a.policy if ctrl == "policy" else "pid"
-            results.append(run_row(row, spec, envs[row.name], n, a.seed, a.workers))
+            old = kept.get((row.name, "pid" if ctrl == "pid" else "policy"))
+            results.append(old or run_row(row, spec, envs[row.name], n, a.seed, a.workers))
             r = results[-1]
             print(
                 f"{row.name:>14} {r['controller']:>6}: strict {100 * r['strict']:.0f} % "
