@@ -91,3 +91,30 @@ def test_comparison_pools_a_side_over_files_and_refuses_a_row_twice(tmp_path):
     ]  # fmt: skip
     with pytest.raises(SystemExit, match="in both"):
         cmp._load_side([files[0], files[2]])
+
+
+def test_an_unfinished_output_with_the_same_settings_resumes(bench, tmp_path):
+    """The cells an interrupted run wrote are kept, marked with the commit that flew them; a
+    finished output, other settings, or a file that is not a record keep nothing."""
+    import json
+
+    config = {"policy": "p", "episodes": 4, "rows": ["camera", "all"], "env": {"a": [1.0, 2]}}
+    cell = _row("camera", [(True, 10.0)] * 4, controller="pid")
+    record = {"git": {"commit": "abc", "dirty": False}, "rows": [cell],
+              "bench_config": {**config, "complete": False}}  # fmt: skip
+    path = tmp_path / "pid.json"
+    path.write_text(json.dumps(record))
+    kept = bench.finished_cells(path, config)
+    assert list(kept) == [("camera", "pid")]
+    assert kept["camera", "pid"]["resumed_from"] == {"commit": "abc", "dirty": False}
+    assert kept["camera", "pid"]["per_episode"] == cell["per_episode"]
+    # tuples in the settings compare as the JSON lists they were written as
+    assert bench.finished_cells(path, {**config, "env": {"a": (1.0, 2)}}) == kept
+    assert bench.finished_cells(path, {**config, "episodes": 8}) == {}
+    path.write_text(json.dumps({**record, "bench_config": {**config, "complete": True}}))
+    assert bench.finished_cells(path, config) == {}  # finished: run again from the start
+    for text in ("", "[1, 2]", '{"rows": []}', "\udcff"):
+        path.write_text(text, errors="surrogateescape")
+        assert bench.finished_cells(path, config) == {}
+    assert bench.finished_cells(tmp_path / "absent.json", config) == {}
+    assert bench.finished_cells(tmp_path, config) == {}  # a folder
