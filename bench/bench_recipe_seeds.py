@@ -11,7 +11,7 @@ Usage::
 Steps (each resumable: run the same command again after an interruption):
 
 1. train (unless ``--skip-train``): ``rl train --recipe RECIPE --seed S --out WORK/seed_S`` per
-   seed, one after the other (~10 min a seed on 2 cores), the output streamed; a seed whose
+   seed, one after the other (~5 min a seed on 2 cores), the output streamed; a seed whose
    ``recipe.json`` lists every stage as done (and whose policy files are there) is skipped, an
    interrupted one resumes where it stopped.
 2. evaluate (unless ``--skip-eval``): ``bench/bench_docking.py --controllers policy`` on each
@@ -462,15 +462,19 @@ def run_streamed(cmd: list[str]) -> int:
 def train_step(args, seeds: list[int]) -> dict[int, str]:
     """Train (or resume) every seed not yet trained; the seeds that failed, with why."""
     rl = rl_command()
-    failed = {}
+    failed: dict[int, str] = {}
+    took: list[float] = []  # minutes of the seeds this run trained
     for i, s in enumerate(seeds, 1):
         folder = args.work / f"seed_{s}"
         if trained(folder):
             say(f"train seed {s} ({i}/{len(seeds)}): done already ({folder})")
             continue
         how = "resuming" if (folder / "recipe.json").is_file() else "from scratch"
-        say(f"train seed {s} ({i}/{len(seeds)}): recipe {args.recipe}, {how}, ~10 min")
+        eta = f", ~{sum(took) / len(took):.0f} min as the seeds before" if took else ""
+        say(f"train seed {s} ({i}/{len(seeds)}): recipe {args.recipe}, {how}{eta}")
+        t0 = time.monotonic()
         rc = run_streamed(train_cmd(rl, args.recipe, s, folder))
+        took.append((time.monotonic() - t0) / 60)
         if rc != 0 or not trained(folder):
             failed[s] = f"rl train exit {rc}"
             say(f"train seed {s}: FAILED (exit {rc}); going on with the other seeds")
