@@ -7,10 +7,10 @@
 #   bash scripts/make_artefacts.sh models_ar1  # rl/models/error_model_clear_tank_480_ar1_refit.json (with memory,
 #                                              # the current detector; the realistic recipe trains on it)
 #   bash scripts/make_artefacts.sh policy    # rl/policies/error_model_ppo/ (DAgger + PPO, the option), docs/results/training_curve.png
-#   bash scripts/make_artefacts.sh realistic # trains the realistic recipe's stage 2 (from the kept stage 1;
-#                                            # STAGE1_RUN= for both stages) into $WORK; with SHIP=1 (or --ship) it
-#                                            # replaces rl/policies/realistic_ppo/ (the shipped policy)
-#                                            # and docs/results/training_curve_realistic.png
+#   bash scripts/make_artefacts.sh realistic # `rl train --recipe shipped --seed SEED` (default 0) from
+#                                            # scratch into $WORK; with SHIP=1 (or --ship) it replaces
+#                                            # rl/policies/realistic_ppo/ (the shipped policy) and
+#                                            # docs/results/training_curve_realistic.png
 #   bash scripts/make_artefacts.sh scratch   # trains PPO from scratch on the true pose into $WORK; with SHIP=1
 #                                            # it replaces rl/policies/scratch_error_model_ppo/ (the policy
 #                                            # shipped before realistic_ppo) and docs/results/training_curve_scratch.png
@@ -24,10 +24,10 @@
 # training `configs/dagger.toml` (seed 0); training `configs/scratch/stage1.toml` then
 # `configs/scratch/stage2.toml` from its best/ (seed SEED, default 1: the
 # seed shipped, recorded in rl/policies/scratch_error_model_ppo/provenance.json);
-# the shipped stage 1 kept in rl/policies/realistic_ppo/stage1 (STAGE1_RUN; set it empty to
-# train `configs/realistic/stage1.toml` instead) then `configs/realistic/stage2.toml` from its
-# best/ (seed SEED, default 0: the seed shipped, recorded in rl/policies/realistic_ppo/ and in the
-# docking page);
+# the shipped recipe `rl train --recipe shipped` (configs/recipes/shipped.toml: one stage,
+# configs/realistic/policy.toml) from scratch, seed SEED (default 0: the seed shipped, recorded
+# in rl/policies/realistic_ppo/ and in the docking page), numerics pinned (the same weights on
+# any x86-64 CPU with AVX2 and FMA: uwdock.dockcore.numerics);
 # evaluations on episode seeds 1000-1099.
 # WORK (default /tmp/uwdock-artefacts) holds the datasets, the run folder and the evaluation
 # folders; an interrupted stage resumes there.
@@ -155,26 +155,33 @@ scratch() {  # the true-pose recipe: PPO from scratch, then its best/ at collisi
     "$WORK/run_scratch_error_model_precision_ppo_s$seed" soft "$SCRATCH" training_curve_scratch.png
 }
 
-# The shipped recipe: the vehicle's own drifting navigation (mems-ahrs-dvl), the EvoLogics USBL,
-# its contact sensing in the observation (obs_contact), the error model with memory fitted with
-# the current detector, the docking station's contact in the numba kernel (batch_contact =
-# "kernel": no PhysX in training). Stage 1 from scratch with near-seat starts (30 % of the early
-# episodes start just above the seat); stage 2 from its best/, collision penalty 70, keeping the
-# evaluation of highest return, with the fine error in the observation
-# (obs_fine_error: stage 1's policy is widened for it, uwdock.rl.train.widen). The batch over
-# BATCH_WORKERS processes (default 2, the count the shipped policy trained with). A run repeats
-# bit for bit on the same kind of CPU only (NumPy and MKL pick their kernels by CPU:
-# bench/bench_numerics.py), and a stage 1 trained on another CPU than the shipped one's is another
-# policy, so by default stage 2 starts from the shipped stage 1, rl/policies/realistic_ppo/stage1
-# (STAGE1_RUN; STAGE1_RUN= trains stage 1 from scratch, seed SEED): with the defaults the command
-# regenerates the shipped policy.
+# The shipped recipe (configs/recipes/shipped.toml): DAgger from the PID, the critic alone for
+# 60k steps, then PPO to 400k steps, in one stage (configs/realistic/policy.toml says what it
+# trains on), from scratch with the one command a user runs. Its folder is the policy:
+# model.json, weights.npz and checksums.sha256 at its top, the run in runs/policy/.
 realistic() {
-  local seed=${SEED:-0}
-  local STAGE1_RUN=${STAGE1_RUN-$POLICY/stage1}
-  two_stages "$seed" configs/realistic/stage1.toml \
-    configs/realistic/stage2.toml \
-    "$WORK/run_realistic_kernel_s$seed" fine70 "$POLICY" training_curve_realistic.png \
-    --batch-workers "${BATCH_WORKERS:-2}"
+  local seed=${SEED:-0} run
+  run=$WORK/realistic_s$seed
+  say "training the shipped recipe from scratch, seed $seed, into $run"
+  "$BIN/rl" train --recipe shipped --seed "$seed" --out "$run"
+  (cd "$run" && sha256sum -c --quiet checksums.sha256) || die "$run: its policy differs from its checksums"
+  if [ "$SHIP" != 1 ]; then
+    say "trained $run; $POLICY is left as it is (SHIP=1 or --ship replaces it)"
+    cat "$run/checksums.sha256"
+    return
+  fi
+  say "shipping $run into $POLICY"
+  rm -rf "${POLICY:?}/stage1"  # a two-stage policy's stage 1: the recipe has one stage
+  rm -f "$POLICY"/{model.json,weights.npz,checksums.sha256,config.toml,provenance.json} \
+    "$POLICY"/{eval_history.jsonl,recipe.json,imitation.json,resume_log.jsonl} \
+    "$POLICY"/{policy.onnx,policy.json,onnx_checksums.sha256}  # the export of the one before
+  mkdir -p "$POLICY"
+  cp "$run"/{model.json,weights.npz,checksums.sha256,config.toml,provenance.json} \
+    "$run"/{eval_history.jsonl,recipe.json} "$POLICY/"
+  [ ! -f "$run/runs/policy/imitation.json" ] || cp "$run/runs/policy/imitation.json" "$POLICY/"
+  (cd "$POLICY" && sha256sum -c --quiet checksums.sha256) || die "the files copied into $POLICY differ"
+  cp "$run/runs/policy/eval_history.png" "$RESULTS/training_curve_realistic.png"
+  say "now: bash scripts/make_artefacts.sh onnx (the vehicle node loads the export)"
 }
 
 EM=rl/models/error_model_clear_tank_480_ar1_refit.json  # the error model the shipped policy trained on
