@@ -119,6 +119,27 @@ def test_a_rerun_trains_nothing_twice_and_another_seed_is_refused(small_recipe, 
         R.run_recipe("small", 0, out, progress=False)
 
 
+def test_a_finished_folder_is_done_from_another_checkout(small_recipe, tmp_path, monkeypatch):
+    """The stages' data files are named from the checkout that trained them; the same recipe
+    run again from another checkout (the same files elsewhere) trains nothing and publishes the
+    same policy."""
+    out = tmp_path / "out"
+    R.run_recipe("small", 0, out, progress=False)
+    before = {p: _sha(p) for p in out.rglob("*") if p.is_file()}
+    moved = tmp_path / "moved"
+    small_recipe.rename(moved)
+    monkeypatch.setattr(R, "ROOT", moved)
+    monkeypatch.setattr(R, "RECIPES", moved / "configs" / "recipes")
+    monkeypatch.setattr(R, "train", lambda *a, **k: pytest.fail("a finished stage trained again"))
+    notes: list[str] = []
+    R.run_recipe("small", 0, out, note=notes.append, progress=False)
+    assert [m for m in notes if ": done (" in m] == [
+        f"recipe small, seed 0: stage {k}/2 {s}: done ({out / 'runs' / s})"
+        for k, s in ((1, "first"), (2, "second"))
+    ]
+    assert {p: _sha(p) for p in out.rglob("*") if p.is_file()} == before
+
+
 def test_stage_configs_moved_or_split_with_extends_are_the_same_recipe(small_recipe, tmp_path):
     """Where a stage's config lives and how it is split into files is not the recipe: the
     second stage moved into a folder of its own and written as the first plus its one
