@@ -13,8 +13,10 @@ from pathlib import Path
 import pytest
 
 from tests.hostile_runs import ROOT, run_digest
+from uwdock.dockcore.config import load_config, replace
 from uwdock.dockcore.errors import DockError
 from uwdock.rl.train import recipe as R
+from uwdock.rl.train.training import TrainConfig
 
 STAGE = """\
 n_envs = 4
@@ -82,12 +84,19 @@ def test_a_recipe_trains_its_stages_into_a_policy_folder(small_recipe, tmp_path,
         sums = dict(line.split()[::-1] for line in (folder / "checksums.sha256").read_text()
                     .splitlines())  # fmt: skip
         assert sums == {n: _sha(folder / n) for n in ("model.json", "weights.npz")}
-        run_config = (out / "runs" / stage / "config.toml").read_bytes()
-        assert (folder / "config.toml").read_bytes() == run_config
-    from uwdock.rl.policy.policy_io import load_policy
+        # the run config, its data file named from the recipe's root (the run's: absolute)
+        run_cfg = load_config(TrainConfig, out / "runs" / stage / "config.toml", section="train")
+        kept = load_config(TrainConfig, folder / "config.toml", section="train")
+        model_file = "rl/models/error_model_clear_tank_480_ar1.json"
+        assert run_cfg.env.error_model_path == str(small_recipe / model_file)
+        assert kept == replace(run_cfg, env=replace(run_cfg.env, error_model_path=model_file))
+    from uwdock.rl.policy.policy_io import load_policy, policy_train_env
 
     model, _ = load_policy(out)  # `rl eval --policy OUT` reads it
     assert model.algorithm == "ppo"
+    # out is outside any checkout: the file is found in the toolkit's own
+    found = Path(policy_train_env(str(out))["error_model_path"])
+    assert found.is_absolute() and found.read_bytes() == (small_recipe / model_file).read_bytes()
     # the second stage started from the first's best/, every stage with the recipe's seed
     prov = json.loads((out / "runs" / "second" / "provenance.json").read_text())
     assert prov["init_policy"]["path"] == str((out / "runs" / "first" / "best").resolve())

@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from uwdock.dockcore.config import ROOT as CHECKOUT
 from uwdock.dockcore.config import current_layout, read_toml
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import check_regular_file
@@ -50,11 +51,13 @@ _FILE_KEYS = (
 def _beside(value: str, folder: Path) -> str:
     """A relative file name of a policy's config, resolved where the policy is: in its folder,
     else in the nearest folder above it that holds it (a run inside a checkout names files from
-    the checkout's root); as given (relative to the current folder) when none does."""
+    the checkout's root), else in this toolkit's own checkout (a recipe's policy names the
+    data it trained on from there, wherever its folder is); as given (relative to the current
+    folder) when none does."""
     p = Path(value)
     if p.is_absolute() or (len(p.parts) == 1 and p.suffix == ""):  # a preset's name
         return value
-    for base in (folder, *folder.parents):
+    for base in (folder, *folder.parents, CHECKOUT):
         if (base / p).is_file():
             return str(base / p)
     return value

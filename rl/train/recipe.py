@@ -50,11 +50,18 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any
 
-from uwdock.dockcore.config import from_dict, load_config, to_dict, validated
+from uwdock.dockcore.config import (
+    dumps_toml,
+    from_dict,
+    load_config,
+    replace_at,
+    to_dict,
+    validated,
+)
 from uwdock.dockcore.domains import Interval
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_write_files, atomic_write_json
-from uwdock.rl.env.config import env_input_files, with_input_files
+from uwdock.rl.env.config import EnvConfig, env_input_files, with_input_files
 from uwdock.rl.train.training import TrainConfig, train
 
 if sys.version_info >= (3, 11):
@@ -275,18 +282,37 @@ def run_recipe(
             atomic_write_json(out / STATE, state)
     for k, stage in enumerate(recipe.stages, 1):
         dest = out if k == n else out / stage.name
-        _publish(out / "runs" / stage.name, dest)
+        named = load_config(TrainConfig, ROOT / stage.config, section="train").env
+        _publish(out / "runs" / stage.name, dest, env_input_files(named))
     note(f"recipe {name}, seed {seed}: the policy is {out} (rl eval --policy {out})")
     return out
 
 
-def _publish(run: Path, dest: Path) -> None:
+def _publish(run: Path, dest: Path, named: dict[tuple[str, ...], str]) -> None:
     """A run's ``best/`` policy and its records into ``dest`` with ``checksums.sha256`` of the
-    policy files (the layout of ``rl/policies/*``), written as one unit."""
+    policy files (the layout of ``rl/policies/*``), written as one unit. Its ``config.toml``
+    names the data files as the stage's config does (``named``: by field path) where the run
+    read that file of a checkout (:func:`_as_named`), so the folder works in any checkout,
+    moved or shipped."""
     best = run / "best"
     dest.mkdir(parents=True, exist_ok=True)
     files = {dest / name: (best / name).read_bytes() for name in POLICY_FILES}
     sums = "".join(f"{hashlib.sha256(d).hexdigest()}  {p.name}\n" for p, d in files.items())
     files.update({dest / n: (run / n).read_bytes() for n in RECORD_FILES if (run / n).is_file()})
+    if (run / "config.toml").is_file():
+        cfg = load_config(TrainConfig, run / "config.toml", section="train")
+        cfg = dataclasses.replace(cfg, env=_as_named(cfg.env, named))
+        files[dest / "config.toml"] = dumps_toml({"train": cfg}).encode()
     files[dest / "checksums.sha256"] = sums.encode()
     atomic_write_files(files)
+
+
+def _as_named(env: EnvConfig, named: dict[tuple[str, ...], str]) -> EnvConfig:
+    """``env`` with each absolute input file that is the config's relative name taken from
+    some checkout's root (:func:`_inputs_from_root`) named as the config names it."""
+    for path, value in env_input_files(env).items():
+        rel = Path(named.get(path, ""))
+        if named.get(path) and not rel.is_absolute() and Path(value).is_absolute():
+            if Path(value).parts[-len(rel.parts) :] == rel.parts:
+                env = replace_at(env, path, named[path])
+    return env
