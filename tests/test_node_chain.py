@@ -68,6 +68,8 @@ def test_shipped_policy_is_exported():
         assert hashlib.sha256((folder / name).read_bytes()).hexdigest() == digest, name
     meta = json.loads(SHIPPED_POLICY.with_suffix(".json").read_text())
     assert meta["obs_dim"] == 18 and meta["env"]["nav"]["preset"] == "mems-ahrs-dvl"
+    # its data files named from a checkout's root, not where it was exported
+    assert meta["env"]["error_model_path"] == "rl/models/error_model_clear_tank_480_ar1_refit.json"
 
 
 def test_disarmed_publishes_no_command_and_enable_arms():

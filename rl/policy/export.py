@@ -20,7 +20,7 @@ from uwdock.dockcore.config import to_dict
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import atomic_write_files, check_output_path
 from uwdock.rl.policy.env_settings import policy_training_env
-from uwdock.rl.policy.policy_io import load_policy, policy_env_settings
+from uwdock.rl.policy.policy_io import load_policy, named_from_checkout, policy_env_settings
 
 
 def _actor_module(model, vecnorm):
@@ -68,7 +68,11 @@ def export_onnx(policy_path: str | os.PathLike[str], out: str | os.PathLike[str]
         # rate, USBL, water, camera width, termination, ...), so `rl eval` and the runner
         # rebuild the observation and the settings it was trained with; without a run config,
         # only what is known of its interface
-        "env": to_dict(trained.cfg) if trained else policy_env_settings(str(policy_path)),
+        "env": (
+            to_dict(named_from_checkout(trained.cfg))
+            if trained
+            else policy_env_settings(str(policy_path))
+        ),
         "env_from": trained.policy_config if trained else None,
     }
     # one unit: an .onnx without its .json would be run with another observation layout

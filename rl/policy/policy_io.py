@@ -20,7 +20,7 @@ from uwdock.dockcore.config import ROOT as CHECKOUT
 from uwdock.dockcore.config import current_layout, read_toml
 from uwdock.dockcore.errors import DockError
 from uwdock.dockcore.io import check_regular_file
-from uwdock.rl.env.config import EnvConfig
+from uwdock.rl.env.config import EnvConfig, with_input_files
 from uwdock.rl.env.observation import observation_size
 from uwdock.rl.policy.baselines import PIDController
 from uwdock.rl.policy.policy_format import MODEL, WEIGHTS, legacy_refusal, read_policy
@@ -61,6 +61,18 @@ def _beside(value: str, folder: Path) -> str:
         if (base / p).is_file():
             return str(base / p)
     return value
+
+
+def named_from_checkout(cfg: EnvConfig) -> EnvConfig:
+    """``cfg`` with its input files inside this toolkit's checkout named from its root (what
+    :func:`_beside` finds again in any checkout), the others as they are: what a file written
+    for another machine (an export's sidecar) records."""
+
+    def name(p: str) -> str:
+        path = Path(p)
+        return path.relative_to(CHECKOUT).as_posix() if path.is_relative_to(CHECKOUT) else p
+
+    return with_input_files(cfg, name)
 
 
 def _files_beside(env: dict[str, Any], folder: Path) -> dict[str, Any]:
