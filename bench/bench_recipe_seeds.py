@@ -352,16 +352,31 @@ def trained(folder: Path) -> bool:
             and all((folder / f).is_file() for f in ("model.json", "weights.npz")))  # fmt: skip
 
 
-def eval_state(path: Path, expect: dict[str, Any], policy: Path | None = None) -> tuple[str, str]:
+#: Settings of the PID's evaluation that may exceed the seeds' (its episodes are paired with
+#: theirs by index: the first ones are the same seeds).
+AT_LEAST = ("episodes", "stress_episodes")
+
+
+def eval_state(
+    path: Path, expect: dict[str, Any], policy: Path | None = None, at_least: Sequence[str] = ()
+) -> tuple[str, str]:
     """Whether a bench_docking output can be used: ("ok", ""), ("run", why: missing, incomplete
-    or older than the policy) or ("other", how its settings differ from ``expect``)."""
+    or older than the policy) or ("other", how its settings differ from ``expect``; a setting
+    named in ``at_least`` may be larger)."""
     data = read_json(path)
     if data is None:
         return ("run", "not there" if not path.exists() else "unreadable")
     cfg = data.get("bench_config", {})
     if not cfg.get("complete"):
         return ("run", "incomplete (interrupted)")
-    diff = [f"{k} {cfg.get(k)!r} (wanted {v!r})" for k, v in expect.items() if cfg.get(k) != v]
+
+    def agrees(k: str, v: Any) -> bool:
+        got = cfg.get(k)
+        if k in at_least and isinstance(got, int) and isinstance(v, int):
+            return got >= v
+        return got == v
+
+    diff = [f"{k} {cfg.get(k)!r} (wanted {v!r})" for k, v in expect.items() if not agrees(k, v)]
     if diff:
         return ("other", ", ".join(diff))
     if policy is not None:
@@ -369,6 +384,17 @@ def eval_state(path: Path, expect: dict[str, Any], policy: Path | None = None) -
         if weights.is_file() and weights.stat().st_mtime > path.stat().st_mtime:
             return ("run", "older than the policy (retrained)")
     return ("ok", "")
+
+
+def first_episodes(rows: dict[str, dict[str, Any]], episodes: int, stress: int) -> dict:
+    """``rows`` (by condition) with only their first ``episodes`` (the headline rows) or
+    ``stress`` (the harder rows) episodes: the PID flown with more than the seeds, compared on
+    the episodes they flew."""
+    headline = {r.name for r in bench_docking_module().ROWS if r.headline}
+    return {cond: {**row, "per_episode": [e for e in row["per_episode"]
+                                          if e["episode"] < (episodes if cond in headline
+                                                             else stress)]}
+            for cond, row in rows.items()}  # fmt: skip
 
 
 def rows_of(path: Path, controller: str) -> dict[str, dict[str, Any]]:
@@ -503,7 +529,8 @@ def eval_one(args, path: Path, policy: Path, controller: str, label: str, check_
     want = expected(args, controller)
     if check_policy:
         want["policy"] = str(policy)
-    state, why = eval_state(path, want, policy if check_policy else None)
+    state, why = eval_state(path, want, policy if check_policy else None,
+                            () if check_policy else AT_LEAST)  # fmt: skip
     if state == "ok":
         say(f"evaluate {label}: done already ({path})")
         return None
@@ -543,10 +570,10 @@ def eval_step(args, seeds: list[int]) -> dict[int | str, str]:
 def report(args, seeds: list[int], failures: dict) -> None:
     """Step 3: the statistics, the table, the bar, the JSON and the figure."""
     pid_path = args.eval_dir / "pid.json"
-    state, why = eval_state(pid_path, expected(args, "pid"))
+    state, why = eval_state(pid_path, expected(args, "pid"), at_least=AT_LEAST)
     if state != "ok":
         raise SystemExit(f"error: no usable PID evaluation {pid_path}: {why}")
-    pid_rows = rows_of(pid_path, "pid")
+    pid_rows = first_episodes(rows_of(pid_path, "pid"), args.episodes, args.stress_episodes)
     pid_cfg = (read_json(pid_path) or {}).get("bench_config", {})
     pid_env = pid_cfg.get("env")
     say(f"report: {len(seeds)} seeds, the PID from {pid_path}; paired bootstraps ...")

@@ -238,3 +238,18 @@ def test_eval_state(rs, tmp_path):
     assert rs.eval_state(path, want) == ("ok", "")
     state, why = rs.eval_state(path, {**want, "seed": 91000})
     assert state == "other" and "91000" in why
+    # the PID flown with more episodes than the seeds is used, on its first ones
+    assert rs.eval_state(path, {**want, "episodes": 50}, at_least=rs.AT_LEAST) == ("ok", "")
+    state, why = rs.eval_state(path, {**want, "episodes": 50})
+    assert state == "other" and "wanted 50" in why
+    state, _ = rs.eval_state(path, {**want, "episodes": 200}, at_least=rs.AT_LEAST)
+    assert state == "other"  # fewer than the seeds flew: not enough
+
+
+def test_the_pid_rows_are_cut_to_the_episodes_the_seeds_flew(rs):
+    eps = [{"episode": k, "success_strict": k % 2 == 0} for k in range(100)]
+    rows = {"camera": {"per_episode": eps}, "long approach": {"per_episode": eps}}
+    cut = rs.first_episodes(rows, 100, 50)
+    assert [e["episode"] for e in cut["camera"]["per_episode"]] == list(range(100))
+    assert [e["episode"] for e in cut["long approach"]["per_episode"]] == list(range(50))
+    assert len(rows["long approach"]["per_episode"]) == 100  # the input is left as it was
