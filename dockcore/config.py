@@ -20,7 +20,7 @@ Conventions:
     * Code names a field by a typed selector, not a dotted string: :func:`field_path` turns
       ``lambda c: c.world.camera_width_px`` into ``("world", "camera_width_px")``, checked
       against the dataclass (an editor follows and renames the attributes).
-    * A file may start from another: ``extends = "configs/realistic/stage2.toml"`` (top level)
+    * A file may start from another: ``extends = "configs/realistic/policy.toml"`` (top level)
       loads that base first, then merges the file's own values over it (tables merge key by
       key, other values replace), recursively (:func:`config_layers`). A relative path is looked
       for beside the file, then in the folders above it, then in the repository's root
@@ -411,7 +411,7 @@ def resolve_extends(value: str, file: Path) -> Path:
     one in ``file``'s folder, else in the nearest folder above it that holds it (a config inside
     a checkout names its base from the checkout's root, as configs name their data files), else
     in the repository's root (:data:`ROOT`: a config anywhere can extend a shipped one,
-    ``extends = "configs/realistic/stage2.toml"``).
+    ``extends = "configs/realistic/policy.toml"``).
 
     Raises:
         ConfigError: nothing there.

@@ -135,14 +135,14 @@ def test_relative_paths_resolve_beside_the_file_then_above_it_then_at_the_reposi
     above = _write(tmp_path / "top" / "sub" / "deeper" / "y.toml", 'extends = "base.toml"\n')
     from_top = _write(tmp_path / "top" / "sub" / "z.toml", 'extends = "top/base.toml"\n')
     shipped = _write(
-        tmp_path / "mine.toml", 'extends = "configs/realistic/stage2.toml"\nseed = 5\n'
+        tmp_path / "mine.toml", 'extends = "configs/realistic/policy.toml"\nseed = 5\n'
     )
     assert config_data(beside)["total_steps"] == 222
     assert config_data(above)["total_steps"] == 222  # the nearest folder above that holds it
     assert config_data(from_top)["total_steps"] == 111
-    stage2 = load_config(TrainConfig, ROOT / "configs/realistic/stage2.toml", section="train")
-    assert load_config(TrainConfig, shipped, section="train") == replace(stage2, seed=5)
-    assert config_layers(shipped)[-2].path == ROOT / "configs" / "realistic" / "stage2.toml"
+    policy = load_config(TrainConfig, ROOT / "configs/realistic/policy.toml", section="train")
+    assert load_config(TrainConfig, shipped, section="train") == replace(policy, seed=5)
+    assert config_layers(shipped)[-2].path == ROOT / "configs" / "realistic" / "policy.toml"
 
 
 def test_a_base_in_the_older_flat_layout_takes_overrides_in_the_current_one(tmp_path):

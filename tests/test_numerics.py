@@ -110,17 +110,17 @@ def _weights(run: Path) -> str:
     return hashlib.sha256((run / "weights.npz").read_bytes()).hexdigest()
 
 
-@pytest.mark.slow  # ~4 min: four runs of 151,552 steps of the shipped recipe's stage 1
+@pytest.mark.slow  # ~7 min: four runs of the shipped recipe's first 151,552 steps
 def test_two_cpu_feature_sets_train_the_same_weights_when_pinned(tmp_path):
-    """The shipped recipe's stage 1 for 151,552 steps (37 rollouts of 64 envs, three
-    evaluations), seed 2, as on this CPU and as on an x86-64 CPU without AVX2 (NumPy's
-    dispatched SIMD kernels and torch's ATen vector kernels off): with the pin, the weights are
-    the same bytes; without it (the control), they differ. Measured on this machine (a Zen 3):
-    NumPy's kernels alone do not change this run's weights, ATen's do (its tanh and exp round
-    otherwise); MKL's code path did not change here (``MKL_ENABLE_INSTRUCTIONS``). On a Zen 4,
-    with and without NumPy's AVX-512 kernels, the runs part after 102,400 steps
+    """The shipped recipe's config for 151,552 steps (its DAgger warm start, the critic alone,
+    then PPO; 37 rollouts of 64 envs, six evaluations), seed 2, as on this CPU and as with
+    NumPy's dispatched SIMD kernels and torch's ATen vector kernels off (those of an x86-64 CPU
+    without AVX2): with the pin, the weights are the same bytes; without it (the control), they
+    differ. Measured on this machine (a Zen 3) with the earlier two-stage recipe: NumPy's
+    kernels alone did not change its weights, ATen's did (its tanh and exp round otherwise). On
+    a Zen 4, with and without NumPy's AVX-512 kernels, the runs parted after 102,400 steps
     (docs/changelog.md)."""
-    config = ROOT / "configs" / "realistic" / "stage1.toml"
+    config = ROOT / "configs" / "realistic" / "policy.toml"
     args = ("--steps", 151552, "--seed", 2, "--batch-workers", 2)
     no_avx2 = {"NPY_DISABLE_CPU_FEATURES": N.PINNED["NPY_DISABLE_CPU_FEATURES"],
                "ATEN_CPU_CAPABILITY": "default"}  # fmt: skip

@@ -199,24 +199,21 @@ def test_unknown_or_malformed_recipes_are_one_line(small_recipe):
         R.load_recipe("bad")
 
 
-def test_the_shipped_recipe_is_the_shipped_policys_two_stages():
-    """Its stages are the configs the shipped policy and its stage 1 record, input files named
-    from the repository's root."""
+def test_the_shipped_recipe_is_the_shipped_policys_one_stage():
+    """Its one stage is the config the shipped policy records, its input files named from the
+    repository's root."""
     import tomllib
 
     recipe, configs, _ = R.load_recipe("shipped")
-    assert [s.name for s in recipe.stages] == ["stage1", "stage2"]
-    assert recipe.stages[1].init_from == "stage1"
-    for stage, shipped in (("stage1", "rl/policies/realistic_ppo/stage1"),
-                           ("stage2", "rl/policies/realistic_ppo")):  # fmt: skip
-        cfg = configs[stage]
-        kept = tomllib.loads((ROOT / shipped / "config.toml").read_text())["train"]
-        assert cfg.total_steps == kept["total_steps"]
-        assert cfg.env.reward.collision_penalty == kept["env"]["reward"].get(
-            "collision_penalty", cfg.env.reward.collision_penalty
-        )
-        assert Path(cfg.env.error_model_path).is_absolute()
-        assert Path(cfg.env.error_model_path).is_file()
+    assert [s.name for s in recipe.stages] == ["policy"] and recipe.stages[0].init_from is None
+    cfg = configs["policy"]
+    kept = tomllib.loads((ROOT / "rl/policies/realistic_ppo/config.toml").read_text())["train"]
+    assert cfg.total_steps == kept["total_steps"] == 400_000
+    assert cfg.imitation.teacher == kept["imitation"]["teacher"] == "pid"
+    assert cfg.env.reward.collision_penalty == kept["env"]["reward"]["collision_penalty"]
+    assert Path(cfg.env.error_model_path).is_absolute()
+    assert Path(cfg.env.error_model_path).is_file()
+    assert cfg.env.error_model_path.endswith(kept["env"]["error_model_path"])
 
 
 def test_the_command_refuses_flags_that_the_recipe_sets(tmp_path):

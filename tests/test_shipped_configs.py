@@ -19,13 +19,9 @@ CONFIGS = sorted(p for p in (ROOT / "configs").rglob("*.toml") if "recipes" not 
 #: Each stage config, the policy folder (and the file in it) whose run config it is, and the
 #: SHA-256 of its values as the loader resolves them (:func:`_resolved_digest`).
 SHIPPED = {
-    "realistic/stage1.toml": (
-        "realistic_ppo/stage1/config.toml",
-        "d4975594a68171fe120a67647009adb0de5c92b724c15090a21ecd605d0e0f71",
-    ),
-    "realistic/stage2.toml": (
+    "realistic/policy.toml": (
         "realistic_ppo/config.toml",
-        "c8f911a0796a165b8e1f98ea05e911ecafd3efaac1dfaa5ddd898fcd61792909",
+        "bdd4d7f604b50b1b930c20147256c264b33ee527377fdcc9c561c68ff1100be1",
     ),
     "scratch/stage1.toml": (
         "scratch_error_model_ppo/stage1_provenance.json",
@@ -41,16 +37,14 @@ SHIPPED = {
     ),
 }
 
-#: The names the configs had when the shipped policies were trained (their provenance records
-#: the command with them; the files are in the git tag lab-notebook-2026-12).
+#: How each policy's provenance names its config: the command it was trained with (the older
+#: policies by the names their configs had then; the files are in the git tag
+#: lab-notebook-2026-12).
 TRAINED_AS = {
-    "realistic/stage1.toml": "configs/realistic_batched_yaw_contact_near_kernel_ppo.toml",
-    "realistic/stage2.toml": (
-        "configs/realistic_batched_yaw_contact_gentle_return_kernel_fine_collision70_ppo.toml"
-    ),
-    "scratch/stage1.toml": "configs/scratch_error_model_precision_ppo.toml",
-    "scratch/stage2.toml": "configs/scratch_error_model_precision_soft_ppo.toml",
-    "dagger.toml": "configs/train_error_model_ppo.toml",
+    "realistic/policy.toml": "rl train --recipe shipped ",
+    "scratch/stage1.toml": "--config configs/scratch_error_model_precision_ppo.toml ",
+    "scratch/stage2.toml": "--config configs/scratch_error_model_precision_soft_ppo.toml ",
+    "dagger.toml": "--config configs/train_error_model_ppo.toml ",
 }
 
 
@@ -101,7 +95,7 @@ def test_each_stage_config_is_the_run_config_its_policy_records(name):
     else:
         recorded = load_config(TrainConfig, record, section="train")
     assert replace(_load(name), seed=recorded.seed) == recorded
-    assert f"--config {TRAINED_AS[name]} " in prov["command"]  # trained under its older name
+    assert TRAINED_AS[name] in prov["command"]
 
 
 @pytest.mark.parametrize("name", sorted(SHIPPED))
@@ -169,40 +163,49 @@ def test_the_true_pose_policy_is_the_from_scratch_recipe():
 
 
 def test_shipped_policy_is_the_realistic_recipe():
-    """The main job's policy: stage 2 of the realistic recipe (its own drifting navigation, the
-    EvoLogics USBL, contact sensing, the refitted error model; near-seat starts in stage 1, the
-    highest-return evaluation kept in stage 2, the fine error added and the collision penalty 70
-    in stage 2; the docking station's contact in the numba kernel while training), from a stage
-    1 of the committed stage-1 config shipped beside it (``stage1/``); both match their
-    checksums and stage 2 reads the observation the recipe's env gives, three values wider than
-    stage 1's."""
+    """The main job's policy: the shipped recipe's one stage (DAgger from the PID, the critic
+    alone for 60k steps, then PPO to 400k steps; its own drifting navigation, the EvoLogics USBL,
+    contact sensing and the fine error in the observation, the refitted error model, collisions
+    at 70, the highest-return evaluation kept, the docking station's contact in the numba
+    kernel), trained from scratch by `rl train --recipe shipped` from a clean tree with the
+    numerics pinned; its files match their checksums, no stage 1 ships beside it."""
     import hashlib
 
     from uwdock.rl.env.observation import observation_size
     from uwdock.rl.policy.policy_io import load_policy
+    from uwdock.rl.train.recipe import load_recipe
 
-    shipped, cfg, model = _shipped_stage2("realistic_ppo", "realistic/stage2.toml")
+    shipped = ROOT / "rl" / "policies" / "realistic_ppo"
+    cfg = load_config(TrainConfig, shipped / "config.toml", section="train")
+    assert cfg == replace(_load("realistic/policy.toml"), seed=cfg.seed)
     assert cfg.env.nav.preset == "mems-ahrs-dvl" and cfg.env.usbl.preset == "evologics-s2cr"
-    assert cfg.env.obs_contact and cfg.env.error_model_path.endswith("_ar1_refit.json")
-    assert cfg.env.world.batch_contact == "kernel"
-    stage1 = _load("realistic/stage1.toml")
-    assert cfg.env.obs_fine_error and not stage1.env.obs_fine_error
-    # only the reward and the fine error differ
-    assert replace(stage1.env, reward=cfg.env.reward, obs_fine_error=True) == cfg.env
-    kept = shipped / "stage1"  # stage 1 ships beside stage 2, in the same format
-    stage1_prov = json.loads((kept / "provenance.json").read_text(encoding="utf-8"))
-    assert stage1_prov["git"]["dirty"] is False and len(stage1_prov["git"]["commit"]) == 40
-    assert TRAINED_AS["realistic/stage1.toml"] in stage1_prov["command"]
-    assert load_config(TrainConfig, kept / "config.toml", section="train") == replace(
-        stage1, seed=stage1_prov["config"]["train"]["seed"]
-    )
-    for folder in (shipped, kept):
-        lines = (folder / "checksums.sha256").read_text().splitlines()
-        assert {line.split("  ", 1)[1] for line in lines} == {"model.json", "weights.npz"}
-        for line in lines:
-            digest, name = line.split("  ", 1)
-            assert hashlib.sha256((folder / name).read_bytes()).hexdigest() == digest, name
-    stage1_model = load_policy(kept)[0]
-    assert stage1_model.observation_space.shape[0] == observation_size(stage1.env)
-    assert model.observation_space.shape[0] == observation_size(cfg.env)
-    assert observation_size(cfg.env) == observation_size(stage1.env) + 3
+    assert cfg.env.obs_contact and cfg.env.obs_fine_error
+    assert cfg.env.error_model_path == "rl/models/error_model_clear_tank_480_ar1_refit.json"
+    assert cfg.env.world.batch_contact == "kernel" and cfg.env.reward.collision_penalty == 70
+    assert cfg.imitation.teacher == "pid" and cfg.imitation.critic_warmup_steps == 60_000
+    recipe, _configs, digest = load_recipe("shipped")
+    assert [(s.name, s.config) for s in recipe.stages] == [
+        ("policy", "configs/realistic/policy.toml")
+    ]
+    state = json.loads((shipped / "recipe.json").read_text(encoding="utf-8"))
+    assert (state["recipe"], state["seed"], state["done"]) == ("shipped", cfg.seed, ["policy"])
+    assert state["recipe_sha256"] == digest  # the recipe as committed trains it
+    prov = json.loads((shipped / "provenance.json").read_text(encoding="utf-8"))
+    assert prov["git"]["dirty"] is False and len(prov["git"]["commit"]) == 40
+    assert f"rl train --recipe shipped --seed {cfg.seed} " in prov["command"]
+    numerics = prov["machine"]["numerics"]
+    assert numerics["UWDOCK_NUMERICS"] == "pinned" and numerics["MKL_CBWR"] == "AVX2,STRICT"
+    assert numerics["numpy_simd"] == []
+    assert not (shipped / "stage1").exists()
+    imitation = json.loads((shipped / "imitation.json").read_text(encoding="utf-8"))
+    assert len(imitation["loss"]) == cfg.imitation.iterations
+    lines = (shipped / "checksums.sha256").read_text().splitlines()
+    assert {line.split("  ", 1)[1] for line in lines} == {"model.json", "weights.npz"}
+    for line in lines:
+        sha, name = line.split("  ", 1)
+        assert hashlib.sha256((shipped / name).read_bytes()).hexdigest() == sha, name
+    history = [json.loads(line) for line in (shipped / "eval_history.jsonl").open()]
+    best = [r for r in history if r.get("best")][-1]
+    assert best["success_rate_strict"] >= 0.95
+    model = load_policy(shipped)[0]
+    assert model.observation_space.shape[0] == observation_size(cfg.env) == 18
