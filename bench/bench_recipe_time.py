@@ -10,8 +10,9 @@ Runs the command as a user would (the ``rl`` console script, a fresh process, a 
 their periodic evaluations and checkpoints included) and per stage (from the stages' own run
 records: the first and last modification of each stage's run folder). The table gives each
 run, the median against the target (5 minutes on two idle cores), and the policy's
-SHA-256 (the same seed on the same machine gives the same bytes). The runs' folders go to a
-temporary folder (``--work`` to keep them elsewhere, ``--keep`` not to remove them).
+SHA-256 (the same seed gives the same bytes), and whether it is the shipped policy's
+(``shipped_weights``: the shipped recipe and seed, retrained from scratch). The runs' folders
+go to a temporary folder (``--work`` to keep them elsewhere, ``--keep`` not to remove them).
 
 Writes ``bench/results/<name>.json`` (rows, machine, commit, packages) via
 :func:`uwdock.dockcore.bench.save_results`.
@@ -46,6 +47,20 @@ def _stage_walls(out: Path) -> dict[str, float]:
     return walls
 
 
+def shipped_weights(recipe: str, seed: int) -> str | None:
+    """The SHA-256 of the shipped policy's weights when ``recipe`` and ``seed`` are those it
+    was trained with (its ``recipe.json``), else None."""
+    shipped = Path(__file__).resolve().parent.parent / "rl" / "policies" / "realistic_ppo"
+    try:
+        state = json.loads((shipped / "recipe.json").read_text(encoding="utf-8"))
+        sums = (shipped / "checksums.sha256").read_text(encoding="utf-8").splitlines()
+    except (OSError, ValueError):
+        return None
+    if (state.get("recipe"), state.get("seed")) != (recipe, seed):
+        return None
+    return next((ln.split()[0] for ln in sums if ln.split()[-1] == "weights.npz"), None)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--recipe", default="shipped")
@@ -75,13 +90,15 @@ def main() -> None:
         if res.returncode != 0:
             sys.exit(f"error: the command failed (exit {res.returncode})")
         weights = hashlib.sha256((out / "weights.npz").read_bytes()).hexdigest()
-        prov = json.loads((out / "runs" / "stage1" / "provenance.json").read_text())
+        first = json.loads((out / "recipe.json").read_text())["stages"][0]["name"]
+        prov = json.loads((out / "runs" / first / "provenance.json").read_text())
         rows.append(
             {
                 "run": k,
                 "wall_min": wall_s / 60.0,
                 **{f"{s}_min": w / 60.0 for s, w in _stage_walls(out).items()},
                 "weights_sha256": weights[:16],
+                "shipped_weights": weights == shipped_weights(a.recipe, a.seed),
                 "numerics": prov.get("machine", {}).get("numerics", {}).get("UWDOCK_NUMERICS"),
             }
         )
