@@ -14,14 +14,18 @@ The configuration measured is the first stage of ``--recipe`` (``configs/recipes
 measurement trains it (``rl.train.training.train``, no progress bar) from scratch in a temporary run
 folder, in a fresh process (a process that has started SAPIEN cannot fork working env workers
 on a GPU's Vulkan driver), with the periodic evaluation and checkpoints switched off, for
-``rollouts`` PPO rollouts of ``n_steps x n_envs`` steps, after one uncounted warm-up run (numba
-compiles its kernels into an on-disk cache on first use). A rate is a whole run's steps over its
-wall time, start included (processes, the first observations): never the difference of two
-noisy runs, so never negative, and a little below the steady rate. The table gives the median,
-min and max over ``repeats`` runs per row, the seconds per rollout, and the minutes the
-recipe's stages would take at the median rate (``recipe_min``: every stage's ``total_steps``;
-the stages' periodic evaluations come on top) against the 5-minute target; the recipe itself,
-evaluations included, is timed by ``bench/bench_recipe_time.py``.
+``rollouts`` PPO rollouts of ``n_steps x n_envs`` steps (PPO alone: the recipe's DAgger warm
+start is a fixed cost, timed with the whole run by ``bench/bench_recipe_time.py``), after one
+uncounted warm-up run (numba compiles its kernels into an on-disk cache on first use). Each run
+gives two rates, both from that one run, never the difference of two noisy runs, so never
+negative: its steps over its wall time, start included (processes, the first observations),
+and the steady rate, the steps of its rollouts after the first over the time from the end of
+the first rollout to the end of the last on the run's own clock (its TensorBoard stamps,
+updates included). The table gives the median, min and max over ``repeats`` runs per row, the
+seconds per rollout, and the minutes the recipe's PPO steps would take at the steady rate
+(``recipe_min``: every stage's ``total_steps``; the warm start and the periodic evaluations
+come on top) against the 5-minute target. The summary's ``ratio`` is of the steady rates,
+``ratio_start_included`` of the whole runs'.
 
 Simulators, side by side in one run on the same machine (``--simulators``, default the first
 two):
@@ -77,18 +81,40 @@ SIMULATORS = ("per-env", "batched", "batched-shared", "batched-own", "batched-ke
 
 def _measure(
     cfg: TrainConfig, envs: int, rollouts: int, init: str | None = None, batch_workers: int = 1
-) -> tuple[int, float]:
-    """Train ``rollouts`` rollouts with ``envs`` envs (from policy ``init`` if given); returns
-    (steps, wall seconds)."""
+) -> tuple[int, float, int, float]:
+    """Train ``rollouts`` rollouts with ``envs`` envs (from policy ``init`` if given), PPO
+    alone (a warm start by imitation is a fixed cost of a run, not a rate: the recipe's is in
+    ``bench/bench_recipe_time.py``'s whole run); returns (steps, wall seconds) of the whole run
+    and (steps, seconds) from the end of its first rollout to the end of its last, on the run's
+    own clock (:func:`rollout_clock`)."""
     steps = rollouts * cfg.ppo.n_steps * envs
-    run_cfg = replace(cfg, n_envs=envs, total_steps=steps, eval_every=OFF, checkpoint_every=OFF)
+    run_cfg = replace(cfg, n_envs=envs, total_steps=steps, eval_every=OFF, checkpoint_every=OFF,
+                      imitation=replace(cfg.imitation, teacher="none"))  # fmt: skip
     with tempfile.TemporaryDirectory(prefix="bench_train_") as tmp:
         t0 = time.perf_counter()
         train(
             run_cfg, Path(tmp) / "run", progress=False, init_policy=init,
             note=lambda _m: None, batch_workers=batch_workers,
         )  # fmt: skip
-        return steps, time.perf_counter() - t0
+        wall_s = time.perf_counter() - t0
+        return (steps, wall_s, *rollout_clock(Path(tmp) / "run"))
+
+
+def rollout_clock(run: Path) -> tuple[int, float]:
+    """(steps, seconds) between the end of a run's first rollout and the end of its last, from
+    the times its TensorBoard log stamped on them (SB3's ``time/fps``, one a rollout): the
+    steady rate of the rollouts and updates, without the start; (0, 0.0) for one rollout."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    files = sorted((run / "tb").rglob("events.out.tfevents.*"))
+    if not files:
+        raise RuntimeError(f"{run}: no TensorBoard log to time the rollouts by")
+    acc = EventAccumulator(str(files[-1]))
+    acc.Reload()
+    marks = acc.Scalars("time/fps")
+    if len(marks) < 2:
+        return (0, 0.0)
+    return (marks[-1].step - marks[0].step, marks[-1].wall_time - marks[0].wall_time)
 
 
 def _child(cfg: TrainConfig, envs: int, rollouts: int, init, workers: int, out) -> None:
@@ -175,21 +201,27 @@ def main() -> None:
     workers = {sim: a.batch_workers for sim in SIMULATORS[1:]} | {"per-env": 1}
     rows = []
     for sim, cfg in runs:
-        rates, walls = [], []
+        rates, walls, steady = [], [], []
         envs = cfg.n_envs
         # a first run fills the on-disk caches (numba kernels) that the first measured run
         # would otherwise pay for alone; not counted
         measure(cfg, envs, 1, a.init_policy, workers[sim])
         for k in range(a.repeats):
-            steps, wall_s = measure(cfg, envs, a.rollouts, a.init_policy, workers[sim])
+            steps, wall_s, n_steady, t_steady = measure(
+                cfg, envs, a.rollouts, a.init_policy, workers[sim]
+            )
             rates.append(steps / wall_s)
             walls.append(wall_s)
+            steady.append(n_steady / t_steady if t_steady > 0 else None)
             print(
                 f"{sim}, {envs} envs, run {k + 1}/{a.repeats}: {steps:,} steps in {wall_s:.1f} s "
-                f"(start included): {rates[-1]:.0f} steps/s",
+                f"(start included): {rates[-1]:.0f} steps/s; after the first rollout "
+                f"{steady[-1] or 0:.0f} steps/s",
                 flush=True,
             )
         med = statistics.median(rates)
+        ok = [r for r in steady if r is not None]
+        steady_med = statistics.median(ok) if ok else None
         rows.append(
             {
                 "simulator": sim,
@@ -203,15 +235,17 @@ def main() -> None:
                 "steps_per_s_min": min(rates),
                 "steps_per_s_max": max(rates),
                 "s_per_rollout_median": statistics.median(walls) / a.rollouts,
-                "recipe_min": recipe_steps / med / 60.0,
+                "steady_steps_per_s_median": steady_med,
+                "steady_steps_per_s_min": min(ok) if ok else None,
+                "steady_steps_per_s_max": max(ok) if ok else None,
+                "recipe_min": recipe_steps / (steady_med or med) / 60.0,
             }
         )
     print(format_table(rows, list(rows[0])))
-    rate = {
-        r["simulator"]: r["steps_per_s_median"]
-        for r in rows
-        if r["recipe"] or r["simulator"].startswith("batched-")
-    }
+    mine = [r for r in rows if r["recipe"] or r["simulator"].startswith("batched-")]
+    whole = {r["simulator"]: r["steps_per_s_median"] for r in mine}
+    rate = {r["simulator"]: r["steady_steps_per_s_median"] or r["steps_per_s_median"] for r in mine}
+    both = "batched" in rate and "per-env" in rate
     summary = {
         "recipe_min_at_batched_rate": (
             recipe_steps / rate["batched"] / 60.0 if "batched" in rate else None
@@ -219,9 +253,8 @@ def main() -> None:
         "target_min": TARGET_MIN,
         "batched_steps_per_s": rate.get("batched"),
         "per_env_steps_per_s": rate.get("per-env"),
-        "ratio": (
-            rate["batched"] / rate["per-env"] if "batched" in rate and "per-env" in rate else None
-        ),
+        "ratio": rate["batched"] / rate["per-env"] if both else None,
+        "ratio_start_included": whole["batched"] / whole["per-env"] if both else None,
     }
     for sim in SIMULATORS[2:]:
         if sim in rate:
@@ -243,7 +276,8 @@ def main() -> None:
     }
     print("wrote", save_results(a.name, rows, bench_cfg, a.out_dir))
     if summary["ratio"] is not None:
-        print(f"batched / per-env: {summary['ratio']:.1f}x")
+        print(f"batched / per-env: {summary['ratio']:.1f}x after the first rollout, "
+              f"{summary['ratio_start_included']:.1f}x with the start")  # fmt: skip
     if summary["recipe_min_at_batched_rate"] is not None:
         print(
             f"the {a.recipe} recipe's {recipe_steps:,} steps at the batched rate: "
