@@ -105,12 +105,32 @@ def test_a_recipe_trains_its_stages_into_a_policy_folder(small_recipe, tmp_path,
         assert "seed = 3" in (out / "runs" / stage / "config.toml").read_text()
 
 
-def test_a_rerun_trains_nothing_twice_and_another_seed_is_refused(small_recipe, tmp_path):
+def test_a_rerun_trains_nothing_twice_and_another_seed_is_refused(
+    small_recipe, tmp_path, monkeypatch
+):
     out = tmp_path / "out"
     R.run_recipe("small", 0, out, progress=False)
     stamps = {p: p.stat().st_mtime_ns for p in (out / "runs").rglob("weights.npz")}
     R.run_recipe("small", 0, out, progress=False)
     assert stamps == {p: p.stat().st_mtime_ns for p in (out / "runs").rglob("weights.npz")}
+    # the stages' data files are named from the checkout that trained them: run again from
+    # another checkout (the same files elsewhere), the finished stages train nothing and the
+    # same policy is published
+    before = {p: _sha(p) for p in out.rglob("*") if p.is_file()}
+    moved = tmp_path / "moved"
+    small_recipe.rename(moved)
+    with monkeypatch.context() as m:
+        m.setattr(R, "ROOT", moved)
+        m.setattr(R, "RECIPES", moved / "configs" / "recipes")
+        m.setattr(R, "train", lambda *a, **k: pytest.fail("a finished stage trained again"))
+        notes: list[str] = []
+        R.run_recipe("small", 0, out, note=notes.append, progress=False)
+    assert [n for n in notes if ": done (" in n] == [
+        f"recipe small, seed 0: stage {k}/2 {s}: done ({out / 'runs' / s})"
+        for k, s in ((1, "first"), (2, "second"))
+    ]
+    assert {p: _sha(p) for p in out.rglob("*") if p.is_file()} == before
+    moved.rename(small_recipe)
     with pytest.raises(DockError, match="another recipe run"):
         R.run_recipe("small", 1, out, progress=False)
     # a comment is not the recipe: the folder resumes (nothing to do)
@@ -126,27 +146,6 @@ def test_a_rerun_trains_nothing_twice_and_another_seed_is_refused(small_recipe, 
     model.write_bytes(model.read_bytes() + b"\n")
     with pytest.raises(DockError, match="another version of the recipe"):
         R.run_recipe("small", 0, out, progress=False)
-
-
-def test_a_finished_folder_is_done_from_another_checkout(small_recipe, tmp_path, monkeypatch):
-    """The stages' data files are named from the checkout that trained them; the same recipe
-    run again from another checkout (the same files elsewhere) trains nothing and publishes the
-    same policy."""
-    out = tmp_path / "out"
-    R.run_recipe("small", 0, out, progress=False)
-    before = {p: _sha(p) for p in out.rglob("*") if p.is_file()}
-    moved = tmp_path / "moved"
-    small_recipe.rename(moved)
-    monkeypatch.setattr(R, "ROOT", moved)
-    monkeypatch.setattr(R, "RECIPES", moved / "configs" / "recipes")
-    monkeypatch.setattr(R, "train", lambda *a, **k: pytest.fail("a finished stage trained again"))
-    notes: list[str] = []
-    R.run_recipe("small", 0, out, note=notes.append, progress=False)
-    assert [m for m in notes if ": done (" in m] == [
-        f"recipe small, seed 0: stage {k}/2 {s}: done ({out / 'runs' / s})"
-        for k, s in ((1, "first"), (2, "second"))
-    ]
-    assert {p: _sha(p) for p in out.rglob("*") if p.is_file()} == before
 
 
 def test_stage_configs_moved_or_split_with_extends_are_the_same_recipe(small_recipe, tmp_path):
