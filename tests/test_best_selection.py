@@ -10,7 +10,7 @@ import pytest
 import uwdock.rl.train.session as session_mod
 from uwdock.dockcore.config import ConfigError, from_dict, replace
 from uwdock.rl.policy.policy_format import policy_files
-from uwdock.rl.train.session import TrainingSession, eval_score
+from uwdock.rl.train.session import TrainingSession, eval_score, replaces_best
 from uwdock.rl.train.sweep import _trial_summary
 from uwdock.rl.train.training import TrainConfig
 
@@ -30,15 +30,58 @@ STAGE2 = [
 ]
 
 
-def _summary(strict, paper, ret, coll):
+# The seventeen evaluations of a shipped-recipe run (configs/realistic/policy.toml, seed 6,
+# trained under "return"): (step, strict, mean time to dock s). Every evaluation docked 29 or
+# 30 of 30; "return" kept 253952 (30 of 30, 10.67 s), which held out at 0.77x the PID's time.
+RECIPE_SEED6 = [
+    (0, 0.9667, 12.01), (28672, 0.9667, 12.01), (53248, 0.9667, 12.01), (77824, 0.9667, 11.15),
+    (102400, 1.0, 11.01), (126976, 1.0, 10.89), (151552, 1.0, 10.83), (176128, 1.0, 10.62),
+    (200704, 1.0, 10.28), (225280, 1.0, 10.67), (253952, 1.0, 10.67), (278528, 0.9667, 10.11),
+    (303104, 0.9667, 10.2), (327680, 0.9667, 10.12), (352256, 0.9667, 9.53),
+    (376832, 0.9667, 9.55), (401408, 0.9667, 9.43),
+]  # fmt: skip
+
+
+def _summary(strict, paper, ret, coll, time_s=9.0):
     return {
         "episodes": 30,
         "success_rate": paper,
         "success_rate_strict": strict,
         "mean_return": ret,
         "mean_collisions": coll,
-        "mean_time_to_dock_s": 9.0,
+        "mean_time_to_dock_s": time_s,
     }
+
+
+def _kept(rows, rule):
+    """The step ``rule`` keeps over ``rows`` of summaries, evaluated one after another."""
+    history, kept = [], None
+    for step, summary in rows:
+        record = {"step": step, **summary}
+        if replaces_best(summary, kept, history, "strict", rule):
+            kept = record
+        history.append(record)
+    return kept["step"]
+
+
+def test_fastest_keeps_the_quickest_evaluation_within_one_episode_of_the_best():
+    rows = [(step, _summary(s, s, 0.0, 0.0, t)) for step, s, t in RECIPE_SEED6]
+    assert _kept(rows, "fastest") == 401408  # 29 of 30, 9.43 s
+    assert _kept(rows, "success") == 102400  # the first 30 of 30
+    # two episodes short of the best is out of reach, however fast
+    slow_best = [(0, _summary(1.0, 1.0, 0, 0, 12.0)), (1, _summary(0.9333, 0.9333, 0, 0, 8.0))]
+    assert _kept(slow_best, "fastest") == 0
+    # a rate rising more than one episode above the kept one takes best/, even if slower
+    rising = [
+        (0, _summary(0.9, 0.9, 0, 0, 8.0)),
+        (1, _summary(0.9333, 0.9333, 0, 0, 7.0)),
+        (2, _summary(1.0, 1.0, 0, 0, 11.0)),
+        (3, _summary(0.9667, 0.9667, 0, 0, 10.0)),
+    ]
+    assert _kept(rising, "fastest") == 3
+    # nothing docked: no time, never faster than an evaluation that docked
+    none = [(0, _summary(0.0, 0.0, 0, 0, None)), (1, _summary(0.0, 0.0, 0, 0, 30.0))]
+    assert _kept(none, "fastest") == 1
 
 
 def test_eval_score_ranks_success_first_or_the_return_alone():
@@ -58,11 +101,14 @@ def test_eval_score_ranks_success_first_or_the_return_alone():
 
 def test_select_best_is_checked_when_a_config_is_read():
     assert from_dict(TrainConfig, {"select_best": "return"}).select_best == "return"
+    assert from_dict(TrainConfig, {"select_best": "fastest"}).select_best == "fastest"
     with pytest.raises(ConfigError, match="select_best"):
         from_dict(TrainConfig, {"select_best": "collisions"})
 
 
-@pytest.mark.parametrize(("select_best", "kept_step"), [("success", 28672), ("return", 200704)])
+@pytest.mark.parametrize(
+    ("select_best", "kept_step"), [("success", 28672), ("return", 200704), ("fastest", 200704)]
+)
 def test_the_session_keeps_the_selected_evaluation_in_best(
     tmp_path, monkeypatch, select_best, kept_step
 ):
@@ -71,7 +117,7 @@ def test_the_session_keeps_the_selected_evaluation_in_best(
     of the run reports that evaluation."""
     from stable_baselines3 import PPO
 
-    summaries = iter(_summary(*row[1:]) for row in STAGE2)
+    summaries = iter(_summary(*row[1:], 12.0 - i) for i, row in enumerate(STAGE2))
     monkeypatch.setattr(session_mod, "summarise", lambda rows: next(summaries))
     cfg = replace(TrainConfig(), select_best=select_best, env=replace(TrainConfig().env,
                   terminate_on="strict"))  # fmt: skip

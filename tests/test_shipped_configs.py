@@ -21,7 +21,7 @@ CONFIGS = sorted(p for p in (ROOT / "configs").rglob("*.toml") if "recipes" not 
 SHIPPED = {
     "realistic/policy.toml": (
         "realistic_ppo/config.toml",
-        "bdd4d7f604b50b1b930c20147256c264b33ee527377fdcc9c561c68ff1100be1",
+        "0a656cd423fbf8785a965bfadbef18cae2ee9dec07177e834dc3dafd081a3bd5",
     ),
     "scratch/stage1.toml": (
         "scratch_error_model_ppo/stage1_provenance.json",

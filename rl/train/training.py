@@ -148,9 +148,11 @@ class TrainConfig:
         eval_every: steps between evaluations (0: off).
         eval_episodes: episodes per evaluation.
         select_best: which evaluation ``best/`` keeps: "success" (the success rate that ends
-            the episode, then the other, then the mean return) or "return" (the mean return
+            the episode, then the other, then the mean return), "return" (the mean return
             alone, as SB3's ``EvalCallback`` keeps its best model): for a stage whose reward
-            says what it is for, such as the gentle landing's collision penalty.
+            says what it is for, such as the gentle landing's collision penalty, or "fastest"
+            (the least mean time to dock among the evaluations within one episode of the
+            highest success rate: :func:`rl.train.session.replaces_best`).
         normalize_obs: running observation normalisation (VecNormalize).
         normalize_reward: running reward scaling (VecNormalize).
         env: the environment.
@@ -170,7 +172,7 @@ class TrainConfig:
     checkpoint_every: Annotated[int, Interval(ge=1, le=10**9)] = 50_000
     eval_every: Annotated[int, Interval(ge=0, le=10**9)] = 100_000
     eval_episodes: Annotated[int, Interval(ge=1, le=100_000)] = 20
-    select_best: Literal["success", "return"] = "success"
+    select_best: Literal["success", "return", "fastest"] = "success"
     normalize_obs: bool = True
     normalize_reward: bool = True
     env: EnvConfig = field(default_factory=EnvConfig)
