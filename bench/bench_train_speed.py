@@ -24,8 +24,11 @@ the first rollout to the end of the last on the run's own clock (its TensorBoard
 updates included). The table gives the median, min and max over ``repeats`` runs per row, the
 seconds per rollout, and the minutes the recipe's PPO steps would take at the steady rate
 (``recipe_min``: every stage's ``total_steps``; the warm start and the periodic evaluations
-come on top) against the 5-minute target. The summary's ``ratio`` is of the steady rates,
-``ratio_start_included`` of the whole runs'.
+come on top) against the 5-minute target, and the rate of the same rollouts alone (the
+simulator and the policy's actions, without PPO's update: the run's ``time/rollout_s``). The
+summary's ``ratio`` is of the steady rates, ``ratio_start_included`` of the whole runs',
+``ratio_rollouts_alone`` of the rollouts alone (the update, the same work in both, is not in
+it).
 
 Simulators, side by side in one run on the same machine (``--simulators``, default the first
 two):
@@ -81,12 +84,12 @@ SIMULATORS = ("per-env", "batched", "batched-shared", "batched-own", "batched-ke
 
 def _measure(
     cfg: TrainConfig, envs: int, rollouts: int, init: str | None = None, batch_workers: int = 1
-) -> tuple[int, float, int, float]:
+) -> tuple[int, float, int, float, float | None]:
     """Train ``rollouts`` rollouts with ``envs`` envs (from policy ``init`` if given), PPO
     alone (a warm start by imitation is a fixed cost of a run, not a rate: the recipe's is in
     ``bench/bench_recipe_time.py``'s whole run); returns (steps, wall seconds) of the whole run
-    and (steps, seconds) from the end of its first rollout to the end of its last, on the run's
-    own clock (:func:`rollout_clock`)."""
+    and (steps, seconds, rollout seconds) from the end of its first rollout to the end of its
+    last, on the run's own clock (:func:`rollout_clock`)."""
     steps = rollouts * cfg.ppo.n_steps * envs
     run_cfg = replace(cfg, n_envs=envs, total_steps=steps, eval_every=OFF, checkpoint_every=OFF,
                       imitation=replace(cfg.imitation, teacher="none"))  # fmt: skip
@@ -100,10 +103,12 @@ def _measure(
         return (steps, wall_s, *rollout_clock(Path(tmp) / "run"))
 
 
-def rollout_clock(run: Path) -> tuple[int, float]:
-    """(steps, seconds) between the end of a run's first rollout and the end of its last, from
-    the times its TensorBoard log stamped on them (SB3's ``time/fps``, one a rollout): the
-    steady rate of the rollouts and updates, without the start; (0, 0.0) for one rollout."""
+def rollout_clock(run: Path) -> tuple[int, float, float | None]:
+    """(steps, seconds, rollout seconds) between the end of a run's first rollout and the end
+    of its last, from the times its TensorBoard log stamped on them (SB3's ``time/fps``, one a
+    rollout): the steady rate of the rollouts and updates, without the start; the rollout
+    seconds are those of the same rollouts alone (``time/rollout_s``, the simulator and the
+    policy's actions, no update; None in a log without them); (0, 0.0, None) for one rollout."""
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     files = sorted((run / "tb").rglob("events.out.tfevents.*"))
@@ -113,8 +118,12 @@ def rollout_clock(run: Path) -> tuple[int, float]:
     acc.Reload()
     marks = acc.Scalars("time/fps")
     if len(marks) < 2:
-        return (0, 0.0)
-    return (marks[-1].step - marks[0].step, marks[-1].wall_time - marks[0].wall_time)
+        return (0, 0.0, None)
+    alone = None
+    if "time/rollout_s" in acc.Tags()["scalars"]:
+        later = [e.value for e in acc.Scalars("time/rollout_s") if e.step > marks[0].step]
+        alone = float(sum(later)) if len(later) == len(marks) - 1 else None
+    return (marks[-1].step - marks[0].step, marks[-1].wall_time - marks[0].wall_time, alone)
 
 
 def _child(cfg: TrainConfig, envs: int, rollouts: int, init, workers: int, out) -> None:
@@ -201,27 +210,29 @@ def main() -> None:
     workers = {sim: a.batch_workers for sim in SIMULATORS[1:]} | {"per-env": 1}
     rows = []
     for sim, cfg in runs:
-        rates, walls, steady = [], [], []
+        rates, walls, steady, alone = [], [], [], []
         envs = cfg.n_envs
         # a first run fills the on-disk caches (numba kernels) that the first measured run
         # would otherwise pay for alone; not counted
         measure(cfg, envs, 1, a.init_policy, workers[sim])
         for k in range(a.repeats):
-            steps, wall_s, n_steady, t_steady = measure(
+            steps, wall_s, n_steady, t_steady, t_alone = measure(
                 cfg, envs, a.rollouts, a.init_policy, workers[sim]
             )
             rates.append(steps / wall_s)
             walls.append(wall_s)
             steady.append(n_steady / t_steady if t_steady > 0 else None)
+            alone.append(n_steady / t_alone if t_alone else None)
             print(
                 f"{sim}, {envs} envs, run {k + 1}/{a.repeats}: {steps:,} steps in {wall_s:.1f} s "
                 f"(start included): {rates[-1]:.0f} steps/s; after the first rollout "
-                f"{steady[-1] or 0:.0f} steps/s",
+                f"{steady[-1] or 0:.0f} steps/s, the rollouts alone {alone[-1] or 0:.0f} steps/s",
                 flush=True,
             )
         med = statistics.median(rates)
         ok = [r for r in steady if r is not None]
         steady_med = statistics.median(ok) if ok else None
+        ok_alone = [r for r in alone if r is not None]
         rows.append(
             {
                 "simulator": sim,
@@ -238,6 +249,7 @@ def main() -> None:
                 "steady_steps_per_s_median": steady_med,
                 "steady_steps_per_s_min": min(ok) if ok else None,
                 "steady_steps_per_s_max": max(ok) if ok else None,
+                "rollout_steps_per_s_median": (statistics.median(ok_alone) if ok_alone else None),
                 "recipe_min": recipe_steps / (steady_med or med) / 60.0,
             }
         )
@@ -246,6 +258,8 @@ def main() -> None:
     whole = {r["simulator"]: r["steps_per_s_median"] for r in mine}
     rate = {r["simulator"]: r["steady_steps_per_s_median"] or r["steps_per_s_median"] for r in mine}
     both = "batched" in rate and "per-env" in rate
+    alone = {r["simulator"]: r["rollout_steps_per_s_median"] for r in mine}
+    both_alone = both and alone["batched"] is not None and alone["per-env"] is not None
     summary = {
         "recipe_min_at_batched_rate": (
             recipe_steps / rate["batched"] / 60.0 if "batched" in rate else None
@@ -255,6 +269,9 @@ def main() -> None:
         "per_env_steps_per_s": rate.get("per-env"),
         "ratio": rate["batched"] / rate["per-env"] if both else None,
         "ratio_start_included": whole["batched"] / whole["per-env"] if both else None,
+        "batched_rollout_steps_per_s": alone.get("batched"),
+        "per_env_rollout_steps_per_s": alone.get("per-env"),
+        "ratio_rollouts_alone": alone["batched"] / alone["per-env"] if both_alone else None,
     }
     for sim in SIMULATORS[2:]:
         if sim in rate:
@@ -278,6 +295,9 @@ def main() -> None:
     if summary["ratio"] is not None:
         print(f"batched / per-env: {summary['ratio']:.1f}x after the first rollout, "
               f"{summary['ratio_start_included']:.1f}x with the start")  # fmt: skip
+    if summary["ratio_rollouts_alone"] is not None:
+        print(f"batched / per-env, the rollouts alone (no update): "
+              f"{summary['ratio_rollouts_alone']:.1f}x")  # fmt: skip
     if summary["recipe_min_at_batched_rate"] is not None:
         print(
             f"the {a.recipe} recipe's {recipe_steps:,} steps at the batched rate: "

@@ -26,13 +26,17 @@ def test_the_rollout_clock_counts_the_rollouts_after_the_first(bench, tmp_path):
     )  # fmt: skip
     run = tmp_path / "run"
     train(cfg, run, progress=False, note=lambda _m: None)
-    steps, seconds = bench.rollout_clock(run)
+    steps, seconds, alone = bench.rollout_clock(run)
     assert steps == 2 * 16 * 4  # the second and third rollouts
-    assert 0 < seconds < 120
+    assert 0 < alone < seconds < 120  # the rollouts alone: the updates between them left out
     from torch.utils.tensorboard import SummaryWriter
 
     with SummaryWriter(str(tmp_path / "one" / "tb" / "tb_1")) as log:  # a one-rollout run's log
         log.add_scalar("time/fps", 100.0, 64)
-    assert bench.rollout_clock(tmp_path / "one") == (0, 0.0)  # no steady interval
+    assert bench.rollout_clock(tmp_path / "one") == (0, 0.0, None)  # no steady interval
+    with SummaryWriter(str(tmp_path / "old" / "tb" / "tb_1")) as log:  # no rollout_s logged
+        log.add_scalar("time/fps", 100.0, 64)
+        log.add_scalar("time/fps", 100.0, 128)
+    assert bench.rollout_clock(tmp_path / "old")[2] is None
     with pytest.raises(RuntimeError, match="no TensorBoard log"):
         bench.rollout_clock(Path(tmp_path / "absent"))

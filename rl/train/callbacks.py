@@ -12,6 +12,7 @@ it) at module level: only the function that trains imports it (``rl.train.traini
 from __future__ import annotations
 
 import os
+import time
 from collections import defaultdict
 from pathlib import Path
 
@@ -91,6 +92,7 @@ class TrainingCallback(BaseCallback):
         self._bar = None
         self._terms: dict[str, list[float]] = defaultdict(list)
         self._episodes: list[tuple[bool, bool]] = []
+        self._rollout_t0 = time.perf_counter()
 
     def _actor_params(self):
         pol = self.model.policy
@@ -121,8 +123,12 @@ class TrainingCallback(BaseCallback):
 
         torch.set_num_threads(1)
         self.session.boundary()
+        self._rollout_t0 = time.perf_counter()
 
     def _on_rollout_end(self) -> None:
+        # the rollout alone (env steps and the policy's actions; not the update, not the
+        # boundary's checkpoints and evaluations), in the run's TensorBoard log
+        self.logger.record("time/rollout_s", time.perf_counter() - self._rollout_t0)
         if self._update_threads() > 1:
             import torch
 
