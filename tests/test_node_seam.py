@@ -47,7 +47,7 @@ def test_node_observation_equals_the_envs_at_every_step():
     t = 1_000_000_000
     pwcs = "geometry_msgs/msg/PoseWithCovarianceStamped"
     feed("ds_prior", _wire(rm.pose_cov_stamped_msg(T, cov, t, "world_ned"), pwcs), t)
-    steps, detected, done = 0, 0, False
+    steps, detected, done, exact = 0, 0, False, 0
     while not done:
         nav = env.navigation_solution()
         Tn, w = nav["T_world_body"], nav["angular_velocity_frd_radps"]
@@ -67,13 +67,20 @@ def test_node_observation_equals_the_envs_at_every_step():
         img = rm.image_msg(env.source.last_frame.img_bgr(), t, "camera")
         feed("image", _wire(img, "sensor_msgs/msg/Image"), t)
         tick = chain.tick(t)
-        assert np.array_equal(tick.observation, obs), f"observations differ at step {steps}"
+        # the same float32 input, but for the last place: the pose crosses the wire as a
+        # quaternion, whose round trip moves the rotation by ~1e-16, and tanh(e / 0.1 m) (the
+        # fine error) can carry that into one unit in the last place of an entry (seen: one
+        # entry, at one of 54 steps)
+        diff = np.abs(tick.observation.astype(np.float64) - obs)
+        assert diff.max() <= 2 * np.spacing(np.float32(1.0)), f"step {steps}: {diff.max()}"
+        exact += bool(np.array_equal(tick.observation, obs))
         detected += tick.measurement is not None
         obs, _, term, trunc, info = env.step_wrench(tick.command)
         t += chain.period_ns
         steps += 1
         done = term or trunc
     assert detected > 20 and chain.counts["refused_image"] == 0
+    assert exact >= 0.9 * steps  # bit for bit at nearly every step
     ref = run_episodes(OnnxPolicy(SHIPPED_POLICY), cfg, 1, seed=SEED, record=False).episodes[0]
     assert info["success_strict"] and ref["success_strict"]
     assert steps == ref["steps"]

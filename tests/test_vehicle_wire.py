@@ -3,7 +3,7 @@ processes on a loopback DDS domain (``--clock sim``, lock-step), then ``rl repla
 vehicle's recording.
 
 * the episode over the wire is the in-process ``rl eval`` episode on the same seed, row for
-  row (same steps, same time to dock, same final errors);
+  row (same steps, same time to dock, the same final errors to 0.01 mm);
 * the recordings read back with ``rosbags`` with the ROS 2 types;
 * a replay of the vehicle's recording gives the same track twice, and the same commands the
   live node sent;
@@ -125,8 +125,12 @@ def test_lockstep_episode_equals_in_process_eval(lockstep):
     assert int(wire["steps"]) == in_process["steps"]
     assert int(wire["collisions"]) == in_process["collisions"]
     assert float(wire["time_to_dock_s"]) == in_process["time_to_dock_s"]
-    for key in ("final_e_xy_m", "final_e_z_m", "final_e_yaw_deg"):
-        assert float(wire[key]) == pytest.approx(in_process[key], abs=1e-9), key
+    # the final errors to a hundredth of a millimetre and degree: a pose crosses the wire as a
+    # quaternion, and one unit in the last place of the policy's float32 input
+    # (tests/test_node_seam.py) moves the rest of the episode by micrometres
+    for key in ("final_e_xy_m", "final_e_z_m"):
+        assert float(wire[key]) == pytest.approx(in_process[key], abs=1e-5), key
+    assert float(wire["final_e_yaw_deg"]) == pytest.approx(in_process["final_e_yaw_deg"], abs=1e-2)
     summary = json.loads((tmp / "vehicle" / "summary.json").read_text())
     for key in ("success_rate_strict", "mean_time_to_dock_s", "mean_collisions"):
         assert key in summary
