@@ -207,7 +207,8 @@ def test_the_shipped_recipe_is_the_shipped_policys_one_stage():
     assert [s.name for s in recipe.stages] == ["policy"] and recipe.stages[0].init_from is None
     cfg = configs["policy"]
     kept = tomllib.loads((ROOT / "rl/policies/realistic_ppo/config.toml").read_text())["train"]
-    assert cfg.total_steps == kept["total_steps"] == 400_000
+    assert cfg.total_steps == kept["total_steps"] == 600_000
+    assert list(cfg.ppo.net_arch) == list(kept["ppo"]["net_arch"]) == [64, 64]
     assert cfg.imitation.teacher == kept["imitation"]["teacher"] == "pid"
     assert cfg.env.reward.collision_penalty == kept["env"]["reward"]["collision_penalty"]
     assert Path(cfg.env.error_model_path).is_absolute()

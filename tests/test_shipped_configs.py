@@ -21,7 +21,7 @@ CONFIGS = sorted(p for p in (ROOT / "configs").rglob("*.toml") if "recipes" not 
 SHIPPED = {
     "realistic/policy.toml": (
         "realistic_ppo/config.toml",
-        "0a656cd423fbf8785a965bfadbef18cae2ee9dec07177e834dc3dafd081a3bd5",
+        "b56cc0e4dff486aebb10c3da675690111a5f109c0a3c868ad68595191893a243",
     ),
     "scratch/stage1.toml": (
         "scratch_error_model_ppo/stage1_provenance.json",
