@@ -4,7 +4,7 @@ episodes beside the PID, judge the worst seed.
 Usage::
 
     python bench/bench_recipe_seeds.py [--recipe shipped] [--seeds 0,1,2,3,4,5,6,7]
-        [--work /work/recipe_seeds] [--episodes 100] [--stress-episodes 100] [--seed 97000]
+        [--work /work/recipe_seeds] [--episodes 100] [--stress-episodes 100] [--seed 99000]
         [--rows "camera,current 0.4,long approach,all"] [--workers 2]
         [--skip-train] [--skip-eval] [--quick] [--name recipe_seeds] [--out-dir bench/results]
 
@@ -17,11 +17,11 @@ Steps (each resumable: run the same command again after an interruption):
 2. evaluate (unless ``--skip-eval``): ``bench/bench_docking.py --controllers policy`` on each
    trained seed's folder into ``WORK/eval/seed_S.json``, and once ``--controllers pid`` (env
    settings from the first trained seed's folder: every seed of a recipe has the same ones) into
-   ``WORK/eval/pid.json``; episode k is seed ``--seed`` + k in every file (97000...: held out,
+   ``WORK/eval/pid.json``; episode k is seed ``--seed`` + k in every file (99000...: held out,
    never used in development or for picking a checkpoint; 95000... were flown while the
-   recipe's ``best/`` rule was chosen). A file that is there, ``complete``
-   and flown with these settings is kept (and a seed's file older than its policy is flown
-   again); one flown with other settings is refused, not overwritten.
+   recipe's ``best/`` rule was chosen, 97000... while its width and length were). A file that
+   is there, ``complete`` and flown with these settings is kept (and a seed's file older than
+   its policy is flown again); one flown with other settings is refused, not overwritten.
 3. report (always): the statistics below over the seeds whose evaluation is there; a missing
    seed is listed, and the bar is then at best INCOMPLETE.
 
@@ -808,7 +808,7 @@ def main() -> None:
     ap.add_argument("--work", type=Path, default=WORK, help=f"seeds' folders, evaluations [{WORK}]")
     ap.add_argument("--episodes", type=int, help="episodes of the camera row [100; quick 4]")
     ap.add_argument("--stress-episodes", type=int, help="episodes of a harder row [100; quick 2]")
-    ap.add_argument("--seed", type=int, default=97000, help="episode k is seed + k [97000]")
+    ap.add_argument("--seed", type=int, default=99000, help="episode k is seed + k [99000]")
     ap.add_argument("--rows", help=f"bench_docking rows (comma, with {REF}) [{','.join(ROWS)}]")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--skip-train", action="store_true", help="train nothing")
