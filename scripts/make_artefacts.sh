@@ -156,7 +156,7 @@ scratch() {  # the true-pose recipe: PPO from scratch, then its best/ at collisi
 }
 
 # The shipped recipe (configs/recipes/shipped.toml): DAgger from the PID, the critic alone for
-# 60k steps, then PPO to 400k steps, in one stage (configs/realistic/policy.toml says what it
+# 60k steps, then PPO to 600k steps, in one stage (configs/realistic/policy.toml says what it
 # trains on), from scratch with the one command a user runs. Its folder is the policy:
 # model.json, weights.npz and checksums.sha256 at its top, the run in runs/policy/.
 realistic() {
