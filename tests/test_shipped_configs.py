@@ -167,8 +167,9 @@ def test_shipped_policy_is_the_realistic_recipe():
     alone for 60k steps, then PPO to 600k steps; its own drifting navigation, the EvoLogics USBL,
     contact sensing and the fine error in the observation, the refitted error model, collisions
     at 70, of the evaluations within one episode of the highest strict success the fastest kept,
-    the docking station's contact in the numba kernel), trained from scratch by `rl train --recipe shipped` from a clean tree with the
-    numerics pinned; its files match their checksums, no stage 1 ships beside it."""
+    the docking station's contact in the numba kernel), trained from scratch by `rl train
+    --recipe shipped` from a clean tree with the numerics pinned; its files match their
+    checksums, no stage 1 ships beside it."""
     import hashlib
 
     from uwdock.rl.env.observation import observation_size
