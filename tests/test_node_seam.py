@@ -70,7 +70,7 @@ def test_node_observation_equals_the_envs_at_every_step():
         # the same float32 input, but for the last place: the pose crosses the wire as a
         # quaternion, whose round trip moves the rotation by ~1e-16, and tanh(e / 0.1 m) (the
         # fine error) can carry that into one unit in the last place of an entry (seen: one
-        # entry, at one of 54 steps)
+        # entry, at one step of an episode)
         diff = np.abs(tick.observation.astype(np.float64) - obs)
         assert diff.max() <= 2 * np.spacing(np.float32(1.0)), f"step {steps}: {diff.max()}"
         exact += bool(np.array_equal(tick.observation, obs))
