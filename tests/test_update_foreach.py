@@ -30,7 +30,7 @@ def _weights(run: Path) -> str:
     return hashlib.sha256((run / "weights.npz").read_bytes()).hexdigest()
 
 
-def test_the_optimizer_is_adam_over_all_tensors_with_sb3s_eps(tmp_path):
+def test_the_optimizer_is_adam_over_all_tensors_with_sb3s_eps(tmp_path, monkeypatch):
     seen: dict[str, object] = {}
     build = training.build_model
 
@@ -40,12 +40,9 @@ def test_the_optimizer_is_adam_over_all_tensors_with_sb3s_eps(tmp_path):
         seen.update(cls=type(model.policy.optimizer), eps=group["eps"], foreach=group["foreach"])
         return model
 
-    training.build_model = recorded
-    try:
-        train(replace(_cfg(), total_steps=128), tmp_path / "run", progress=False,
-              note=lambda m: None)  # fmt: skip
-    finally:
-        training.build_model = build
+    monkeypatch.setattr(training, "build_model", recorded)
+    train(replace(_cfg(), total_steps=128), tmp_path / "run", progress=False,
+          note=lambda m: None)  # fmt: skip
     assert seen == {"cls": torch.optim.Adam, "eps": 1e-5, "foreach": True}
 
 
