@@ -311,6 +311,7 @@ def test_batched_workers_send_arrays_and_give_the_per_env_calls_results():
     [
         (0.0, "shared", 2, False),
         (1.0, "own", 2, True),
+        (1.0, "kernel", 2, True),
         (1.0, "shared", 1, True),
         (1.0, "shared", (2, True), False),
     ],
@@ -319,12 +320,12 @@ def test_batch_split_over_worker_processes_gives_the_same_rollouts(
     near_share, contact, workers, here
 ):
     """Two envs in each of two processes step exactly as one batch of four (free flight, and
-    with every vehicle starting just above the seat, ``near_share`` 1, in PhysX contact with
-    each vehicle in its own scene), whether the first half runs in this process (``here``) or
-    in a worker process too. In the shared contact scene a split rounds contacts differently
-    (sim.contact_scene), so there the same batch run twice is compared (runs are
-    deterministic), and the split of two worker processes against the same split with its
-    first half here (``(2, True)`` beside 2 worker processes)."""
+    with every vehicle starting just above the seat, ``near_share`` 1, in contact with each
+    vehicle in its own PhysX scene or in the numba kernel, the recipe's), whether the first
+    half runs in this process (``here``) or in a worker process too. In the shared contact
+    scene a split rounds contacts differently (sim.contact_scene), so there the same batch run
+    twice is compared (runs are deterministic), and the split of two worker processes against
+    the same split with its first half here (``(2, True)`` beside 2 worker processes)."""
     from uwdock.rl.train.batch_workers import BatchWorkers
 
     world = replace(WorldConfig(), batch_contact=contact)
@@ -342,10 +343,11 @@ def test_batch_split_over_worker_processes_gives_the_same_rollouts(
         o1, o2 = one.venv.reset(), two.venv.reset()
         np.testing.assert_array_equal(o1, o2)
         rng = np.random.default_rng(1)
-        resets = 0
+        resets = collisions = 0
         for _ in range(20):  # through an auto-reset (15 steps per episode)
             a = rng.uniform(-1, 1, (4, 6)).astype(np.float32)
             r1, r2 = one.venv.step(a), two.venv.step(a)
+            collisions += sum(bool(info["collided"]) for info in r1[3])
             np.testing.assert_array_equal(r1[0], r2[0])
             np.testing.assert_array_equal(r1[1], r2[1])
             assert r1[1].dtype == r2[1].dtype == np.float32  # VecNormalize keeps this dtype
@@ -353,7 +355,9 @@ def test_batch_split_over_worker_processes_gives_the_same_rollouts(
             _assert_same_infos(r1[3], r2[3])
             resets += int(r1[2].sum())
         assert resets >= 4
-        if near_share > 0 and hasattr(one.venv, "physics"):
+        if near_share > 0 and contact == "kernel":
+            assert collisions > 0  # the vehicles touched the station in the kernel
+        elif near_share > 0 and hasattr(one.venv, "physics"):
             assert one.venv.physics.physx_steps > 40  # the contact scene did the work
     finally:
         one.close()
