@@ -10,8 +10,8 @@ itself (``uwdock.dockcore.numerics``) except for ``MKL_CBWR`` (``native``: unset
 own kernels, none of the pin), builds the config's PPO model (its networks, batch size and
 epochs) on its env, fills one rollout of ``n_steps x n_envs`` seeded random transitions and
 times Stable-Baselines3's own ``PPO.train`` on it (one whole update: every epoch and
-minibatch), ``--repeats`` times after one untimed update, each from the same starting weights
-and optimiser state. It reports the median and the spread in seconds, the ratio to the
+minibatch), ``--repeats`` times after one untimed update, each from the same starting weights,
+optimiser state and minibatch order (NumPy's global seed, which the buffer shuffles with). It reports the median and the spread in seconds, the ratio to the
 ``COMPATIBLE`` path on one thread (MKL's SSE2 path, the pin before it ran MKL's AVX2 path),
 and the SHA-256 (first 12 hex digits) of the weights after one update: a pinned path whose
 digest is the same for every thread count gives the same bits whichever count a run uses.
@@ -68,6 +68,7 @@ torch.set_num_threads(threads)
 
 def update():  # from the same weights, with a new optimiser: every update is the first
     model.policy.load_state_dict(start)
+    np.random.seed(0)  # the rollout buffer shuffles its minibatches with NumPy's global RNG
     pol = model.policy
     pol.optimizer = pol.optimizer_class(pol.parameters(), lr=1e-4, **pol.optimizer_kwargs)
     model._current_progress_remaining = 1.0
