@@ -11,10 +11,11 @@ own kernels, none of the pin), builds the config's PPO model (its networks, batc
 epochs) on its env, fills one rollout of ``n_steps x n_envs`` seeded random transitions and
 times Stable-Baselines3's own ``PPO.train`` on it (one whole update: every epoch and
 minibatch), ``--repeats`` times after one untimed update, each from the same starting weights,
-optimiser state and minibatch order (NumPy's global seed, which the buffer shuffles with). It reports the median and the spread in seconds, the ratio to the
-``COMPATIBLE`` path on one thread (MKL's SSE2 path, the pin before it ran MKL's AVX2 path),
-and the SHA-256 (first 12 hex digits) of the weights after one update: a pinned path whose
-digest is the same for every thread count gives the same bits whichever count a run uses.
+optimiser state and minibatch order (NumPy's global seed, which the buffer shuffles with). It
+reports the median and the spread in seconds, the ratio to the ``COMPATIBLE`` path on one
+thread (MKL's SSE2 path, the pin before it ran MKL's AVX2 path), and the SHA-256 (first 12 hex
+digits) of the weights after one update: a pinned path whose digest is the same for every
+thread count gives the same bits whichever count a run uses.
 
 Writes ``bench/results/<name>.json`` (rows, machine, commit).
 """
