@@ -15,6 +15,14 @@ SHA-256 (the same seed gives the same bytes), and whether it is the shipped poli
 (``shipped_weights``: the shipped recipe and seed, retrained from scratch). The runs' folders
 go to a temporary folder (``--work`` to keep them elsewhere, ``--keep`` not to remove them).
 
+This machine's speed varies from day to day, so each run also records what the machine did
+meanwhile and how fast it was: the shares of all its CPUs' time that were idle and stolen by
+the host (``idle_pct``, ``steal_pct``, from ``/proc/stat``; two idle cores running the two
+training processes leave the trainer's waits idle), and ``reference_s``, a fixed pure-Python
+workload timed just before the run (the median of five; on a slower day it takes longer). The
+command runs the checkout's code as it is when each run starts: the record says whether the
+commit and its uncommitted changes stayed the same through every run (``source_unchanged``).
+
 Writes ``bench/results/<name>.json`` (rows, machine, commit, packages) via
 :func:`uwdock.dockcore.bench.save_results`.
 """
@@ -33,8 +41,67 @@ import time
 from pathlib import Path
 
 from uwdock.dockcore.bench import format_table, save_results
+from uwdock.dockcore.provenance import git_commit_at_start
 
 TARGET_MIN = 5.0
+ROOT = Path(__file__).resolve().parent.parent
+#: /proc/stat's CPU columns: user nice system idle iowait irq softirq steal
+_IDLE, _IOWAIT, _STEAL = 3, 4, 7
+
+
+def cpu_counters(stat: Path = Path("/proc/stat")) -> list[int] | None:
+    """All CPUs' time counters (``/proc/stat``'s ``cpu`` line, its first eight columns), or
+    None where there is no such file."""
+    try:
+        with stat.open(encoding="ascii") as f:
+            fields = f.readline().split()
+    except OSError:
+        return None
+    if len(fields) < 9 or fields[0] != "cpu":
+        return None
+    return [int(x) for x in fields[1:9]]
+
+
+def cpu_shares(before: list[int] | None, after: list[int] | None) -> dict[str, float | None]:
+    """The shares (%) of the CPUs' time between two :func:`cpu_counters` readings that were
+    idle (idle and waiting for I/O) and stolen by the host; None without both readings."""
+    if before is None or after is None:
+        return {"idle_pct": None, "steal_pct": None}
+    d = [b - a for a, b in zip(before, after, strict=True)]
+    total = sum(d)
+    if total <= 0:
+        return {"idle_pct": None, "steal_pct": None}
+    return {
+        "idle_pct": 100.0 * (d[_IDLE] + d[_IOWAIT]) / total,
+        "steal_pct": 100.0 * d[_STEAL] / total,
+    }
+
+
+def reference_s(repeats: int = 5) -> float:
+    """The median time (s) of a fixed single-threaded pure-Python workload: how fast this
+    machine runs today, to set beside the recipe's time."""
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        acc = 0
+        for i in range(2_000_000):
+            acc = (acc + i * i) % 1_000_003
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def source_state() -> tuple[str | None, str | None]:
+    """The checkout's commit and a digest of its uncommitted changes to tracked files."""
+
+    def git(*args: str) -> str | None:
+        try:
+            out = subprocess.run(["git", "-C", str(ROOT), *args], capture_output=True,
+                                 timeout=30, check=True)  # fmt: skip
+        except (OSError, subprocess.SubprocessError):
+            return None
+        return hashlib.sha256(out.stdout).hexdigest()
+
+    return git("rev-parse", "HEAD"), git("diff", "HEAD")
 
 
 def _stage_walls(out: Path) -> dict[str, float]:
@@ -51,7 +118,7 @@ def _stage_walls(out: Path) -> dict[str, float]:
 def shipped_weights(recipe: str, seed: int) -> str | None:
     """The SHA-256 of the shipped policy's weights when ``recipe`` and ``seed`` are those it
     was trained with (its ``recipe.json``), else None."""
-    shipped = Path(__file__).resolve().parent.parent / "rl" / "policies" / "realistic_ppo"
+    shipped = ROOT / "rl" / "policies" / "realistic_ppo"
     try:
         state = json.loads((shipped / "recipe.json").read_text(encoding="utf-8"))
         sums = (shipped / "checksums.sha256").read_text(encoding="utf-8").splitlines()
@@ -60,6 +127,11 @@ def shipped_weights(recipe: str, seed: int) -> str | None:
     if (state.get("recipe"), state.get("seed")) != (recipe, seed):
         return None
     return next((ln.split()[0] for ln in sums if ln.split()[-1] == "weights.npz"), None)
+
+
+def _median_or_none(values: list[float | None]) -> float | None:
+    known = [v for v in values if v is not None]
+    return statistics.median(known) if known else None
 
 
 def main() -> None:
@@ -84,6 +156,9 @@ def main() -> None:
     rl = Path(sys.executable).with_name("rl")
     if not rl.exists():
         sys.exit(f"error: no rl console script next to {sys.executable}: pip install -e .")
+    git_commit_at_start()  # the record names the tree the runs started from
+    source = source_state()
+    unchanged = True
     work = a.work or Path(tempfile.mkdtemp(prefix="bench_recipe_"))
     rows = []
     runs = [(seed, k) for seed in seeds for k in range(a.repeats)]
@@ -92,10 +167,16 @@ def main() -> None:
         if out.exists():
             sys.exit(f"error: {out} exists: give another --work (each run starts from scratch)")
         cmd = [str(rl), "train", "--recipe", a.recipe, "--seed", str(seed), "--out", str(out)]
+        if source_state() != source:
+            unchanged = False
+            print("warning: the checkout changed since the first run", file=sys.stderr)
+        ref_s = reference_s()
         print(f"run {n + 1}/{len(runs)}: {' '.join(cmd)}", flush=True)
+        c0 = cpu_counters()
         t0 = time.perf_counter()
         res = subprocess.run(cmd)
         wall_s = time.perf_counter() - t0
+        shares = cpu_shares(c0, cpu_counters())
         if res.returncode != 0:
             sys.exit(f"error: the command failed (exit {res.returncode})")
         weights = hashlib.sha256((out / "weights.npz").read_bytes()).hexdigest()
@@ -110,11 +191,14 @@ def main() -> None:
                 "weights_sha256": weights[:16],
                 "shipped_weights": weights == shipped_weights(a.recipe, seed),
                 "numerics": prov.get("machine", {}).get("numerics", {}).get("UWDOCK_NUMERICS"),
+                **shares,
+                "reference_s": ref_s,
             }
         )
         print(f"run {n + 1}: {wall_s / 60:.2f} min", flush=True)
         if not a.keep and a.work is None:
             shutil.rmtree(out, ignore_errors=True)
+    unchanged = unchanged and source_state() == source
     med = statistics.median(r["wall_min"] for r in rows)
     longest = max(r["wall_min"] for r in rows)
     print(format_table(rows, list(rows[0])))
@@ -134,6 +218,12 @@ def main() -> None:
         # each seed's runs give one policy (a seed's repeats are byte for byte the same)
         "same_weights_every_run": all(
             len({r["weights_sha256"] for r in rows if r["seed"] == s}) == 1 for s in seeds
+        ),
+        "source_unchanged": unchanged,
+        "reference_s_median": statistics.median(r["reference_s"] for r in rows),
+        "idle_pct_median": _median_or_none([r["idle_pct"] for r in rows]),
+        "steal_pct_max": max(
+            (r["steal_pct"] for r in rows if r["steal_pct"] is not None), default=None
         ),
     }
     print("wrote", save_results(a.name, rows, bench_cfg, a.out_dir))
