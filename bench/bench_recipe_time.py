@@ -19,7 +19,8 @@ This machine's speed varies from day to day, so each run also records what the m
 meanwhile and how fast it was: the shares of all its CPUs' time that were idle and stolen by
 the host (``idle_pct``, ``steal_pct``, from ``/proc/stat``; two idle cores running the two
 training processes leave the trainer's waits idle), and ``reference_s``, a fixed pure-Python
-workload timed just before the run (the median of five; on a slower day it takes longer). The
+workload timed just before the run (the median of five after a second of it untimed; on a
+slower day it takes longer). The
 command runs the checkout's code as it is when each run starts: the record says whether the
 commit and its uncommitted changes stayed the same through every run (``source_unchanged``).
 
@@ -77,17 +78,22 @@ def cpu_shares(before: list[int] | None, after: list[int] | None) -> dict[str, f
     }
 
 
-def reference_s(repeats: int = 5) -> float:
-    """The median time (s) of a fixed single-threaded pure-Python workload: how fast this
-    machine runs today, to set beside the recipe's time."""
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        acc = 0
-        for i in range(2_000_000):
-            acc = (acc + i * i) % 1_000_003
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+def _workload() -> float:
+    t0 = time.perf_counter()
+    acc = 0
+    for i in range(2_000_000):
+        acc = (acc + i * i) % 1_000_003
+    return time.perf_counter() - t0
+
+
+def reference_s(repeats: int = 5, warm_s: float = 1.0) -> float:
+    """The median time (s) of a fixed single-threaded pure-Python workload, after ``warm_s``
+    of it untimed (a CPU coming out of idle runs its first fraction of a second slower): how
+    fast this machine runs now, to set beside the recipe's time."""
+    t0 = time.perf_counter()
+    while time.perf_counter() - t0 < warm_s:
+        _workload()
+    return statistics.median(_workload() for _ in range(repeats))
 
 
 def source_state() -> tuple[str | None, str | None]:
