@@ -15,14 +15,14 @@ SHA-256 (the same seed gives the same bytes), and whether it is the shipped poli
 (``shipped_weights``: the shipped recipe and seed, retrained from scratch). The runs' folders
 go to a temporary folder (``--work`` to keep them elsewhere, ``--keep`` not to remove them).
 
-This machine's speed varies from day to day, so each run also records what the machine did
-meanwhile and how fast it was: the shares of all its CPUs' time that were idle and stolen by
-the host (``idle_pct``, ``steal_pct``, from ``/proc/stat``; two idle cores running the two
-training processes leave the trainer's waits idle), and ``reference_s``, a fixed pure-Python
-workload timed just before the run (the median of five after a second of it untimed; on a
-slower day it takes longer). The
-command runs the checkout's code as it is when each run starts: the record says whether the
-commit and its uncommitted changes stayed the same through every run (``source_unchanged``).
+This machine's speed varies by the hour and the day, so each run also records what the
+machine did meanwhile: the shares of all its CPUs' time that were idle (on an idle machine,
+what the two training processes leave while one waits for the other) and stolen by the host
+(``idle_pct``, ``steal_pct``, from ``/proc/stat``), and ``reference_s``, a fixed single-threaded
+pure-Python workload timed just before the run (the median of five after a second of it
+untimed): a slower core shows there, not every slowdown. The command runs the checkout's code
+as it is when each run starts: the record says whether the commit and its uncommitted changes
+stayed the same through every run (``source_unchanged``).
 
 Writes ``bench/results/<name>.json`` (rows, machine, commit, packages) via
 :func:`uwdock.dockcore.bench.save_results`.
@@ -42,7 +42,7 @@ import time
 from pathlib import Path
 
 from uwdock.dockcore.bench import format_table, save_results
-from uwdock.dockcore.provenance import git_commit_at_start
+from uwdock.dockcore.provenance import git_commit_at_start, source_state
 
 TARGET_MIN = 5.0
 ROOT = Path(__file__).resolve().parent.parent
@@ -94,20 +94,6 @@ def reference_s(repeats: int = 5, warm_s: float = 1.0) -> float:
     while time.perf_counter() - t0 < warm_s:
         _workload()
     return statistics.median(_workload() for _ in range(repeats))
-
-
-def source_state() -> tuple[str | None, str | None]:
-    """The checkout's commit and a digest of its uncommitted changes to tracked files."""
-
-    def git(*args: str) -> str | None:
-        try:
-            out = subprocess.run(["git", "-C", str(ROOT), *args], capture_output=True,
-                                 timeout=30, check=True)  # fmt: skip
-        except (OSError, subprocess.SubprocessError):
-            return None
-        return hashlib.sha256(out.stdout).hexdigest()
-
-    return git("rev-parse", "HEAD"), git("diff", "HEAD")
 
 
 def _stage_walls(out: Path) -> dict[str, float]:

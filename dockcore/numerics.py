@@ -25,9 +25,9 @@ with them (:func:`ensure`, an ``exec`` before any work); worker processes inheri
 and Ray actors are given them (:func:`pinned_env_vars`). Provenance records them
 (``dockcore.provenance.numerics_env``) with :data:`MARK`.
 
-Why AVX2 and not MKL's SSE2 path on every CPU: the SSE2 path made the PPO update of the recipe
-before the current one (two 256-unit layers) 1.9x slower on one thread here, 2.65x against the
-AVX2 path on two threads (``bench/bench_update_kernels.py``), and the pin already holds only
+Why AVX2 and not MKL's SSE2 path on every CPU: the SSE2 path makes the recipe's PPO update
+(two 64-unit layers) 1.2x slower on one thread here, 1.5x against the AVX2 path on the
+recipe's two threads (``bench/bench_update_kernels.py``), and the pin already holds only
 among CPUs with FMA, since the C library's own ``exp``/``log`` (glibc picks an FMA variant on
 CPUs that have it) are not pinned; every x86-64 CPU with FMA has AVX2 (Intel since 2013, AMD
 since 2015). A CPU without them trains its own weights; its provenance says so.

@@ -35,25 +35,34 @@ TRACKED_PACKAGES = (
 _REPO_ROOT = Path(__file__).resolve().parent.parent
 
 
+def _git(repo: Path, *args: str) -> str | None:
+    """``git -C repo ARGS``'s output, or None (no git, not a checkout, a failure)."""
+    try:
+        out = subprocess.run(
+            ["git", "-C", str(repo), *args],
+            capture_output=True,
+            text=True,
+            timeout=10,
+            check=True,
+        )
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return out.stdout.strip()
+
+
 def git_commit(repo: Path = _REPO_ROOT) -> dict[str, Any]:
     """The source tree's commit and whether it has uncommitted changes (``None`` outside git)."""
-
-    def git(*args: str) -> str | None:
-        try:
-            out = subprocess.run(
-                ["git", "-C", str(repo), *args],
-                capture_output=True,
-                text=True,
-                timeout=10,
-                check=True,
-            )
-        except (OSError, subprocess.SubprocessError):
-            return None
-        return out.stdout.strip()
-
-    commit = git("rev-parse", "HEAD")
-    status = git("status", "--porcelain", "--untracked-files=no") if commit else None
+    commit = _git(repo, "rev-parse", "HEAD")
+    status = _git(repo, "status", "--porcelain", "--untracked-files=no") if commit else None
     return {"commit": commit, "dirty": bool(status) if status is not None else None}
+
+
+def source_state(repo: Path = _REPO_ROOT) -> tuple[str | None, str | None]:
+    """The source tree's commit and a SHA-256 of its uncommitted changes to tracked files
+    (``git diff HEAD``): equal for two readings when the code a command runs is the same."""
+    diff = _git(repo, "diff", "HEAD")
+    digest = hashlib.sha256(diff.encode()).hexdigest() if diff is not None else None
+    return _git(repo, "rev-parse", "HEAD"), digest
 
 
 _GIT_AT_START: dict[str, Any] | None = None

@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 
 from tests.conftest import bench_module
+from uwdock.dockcore.provenance import source_state
 
 
 @pytest.fixture(scope="module")
@@ -34,6 +35,27 @@ def test_cpu_counters_read_the_first_line_of_proc_stat(bench, tmp_path):
 
 def test_the_reference_workload_is_timed_and_the_source_named(bench):
     assert 0.0 < bench.reference_s(repeats=1, warm_s=0.0) < 60.0
-    commit, changes = bench.source_state()
-    assert commit is None or len(commit) == 64
-    assert bench.source_state() == (commit, changes)  # nothing changed in between
+    commit, changes = source_state()
+    assert commit is None or len(commit) == 40
+    assert changes is None or len(changes) == 64
+    assert source_state() == (commit, changes)  # nothing changed in between
+
+
+def test_source_state_changes_with_a_tracked_files_content(tmp_path):
+    import subprocess
+
+    def git(*args):
+        subprocess.run(["git", "-C", str(tmp_path), *args], check=True, capture_output=True)
+
+    git("init", "-q")
+    (tmp_path / "a.py").write_text("x = 1\n")
+    git("add", "a.py")
+    git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "a")
+    clean = source_state(tmp_path)
+    assert clean[0] is not None and len(clean[0]) == 40
+    (tmp_path / "a.py").write_text("x = 2\n")
+    edited = source_state(tmp_path)
+    assert edited[0] == clean[0] and edited[1] != clean[1]
+    (tmp_path / "a.py").write_text("x = 1\n")
+    assert source_state(tmp_path) == clean
+    assert source_state(tmp_path / "missing") == (None, None)

@@ -181,8 +181,11 @@ def _two_node_cluster(tmp_path: Path, node_env: dict[str, str] | None = None):
         assert {ip for ip, _, _ in listeners} <= LOOPBACK, listeners
         yield address, env, run, short / "b"
     finally:
+        # the nodes' processes name their temp dir; the head's Ray client proxy, whose parent
+        # has exited, names only the head's address
         mine = [p for p in psutil.process_iter(["cmdline"])
-                if any(str(short) in part for part in (p.info["cmdline"] or ()))]  # fmt: skip
+                if any(str(short) in part or part.endswith(f"={address}")
+                       for part in (p.info["cmdline"] or ()))]  # fmt: skip
         mine += [c for p in mine for c in _children(p)]
         _stop(mine)
         shutil.rmtree(short, ignore_errors=True)

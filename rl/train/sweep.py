@@ -277,7 +277,7 @@ def _trial_summary(run: Path) -> dict[str, Any]:
     if history:
         keys = ("step", "success_rate", "success_rate_strict", "mean_time_to_dock_s",
                 "mean_collisions", "mean_return")  # fmt: skip
-        # what best/ holds: the last evaluation the session flagged (its first always is)
+        # what best/ holds: the last evaluation the run flagged as best (its first always is)
         best = next((h for h in reversed(history) if h.get("best")), history[-1])
         out["last_eval"] = {k: history[-1].get(k) for k in keys}
         out["best_eval"] = {k: best.get(k) for k in keys}
