@@ -136,3 +136,57 @@ def test_the_session_keeps_the_selected_evaluation_in_best(
     history = [json.loads(line) for line in (tmp_path / "eval_history.jsonl").open()]
     assert [r["step"] for r in history if r.get("best")][-1] == kept_step
     assert _trial_summary(tmp_path)["best_eval"]["step"] == kept_step
+
+
+# A tiny warm-started run: DAgger, then the critic alone up to step 200, evaluated every 64 steps
+# (at 0, 64, 128 and 192 the actor is the imitated one; at 256 PPO has moved it).
+FROZEN = """\
+n_envs = 1
+total_steps = 256
+checkpoint_every = 256
+eval_every = 64
+eval_episodes = 2
+[env]
+episode_s = 4.0
+[ppo]
+n_steps = 64
+batch_size = 64
+n_epochs = 2
+[imitation]
+teacher = "pid"
+iterations = 1
+episodes_per_iteration = 1
+epochs = 2
+critic_warmup_steps = 200
+"""
+
+
+def test_an_evaluation_of_the_frozen_actor_repeats_the_last_one_exactly(tmp_path, monkeypatch):
+    """While the critic trains alone, an evaluation repeats the last record instead of flying
+    the same deterministic policy again: the history is the one every evaluation flown gives,
+    byte for byte, and only the evaluations of a changed actor are flown."""
+    from uwdock.dockcore.config import load_config
+    from uwdock.rl.train.training import train
+
+    (tmp_path / "train.toml").write_text(FROZEN)
+    cfg = load_config(TrainConfig, tmp_path / "train.toml", section="train")
+    flown = []
+    real_rows = TrainingSession._eval_rows
+
+    def counting(self):
+        flown.append(int(self.model.num_timesteps))
+        return real_rows(self)
+
+    monkeypatch.setattr(TrainingSession, "_eval_rows", counting)
+    train(cfg, tmp_path / "reused", progress=False)
+    reused_flown = list(flown)
+    monkeypatch.setattr(TrainingSession, "_frozen_summary", lambda self, step: None)
+    flown.clear()
+    train(cfg, tmp_path / "flown", progress=False)
+    assert reused_flown == [0, 256] and flown == [0, 64, 128, 192, 256]
+    a = (tmp_path / "reused" / "eval_history.jsonl").read_bytes()
+    b = (tmp_path / "flown" / "eval_history.jsonl").read_bytes()
+    assert a == b and len(a.splitlines()) == 5
+    assert (tmp_path / "reused" / "eval_history.png").is_file()  # drawn when the run ended
+    for name in ("model.json", "weights.npz"):
+        assert (tmp_path / "reused" / name).read_bytes() == (tmp_path / "flown" / name).read_bytes()

@@ -21,7 +21,7 @@ CONFIGS = sorted(p for p in (ROOT / "configs").rglob("*.toml") if "recipes" not 
 SHIPPED = {
     "realistic/policy.toml": (
         "realistic_ppo/config.toml",
-        "b56cc0e4dff486aebb10c3da675690111a5f109c0a3c868ad68595191893a243",
+        "34946dfd486ad1b1d4ec2481ede9a25d49bf8c1e1f20e72a3e195f454a71f9c9",
     ),
     "scratch/stage1.toml": (
         "scratch_error_model_ppo/stage1_provenance.json",

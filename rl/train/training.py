@@ -586,6 +586,8 @@ def _run(
         last = session.last_checkpoint if session is not None else None
         where = f"step {last:,}" if last is not None else "the beginning"
         note(f"interrupted: `rl train --out {run} --resume` goes on from {where}")
+        if session is not None:
+            session.plot_history()
         workers.close(force=True)
         raise
     finally:
@@ -698,6 +700,7 @@ def _write_final(run: Path, model, vecnorm, session: TrainingSession) -> Path:
     """The last checkpoint, then the final policy (``model.json`` + ``weights.npz``,
     :mod:`rl.policy.policy_format`) and ``DONE`` (last); the run folder."""
     session.boundary(final=True)
+    session.plot_history()
     require_finite_policy(model, "the trained policy")
     write_policy(run, model, vecnorm)
     atomic_write_json(run / "DONE", {"steps": int(model.num_timesteps)})
