@@ -161,10 +161,13 @@ class BatchWorkers:
             self.venv: Any = BatchDockingEnv(env_cfg, n_envs, seed=seed, privileged=True)
             return
         per = -(-n_envs // min(workers, n_envs))  # ceil
-        # an evaluation in a worker builds the policy, whose optimizer imports torch._dynamo
-        # (1.4-2 s, once) while the trainer waits for the worker's share: the trainer imports
-        # it anyway when it builds its model, so import it before the workers fork off
-        import torch._dynamo  # noqa: F401
+        # an evaluation in a worker builds the policy, whose optimizer imports torch's compiler
+        # stack at its first construction (1.4-2 s, once) while the trainer waits for the
+        # worker's share; the trainer's model builds one anyway, so build one before the workers
+        # fork off and they inherit the import
+        import torch
+
+        torch.optim.Adam([torch.zeros(1, requires_grad=True)])
 
         self._pool = EnvWorkers(
             env_cfg, n_envs, seed, per, group_cls=BatchGroup, venv_cls=BatchGroupsVecEnv,

@@ -294,8 +294,8 @@ class TrainingSession:
         atomic_write_text(self.run / HISTORY, text)
 
     def plot_history(self) -> None:
-        """``eval_history.png`` from the history written so far: when the run ends, stops or
-        resumes, not at every evaluation (a plot costs about 0.4 s of the trainer's time, ten
+        """``eval_history.png`` from the history written so far: when the run ends or resumes,
+        not at every evaluation (a plot costs about 0.4 s of the trainer's time, ten
         seconds over a run; ``eval_history.jsonl`` and TensorBoard follow the run meanwhile)."""
         if self.history:
             plot_eval_history(self.run / HISTORY, self.run / "eval_history.png")

@@ -586,8 +586,6 @@ def _run(
         last = session.last_checkpoint if session is not None else None
         where = f"step {last:,}" if last is not None else "the beginning"
         note(f"interrupted: `rl train --out {run} --resume` goes on from {where}")
-        if session is not None:
-            session.plot_history()
         workers.close(force=True)
         raise
     finally:
