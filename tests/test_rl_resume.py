@@ -156,6 +156,7 @@ def test_killed_and_resumed_training_equals_uninterrupted(reference):
     assert log[-1]["from_step"] >= 256
 
 
+@pytest.mark.slow  # waits for the uninterrupted run (~20 s), shared with the test above
 def test_resume_falls_back_past_a_damaged_checkpoint(reference, tmp_path):
     ref = _finished(reference)
     run = tmp_path / "damaged"
