@@ -42,6 +42,7 @@ from uwdock.sim.fastpath import PRISM_COLS, PRISM_MAX_VERTICES, StaticsWatch
 __all__ = [
     "BOX_TILE",
     "CHUNK_SPHERES",
+    "PrismSet",
     "StaticPrisms",
     "hull_contact_spheres",
     "prism_rows",
@@ -202,21 +203,61 @@ def prism_rows(
 ) -> np.ndarray:
     """(m, :data:`PRISM_COLS`) world rows of an entity's prisms (``(R, centre, half length,
     polygon)`` in its frame, :func:`uwdock.sim.fastpath.prism_contacts`), each with its
-    Coulomb friction."""
-    out = np.zeros((len(prisms), PRISM_COLS))
-    Rw, tw = T_world_entity[:3, :3], T_world_entity[:3, 3]
-    for j, ((R, c, ht, poly), mu) in enumerate(zip(prisms, friction, strict=True)):
-        Rj, cj = Rw @ R, Rw @ c + tw
-        pg = np.asarray(poly, dtype=float)
-        ends = np.repeat([-ht, ht], len(pg))[:, None]
-        corners = np.concatenate([ends, np.tile(pg, (2, 1))], axis=1) @ Rj.T + cj
-        out[j, 0:3], out[j, 3:6] = corners.min(axis=0), corners.max(axis=0)
-        out[j, 6:9] = cj
-        out[j, 9:18] = Rj.reshape(-1)
-        out[j, 18], out[j, 19], out[j, 20] = ht, mu, len(poly)
-        out[j, 21:25] = pg[:, 0].min(), pg[:, 0].max(), pg[:, 1].min(), pg[:, 1].max()
-        out[j, 25 : 25 + 2 * len(pg)] = pg.reshape(-1)
-    return out
+    Coulomb friction (:class:`PrismSet` once for the prisms, then its world rows)."""
+    return PrismSet(prisms).rows(T_world_entity, friction)
+
+
+class PrismSet:
+    """An entity's prisms (``(R, centre, half length, polygon)`` in its frame) made ready
+    once for their world rows at any pose (:meth:`rows`, the docking station's at every
+    episode): what does not depend on the pose (half length, polygon, its extent, the
+    corners in the prism's frame) is kept, and a pose costs a few stacked products instead
+    of a dozen NumPy calls per prism. Each row is the one a prism alone would give, to the
+    last bit: the same products in the same order (a stack of 3x3 products is the 3x3
+    product per matrix; tested against the prism-by-prism rows)."""
+
+    def __init__(self, prisms: Sequence[tuple[np.ndarray, np.ndarray, float, np.ndarray]]):
+        m = len(prisms)
+        self.n = m
+        self._R = np.zeros((m, 3, 3))
+        self._c = np.zeros((m, 3, 1))
+        self._fixed = np.zeros((m, PRISM_COLS))
+        by_sides: dict[int, list[int]] = {}
+        corners: dict[int, list[np.ndarray]] = {}
+        for j, (R, c, ht, poly) in enumerate(prisms):
+            pg = np.asarray(poly, dtype=float)
+            self._R[j], self._c[j, :, 0] = R, c
+            ends = np.repeat([-ht, ht], len(pg))[:, None]
+            by_sides.setdefault(len(pg), []).append(j)
+            corners.setdefault(len(pg), []).append(
+                np.concatenate([ends, np.tile(pg, (2, 1))], axis=1)
+            )
+            row = self._fixed[j]
+            row[18], row[20] = ht, len(pg)
+            row[21:25] = pg[:, 0].min(), pg[:, 0].max(), pg[:, 1].min(), pg[:, 1].max()
+            row[25 : 25 + 2 * len(pg)] = pg.reshape(-1)
+        # prisms of one polygon size in one stack: (k,) indices, (k, 2 sides, 3) corners
+        self._groups = [(np.array(by_sides[n]), np.stack(corners[n])) for n in by_sides]
+
+    def rows(self, T_world_entity: np.ndarray, friction: Sequence[float]) -> np.ndarray:
+        """(m, :data:`PRISM_COLS`) the prisms' world rows with the entity at
+        ``T_world_entity``, each with its Coulomb friction (m values)."""
+        if len(friction) != self.n:
+            raise ValueError(f"friction: one per prism ({self.n}), got {len(friction)}")
+        out = self._fixed.copy()
+        if self.n == 0:
+            return out
+        T = np.asarray(T_world_entity, dtype=float)
+        Rw, tw = T[:3, :3], T[:3, 3]
+        Rj = np.matmul(Rw, self._R)  # per prism: Rw @ R
+        cj = np.matmul(Rw, self._c)[:, :, 0] + tw  # per prism: Rw @ c + tw
+        for idx, local in self._groups:
+            corners = np.matmul(local, Rj[idx].transpose(0, 2, 1)) + cj[idx][:, None, :]
+            out[idx, 0:3], out[idx, 3:6] = corners.min(axis=1), corners.max(axis=1)
+        out[:, 6:9] = cj
+        out[:, 9:18] = Rj.reshape(self.n, 9)
+        out[:, 19] = np.asarray(friction, dtype=float)
+        return out
 
 
 class StaticPrisms:
@@ -254,7 +295,7 @@ class StaticPrisms:
                 pose = comp.get_entity_pose()
                 T = T_from_pos_quat(np.asarray(pose.p, float), np.asarray(pose.q, float))
                 mu = [0.5 * (self.hull_friction + m) for m in shape_mu]
-                parts.append(prism_rows(T, prisms, mu))
+                parts.append(prisms.rows(T, mu))
             self._rows = (
                 np.ascontiguousarray(np.concatenate(parts)) if parts else np.zeros((0, PRISM_COLS))
             )
@@ -262,8 +303,9 @@ class StaticPrisms:
         return self._rows
 
     @staticmethod
-    def _read(comp) -> tuple[list, list[float]]:
-        """A component's prisms (its frame) and their shapes' dynamic friction."""
+    def _read(comp) -> tuple[PrismSet, list[float]]:
+        """A component's prisms (its frame, :class:`PrismSet`) and their shapes' dynamic
+        friction."""
         prisms, mu = [], []
         for shape in comp.get_collision_shapes():
             p = _local_prism(shape)
@@ -271,4 +313,4 @@ class StaticPrisms:
                 continue
             prisms.append(p)
             mu.append(float(shape.get_physical_material().dynamic_friction))
-        return prisms, mu
+        return PrismSet(prisms), mu

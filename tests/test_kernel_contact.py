@@ -16,6 +16,7 @@ from scipy.spatial import ConvexHull
 from uwdock.dockcore.config import from_dict, read_toml, replace
 from uwdock.sim.fastpath import PRISM_COLS, prism_contacts, prism_distance, prism_pairs
 from uwdock.sim.kernel_contact import (
+    PrismSet,
     StaticPrisms,
     _local_prism,
     hull_contact_spheres,
@@ -348,3 +349,86 @@ def test_a_bar_under_the_middle_of_a_plate_holds_it_up():
     p = np.array([0.0, 0.0, 0.02 - 0.002])
     out = _forces(spheres, chunks, shapes, bar, _contact(k, 0.0), p, [0] * 3, [0] * 3)
     assert out[2] == pytest.approx(k * 0.002) and abs(out[0]) < 1e-9 and abs(out[1]) < 1e-9
+
+
+def _prism_rows_one_by_one(T, prisms, friction):
+    """The world rows prism by prism, each from its own NumPy products (the reference
+    :class:`PrismSet` is held to)."""
+    out = np.zeros((len(prisms), PRISM_COLS))
+    Rw, tw = T[:3, :3], T[:3, 3]
+    for j, ((R, c, ht, poly), mu) in enumerate(zip(prisms, friction, strict=True)):
+        Rj, cj = Rw @ R, Rw @ c + tw
+        pg = np.asarray(poly, dtype=float)
+        ends = np.repeat([-ht, ht], len(pg))[:, None]
+        corners = np.concatenate([ends, np.tile(pg, (2, 1))], axis=1) @ Rj.T + cj
+        out[j, 0:3], out[j, 3:6] = corners.min(axis=0), corners.max(axis=0)
+        out[j, 6:9], out[j, 9:18] = cj, Rj.reshape(-1)
+        out[j, 18], out[j, 19], out[j, 20] = ht, mu, len(poly)
+        out[j, 21:25] = pg[:, 0].min(), pg[:, 0].max(), pg[:, 1].min(), pg[:, 1].max()
+        out[j, 25 : 25 + 2 * len(pg)] = pg.reshape(-1)
+    return out
+
+
+def test_the_station_rows_at_any_pose_are_each_prisms_own_to_the_bit():
+    """PrismSet (prepared once, stacked products per pose) gives, at random poses of the
+    station and polygons of 3 to 8 sides, the rows each prism's own products give, byte for
+    byte: the kernel's contact is unchanged by how the rows are made."""
+    rng = np.random.default_rng(11)
+    prisms = []
+    for n in (4, 3, 8, 4, 6, 5):
+        ang = np.sort(rng.uniform(0, 2 * math.pi, n))
+        poly = np.stack([np.cos(ang), np.sin(ang)], axis=1) * rng.uniform(0.05, 0.4)
+        prisms.append((_rot(rng.normal(size=3), rng.uniform(0, 3)), rng.normal(size=3),
+                       float(rng.uniform(0.01, 0.5)), poly))  # fmt: skip
+    ready = PrismSet(prisms)
+    for _ in range(300):
+        T = _T(_rot(rng.normal(size=3), rng.uniform(0, 3.1)), rng.normal(size=3) * 5)
+        mu = list(rng.uniform(0.1, 0.9, len(prisms)))
+        got = ready.rows(T, mu)
+        assert got.tobytes() == _prism_rows_one_by_one(T, prisms, mu).tobytes()
+    assert PrismSet([]).rows(np.eye(4), []).shape == (0, PRISM_COLS)
+    with pytest.raises(ValueError, match="one per prism"):
+        ready.rows(np.eye(4), [0.5])
+
+
+def test_a_control_step_over_the_near_pairs_is_the_step_over_every_pair_to_the_bit():
+    """The kernel tests only the pairs near their prism (PRISM_NEAR_M, chosen again as the hull
+    moves): over the shipped policy's approaches and landings on the station (8 vehicles, noisy
+    actions, 120 steps), every control step gives the state and accelerations that testing
+    every pair at every substep gives (near_m = inf), byte for byte, and the station's contact
+    was there (without it, other states)."""
+    import uwdock.sim.batch as batch
+    from uwdock.rl.env.batch_env import BatchDockingEnv
+    from uwdock.rl.evaluate.episodes import as_controller
+    from uwdock.rl.policy.policy_io import load_policy
+
+    seen = {"steps": 0, "touched": 0}
+    real = batch.kernel_flight_all
+
+    def both(*args):
+        copies = [[a.copy() if isinstance(a, np.ndarray) else a for a in args] for _ in "ab"]
+        real(*copies[0], math.inf)
+        bare = list(copies[1])
+        bare[14] = np.zeros_like(bare[14])  # no prisms: no station contact
+        real(*bare)
+        real(*args)
+        assert args[2].tobytes() == copies[0][2].tobytes()  # state
+        assert args[6].tobytes() == copies[0][6].tobytes()  # accelerations
+        seen["steps"] += 1
+        seen["touched"] += int((args[6] != bare[6]).any(axis=1).sum())
+
+    model, vn = load_policy(POLICY)
+    ctrl = as_controller(model, vn)
+    env = BatchDockingEnv(_env_cfg("kernel"), 8, seed=21)
+    batch.kernel_flight_all = both
+    try:
+        obs = env.reset()
+        rng = np.random.default_rng(2)
+        for _ in range(120):
+            a = np.asarray(ctrl.act_batch(obs), dtype=float).reshape(8, 6)
+            env.step(np.clip(a + 0.3 * rng.standard_normal(a.shape), -1, 1))
+    finally:
+        batch.kernel_flight_all = real
+        env.close()
+    assert seen["steps"] == 120
+    assert seen["touched"] > 50  # vehicle-steps in contact with the station
