@@ -99,12 +99,13 @@ PRISM_FRICTION_STEP = 0.2
 #: (m/s^2, rad/s^2 times the hull's reach) A bound on how much the hull's speed can change
 #: within a control step (full thrust gives about 1 m/s^2), for the pairs a step tests.
 PRISM_ACCEL_BOUND = 5.0
-#: (m) Within a control step, the pairs of :func:`prism_pairs` whose chunk ball is farther
-#: than this from its prism's box are set aside until the hull may have moved this far
-#: (:func:`near_pairs`); a pair set aside cannot touch, so the contact is the same to the bit
-#: as with every pair tested at every substep (``near_m = inf``), at ~3/4 of the kernel's time
-#: for vehicles at the docking station (``tests/test_kernel_contact.py``).
-PRISM_NEAR_M = 0.01
+#: (m) Within a control step, the pairs of :func:`prism_pairs`, and their spheres, farther
+#: than this from their prism's box are set aside until the hull may have moved this far
+#: (:func:`near_pairs`): what is set aside cannot touch, so the contact is the same to the bit
+#: as with every pair and sphere tested at every substep (``near_m = inf``;
+#: ``tests/test_kernel_contact.py``), in about 0.7x the kernel's time on the steps a policy
+#: flies (``bench/bench_kernel_cull.py``).
+PRISM_NEAR_M = 0.02
 #: (m) What the test of a pair set aside keeps for round-off (the positions' is ~1e-14 m).
 PRISM_NEAR_SLACK_M = 1e-6
 #: No prisms (free flight's :func:`_advance`: the station is PhysX's there); numba freezes
@@ -608,22 +609,37 @@ def _gap(o, wx, wy, wz, rad):
 
 
 @njit(cache=True)
-def near_pairs(chunks, prisms, pairs, n_pairs, px, py, pz, R, near, active):
-    """The pairs (:func:`prism_pairs`) whose chunk ball at the pose (``p``, ``R``) is within
-    ``near`` (m) of its prism's box, in their order: their rows of ``pairs`` written to
-    ``active``; returns how many. While the chunks move less than ``near`` from this pose,
-    the others stay clear of their prisms (a point that moves ``d`` moves each of a prism's
-    axes by at most ``d``), so :func:`prism_contacts` over ``active`` is the contact over
+def near_pairs(spheres, chunks, prisms, pairs, n_pairs, px, py, pz, R, near, active, listed):
+    """The pairs (:func:`prism_pairs`) with a sphere within ``near`` (m) of the pair's prism
+    box at the pose (``p``, ``R``), in their order, and those spheres: ``active`` gets each
+    such pair's row of ``pairs`` and the span of its spheres in ``listed`` (5 columns: chunk,
+    prism, shape, first, end), ``listed`` the spheres' rows, in order; returns how many pairs.
+    While the hull moves less than ``near`` from this pose, the spheres left out stay clear
+    of their prisms (a point that moves ``d`` moves along each of a prism's axes by at most
+    ``d``), so :func:`_listed_contacts` over ``active`` is :func:`prism_contacts` over
     ``pairs``."""
     m = 0
+    n = 0
     for q in range(n_pairs):
         g, o = pairs[q, 0], prisms[pairs[q, 1]]
         bx, by, bz = chunks[g, 2], chunks[g, 3], chunks[g, 4]
         cx = px + R[0, 0] * bx + R[0, 1] * by + R[0, 2] * bz
         cy = py + R[1, 0] * bx + R[1, 1] * by + R[1, 2] * bz
         cz = pz + R[2, 0] * bx + R[2, 1] * by + R[2, 2] * bz
-        if _gap(o, cx, cy, cz, chunks[g, 5]) < near:
+        if _gap(o, cx, cy, cz, chunks[g, 5]) >= near:
+            continue
+        first = n
+        for i in range(int(chunks[g, 0]), int(chunks[g, 1])):
+            sx, sy, sz = spheres[i, 0], spheres[i, 1], spheres[i, 2]
+            wx = px + R[0, 0] * sx + R[0, 1] * sy + R[0, 2] * sz
+            wy = py + R[1, 0] * sx + R[1, 1] * sy + R[1, 2] * sz
+            wz = pz + R[2, 0] * sx + R[2, 1] * sy + R[2, 2] * sz
+            if _gap(o, wx, wy, wz, spheres[i, 3]) < near:
+                listed[n] = i
+                n += 1
+        if n > first:
             active[m, 0], active[m, 1], active[m, 2] = pairs[q, 0], pairs[q, 1], pairs[q, 2]
+            active[m, 3], active[m, 4] = first, n
             m += 1
     return m
 
@@ -682,6 +698,39 @@ def prism_contacts(
 
 
 @njit(cache=True)
+def _listed_contacts(
+    spheres, chunks, prisms, active, n_active, listed, contact, visc_max, px, py, pz, R,
+    gx, gy, gz, vx, vy, vz, ox, oy, oz, part, out,
+):  # fmt: skip
+    """:func:`prism_contacts` over the pairs of :func:`near_pairs` (``active``), each pair's
+    spheres those ``listed`` for it; ``part``: a (6,) buffer."""
+    k, c, v_eps = contact[0], contact[1], contact[3]
+    q = 0
+    while q < n_active:
+        sh = active[q, 2]
+        part[:] = 0.0
+        count = 0
+        while q < n_active and active[q, 2] == sh:
+            g, o = active[q, 0], prisms[active[q, 1]]
+            s0, s1 = active[q, 3], active[q, 4]
+            q += 1
+            bx, by, bz, rg = chunks[g, 2], chunks[g, 3], chunks[g, 4], chunks[g, 5]
+            cxg = px + R[0, 0] * bx + R[0, 1] * by + R[0, 2] * bz
+            cyg = py + R[1, 0] * bx + R[1, 1] * by + R[1, 2] * bz
+            czg = pz + R[2, 0] * bx + R[2, 1] * by + R[2, 2] * bz
+            if _outside(o, cxg, cyg, czg, rg):
+                continue
+            for t in range(s0, s1):
+                count += _sphere_contact(
+                    spheres, listed[t], o, k, c, o[19], v_eps, visc_max, px, py, pz, R,
+                    gx, gy, gz, vx, vy, vz, ox, oy, oz, part,
+                )  # fmt: skip
+        if count > 0:
+            for a in range(6):
+                out[a] += part[a] / count
+
+
+@njit(cache=True)
 def _chunk_contacts(
     spheres, i0, i1, o, k, c, mu, v_eps, visc_max, px, py, pz, R, gx, gy, gz,
     vx, vy, vz, ox, oy, oz, part,
@@ -690,23 +739,36 @@ def _chunk_contacts(
     ``part``, returns how many touch."""
     count = 0
     for i in range(i0, i1):
-        sx, sy, sz, rad = spheres[i, 0], spheres[i, 1], spheres[i, 2], spheres[i, 3]
-        wx = px + R[0, 0] * sx + R[0, 1] * sy + R[0, 2] * sz
-        wy = py + R[1, 0] * sx + R[1, 1] * sy + R[1, 2] * sz
-        wz = pz + R[2, 0] * sx + R[2, 1] * sy + R[2, 2] * sz
-        if _outside(o, wx, wy, wz, rad):
-            continue
-        d, nx, ny, nz = prism_distance(o, wx, wy, wz)
-        delta = rad - d
-        if delta <= 0.0:
-            continue
-        _penalty(
-            k, c, mu, v_eps, visc_max, delta, nx, ny, nz,
-            wx - rad * nx - gx, wy - rad * ny - gy, wz - rad * nz - gz,
+        count += _sphere_contact(
+            spheres, i, o, k, c, mu, v_eps, visc_max, px, py, pz, R, gx, gy, gz,
             vx, vy, vz, ox, oy, oz, part,
         )  # fmt: skip
-        count += 1
     return count
+
+
+@njit(cache=True)
+def _sphere_contact(
+    spheres, i, o, k, c, mu, v_eps, visc_max, px, py, pz, R, gx, gy, gz,
+    vx, vy, vz, ox, oy, oz, part,
+):  # fmt: skip
+    """Sphere ``i`` against prism row ``o``: its contact added to ``part``; 1 if it
+    touches, else 0."""
+    sx, sy, sz, rad = spheres[i, 0], spheres[i, 1], spheres[i, 2], spheres[i, 3]
+    wx = px + R[0, 0] * sx + R[0, 1] * sy + R[0, 2] * sz
+    wy = py + R[1, 0] * sx + R[1, 1] * sy + R[1, 2] * sz
+    wz = pz + R[2, 0] * sx + R[2, 1] * sy + R[2, 2] * sz
+    if _outside(o, wx, wy, wz, rad):
+        return 0
+    d, nx, ny, nz = prism_distance(o, wx, wy, wz)
+    delta = rad - d
+    if delta <= 0.0:
+        return 0
+    _penalty(
+        k, c, mu, v_eps, visc_max, delta, nx, ny, nz,
+        wx - rad * nx - gx, wy - rad * ny - gy, wz - rad * nz - gz,
+        vx, vy, vz, ox, oy, oz, part,
+    )  # fmt: skip
+    return 1
 
 
 # --------------------------------------------------------------------------- free flight
@@ -861,14 +923,20 @@ def _advance(
         margin = (speed + spin) * span + 0.5 * PRISM_ACCEL_BOUND * span * span + 0.01
         n_pairs = prism_pairs(kchunks, kshapes, prisms, px, py, pz, R, margin, pairs)
         with_prisms = n_pairs > 0
-    # the pairs near enough to test, chosen again when the hull may have moved near_m:
-    # the chunks' largest distance from the origin turns the rotation since into a distance
-    active = np.empty((n_pairs, 3), dtype=np.int64)
+    # the pairs and spheres near enough to test, chosen again when the hull may have moved
+    # near_m: the hull's largest reach from the origin (its shapes' balls) turns the rotation
+    # since into a distance
+    active = np.empty((n_pairs, 5), dtype=np.int64)
+    per_chunk = 0
+    for g in range(kchunks.shape[0] if with_prisms else 0):
+        per_chunk = max(per_chunk, int(kchunks[g, 1]) - int(kchunks[g, 0]))
+    listed = np.empty(n_pairs * per_chunk, dtype=np.int64)
+    part = np.empty(6)
     n_active = -1
     reach = 0.0
-    for g in range(kchunks.shape[0] if with_prisms else 0):
-        b = math.sqrt(kchunks[g, 2] ** 2 + kchunks[g, 3] ** 2 + kchunks[g, 4] ** 2)
-        reach = max(reach, b)
+    for h in range(kshapes.shape[0] if with_prisms else 0):
+        b = math.sqrt(kshapes[h, 2] ** 2 + kshapes[h, 3] ** 2 + kshapes[h, 4] ** 2)
+        reach = max(reach, b + kshapes[h, 5])
     rx, ry, rz, rtheta = px, py, pz, theta
     for k in range(k0, k1):
         v0x, v0y, v0z, o0x, o0y, o0z = vx, vy, vz, ox, oy, oz
@@ -892,13 +960,13 @@ def _advance(
             moved += (theta - rtheta) * reach
             if n_active < 0 or moved > near_m - PRISM_NEAR_SLACK_M:
                 n_active = near_pairs(
-                    kchunks, prisms, pairs, n_pairs, px, py, pz, R, near_m, active
+                    ksph, kchunks, prisms, pairs, n_pairs, px, py, pz, R, near_m, active, listed
                 )
                 rx, ry, rz, rtheta = px, py, pz, theta
             touch[:] = 0.0
-            prism_contacts(
-                ksph, kchunks, kshapes, prisms, active, n_active, contact, visc_max,
-                px, py, pz, R, gx, gy, gz, vx, vy, vz, ox, oy, oz, touch,
+            _listed_contacts(
+                ksph, kchunks, prisms, active, n_active, listed, contact, visc_max,
+                px, py, pz, R, gx, gy, gz, vx, vy, vz, ox, oy, oz, part, touch,
             )  # fmt: skip
             f0, f1, f2 = f0 + touch[0], f1 + touch[1], f2 + touch[2]
             f3, f4, f5 = f3 + touch[3], f4 + touch[4], f5 + touch[5]

@@ -392,11 +392,11 @@ def test_the_station_rows_at_any_pose_are_each_prisms_own_to_the_bit():
 
 
 def test_a_control_step_over_the_near_pairs_is_the_step_over_every_pair_to_the_bit():
-    """The kernel tests only the pairs near their prism (PRISM_NEAR_M, chosen again as the hull
-    moves): over the shipped policy's approaches and landings on the station (8 vehicles, noisy
-    actions, 120 steps), every control step gives the state and accelerations that testing
-    every pair at every substep gives (near_m = inf), byte for byte, and the station's contact
-    was there (without it, other states)."""
+    """The kernel tests only the pairs, and their spheres, near their prism (PRISM_NEAR_M,
+    chosen again as the hull moves): over the shipped policy's approaches and landings on the
+    station (8 vehicles, noisy actions, 120 steps), every control step gives the state and
+    accelerations that testing every pair and sphere at every substep gives (near_m = inf),
+    byte for byte, and the station's contact was there (without it, other states)."""
     import uwdock.sim.batch as batch
     from uwdock.rl.env.batch_env import BatchDockingEnv
     from uwdock.rl.evaluate.episodes import as_controller
