@@ -672,29 +672,22 @@ def prism_contacts(
             (N s/m).
         Others as for :func:`plane_contacts`.
     """
-    k, c, v_eps = contact[0], contact[1], contact[3]
-    part = np.zeros(6)
-    q = 0
-    while q < n_pairs:
-        sh = pairs[q, 2]
-        part[:] = 0.0
-        count = 0
-        while q < n_pairs and pairs[q, 2] == sh:
-            g, o = pairs[q, 0], prisms[pairs[q, 1]]
-            q += 1
-            bx, by, bz, rg = chunks[g, 2], chunks[g, 3], chunks[g, 4], chunks[g, 5]
-            cxg = px + R[0, 0] * bx + R[0, 1] * by + R[0, 2] * bz
-            cyg = py + R[1, 0] * bx + R[1, 1] * by + R[1, 2] * bz
-            czg = pz + R[2, 0] * bx + R[2, 1] * by + R[2, 2] * bz
-            if _outside(o, cxg, cyg, czg, rg):
-                continue
-            count += _chunk_contacts(
-                spheres, int(chunks[g, 0]), int(chunks[g, 1]), o, k, c, o[19], v_eps,
-                visc_max, px, py, pz, R, gx, gy, gz, vx, vy, vz, ox, oy, oz, part,
-            )  # fmt: skip
-        if count > 0:
-            for a in range(6):
-                out[a] += part[a] / count
+    # every pair with all its chunk's spheres: the kernel's listed pairs, none left out
+    active = np.empty((n_pairs, 5), dtype=np.int64)
+    n = 0
+    for q in range(n_pairs):
+        g = pairs[q, 0]
+        active[q, 0], active[q, 1], active[q, 2] = g, pairs[q, 1], pairs[q, 2]
+        active[q, 3], active[q, 4] = n, n + int(chunks[g, 1]) - int(chunks[g, 0])
+        n = active[q, 4]
+    listed = np.empty(n, dtype=np.int64)
+    for q in range(n_pairs):
+        for t in range(active[q, 3], active[q, 4]):
+            listed[t] = int(chunks[pairs[q, 0], 0]) + t - active[q, 3]
+    _listed_contacts(
+        spheres, chunks, prisms, active, n_pairs, listed, contact, visc_max, px, py, pz, R,
+        gx, gy, gz, vx, vy, vz, ox, oy, oz, np.empty(6), out,
+    )  # fmt: skip
 
 
 @njit(cache=True)
@@ -728,22 +721,6 @@ def _listed_contacts(
         if count > 0:
             for a in range(6):
                 out[a] += part[a] / count
-
-
-@njit(cache=True)
-def _chunk_contacts(
-    spheres, i0, i1, o, k, c, mu, v_eps, visc_max, px, py, pz, R, gx, gy, gz,
-    vx, vy, vz, ox, oy, oz, part,
-):  # fmt: skip
-    """:func:`prism_contacts` for spheres ``i0 .. i1 - 1`` against prism row ``o``: adds to
-    ``part``, returns how many touch."""
-    count = 0
-    for i in range(i0, i1):
-        count += _sphere_contact(
-            spheres, i, o, k, c, mu, v_eps, visc_max, px, py, pz, R, gx, gy, gz,
-            vx, vy, vz, ox, oy, oz, part,
-        )  # fmt: skip
-    return count
 
 
 @njit(cache=True)
