@@ -28,6 +28,7 @@ Example:
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, replace
 from typing import Annotated
@@ -200,9 +201,17 @@ class ThrusterArray:
         self.time_constant_s = np.array([t.time_constant_s for t in ts], dtype=float)
         self._powers_key: tuple[float, int] | None = None
         self._powers = np.empty((0, len(ts)))
+
+    @functools.cached_property
+    def _alloc(self) -> np.ndarray:
+        """(n, 6) the weighted pseudo-inverse, made at first use: the true thrusters of a
+        randomised vehicle (drawn at every reset) need only ``B``; the nominal ones allocate."""
         w = np.sqrt(np.asarray(self.config.allocation_weights, dtype=float))
-        self._alloc = np.linalg.pinv(w[:, None] * self.B) * w[None, :]  # (n, 6)
-        self._max_wrench = self._compute_max_wrench()
+        return np.linalg.pinv(w[:, None] * self.B) * w[None, :]
+
+    @functools.cached_property
+    def _max_wrench(self) -> np.ndarray:
+        return self._compute_max_wrench()
 
     @property
     def names(self) -> tuple[str, ...]:

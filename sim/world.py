@@ -75,6 +75,11 @@ class DockingWorld:
         self.vehicle.set_tank_planes(
             tank_planes(L, W, D, lid=lid), friction=self.ds_cfg.dynamic_friction
         )
+        #: give the entities a fresh PhysX system at every reset (module docstring); False
+        #: where this scene's PhysX never steps and the reset only places the bodies for
+        #: another simulator to read (:class:`uwdock.rl.env.batch_env.BatchDockingEnv` with
+        #: the kernel's or the shared scene's contact)
+        self.fresh_physics = True
         #: (4, 4) this episode's mounting error, the true camera frame in the calibrated one
         self.T_camcal_camtrue = np.eye(4)
         self._T_body_rendered: np.ndarray | None = None  # the body pose correction it implies
@@ -103,7 +108,8 @@ class DockingWorld:
     ) -> None:
         """Move the DS, draw the current, (optionally) the vehicle and the camera's mounting
         error, place the vehicle. Nothing is drawn for a zero range (same random stream)."""
-        self._fresh_physics()
+        if self.fresh_physics:
+            self._fresh_physics()
         self.ds.set_pose(T_world_ds)
         self.current.reset(rng)
         if self.cfg.randomise_vehicle:

@@ -350,3 +350,25 @@ def test_cross3_is_np_cross_bit_for_bit():
         a, b = rng.normal(size=3) * 10.0 ** rng.integers(-6, 6), rng.normal(size=3)
         assert F.cross3(a, b).tobytes() == np.cross(a, b).tobytes()
     assert F.cross3([1.0, 0.0, 0.0], (0.0, 1.0, 0.0)).tolist() == [0.0, 0.0, 1.0]
+
+
+def test_quat_of_a_matrix_is_scipys_to_the_bit():
+    """quat_wxyz_from_R does SciPy's conversion in scalar arithmetic: the same bits on random
+    rotations, on Euler compositions with right angles (ties between the diagonal and the
+    trace), on the half turns, and on matrices SciPy orthogonalises first (which go to it)."""
+    from scipy.spatial.transform import Rotation
+
+    def scipy_wxyz(R):
+        q = Rotation.from_matrix(R).as_quat()[[3, 0, 1, 2]]
+        return -q if q[0] < 0 else q
+
+    rng = np.random.default_rng(7)
+    mats = list(Rotation.random(3000, random_state=rng).as_matrix())
+    right = [0.0, math.pi / 2, math.pi, -math.pi / 2]
+    mats += [F.R_from_rpy(*rng.choice(right, 3)) for _ in range(300)]
+    mats += [F.R_from_rpy(0.0, 0.0, y) for y in rng.uniform(-math.pi, math.pi, 300)]
+    mats += [np.eye(3), np.diag([1.0, -1, -1]), np.diag([-1.0, 1, -1]), np.diag([-1.0, -1, 1])]
+    skewed = [R + rng.normal(0.0, 3e-8, (3, 3)) for R in Rotation.random(300, rng).as_matrix()]
+    assert all(F._needs_orthogonalising(R.tolist()) for R in skewed)  # SciPy's own branch
+    for R in mats + skewed:
+        assert F.quat_wxyz_from_R(R).tobytes() == scipy_wxyz(R).tobytes()

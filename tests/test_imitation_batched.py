@@ -100,3 +100,38 @@ def test_batched_warm_start_imitates_the_teacher(tmp_path):
     teacher = docked(batched_episodes(PIDs(8), CFG, 8, 700_000))
     assert docked(untrained) == 0 and student >= teacher - 0.25 and student >= 0.5
     venv.close()
+
+
+def test_the_warm_start_split_over_the_batch_workers_is_the_one_process_warm_start(tmp_path):
+    """The warm start's batch split over the training's two batch processes (the trainer's and
+    a worker's, 3 and 2 episodes) is the batch of one process: the same episodes, the same
+    fitted weights and normalisation to the bit (with the kernel's station contact, the
+    recipe's: the shared PhysX scene rounds contacts by how the batch is split)."""
+    import hashlib
+
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    from uwdock.rl.env.batch_env import BatchDockingEnv
+    from uwdock.rl.train.batch_workers import BatchWorkers
+    from uwdock.rl.train.training import PPOConfig, TrainConfig, build_model
+
+    env = replace(CFG, world=replace(CFG.world, batch_contact="kernel"))
+    cfg = replace(TrainConfig(), n_envs=4, env=env, ppo=replace(PPOConfig(), batch_size=64))
+    icfg = ImitationConfig(iterations=2, episodes_per_iteration=5, epochs=3)
+    out = {}
+    for split in (False, True):
+        workers = BatchWorkers(env, 4, seed=0, workers=2) if split else None
+        venv = VecNormalize(workers.venv if split else BatchDockingEnv(env, 4))
+        try:
+            model = build_model(cfg, venv, tmp_path / f"tb{split}")
+            hist = warm_start(
+                model, venv, env, icfg, seed=0, gamma=0.99, progress=False, batched=True,
+                workers=workers.venv if split else None,
+            )  # fmt: skip
+            weights = b"".join(p.detach().numpy().tobytes() for p in model.policy.parameters())
+            rms = venv.obs_rms.mean.tobytes() + venv.obs_rms.var.tobytes()
+            out[split] = (hist, hashlib.sha256(weights + rms).hexdigest())
+        finally:
+            venv.close() if workers is None else workers.close()
+    assert out[True][0]["env_steps"] == out[False][0]["env_steps"]
+    assert out[True] == out[False]

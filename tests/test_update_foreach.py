@@ -70,3 +70,36 @@ def test_adam_over_all_tensors_learns_the_same_bits_as_one_at_a_time(tmp_path, m
     final = list(models[0].policy.parameters())
     moved = [not torch.equal(a, b) for a, b in zip(first[0], final, strict=True)]
     assert sum(moved) >= len(moved) - 1  # all but, at most, the action's log std
+
+
+def test_the_warm_starts_fit_with_adam_over_all_tensors_is_the_one_at_a_time_fit(monkeypatch):
+    """DAgger's supervised fit (rl.train.imitation) asks for Adam over all tensors, and gets
+    the bits of the per-tensor Adam: policy and value fitted to random labels, byte for byte."""
+    import copy
+
+    import numpy as np
+
+    from uwdock.rl.policy.policy_io import load_policy
+    from uwdock.rl.train import imitation
+
+    model, _ = load_policy(str(Path(__file__).resolve().parents[1] / "rl/policies/realistic_ppo"))
+    start = copy.deepcopy(model.policy.state_dict())
+    rng = np.random.default_rng(3)
+    X, A = rng.normal(0, 1, (1500, 18)), rng.uniform(-1.2, 1.2, (1500, 6))
+    G = rng.normal(0, 5, 1500)
+    cfg = imitation.ImitationConfig(epochs=3)
+    adam, asked, out = torch.optim.Adam, [], {}
+    for foreach in (True, False):
+
+        def built(*args, _forced=foreach, **kwargs):
+            asked.append(kwargs.get("foreach"))
+            return adam(*args, **{**kwargs, "foreach": _forced})
+
+        monkeypatch.setattr(torch.optim, "Adam", built)
+        model.policy.load_state_dict(start)
+        imitation._fit_epochs(model, None, X, A, G, cfg)
+        out[foreach] = b"".join(p.detach().numpy().tobytes() for p in model.policy.parameters())
+    assert asked == [True, True]  # what the fit asks for
+    assert out[True] == out[False]
+    moved = b"".join(t.numpy().tobytes() for t in start.values())
+    assert out[True] != moved

@@ -173,6 +173,9 @@ class BatchDockingEnv(VecEnv):
             contact=config.world.batch_contact,
             slot_ids=slot_ids,
         )
+        if config.world.batch_contact != "own":  # the slots' own PhysX never steps
+            for e in self.envs:
+                e.world.fresh_physics = False
         est = e0.filter.cfg
         q = np.array(
             [est.drift_xyz_m_per_sqrt_s] * 3 + [math.radians(est.drift_yaw_deg_per_sqrt_s)]

@@ -37,6 +37,7 @@ class BatchGroup:
         self.current = self.indices[0]
         self.venv: BatchDockingEnv | None = None
         self._eval: tuple[tuple, BatchDockingEnv] | None = None  # kept between evaluations
+        self._side: tuple[int, BatchDockingEnv] | None = None  # a share of a SplitBatch
 
     def build(self, env_cfg: EnvConfig, seed: int) -> None:
         from uwdock.rl.env.batch_env import BatchDockingEnv  # SB3 at module level
@@ -96,6 +97,42 @@ class BatchGroup:
             model, job.env_cfg, hi - lo, job.seed, vecnorm, first=lo, venv=self._eval[1]
         )
 
+    # ------------------------------------------------------------------ a share of a SplitBatch
+    def side_open(self, env_cfg: EnvConfig, lo: int, hi: int, seed: int) -> None:
+        """Hold envs ``lo .. hi - 1`` of a batch of ``env_cfg`` beside the training envs
+        (:class:`rl.train.grouped_vec_env.SplitBatch`): env ``k`` seeded with ``seed + k`` and
+        at slot ``k``, as in one batch of them all."""
+        from uwdock.rl.env.batch_env import BatchDockingEnv  # SB3 at module level
+
+        self.side_close()
+        self._side = (lo, BatchDockingEnv(env_cfg, hi - lo, seed=seed + lo, slot_ids=range(lo, hi)))
+
+    def _side_batch(self) -> tuple[int, BatchDockingEnv]:
+        if self._side is None:
+            raise RuntimeError("BatchGroup: side_open() first")
+        return self._side
+
+    def side_reset(self, seed: int | None) -> np.ndarray:
+        """Reset the share (``seed``: the whole batch's, as :meth:`BatchDockingEnv.seed`); its
+        first observations."""
+        lo, v = self._side_batch()
+        if seed is not None:
+            v.seed(seed + lo)
+        return v.reset()
+
+    def side_step(
+        self, actions: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, StepColumns]:
+        """One step of the share with its rows of the actions (:meth:`step_batch`'s arrays)."""
+        _, v = self._side_batch()
+        v.step_async(actions)
+        return v.step_columns()
+
+    def side_close(self) -> None:
+        if self._side is not None:
+            self._side[1].close()
+            self._side = None
+
     def env_method(self, slots: Sequence[int], name: str, args: tuple, kwargs: dict) -> list:
         return self._batch().env_method(name, *args, indices=list(slots), **kwargs)
 
@@ -120,6 +157,7 @@ class BatchGroup:
             self.venv.close()
         if self._eval is not None:
             self._eval[1].close()
+        self.side_close()
 
 
 class BatchWorkers:

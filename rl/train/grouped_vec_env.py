@@ -20,9 +20,10 @@ from stable_baselines3.common.vec_env import VecEnv
 from uwdock.rl.env.batch_env import StepColumns, info_rows
 
 if TYPE_CHECKING:
+    from uwdock.rl.env.config import EnvConfig
     from uwdock.rl.train.workers import EvalJob
 
-__all__ = ["BatchGroupsVecEnv", "GroupedVecEnv", "Hosts", "stack_observations"]
+__all__ = ["BatchGroupsVecEnv", "GroupedVecEnv", "Hosts", "SplitBatch", "stack_observations"]
 
 
 class Hosts(Protocol):
@@ -193,6 +194,11 @@ class BatchGroupsVecEnv(GroupedVecEnv):
         ]
         return [r for rows in self.hosts.gather(handles) for r in rows]
 
+    def split_batch(self, env_cfg: EnvConfig, n_envs: int, seed: int) -> SplitBatch:
+        """A batch of ``n_envs`` envs of ``env_cfg`` beside the training envs, split in
+        consecutive shares over the same workers (:class:`SplitBatch`)."""
+        return SplitBatch(self.hosts, min(len(self.groups), n_envs), env_cfg, n_envs, seed)
+
     def step_wait(self):
         parts = self.hosts.gather(self._pending)
         self.waiting = False
@@ -203,3 +209,52 @@ class BatchGroupsVecEnv(GroupedVecEnv):
             np.concatenate([p[2] for p in parts]),
             info_rows(StepColumns.concat([p[3] for p in parts])),
         )
+
+
+class SplitBatch:
+    """``n_envs`` envs of one config as one batch (:class:`rl.env.batch_env.BatchDockingEnv`'s
+    ``seed``, ``reset``, ``step``), held in consecutive shares by the training's batch workers
+    (:meth:`rl.train.batch_workers.BatchGroup.side_open`) and stepped in all of them at once, so
+    that a batch the trainer drives alone (the warm start's episodes, :mod:`rl.train.imitation`)
+    uses every core. Env ``k`` is seeded with ``seed + k`` and draws from its own generators:
+    the episodes are those of one batch of all the envs (tested).
+
+    Args:
+        hosts: the batch workers' hosts (:class:`Hosts`); workers: how many take a share.
+        env_cfg: the envs' config; n_envs: how many; seed: env ``k`` first resets with
+            ``seed + k``.
+    """
+
+    def __init__(self, hosts: Hosts, workers: int, env_cfg: EnvConfig, n_envs: int, seed: int):
+        self.hosts = hosts
+        self.num_envs = int(n_envs)
+        cuts = [self.num_envs * k // workers for k in range(workers + 1)]
+        self._spans = [(cuts[k], cuts[k + 1]) for k in range(workers)]
+        self._seed: int | None = None
+        self._all("side_open", *[(env_cfg, lo, hi, int(seed)) for lo, hi in self._spans])
+
+    def _all(self, method: str, *per_worker: tuple) -> list[Any]:
+        handles = [self.hosts.submit(w, method, *args) for w, args in enumerate(per_worker)]
+        return self.hosts.gather(handles)
+
+    def seed(self, seed: int | None = None) -> None:
+        """Seed the next reset (env ``k``: ``seed + k``) and each env's per-step noise."""
+        self._seed = None if seed is None else int(seed)
+
+    def reset(self) -> np.ndarray:
+        seed, self._seed = self._seed, None
+        return np.concatenate(self._all("side_reset", *[(seed,)] * len(self._spans)))
+
+    def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[dict]]:
+        """Step every env (auto-reset where done): observations, rewards, dones, infos."""
+        a = np.asarray(actions)
+        parts = self._all("side_step", *[(a[lo:hi],) for lo, hi in self._spans])
+        return (
+            np.concatenate([p[0] for p in parts]),
+            np.concatenate([p[1] for p in parts]),
+            np.concatenate([p[2] for p in parts]),
+            info_rows(StepColumns.concat([p[3] for p in parts])),
+        )
+
+    def close(self) -> None:
+        self._all("side_close", *[()] * len(self._spans))

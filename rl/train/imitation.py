@@ -75,6 +75,7 @@ def warm_start(
     progress: bool = True,
     batched: bool = False,
     threads: int = 1,
+    workers: Any = None,
 ) -> dict[str, list[float]]:
     """Fit ``model``'s policy (and value) to the teacher by DAgger; updates ``vecnorm``'s stats.
 
@@ -83,7 +84,9 @@ def warm_start(
     imitation of a controller with sharp decisions does not improve monotonically.
 
     ``batched``: each iteration's episodes at once on the batched simulator (the training
-    simulator ``"batched"``), else one at a time. ``threads``: torch's threads while fitting
+    simulator ``"batched"``), else one at a time; ``workers``: with ``batched``, the training's
+    batch workers (:class:`rl.train.grouped_vec_env.BatchGroupsVecEnv`) to split that batch
+    over (the same episodes, on every core). ``threads``: torch's threads while fitting
     (PPO's ``update_threads``: the simulator waits meanwhile); the rollouts run on one.
 
     Returns:
@@ -97,8 +100,13 @@ def warm_start(
     policy = model.policy
     total = (cfg.iterations + 1) * cfg.episodes_per_iteration
     bar = tqdm(total=total, desc="imitation", unit="ep", disable=not progress)
-    kind = _BatchRollouts if batched else _Rollouts
-    rollouts = kind(env_cfg, success_key, policy, vecnorm, cfg, gamma, bar, ep_seed=seed + 500_000)
+    args = (env_cfg, success_key, policy, vecnorm, cfg, gamma, bar)
+    if not batched:
+        rollouts = _Rollouts(*args, ep_seed=seed + 500_000)
+    elif workers is None:
+        rollouts = _BatchRollouts(*args, ep_seed=seed + 500_000)
+    else:
+        rollouts = _SplitRollouts(*args, ep_seed=seed + 500_000, workers=workers)
     history, states = _dagger(model, vecnorm, rollouts, cfg, bar, threads)
     final_frac, *_ = rollouts.collect(student=True)
     history["docked"].append(final_frac)
@@ -223,6 +231,22 @@ class _BatchRollouts(_Rollouts):
             yield (*eps[i], success[i])
 
 
+class _SplitRollouts(_BatchRollouts):
+    """:class:`_BatchRollouts` on a batch split over the training's batch workers
+    (``workers``, :meth:`rl.train.grouped_vec_env.BatchGroupsVecEnv.split_batch`): the teacher
+    and the student act here on the whole batch's observations, as in one process (the
+    network's products round by batch size), and each env's draws are its own, so the episodes
+    are those of :class:`_BatchRollouts` while every core steps them."""
+
+    def __init__(self, *args: Any, workers: Any, **kwargs: Any) -> None:
+        self.workers = workers
+        super().__init__(*args, **kwargs)
+
+    def _open(self) -> Any:
+        n = self.cfg.episodes_per_iteration
+        return self.workers.split_batch(self.env_cfg, n, self.ep_seed)
+
+
 def _dagger(
     model, vecnorm, rollouts: _Rollouts, cfg: ImitationConfig, bar: tqdm, threads: int = 1
 ) -> tuple[dict[str, list[float]], list[tuple[dict, Any]]]:
@@ -301,7 +325,8 @@ def _fit_epochs(
     x = torch.as_tensor(Xn, dtype=torch.float32)
     a = torch.as_tensor(np.clip(A, -1, 1), dtype=torch.float32)
     g = torch.as_tensor(G, dtype=torch.float32)
-    opt = torch.optim.Adam(policy.parameters(), lr=cfg.learning_rate)
+    # over all tensors at once: the same bits as one at a time (as PPO's, training.build_model)
+    opt = torch.optim.Adam(policy.parameters(), lr=cfg.learning_rate, foreach=True)
     n = len(x)
     gen = torch.Generator().manual_seed(0)
     last = 0.0

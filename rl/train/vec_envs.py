@@ -24,6 +24,7 @@ random state, so the rollouts, checkpoints and evaluations do not depend on ``K`
 
 from __future__ import annotations
 
+import gc
 import multiprocessing
 import os
 import pickle
@@ -176,6 +177,7 @@ def _group_worker(
     group = group_cls(indices)
     try:
         group.build(env_cfg, seed)
+        gc.freeze()  # the libraries and envs live as long as the worker (training.py: _run)
         while True:
             try:
                 method, args = conn.recv()
