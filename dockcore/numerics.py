@@ -14,6 +14,11 @@ runs the same way:
                                 give the same bits with any thread count (oneMKL developer
                                 guide, "Reproducibility Conditions"); ``COMPATIBLE`` (SSE2)
                                 on a CPU without AVX2
+``OPENBLAS_CORETYPE=Haswell``   the OpenBLAS that NumPy and SciPy bundle (their matrix
+                                products, small ones included, and LAPACK) on its AVX2
+                                kernels on every CPU that has AVX2 and FMA, not the AVX-512
+                                ones it picks where they exist; ``Prescott`` (SSE3) on a CPU
+                                without them
 ``ATEN_CPU_CAPABILITY=default`` torch's ATen without its AVX2/AVX-512 kernels
 ``NUMBA_CPU_NAME=generic``      numba compiles for a generic x86-64 CPU, not this one
 ``*_NUM_THREADS=1``             no reduction split over a CPU-dependent thread count (a
@@ -69,10 +74,17 @@ def mkl_branch(flags: frozenset[str]) -> str:
     return "AVX2,STRICT" if {"avx2", "fma"} <= flags else "COMPATIBLE"
 
 
+def openblas_core(flags: frozenset[str]) -> str:
+    """The OpenBLAS core whose kernels a CPU with ``flags`` runs (module docstring): its
+    choice for the first CPUs with AVX2 and FMA, which every such CPU runs the same way."""
+    return "Haswell" if {"avx2", "fma"} <= flags else "Prescott"
+
+
 #: What a pinned process runs with (module docstring).
 PINNED: dict[str, str] = {
     "NPY_DISABLE_CPU_FEATURES": _NUMPY_TARGETS,
     "MKL_CBWR": mkl_branch(cpu_flags()),
+    "OPENBLAS_CORETYPE": openblas_core(cpu_flags()),
     "ATEN_CPU_CAPABILITY": "default",
     "NUMBA_CPU_NAME": "generic",
     "OMP_NUM_THREADS": "1",

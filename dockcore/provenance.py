@@ -103,6 +103,7 @@ NUMERICS_ENV = (
     "OMP_NUM_THREADS",
     "MKL_NUM_THREADS",
     "OPENBLAS_NUM_THREADS",
+    "OPENBLAS_CORETYPE",
     "MKL_DYNAMIC",
     "OMP_DYNAMIC",
     "UWDOCK_NUMERICS",  # "pinned": dockcore.numerics

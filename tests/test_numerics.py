@@ -73,6 +73,49 @@ def test_mkl_runs_its_avx2_path_where_the_cpu_has_avx2_and_fma(tmp_path):
     assert N.PINNED["MKL_DYNAMIC"] == N.PINNED["OMP_DYNAMIC"] == "FALSE"
 
 
+def test_openblas_runs_its_avx2_kernels_where_the_cpu_has_avx2_and_fma():
+    assert N.openblas_core(frozenset({"sse2", "avx", "avx2", "fma", "avx512f"})) == "Haswell"
+    assert N.openblas_core(frozenset({"sse2", "avx", "avx2"})) == "Prescott"
+    assert N.openblas_core(frozenset()) == "Prescott"
+    assert N.PINNED["OPENBLAS_CORETYPE"] == N.openblas_core(N.cpu_flags())
+
+
+_PRODUCTS = """import hashlib, sys
+from uwdock.dockcore import numerics
+if sys.argv[1] == "pinned":
+    numerics.pin_before_loading()
+import numpy as np
+rng, h = np.random.default_rng(0), hashlib.sha256()
+for _ in range(300):  # NumPy's products through its OpenBLAS, the small ones of a step included
+    R, v, M, N = (rng.normal(size=s) for s in ((3, 3), (3,), (40, 30), (30, 20)))
+    h.update((R @ v).tobytes() + (M @ N).tobytes() + np.linalg.pinv(M).tobytes())
+print(h.hexdigest())
+"""
+
+
+def _products(mode: str, coretype: str | None) -> str:
+    env = {k: v for k, v in os.environ.items() if k not in N.PINNED}
+    if coretype is not None:
+        env["OPENBLAS_CORETYPE"] = coretype
+    res = subprocess.run([sys.executable, "-c", _PRODUCTS, mode], capture_output=True,
+                         text=True, timeout=120, cwd=ROOT, env=env)  # fmt: skip
+    assert res.returncode == 0, res.stderr[-2000:]
+    return res.stdout.strip()
+
+
+@pytest.mark.skipif(N.PINNED.get("OPENBLAS_CORETYPE") != "Haswell", reason="an AVX2 CPU's pin")
+def test_the_pin_holds_numpys_openblas_to_one_kernel_set():
+    """NumPy's matrix products, 3x3 ones included, round by the OpenBLAS kernels it picks for
+    the CPU (an older CPU's, here ``Prescott``'s, give other bits): pinned, a process runs the
+    AVX2 kernels whatever the CPU or the environment would have picked."""
+    assert _products("native", "Prescott") != _products("native", "Haswell")  # the control
+    assert (
+        _products("pinned", "Prescott")
+        == _products("pinned", None)
+        == _products("native", "Haswell")
+    )
+
+
 def _train(out: Path, config: Path, *args: object, env: dict | None = None, timeout: int = 600):
     """``rl train`` through the console script, as a user runs it (a process that is the
     command's own program: one it may start again pinned)."""
