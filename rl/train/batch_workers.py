@@ -88,10 +88,7 @@ class BatchGroup:
         if self._eval is None or self._eval[0] != key:
             if self._eval is not None:
                 self._eval[1].close()
-            from uwdock.rl.env.batch_env import BatchDockingEnv  # SB3 at module level
-
-            venv = BatchDockingEnv(job.env_cfg, hi - lo, seed=job.seed + lo, slot_ids=range(lo, hi))
-            self._eval = (key, venv)
+            self._eval = (key, _share(job.env_cfg, lo, hi, job.seed))
         model, vecnorm = job.policy()
         return batched_episodes(
             model, job.env_cfg, hi - lo, job.seed, vecnorm, first=lo, venv=self._eval[1]
@@ -102,10 +99,8 @@ class BatchGroup:
         """Hold envs ``lo .. hi - 1`` of a batch of ``env_cfg`` beside the training envs
         (:class:`rl.train.grouped_vec_env.SplitBatch`): env ``k`` seeded with ``seed + k`` and
         at slot ``k``, as in one batch of them all."""
-        from uwdock.rl.env.batch_env import BatchDockingEnv  # SB3 at module level
-
         self.side_close()
-        self._side = (lo, BatchDockingEnv(env_cfg, hi - lo, seed=seed + lo, slot_ids=range(lo, hi)))
+        self._side = (lo, _share(env_cfg, lo, hi, seed))
 
     def _side_batch(self) -> tuple[int, BatchDockingEnv]:
         if self._side is None:
@@ -158,6 +153,14 @@ class BatchGroup:
         if self._eval is not None:
             self._eval[1].close()
         self.side_close()
+
+
+def _share(env_cfg: EnvConfig, lo: int, hi: int, seed: int) -> BatchDockingEnv:
+    """Envs ``lo .. hi - 1`` of a batch whose env ``k`` is seeded with ``seed + k`` and sits at
+    slot ``k``: a worker's consecutive share of it, the same episodes as in one batch."""
+    from uwdock.rl.env.batch_env import BatchDockingEnv  # SB3 at module level
+
+    return BatchDockingEnv(env_cfg, hi - lo, seed=seed + lo, slot_ids=range(lo, hi))
 
 
 class BatchWorkers:

@@ -55,6 +55,23 @@ def stack_observations(obs: Sequence[Any], space: spaces.Space) -> Any:
     return np.stack(obs)
 
 
+def consecutive_spans(n: int, workers: int) -> list[tuple[int, int]]:
+    """``n`` items in ``workers`` consecutive shares as even as they go: ``(lo, hi)`` each."""
+    cuts = [n * k // workers for k in range(workers + 1)]
+    return [(cuts[k], cuts[k + 1]) for k in range(workers)]
+
+
+def joined_steps(parts: Sequence[tuple]) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[dict]]:
+    """The shares' :meth:`BatchGroup.step_batch` arrays as one step of all their envs:
+    observations, rewards, dones and SB3's per-env infos."""
+    return (
+        np.concatenate([p[0] for p in parts]),
+        np.concatenate([p[1] for p in parts]),
+        np.concatenate([p[2] for p in parts]),
+        info_rows(StepColumns.concat([p[3] for p in parts])),
+    )
+
+
 class GroupedVecEnv(VecEnv):
     """``n_envs`` envs in groups on workers behind SB3's ``VecEnv`` (:mod:`rl.train.vec_envs`).
 
@@ -187,10 +204,9 @@ class BatchGroupsVecEnv(GroupedVecEnv):
     def evaluate(self, job: EvalJob) -> list[dict[str, Any]]:
         """``job``'s episodes split in consecutive shares over the workers, run at once
         (:meth:`BatchGroup.evaluate_batch`); their rows in episode order."""
-        n, w = job.n_episodes, min(len(self.groups), job.n_episodes)
-        cuts = [n * k // w for k in range(w + 1)]
+        spans = consecutive_spans(job.n_episodes, min(len(self.groups), job.n_episodes))
         handles = [
-            self.hosts.submit(k, "evaluate_batch", job, cuts[k], cuts[k + 1]) for k in range(w)
+            self.hosts.submit(k, "evaluate_batch", job, lo, hi) for k, (lo, hi) in enumerate(spans)
         ]
         return [r for rows in self.hosts.gather(handles) for r in rows]
 
@@ -203,12 +219,7 @@ class BatchGroupsVecEnv(GroupedVecEnv):
         parts = self.hosts.gather(self._pending)
         self.waiting = False
         self.reset_infos = [{} for _ in range(self.num_envs)]
-        return (
-            np.concatenate([p[0] for p in parts]),
-            np.concatenate([p[1] for p in parts]),
-            np.concatenate([p[2] for p in parts]),
-            info_rows(StepColumns.concat([p[3] for p in parts])),
-        )
+        return joined_steps(parts)
 
 
 class SplitBatch:
@@ -228,8 +239,7 @@ class SplitBatch:
     def __init__(self, hosts: Hosts, workers: int, env_cfg: EnvConfig, n_envs: int, seed: int):
         self.hosts = hosts
         self.num_envs = int(n_envs)
-        cuts = [self.num_envs * k // workers for k in range(workers + 1)]
-        self._spans = [(cuts[k], cuts[k + 1]) for k in range(workers)]
+        self._spans = consecutive_spans(self.num_envs, workers)
         self._seed: int | None = None
         self._all("side_open", *[(env_cfg, lo, hi, int(seed)) for lo, hi in self._spans])
 
@@ -248,13 +258,7 @@ class SplitBatch:
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[dict]]:
         """Step every env (auto-reset where done): observations, rewards, dones, infos."""
         a = np.asarray(actions)
-        parts = self._all("side_step", *[(a[lo:hi],) for lo, hi in self._spans])
-        return (
-            np.concatenate([p[0] for p in parts]),
-            np.concatenate([p[1] for p in parts]),
-            np.concatenate([p[2] for p in parts]),
-            info_rows(StepColumns.concat([p[3] for p in parts])),
-        )
+        return joined_steps(self._all("side_step", *[(a[lo:hi],) for lo, hi in self._spans]))
 
     def close(self) -> None:
         self._all("side_close", *[()] * len(self._spans))

@@ -609,13 +609,6 @@ def _env_workers(cfg: TrainConfig, pool: PoolConfig, per_worker: int, batch_work
     return EnvWorkers(cfg.env, cfg.n_envs, cfg.seed, per_worker)
 
 
-def _split_workers(venv) -> Any:
-    """The batch workers (:class:`rl.train.grouped_vec_env.BatchGroupsVecEnv`) under
-    ``venv`` when the batched simulator is split over processes, else None."""
-    raw = venv.venv if hasattr(venv, "venv") else venv
-    return raw if hasattr(raw, "split_batch") else None
-
-
 def _restored_model(cfg: TrainConfig, run: Path, unit: Unit, venv) -> tuple[Any, Any]:
     """The model and normalisation (None without one) of checkpoint ``unit`` on ``venv``: the
     network and hyperparameters built from ``cfg``, the training state from the unit
@@ -653,6 +646,8 @@ def _new_model(
     from stable_baselines3.common.vec_env import VecNormalize
 
     gamma = cfg.ppo.gamma if cfg.algo == "ppo" else cfg.sac.gamma
+    # the batched simulator split over processes splits the warm start's batch too
+    split = venv if hasattr(venv, "split_batch") else None
     vecnorm = None
     if cfg.normalize_obs or cfg.normalize_reward:
         venv = vecnorm = VecNormalize(
@@ -665,7 +660,7 @@ def _new_model(
             model, vecnorm, cfg.env, cfg.imitation, cfg.seed, gamma, progress=progress,
             batched=cfg.simulator == "batched",
             threads=cfg.ppo.update_threads if cfg.algo == "ppo" else 1,
-            workers=_split_workers(venv),
+            workers=split,
         )  # fmt: skip
         atomic_write_json(run / "imitation.json", hist)
         if vecnorm is not None:
